@@ -1,0 +1,3 @@
+"""stdr: dynamic-scene reconstruction with deformable 3D Gaussian Splatting and STDR."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,84 @@
+"""stdr-eval RUN_DIR [RUN_DIR ...] [overrides]: re-evaluate runs and print/write the table."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from ..config import register
+from .common import CONFIG_DIR
+
+register()
+
+
+def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reevaluate: bool,
+                  out_dir: Path, base: str) -> dict:
+    import json
+
+    from ..eval.evaluate import evaluate_run
+    from ..eval.table import collect, method_name, markdown, write_tables
+    from ..train.trainer import CKPT, Trainer
+
+    rows = []
+    for r in runs:
+        rd = Path(r) if Path(r).is_absolute() else Path(base) / r
+        cfg_path = rd / "config.yaml"
+        if not cfg_path.is_file():
+            raise FileNotFoundError(f"{rd} is not a stdr run directory (no config.yaml); "
+                                    "pass folders that stdr-train wrote")
+        cfg = OmegaConf.merge(OmegaConf.structured(__import__("stdr.config", fromlist=["Config"]).Config),
+                              OmegaConf.load(cfg_path))
+        sp = split or cfg.data.eval_split
+        if reevaluate:
+            if render_cfg is not None:
+                cfg.render = render_cfg
+            cfg.train.threads = cfg.train.threads
+            tr = Trainer(cfg, rd, splits=(sp,), data_base=base)
+            tr.load(rd / CKPT, training=False)
+            res = evaluate_run(tr, sp, eval_cfg)
+        else:
+            mp = rd / "metrics.json"
+            if not mp.is_file():
+                raise FileNotFoundError(f"{mp} not found: run stdr-eval without reevaluate=false")
+            res = json.loads(mp.read_text()).get(sp)
+            if res is None:
+                raise KeyError(f"{mp} has no split {sp!r}")
+        c = OmegaConf.to_container(cfg, resolve=True)
+        rows.append({"method": method_name(c), "scene": cfg.data.name, "split": sp, "metrics": res,
+                     "run_dir": str(rd)})
+    table = collect(rows)
+    paths = write_tables(table, out_dir)
+    print(markdown(table))
+    print(f"[stdr] tables: {', '.join(str(p) for p in paths.values())}")
+    return table
+
+
+@hydra.main(version_base=None, config_path=CONFIG_DIR, config_name="eval")
+def _main(cfg: DictConfig) -> None:
+    if not cfg.runs:
+        raise SystemExit("usage: stdr-eval RUN_DIR [RUN_DIR ...] [key=value ...]")
+    out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
+    evaluate_dirs(list(cfg.runs), cfg.split, cfg.eval, cfg.render, cfg.reevaluate, out,
+                  hydra.utils.get_original_cwd())
+
+
+def main() -> None:
+    """Turn positional run folders into the `runs=[...]` override, then hand over to Hydra."""
+    args, runs = [sys.argv[0]], []
+    for a in sys.argv[1:]:
+        if not a.startswith("-") and "=" not in a:
+            runs.append(a)
+        else:
+            args.append(a)
+    if runs:
+        quoted = ",".join("'" + r.replace("'", "\\'") + "'" for r in runs)
+        args.append(f"runs=[{quoted}]")
+    sys.argv = args
+    _main()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,50 @@
+"""stdr-train: train one model (Hydra app). `stdr-train --help` lists the config groups."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from ..config import register
+from .common import CONFIG_DIR, use_fast_allocator_hint
+
+register()
+
+
+def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict:
+    from ..eval.evaluate import evaluate_run
+    from ..train.trainer import Trainer
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    split = cfg.data.eval_split
+    trainer = Trainer(cfg, run_dir, splits=("train", split), data_base=data_base)
+    print(f"[stdr] {cfg.name}: {len(trainer.scene.frames('train'))} train / "
+          f"{len(trainer.scene.frames(split))} {split} frames at "
+          f"{trainer.scene.frames('train')[0].camera.width}x{trainer.scene.frames('train')[0].camera.height}, "
+          f"backend={trainer.backend}, run dir {run_dir}")
+    print(f"[stdr] TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
+    trainer.train()
+    res = evaluate_run(trainer, split, cfg.eval)
+    warm = [h for h in trainer.history if h["tag"] == "static_warmup"]
+    lp = "n/a" if res["lpips"] is None else f"{res['lpips']:.4f}"
+    print(f"[stdr] {split}: PSNR {res['psnr']:.2f} dB  SSIM {res['ssim']:.4f}  LPIPS {lp}  "
+          f"FPS {res['fps']:.1f}  Gaussians {res['num_gaussians']}  train {res['train_seconds']:.0f} s")
+    if warm:
+        print(f"[stdr] static warm-up (iteration {warm[-1]['iteration']}): PSNR {warm[-1]['psnr']:.2f} dB "
+              f"-> final {res['psnr']:.2f} dB")
+    print(f"[stdr] metrics: {run_dir / 'metrics.json'}")
+    return res
+
+
+@hydra.main(version_base=None, config_path=CONFIG_DIR, config_name="train")
+def main(cfg: DictConfig) -> None:
+    use_fast_allocator_hint()
+    run(cfg, Path(HydraConfig.get().runtime.output_dir), data_base=hydra.utils.get_original_cwd())
+
+
+if __name__ == "__main__":
+    main()

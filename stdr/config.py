@@ -1,0 +1,161 @@
+"""Structured configs: typed defaults registered with Hydra's ConfigStore.
+
+YAML files under configs/ select and override these; every key a run used is written to the run
+directory (config.yaml), and that file is what stdr-eval rebuilds the run from.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, List, Optional
+
+from hydra.core.config_store import ConfigStore
+
+
+@dataclass
+class ProceduralConfig:
+    """Options of the embedded procedural scene (see stdr.data.procedural.SceneOptions)."""
+
+    n_train: int = 60
+    n_val: int = 10
+    n_test: int = 10
+    resolution: int = 128
+    motion_speed: float = 1.0
+    swing_degrees: float = 60.0
+    bounce_height: float = 0.8
+    time_sampling: str = "uniform"
+    camera_radius: float = 3.3
+    seed: int = 0
+
+
+@dataclass
+class DataConfig:
+    format: str = "procedural"  # procedural | dnerf
+    name: Optional[str] = "embedded"  # scene label in tables (null: the folder name)
+    path: Optional[str] = None  # scene folder (dnerf); procedural: the generated cache folder
+    cache_dir: str = "data/embedded"  # where the procedural scene is generated (repo-relative)
+    background: Any = "white"   # white | black | [r, g, b]
+    resolution_scale: float = 1.0
+    max_width: Optional[int] = None  # after resolution_scale, cap the width (aspect kept)
+    eval_split: str = "test"    # test | val (D-NeRF lego's test split disagrees with train)
+    procedural: ProceduralConfig = field(default_factory=ProceduralConfig)
+
+
+@dataclass
+class ModelConfig:
+    init: str = "random"        # random (cube) | points (from the data)
+    init_num: int = 100_000
+    init_extent: float = 1.3
+    init_opacity: float = 0.1
+    sh_degree: int = 3
+    sh_interval: int = 1000     # raise the active SH degree every this many iterations
+
+
+@dataclass
+class BaselineConfig:
+    name: str = "deform"
+    warmup: int = 3000          # static iterations before the deformation is applied
+    depth: int = 8
+    width: int = 256
+    skips: List[int] = field(default_factory=lambda: [4])
+    xyz_freqs: int = 10
+    t_freqs: int = 6
+    time_net: bool = True
+    time_out: int = 30
+    lr_init: float = 8e-4
+    lr_final: float = 1.6e-6
+    lr_max_steps: int = 40_000
+
+
+@dataclass
+class OptimConfig:
+    iterations: int = 40_000
+    lambda_dssim: float = 0.2
+    spatial_lr_scale: float = 5.0   # Deformable 3DGS hard-codes 5 (not the scene extent)
+    means_lr_init: float = 1.6e-4   # x spatial_lr_scale
+    means_lr_final: float = 1.6e-6  # x spatial_lr_scale
+    means_lr_max_steps: int = 30_000
+    scales_lr: float = 1e-3         # x spatial_lr_scale
+    quats_lr: float = 1e-3
+    opacities_lr: float = 0.05
+    sh0_lr: float = 2.5e-3
+    shN_lr: float = 1.25e-4
+
+
+@dataclass
+class DensifyConfig:
+    grow_grad2d: float = 2e-4
+    grow_scale3d: float = 0.01
+    prune_opa: float = 0.005
+    prune_scale3d: float = 0.1
+    prune_scale2d: float = 20.0
+    prune_big_after: int = 3000
+    refine_start: int = 500
+    refine_stop: int = 15_000
+    refine_every: int = 100
+    reset_every: int = 3000
+    reset_value: float = 0.01
+    max_gaussians: int = 0
+
+
+@dataclass
+class RenderConfig:
+    backend: str = "auto"       # auto | reference
+    tile_size: int = 16
+    antialiased: bool = False
+    eps2d: float = 0.3
+    near: float = 0.01
+
+
+@dataclass
+class TrainConfig:
+    eval_every: int = 0         # periodic evaluation (0 = only at the end and end of warm-up)
+    eval_at_warmup_end: bool = True
+    checkpoint_every: int = 5000
+    log_every: int = 50
+    image_every: int = 1000
+    resume: bool = True         # resume from run_dir/checkpoints/last.pt when present
+    threads: int = 0            # torch threads (0 = torch default)
+    progress: bool = True
+
+
+@dataclass
+class EvalConfig:
+    lpips: str = "auto"         # auto (if weights are found) | true (required) | false
+    lpips_net: str = "vgg"
+    lpips_weights: Optional[str] = None  # folder with <net>16_features.pth + lpips_v0.1_<net>_lin.pth
+    lpips_input: str = "[-1,1]"  # official convention; "[0,1]" reproduces the peers' usage
+    fps_warmup: int = 3
+    save_images: bool = True
+
+
+@dataclass
+class Config:
+    name: str = "embedded_deform"  # experiment name (run folder, tables)
+    budget: str = "cpu"
+    seed: int = 0
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    baseline: BaselineConfig = field(default_factory=BaselineConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+
+@dataclass
+class EvalAppConfig:
+    """stdr-eval: (re)evaluate run directories and write the comparison table."""
+
+    runs: List[str] = field(default_factory=list)
+    split: Optional[str] = None  # default: each run's data.eval_split
+    out: Optional[str] = None    # table folder (default: outputs/tables/<timestamp>)
+    reevaluate: bool = True      # False: only tabulate the metrics.json already in the runs
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    render: Optional[RenderConfig] = None  # override the runs' render settings (e.g. backend)
+
+
+def register() -> None:
+    cs = ConfigStore.instance()
+    cs.store(name="base_config", node=Config)
+    cs.store(name="base_eval", node=EvalAppConfig)

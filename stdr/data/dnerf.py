@@ -1,0 +1,117 @@
+"""D-NeRF loader: transforms_{train,val,test}.json + RGBA PNGs, Blender/OpenGL cameras."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Iterable, Optional, Sequence
+
+import numpy as np
+import torch
+
+from ..cameras import Camera, focal_from_fov, opengl_c2w_to_opencv_w2c
+from .images import composite, read_image, resize
+from .types import Frame, SceneData
+
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+
+
+def parse_background(bg) -> tuple[float, float, float]:
+    if isinstance(bg, str):
+        if bg not in BACKGROUNDS:
+            raise ValueError(f"data.background={bg!r}: use 'white', 'black' or [r, g, b] in [0, 1]")
+        return BACKGROUNDS[bg]
+    vals = tuple(float(x) for x in bg)
+    if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
+        raise ValueError(f"data.background={bg!r}: expected three values in [0, 1]")
+    return vals
+
+
+def _read_json(path: Path) -> dict:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found: a D-NeRF scene folder holds "
+                                "transforms_train.json, transforms_val.json and transforms_test.json")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: malformed JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+
+
+def _resolve_image(root: Path, file_path: str, json_path: Path, i: int) -> Path:
+    p = (root / file_path).resolve()
+    if not p.is_relative_to(root.resolve()):
+        raise ValueError(f"{json_path}: frames[{i}].file_path={file_path!r} points outside the scene folder")
+    if p.suffix == "":
+        for ext in (".png", ".jpg", ".jpeg"):
+            if p.with_suffix(ext).is_file():
+                return p.with_suffix(ext)
+        p = p.with_suffix(".png")
+    if not p.is_file():
+        raise FileNotFoundError(f"{json_path}: frames[{i}] image {file_path!r} not found (looked for {p})")
+    return p
+
+
+def output_size(width: int, height: int, resolution_scale: float, max_width: Optional[int]) -> tuple[int, int]:
+    """Image size after `resolution_scale`, then capped at `max_width` (aspect kept)."""
+    if resolution_scale <= 0:
+        raise ValueError(f"data.resolution_scale must be > 0, got {resolution_scale}")
+    s = resolution_scale
+    if max_width and width * s > max_width:
+        s = max_width / width
+    return max(1, int(round(width * s))), max(1, int(round(height * s)))
+
+
+def load_dnerf_split(root: str | Path, split: str, background=(1.0, 1.0, 1.0),
+                     resolution_scale: float = 1.0, max_width: Optional[int] = None) -> list[Frame]:
+    root = Path(root)
+    jp = root / f"transforms_{split}.json"
+    meta = _read_json(jp)
+    for key in ("camera_angle_x", "frames"):
+        if key not in meta:
+            raise KeyError(f"{jp}: missing key {key!r}")
+    if not isinstance(meta["frames"], list) or not meta["frames"]:
+        raise ValueError(f"{jp}: 'frames' must be a non-empty list")
+    frames, size0, name0 = [], None, None
+    for i, fr in enumerate(meta["frames"]):
+        for key in ("file_path", "transform_matrix"):
+            if key not in fr:
+                raise KeyError(f"{jp}: frames[{i}] is missing key {key!r}")
+        if "time" not in fr:
+            raise KeyError(f"{jp}: frames[{i}] has no 'time'; D-NeRF frames need a time in [0, 1]")
+        t = float(fr["time"])
+        if not 0.0 <= t <= 1.0:
+            raise ValueError(f"{jp}: frames[{i}].time={t} is outside [0, 1]")
+        ip = _resolve_image(root, fr["file_path"], jp, i)
+        img = read_image(ip)
+        H0, W0 = img.shape[:2]
+        if size0 is None:
+            size0, name0 = (W0, H0), ip.name
+        elif (W0, H0) != size0:
+            raise ValueError(f"{ip}: image is {W0}x{H0} but {name0} is {size0[0]}x{size0[1]}; "
+                             "all frames of a D-NeRF scene must have one size")
+        try:
+            R, tvec = opengl_c2w_to_opencv_w2c(np.asarray(fr["transform_matrix"], dtype=np.float64))
+        except ValueError as e:
+            raise ValueError(f"{jp}: frames[{i}].transform_matrix: {e}") from None
+        fx = focal_from_fov(float(meta["camera_angle_x"]), W0)
+        fy = focal_from_fov(float(meta["camera_angle_y"]), H0) if "camera_angle_y" in meta else fx
+        cam = Camera(R=torch.from_numpy(R).float(), t=torch.from_numpy(tvec).float(), fx=fx, fy=fy,
+                     cx=W0 / 2.0, cy=H0 / 2.0, width=W0, height=H0)
+        W, H = output_size(W0, H0, resolution_scale, max_width)
+        if (W, H) != (W0, H0):
+            img = resize(img, W, H)
+            cam = cam.scaled(W / W0, H / H0)
+        rgb, alpha = composite(img, background)
+        frames.append(Frame(camera=cam, image=torch.from_numpy(np.ascontiguousarray(rgb)), time=t,
+                            name=str(ip.relative_to(root.resolve()) if ip.is_absolute() else ip),
+                            alpha=None if alpha is None else torch.from_numpy(np.ascontiguousarray(alpha))))
+    return frames
+
+
+def load_dnerf(root: str | Path, splits: Iterable[str] = ("train", "test"), background="white",
+               resolution_scale: float = 1.0, max_width: Optional[int] = None) -> SceneData:
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"D-NeRF scene folder not found: {root} (set data.path)")
+    bg = parse_background(background)
+    data = {s: load_dnerf_split(root, s, bg, resolution_scale, max_width) for s in dict.fromkeys(splits)}
+    return SceneData(root=str(root), splits=data, background=bg, meta={"format": "dnerf"})

@@ -1,0 +1,78 @@
+"""The deformation interface shared by all baselines.
+
+A deformation module maps canonical Gaussians, a time t in [0, 1] and an optional per-Gaussian
+conditioning tensor (STDR supplies one) to `Deltas`, and says how those deltas are applied.
+The baselines differ in that rule, so it is explicit, never unified silently:
+
+- Deformable 3DGS (`deform`): added *after* activation - means + dx, exp(log s) + ds,
+  normalize(q) + dq (the rasterizer normalizes again).
+- 4DGaussians (`4dgs`): added *before* activation - log s + ds, q + dq, then activations.
+- SC-GS blends control-node transforms and SP-GS applies a rigid SO(3) + translation per
+  superpoint; those modules override `apply` with their own rule.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import Tensor, nn
+
+from ..scene.gaussians import Gaussians
+
+
+@dataclass
+class Deltas:
+    means: Optional[Tensor] = None      # [N, 3]
+    quats: Optional[Tensor] = None      # [N, 4]
+    scales: Optional[Tensor] = None     # [N, 3]
+    opacities: Optional[Tensor] = None  # [N]
+
+
+def _add(x: Tensor, d: Optional[Tensor]) -> Tensor:
+    return x if d is None else x + d
+
+
+def apply_post_activation(params, d: Deltas) -> Gaussians:
+    """Deformable-3DGS rule: deltas added to activated values."""
+    q = params["quats"]
+    return Gaussians(
+        means=_add(params["means"], d.means),
+        quats=_add(q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12), d.quats),
+        scales=_add(torch.exp(params["scales"]), d.scales),
+        opacities=torch.sigmoid(params["opacities"]) if d.opacities is None
+        else (torch.sigmoid(params["opacities"]) + d.opacities).clamp(0.0, 1.0),
+        sh=torch.cat([params["sh0"], params["shN"]], 1),
+    )
+
+
+def apply_pre_activation(params, d: Deltas) -> Gaussians:
+    """4DGaussians rule: deltas added to stored (pre-activation) values, then activated."""
+    return Gaussians(
+        means=_add(params["means"], d.means),
+        quats=_add(params["quats"], d.quats),
+        scales=torch.exp(_add(params["scales"], d.scales)),
+        opacities=torch.sigmoid(_add(params["opacities"], d.opacities)),
+        sh=torch.cat([params["sh0"], params["shN"]], 1),
+    )
+
+
+class Deformation(nn.Module):
+    """Base class. Subclasses implement `forward` and set `apply_rule` (or override `apply`)."""
+
+    #: width of the per-Gaussian conditioning input this module was built for (0 = none)
+    cond_dim: int = 0
+
+    def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:  # pragma: no cover
+        raise NotImplementedError
+
+    def apply(self, params, deltas: Deltas) -> Gaussians:
+        return type(self).apply_rule(params, deltas)
+
+    apply_rule = staticmethod(apply_post_activation)
+
+    def deform(self, params, t: float, cond: Optional[Tensor] = None) -> Gaussians:
+        """Deformed, activated Gaussians at time t."""
+        if cond is not None and cond.shape != (params["means"].shape[0], self.cond_dim):
+            raise ValueError(f"conditioning must be [N, {self.cond_dim}], got {tuple(cond.shape)}")
+        return self.apply(params, self.forward(params, t, cond))

@@ -1,0 +1,73 @@
+"""Deformable 3DGS (Yang et al. 2024): an MLP of (PE(xyz), PE(t)) giving dxyz, dq, ds."""
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import torch
+from torch import Tensor, nn
+
+from .base import Deformation, Deltas, apply_post_activation
+
+
+def positional_encoding(x: Tensor, n_freqs: int) -> Tensor:
+    """NeRF encoding with the input included: [.., D] -> [.., D (1 + 2 n_freqs)].
+
+    Frequency bands 2^0 .. 2^(n_freqs-1), sin then cos per band.
+    """
+    if n_freqs == 0:
+        return x
+    freqs = 2.0 ** torch.arange(n_freqs, dtype=x.dtype, device=x.device)
+    xf = x[..., None, :] * freqs[:, None]  # [.., L, D]
+    return torch.cat([x, torch.stack([xf.sin(), xf.cos()], -2).flatten(-3)], -1)
+
+
+class DeformMLP(Deformation):
+    """depth x width ReLU MLP with a skip (input re-concatenated) after layer `skip`.
+
+    Input: PE(xyz, xyz_freqs) and either time_net(PE(t, t_freqs)) (synthetic data: a
+    Linear(., width)-ReLU-Linear(width, time_out) net) or raw PE(t) (real data), plus an
+    optional conditioning vector per Gaussian. Canonical xyz is detached: no gradient reaches
+    the Gaussians' positions through the network. Heads: dxyz (3), dq (4), ds (3).
+    """
+
+    apply_rule = staticmethod(apply_post_activation)
+
+    def __init__(self, depth: int = 8, width: int = 256, skips: Sequence[int] = (4,),
+                 xyz_freqs: int = 10, t_freqs: int = 6, time_net: bool = True, time_out: int = 30,
+                 cond_dim: int = 0):
+        super().__init__()
+        self.xyz_freqs, self.t_freqs, self.cond_dim = xyz_freqs, t_freqs, cond_dim
+        self.skips = tuple(skips)
+        xyz_dim = 3 * (1 + 2 * xyz_freqs)
+        t_dim = 1 + 2 * t_freqs
+        self.time_net = nn.Sequential(nn.Linear(t_dim, width), nn.ReLU(), nn.Linear(width, time_out)) \
+            if time_net else None
+        in_dim = xyz_dim + (time_out if time_net else t_dim) + cond_dim
+        layers = []
+        for i in range(depth):
+            d_in = in_dim if i == 0 else width + (in_dim if (i - 1) in self.skips else 0)
+            layers.append(nn.Linear(d_in, width))
+        self.layers = nn.ModuleList(layers)
+        self.head_xyz = nn.Linear(width, 3)
+        self.head_rot = nn.Linear(width, 4)
+        self.head_scale = nn.Linear(width, 3)
+
+    def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:
+        xyz = params["means"].detach()
+        N = xyz.shape[0]
+        t_in = torch.full((1, 1), float(t), dtype=xyz.dtype, device=xyz.device)
+        t_emb = positional_encoding(t_in, self.t_freqs)
+        if self.time_net is not None:
+            t_emb = self.time_net(t_emb)
+        parts = [positional_encoding(xyz, self.xyz_freqs), t_emb.expand(N, -1)]
+        if self.cond_dim:
+            if cond is None:
+                raise ValueError("this deformation network was built with cond_dim > 0 and needs cond")
+            parts.append(cond)
+        x0 = torch.cat(parts, -1)
+        h = x0
+        for i, layer in enumerate(self.layers):
+            h = torch.relu(layer(h))
+            if i in self.skips:
+                h = torch.cat([h, x0], -1)
+        return Deltas(means=self.head_xyz(h), quats=self.head_rot(h), scales=self.head_scale(h))

@@ -1,0 +1,105 @@
+"""Render a split, compute PSNR/SSIM/LPIPS, measure render FPS, write metrics.json.
+
+Conventions, recorded in the output:
+- PSNR and SSIM on the float render clamped to [0, 1] (no 8-bit round trip), full image
+  including the background; SSIM as 3DGS (11x11 Gaussian, sigma 1.5, data range 1).
+- LPIPS-VGG v0.1 with inputs mapped to [-1, 1] (official) unless eval.lpips_input="[0,1]".
+- FPS: deformation + projection + rasterization per frame, after `fps_warmup` untimed frames,
+  excluding image I/O and metrics (time.perf_counter; CUDA synchronized when on a GPU).
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+import torch
+
+from ..metrics import psnr, ssim
+from ..scene.gaussians import num_gaussians
+from .lpips import LPIPS
+
+
+def make_lpips(eval_cfg) -> Optional[LPIPS]:
+    """The LPIPS module, None when disabled or (with lpips=auto) when no weights are found."""
+    mode = str(eval_cfg.lpips).lower()
+    if mode in ("false", "off", "0"):
+        return None
+    try:
+        return LPIPS(eval_cfg.lpips_net, eval_cfg.lpips_weights, eval_cfg.lpips_input)
+    except FileNotFoundError as e:
+        if mode in ("true", "on", "1"):
+            raise
+        print(f"[stdr] warning: LPIPS skipped (reported as null). {e}")
+        return None
+
+
+def _sync():
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
+@torch.no_grad()
+def evaluate_trainer(trainer, split: str, step: int, lpips_fn=None, save_dir: Optional[Path] = None,
+                     fps_warmup: int = 3) -> dict[str, Any]:
+    frames = trainer.scene.frames(split)
+    ps, ss, ls, times = [], [], [], []
+    if save_dir is not None:
+        save_dir.mkdir(parents=True, exist_ok=True)
+    # untimed warm-up renders (allocator, caches, JIT)
+    for f in frames[:fps_warmup]:
+        trainer.render_frame(f, step)
+    for i, f in enumerate(frames):
+        _sync()
+        t0 = time.perf_counter()
+        out = trainer.render_frame(f, step)
+        _sync()
+        times.append(time.perf_counter() - t0)
+        img = out.image.clamp(0, 1)
+        ps.append(float(psnr(img, f.image)))
+        ss.append(float(ssim(img, f.image)))
+        if lpips_fn is not None:
+            ls.append(float(lpips_fn(img, f.image)))
+        if save_dir is not None:
+            import cv2
+            both = torch.cat([img, f.image], 1).numpy()
+            cv2.imwrite(str(save_dir / f"{i:03d}.png"), (both[..., ::-1] * 255 + 0.5).astype(np.uint8))
+    return {
+        "psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)),
+        "lpips": float(np.mean(ls)) if ls else None,
+        "fps": float(len(times) / sum(times)),
+        "num_gaussians": num_gaussians(trainer.params),
+        "num_frames": len(frames),
+        "per_frame_psnr": ps,
+        "width": frames[0].camera.width, "height": frames[0].camera.height,
+    }
+
+
+def metric_conventions(eval_cfg, lpips_fn) -> dict[str, Any]:
+    return {
+        "psnr": "float render clamped to [0,1], data range 1, full image",
+        "ssim": "3DGS: 11x11 Gaussian window sigma 1.5, zero padding, data range 1",
+        "lpips": None if lpips_fn is None else f"LPIPS-{lpips_fn.net} v0.1, inputs {lpips_fn.input_range}",
+        "fps": "deformation + projection + rasterization, perf_counter, after warm-up, no I/O",
+        "device": "cuda" if torch.cuda.is_available() else "cpu",
+        "torch_threads": torch.get_num_threads(),
+    }
+
+
+def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
+    """Final evaluation of a trained run; merges the result into run_dir/metrics.json."""
+    lp = make_lpips(eval_cfg)
+    save_dir = trainer.run_dir / "renders" / split if eval_cfg.save_images else None
+    res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup)
+    res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step,
+                "conventions": metric_conventions(eval_cfg, lp)})
+    path = trainer.run_dir / "metrics.json"
+    metrics = json.loads(path.read_text()) if path.is_file() else {}
+    metrics[split] = res
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(metrics, indent=1))
+    tmp.replace(path)
+    (trainer.run_dir / "history.json").write_text(json.dumps(trainer.history, indent=1))
+    return res

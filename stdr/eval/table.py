@@ -1,0 +1,101 @@
+"""Paper-style tables generated from run directories' metrics.json (never typed by hand).
+
+Rows are methods, columns are scene x metric, plus the mean over scenes. Written as Markdown,
+CSV, LaTeX and JSON.
+"""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any
+
+METRICS = ("psnr", "ssim", "lpips", "fps", "num_gaussians", "train_seconds")
+HEADERS = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓", "fps": "FPS↑",
+           "num_gaussians": "#G", "train_seconds": "train s"}
+FORMATS = {"psnr": "{:.2f}", "ssim": "{:.4f}", "lpips": "{:.4f}", "fps": "{:.1f}",
+           "num_gaussians": "{:,.0f}", "train_seconds": "{:.0f}"}
+
+
+def method_name(cfg) -> str:
+    name = cfg["baseline"]["name"]
+    stdr = cfg.get("stdr")
+    if isinstance(stdr, dict) and stdr.get("enabled"):
+        name += "+STDR"
+    return name
+
+
+def collect(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """rows: {method, scene, split, metrics}. Returns {methods, scenes, cells, means}."""
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    cells: dict[str, dict[str, dict[str, Any]]] = {m: {} for m in methods}
+    for r in rows:
+        if r["scene"] in cells[r["method"]]:
+            raise ValueError(f"two runs for method {r['method']!r} on scene {r['scene']!r}: "
+                             f"{cells[r['method']][r['scene']]['run_dir']} and {r['run_dir']}")
+        cells[r["method"]][r["scene"]] = {**{k: r["metrics"].get(k) for k in METRICS}, "run_dir": r["run_dir"]}
+    means = {}
+    for m in methods:
+        means[m] = {}
+        for k in METRICS:
+            vals = [cells[m][s][k] for s in scenes if s in cells[m] and cells[m][s][k] is not None]
+            complete = len(vals) == len(scenes)
+            means[m][k] = sum(vals) / len(vals) if vals and complete else None
+    return {"methods": methods, "scenes": scenes, "cells": cells, "means": means}
+
+
+def _fmt(k, v) -> str:
+    return "–" if v is None else FORMATS[k].format(v)
+
+
+def to_rows(t: dict[str, Any], metrics=METRICS) -> tuple[list[str], list[list[str]]]:
+    cols = ["method"]
+    for s in t["scenes"] + ["mean"]:
+        cols += [f"{s} {HEADERS[k]}" for k in metrics]
+    body = []
+    for m in t["methods"]:
+        row = [m]
+        for s in t["scenes"]:
+            c = t["cells"][m].get(s, {})
+            row += [_fmt(k, c.get(k)) for k in metrics]
+        row += [_fmt(k, t["means"][m][k]) for k in metrics]
+        body.append(row)
+    return cols, body
+
+
+def markdown(t) -> str:
+    cols, body = to_rows(t)
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(r) + " |" for r in body]
+    return "\n".join(lines) + "\n"
+
+
+def latex(t, metrics=("psnr", "ssim", "lpips")) -> str:
+    scenes = t["scenes"] + ["mean"]
+    hdr = {"psnr": "PSNR$\\uparrow$", "ssim": "SSIM$\\uparrow$", "lpips": "LPIPS$\\downarrow$",
+           "fps": "FPS$\\uparrow$", "num_gaussians": "\\#G", "train_seconds": "train s"}
+    out = ["\\begin{tabular}{l" + "c" * (len(metrics) * len(scenes)) + "}", "\\toprule"]
+    out.append("Method & " + " & ".join(f"\\multicolumn{{{len(metrics)}}}{{c}}{{{s}}}" for s in scenes) + " \\\\")
+    out.append(" & " + " & ".join(hdr[k] for _ in scenes for k in metrics) + " \\\\")
+    out.append("\\midrule")
+    _, body = to_rows(t, metrics)
+    for r in body:
+        out.append(" & ".join(x.replace("_", "\\_").replace("+", "+") for x in r) + " \\\\")
+    out += ["\\bottomrule", "\\end{tabular}"]
+    return "\n".join(out) + "\n"
+
+
+def write_tables(t: dict[str, Any], out_dir: Path) -> dict[str, Path]:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {"md": out_dir / "table.md", "csv": out_dir / "table.csv", "tex": out_dir / "table.tex",
+             "json": out_dir / "table.json"}
+    paths["md"].write_text(markdown(t))
+    cols, body = to_rows(t)
+    with open(paths["csv"], "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(cols)
+        w.writerows(body)
+    paths["tex"].write_text(latex(t))
+    paths["json"].write_text(json.dumps(t, indent=1))
+    return paths

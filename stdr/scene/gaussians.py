@@ -1,0 +1,94 @@
+"""Gaussian parameters, all per-Gaussian tensors in one dict.
+
+Every tensor in the dict has N rows (the Gaussian count) and is edited row-wise by the
+densification strategy, so any per-Gaussian attribute added later (STDR's N x K mask) stays
+aligned through clone/split/prune with no extra code.
+
+Keys and their stored (pre-activation) form:
+    means     [N, 3]      world position
+    scales    [N, 3]      log of the standard deviations
+    quats     [N, 4]      rotation quaternion (w, x, y, z), unnormalized
+    opacities [N]         logit of opacity
+    sh0       [N, 1, 3]   SH DC coefficient
+    shN       [N, K-1, 3] higher SH bands, K = (max_sh_degree+1)^2
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Optional
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from ..render.sh import num_sh_bases, rgb_to_sh
+from .knn import knn
+
+GAUSSIAN_KEYS = ("means", "scales", "quats", "opacities", "sh0", "shN")
+
+
+class Gaussians(NamedTuple):
+    """Activated Gaussians, as the renderer takes them."""
+
+    means: Tensor      # [N, 3]
+    quats: Tensor      # [N, 4]
+    scales: Tensor     # [N, 3]
+    opacities: Tensor  # [N]
+    sh: Tensor         # [N, K, 3]
+
+
+def inverse_sigmoid(x: Tensor) -> Tensor:
+    return torch.log(x / (1 - x))
+
+
+def init_params(points: Tensor, colors: Optional[Tensor] = None, sh_degree: int = 3,
+                init_opacity: float = 0.1, knn_k: int = 3) -> nn.ParameterDict:
+    """Gaussians at `points` [N, 3] with colours [N, 3] in [0, 1] (random if None).
+
+    Initial scale: sqrt of the mean squared distance to the `knn_k` nearest neighbours
+    (isotropic), identity rotation, opacity `init_opacity` - the 3DGS initialization.
+    """
+    points = points.float()
+    N = points.shape[0]
+    if N < knn_k + 1:
+        raise ValueError(f"init_params: need at least {knn_k + 1} points, got {N}")
+    if colors is None:
+        colors = torch.rand(N, 3)
+    d2, _ = knn(points, points, knn_k, exclude_self=True)
+    dist = torch.sqrt(d2.mean(1).clamp_min(1e-7))
+    K = num_sh_bases(sh_degree)
+    quats = torch.zeros(N, 4)
+    quats[:, 0] = 1.0
+    return nn.ParameterDict({
+        "means": nn.Parameter(points.clone()),
+        "scales": nn.Parameter(torch.log(dist)[:, None].repeat(1, 3)),
+        "quats": nn.Parameter(quats),
+        "opacities": nn.Parameter(torch.full((N,), math.log(init_opacity / (1 - init_opacity)))),
+        "sh0": nn.Parameter(rgb_to_sh(colors.float())[:, None, :]),
+        "shN": nn.Parameter(torch.zeros(N, K - 1, 3)),
+    })
+
+
+def random_cube_points(n: int, extent: float, generator: Optional[torch.Generator] = None) -> Tensor:
+    """n points uniform in [-extent, extent]^3 (D-NeRF init: 100k in [-1.3, 1.3]^3)."""
+    return (torch.rand(n, 3, generator=generator) * 2 - 1) * extent
+
+
+def activate(params) -> Gaussians:
+    return Gaussians(
+        means=params["means"],
+        quats=params["quats"],
+        scales=torch.exp(params["scales"]),
+        opacities=torch.sigmoid(params["opacities"]),
+        sh=torch.cat([params["sh0"], params["shN"]], 1),
+    )
+
+
+def num_gaussians(params) -> int:
+    return int(params["means"].shape[0])
+
+
+def scene_extent(camera_centers: np.ndarray) -> float:
+    """3DGS 'cameras_extent': 1.1 x the largest distance of a camera centre from their mean."""
+    c = np.asarray(camera_centers, dtype=np.float64)
+    return float(1.1 * np.linalg.norm(c - c.mean(0), axis=1).max())

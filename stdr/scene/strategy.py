@@ -1,0 +1,194 @@
+"""Densification, kept separate from the model (the gsplat pattern).
+
+The strategy never names Gaussian attributes except where the method needs them (means and
+scales when splitting, opacities when pruning/resetting). Every row operation is applied to
+*every* tensor in the parameter dict, to the matching Adam moments, and to the strategy's own
+per-Gaussian state, so an attribute added later (STDR's N x K mask) stays aligned for free.
+Children of a clone or split inherit the parent's row.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import torch
+from torch import Tensor, nn
+
+from .gaussians import inverse_sigmoid
+from ..render.projection import quat_to_rotmat
+
+
+def _edit_rows(params: nn.ParameterDict, optimizers: dict[str, torch.optim.Optimizer],
+               fn: Callable[[str, Tensor], Tensor]) -> None:
+    """Replace every per-Gaussian parameter p by fn(key, p) and its Adam moments likewise.
+
+    fn for moments gets the moment tensor; rows created by fn are copies of their parent rows
+    for parameters and zeros for moments (see `_moment_fn`).
+    """
+    for key in list(params.keys()):
+        old = params[key]
+        new = nn.Parameter(fn(key, old.detach()), requires_grad=old.requires_grad)
+        opt = optimizers.get(key)
+        if opt is not None:
+            state = opt.state.pop(old, None)
+            for group in opt.param_groups:
+                group["params"] = [new if p is old else p for p in group["params"]]
+            if state is not None:
+                for sk, sv in state.items():
+                    if torch.is_tensor(sv) and sv.dim() > 0 and sv.shape[0] == old.shape[0]:
+                        state[sk] = fn("__moment__", sv)
+                opt.state[new] = state
+        params[key] = new
+
+
+def duplicate(params, optimizers, state: dict, mask: Tensor) -> None:
+    """Append a copy of every row where mask [N] is True (moments of the copies start at 0)."""
+    idx = torch.nonzero(mask).squeeze(1)
+
+    def fn(key, x):
+        return torch.cat([x, torch.zeros_like(x[idx]) if key == "__moment__" else x[idx]])
+    _edit_rows(params, optimizers, fn)
+    for k, v in state.items():
+        if torch.is_tensor(v) and v.dim() > 0:
+            state[k] = torch.cat([v, torch.zeros_like(v[idx])])
+
+
+def split(params, optimizers, state: dict, mask: Tensor, n_split: int = 2,
+          scale_div: float = 1.6, generator: torch.Generator | None = None) -> None:
+    """Replace every row where mask is True by n_split children sampled from the parent Gaussian.
+
+    Children get positions drawn from the parent's distribution and scales / scale_div; every
+    other attribute (SH, opacity, rotation, any extra per-Gaussian tensor) is the parent's.
+    Order: the kept rows, then the children (as gsplat does).
+    """
+    sel = torch.nonzero(mask).squeeze(1)
+    rest = torch.nonzero(~mask).squeeze(1)
+    scales = torch.exp(params["scales"].detach()[sel])  # [S, 3]
+    rot = quat_to_rotmat(params["quats"].detach()[sel])  # [S, 3, 3]
+    noise = torch.randn(n_split, sel.numel(), 3, generator=generator, device=scales.device)
+    offsets = torch.einsum("sij,nsj->nsi", rot, noise * scales[None])  # [n_split, S, 3]
+
+    def fn(key, x):
+        if key == "__moment__":
+            return torch.cat([x[rest], torch.zeros_like(x[sel]).repeat(n_split, *[1] * (x.dim() - 1))])
+        if key == "means":
+            child = (x[sel][None] + offsets).reshape(-1, 3)
+        elif key == "scales":
+            child = torch.log(torch.exp(x[sel]) / scale_div).repeat(n_split, 1)
+        else:
+            child = x[sel].repeat(n_split, *[1] * (x.dim() - 1))
+        return torch.cat([x[rest], child])
+    _edit_rows(params, optimizers, fn)
+    for k, v in state.items():
+        if torch.is_tensor(v) and v.dim() > 0:
+            state[k] = torch.cat([v[rest], torch.zeros_like(v[sel]).repeat(n_split, *[1] * (v.dim() - 1))])
+
+
+def remove(params, optimizers, state: dict, mask: Tensor) -> None:
+    """Delete every row where mask is True."""
+    keep = torch.nonzero(~mask).squeeze(1)
+    _edit_rows(params, optimizers, lambda key, x: x[keep])
+    for k, v in state.items():
+        if torch.is_tensor(v) and v.dim() > 0:
+            state[k] = v[keep]
+
+
+def reset_opacity(params, optimizers, value: float) -> None:
+    """Clamp every opacity to at most `value` and zero its Adam moments."""
+    cap = float(inverse_sigmoid(torch.tensor(value)))
+    p = params["opacities"]
+    with torch.no_grad():
+        p.clamp_(max=cap)
+    opt = optimizers.get("opacities")
+    if opt is not None and p in opt.state:
+        for sv in opt.state[p].values():
+            if torch.is_tensor(sv) and sv.dim() > 0:
+                sv.zero_()
+
+
+@dataclass
+class DensifyStrategy:
+    """3DGS adaptive density control, with a cap on the Gaussian count.
+
+    Every `refine_every` steps in [refine_start, refine_stop): Gaussians whose average
+    screen-space mean gradient (3DGS NDC units) exceeds `grow_grad2d` are cloned if small
+    (max scale <= grow_scale3d x extent) or split if large; then Gaussians with opacity <
+    `prune_opa` are removed, and after `prune_big_after` also those larger than prune_scale3d x
+    extent in the world or prune_scale2d px on screen. Opacity is reset every `reset_every`.
+    `max_gaussians` caps growth: when exceeded, the candidates with the largest gradients win.
+    """
+
+    grow_grad2d: float = 2e-4
+    grow_scale3d: float = 0.01
+    prune_opa: float = 0.005
+    prune_scale3d: float = 0.1
+    prune_scale2d: float = 20.0
+    prune_big_after: int = 3000
+    refine_start: int = 500
+    refine_stop: int = 15000
+    refine_every: int = 100
+    reset_every: int = 3000
+    reset_value: float = 0.01
+    max_gaussians: int = 0  # 0 = no cap
+
+    def initialize_state(self, n: int, scene_extent: float) -> dict[str, Any]:
+        return {"grad2d": torch.zeros(n), "count": torch.zeros(n), "max_radii": torch.zeros(n),
+                "scene_extent": float(scene_extent)}
+
+    def step_post_backward(self, params, optimizers, state, step: int, means2d: Tensor,
+                           radii: Tensor, width: int, height: int,
+                           generator: torch.Generator | None = None) -> dict[str, int]:
+        """Accumulate statistics from this step's render and refine when due.
+
+        `step` counts from 1 (the number of completed optimizer steps after this one).
+        Returns counts of what was done (for logging).
+        """
+        if step >= self.refine_stop:
+            return {}
+        with torch.no_grad():
+            vis = radii > 0
+            if means2d.grad is not None:
+                g = means2d.grad.detach().clone()
+                g[:, 0] *= 0.5 * width  # pixels -> 3DGS NDC units
+                g[:, 1] *= 0.5 * height
+                state["grad2d"][vis] += g[vis].norm(dim=-1)
+                state["count"][vis] += 1
+            state["max_radii"][vis] = torch.maximum(state["max_radii"][vis], radii[vis].float())
+        out: dict[str, int] = {}
+        if step > self.refine_start and step % self.refine_every == 0:
+            out = self._refine(params, optimizers, state, step, generator)
+        if self.reset_every > 0 and step % self.reset_every == 0:
+            reset_opacity(params, optimizers, self.reset_value)
+            out["reset"] = 1
+        return out
+
+    @torch.no_grad()
+    def _refine(self, params, optimizers, state, step, generator) -> dict[str, int]:
+        extent = state["scene_extent"]
+        avg = state["grad2d"] / state["count"].clamp_min(1)
+        cand = avg > self.grow_grad2d
+        if self.max_gaussians > 0:
+            room = max(self.max_gaussians - params["means"].shape[0], 0)
+            if int(cand.sum()) > room:  # keep the `room` largest gradients
+                top = torch.topk(torch.where(cand, avg, torch.full_like(avg, -1.0)), room).indices
+                cand = torch.zeros_like(cand)
+                cand[top] = True
+        is_small = torch.exp(params["scales"]).amax(-1) <= self.grow_scale3d * extent
+        dup, spl = cand & is_small, cand & ~is_small
+        n_dup, n_split = int(dup.sum()), int(spl.sum())
+        duplicate(params, optimizers, state, dup)
+        spl = torch.cat([spl, torch.zeros(n_dup, dtype=torch.bool)])
+        split(params, optimizers, state, spl, generator=generator)
+
+        prune = torch.sigmoid(params["opacities"]) < self.prune_opa
+        if step > self.prune_big_after:
+            prune |= torch.exp(params["scales"]).amax(-1) > self.prune_scale3d * extent
+            prune |= state["max_radii"] > self.prune_scale2d
+        if int(prune.sum()) >= prune.numel():  # never delete the whole model
+            prune[:] = False
+        n_prune = int(prune.sum())
+        remove(params, optimizers, state, prune)
+        for k in ("grad2d", "count", "max_radii"):
+            state[k].zero_()
+        return {"cloned": n_dup, "split": n_split, "pruned": n_prune}

@@ -1,0 +1,308 @@
+"""The single training loop shared by every baseline.
+
+Baselines differ only in the deformation module (stdr.deform) and their config.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections import defaultdict
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+from torch import Tensor
+
+from ..data.load import load_scene
+from ..data.types import Frame
+from ..deform import build_deformation
+from ..metrics import l1, psnr, ssim
+from ..render import RenderOutput, render, resolve_backend
+from ..scene.gaussians import Gaussians, activate, init_params, num_gaussians, random_cube_points, scene_extent
+from ..scene.ply import save_ply
+from ..scene.strategy import DensifyStrategy
+from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from .schedule import exp_lr
+
+CKPT = "checkpoints/last.pt"
+
+
+class Profiler:
+    """Accumulated wall time per named section of the training step."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    @contextmanager
+    def __call__(self, name: str):
+        t0 = time.perf_counter()
+        yield
+        self.seconds[name] += time.perf_counter() - t0
+
+
+class CameraSampler:
+    """Training frames drawn without replacement per epoch, from its own generator."""
+
+    def __init__(self, n: int, seed: int):
+        self.n = n
+        self.gen = torch.Generator().manual_seed(seed)
+        self.stack: list[int] = []
+
+    def next(self) -> int:
+        if not self.stack:
+            self.stack = torch.randperm(self.n, generator=self.gen).tolist()
+        return self.stack.pop()
+
+    def state_dict(self):
+        return {"gen": self.gen.get_state(), "stack": list(self.stack)}
+
+    def load_state_dict(self, s):
+        self.gen.set_state(s["gen"])
+        self.stack = list(s["stack"])
+
+
+def build_deformation_from_cfg(cfg, cond_dim: int = 0):
+    b = cfg.baseline
+    return build_deformation(b.name, depth=b.depth, width=b.width, skips=list(b.skips),
+                             xyz_freqs=b.xyz_freqs, t_freqs=b.t_freqs, time_net=b.time_net,
+                             time_out=b.time_out, cond_dim=cond_dim)
+
+
+class Trainer:
+    def __init__(self, cfg, run_dir: str | Path, splits=("train",), data_base: Optional[str] = None):
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        if cfg.train.threads > 0:
+            torch.set_num_threads(cfg.train.threads)
+        torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed)
+        self.scene = load_scene(cfg.data, splits, base=data_base)
+        self.background = torch.tensor(self.scene.background, dtype=torch.float32)
+        self.backend = resolve_backend(cfg.render.backend)
+        gen = torch.Generator().manual_seed(cfg.seed)
+        m = cfg.model
+        if m.init == "random":
+            pts = random_cube_points(m.init_num, m.init_extent, gen)
+        elif m.init == "points":
+            if self.scene.init_points is None:
+                raise ValueError(f"model.init=points but {self.scene.root} provides no points; use model.init=random")
+            pts = torch.from_numpy(self.scene.init_points).float()
+        else:
+            raise ValueError(f"model.init={m.init!r}: use 'random' or 'points'")
+        colors = torch.rand(pts.shape[0], 3, generator=gen)
+        self.params = init_params(pts, colors, sh_degree=m.sh_degree, init_opacity=m.init_opacity)
+        self.deform = build_deformation_from_cfg(cfg)
+        self.optimizers = self._make_optimizers()
+        self.deform_opt = torch.optim.Adam(self.deform.parameters(), lr=cfg.baseline.lr_init, eps=1e-15)
+        self.strategy = DensifyStrategy(**OmegaConf.to_container(cfg.densify))
+        extent = scene_extent(self.scene.camera_centers("train")) if "train" in self.scene.splits else 1.0
+        self.strategy_state = self.strategy.initialize_state(num_gaussians(self.params), extent)
+        self.sampler = CameraSampler(len(self.scene.splits.get("train", [])), cfg.seed)
+        self.step = 0
+        self.train_seconds = 0.0
+        self.profile = Profiler()
+        self.history: list[dict[str, Any]] = []
+        self.writer = None
+
+    # ----------------------------------------------------------------- optimizers
+    def _lr(self, key: str, step: int) -> float:
+        o = self.cfg.optim
+        s = o.spatial_lr_scale
+        if key == "means":
+            return exp_lr(step, o.means_lr_init * s, o.means_lr_final * s, o.means_lr_max_steps)
+        fixed = {"scales": o.scales_lr * s, "quats": o.quats_lr, "opacities": o.opacities_lr,
+                 "sh0": o.sh0_lr, "shN": o.shN_lr}
+        if key not in fixed:
+            raise KeyError(f"no learning rate configured for per-Gaussian parameter {key!r}")
+        return fixed[key]
+
+    def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {k: torch.optim.Adam([{"params": [p], "lr": self._lr(k, 0), "name": k}], eps=1e-15)
+                for k, p in self.params.items() if p.requires_grad}
+
+    def _update_lrs(self, step: int) -> None:
+        for k, opt in self.optimizers.items():
+            for g in opt.param_groups:
+                g["lr"] = self._lr(k, step)
+        b = self.cfg.baseline
+        for g in self.deform_opt.param_groups:
+            g["lr"] = exp_lr(step, b.lr_init, b.lr_final, b.lr_max_steps)
+
+    # ----------------------------------------------------------------- rendering
+    def sh_degree(self, step: int) -> int:
+        m = self.cfg.model
+        return min(m.sh_degree, step // max(m.sh_interval, 1))
+
+    def deformed(self, t: float, step: int) -> Gaussians:
+        if step < self.cfg.baseline.warmup:
+            return activate(self.params)
+        return self.deform.deform(self.params, t)
+
+    def render_frame(self, frame: Frame, step: int) -> RenderOutput:
+        g = self.deformed(frame.time, step)
+        r = self.cfg.render
+        return render(g.means, g.quats, g.scales, g.opacities, g.sh, frame.camera,
+                      sh_degree=self.sh_degree(step), background=self.background, backend=self.backend,
+                      near=r.near, eps2d=r.eps2d, antialiased=r.antialiased, tile_size=r.tile_size)
+
+    # ----------------------------------------------------------------- checkpoints
+    def checkpoint_payload(self) -> dict[str, Any]:
+        return {
+            "step": self.step,
+            "params": {k: v.detach().clone() for k, v in self.params.items()},
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "deform": self.deform.state_dict(),
+            "deform_opt": self.deform_opt.state_dict(),
+            "strategy_state": self.strategy_state,
+            "sampler": self.sampler.state_dict(),
+            "rng": rng_state(),
+            "train_seconds": self.train_seconds,
+            "history": self.history,
+        }
+
+    def save(self) -> None:
+        save_checkpoint(self.run_dir / CKPT, self.checkpoint_payload())
+
+    def load(self, path: str | Path, training: bool = True) -> None:
+        ck = load_checkpoint(path)
+        self.params.clear()
+        for k, v in ck["params"].items():
+            self.params[k] = torch.nn.Parameter(v)
+        self.deform.load_state_dict(ck["deform"])
+        self.step = int(ck["step"])
+        self.train_seconds = float(ck["train_seconds"])
+        self.history = list(ck.get("history", []))
+        if training:
+            self.optimizers = self._make_optimizers()
+            for k, o in self.optimizers.items():
+                o.load_state_dict(ck["optimizers"][k])
+            self.deform_opt.load_state_dict(ck["deform_opt"])
+            self.strategy_state = ck["strategy_state"]
+            self.sampler.load_state_dict(ck["sampler"])
+            set_rng_state(ck["rng"])
+
+    # ----------------------------------------------------------------- training
+    def _tb(self):
+        if self.writer is None:
+            from torch.utils.tensorboard import SummaryWriter
+            self.writer = SummaryWriter(str(self.run_dir / "tb"))
+        return self.writer
+
+    def train_step(self) -> dict[str, float]:
+        cfg, it, prof = self.cfg, self.step, self.profile
+        self._update_lrs(it)
+        frame = self.scene.frames("train")[self.sampler.next()]
+        with prof("deform"):
+            g = self.deformed(frame.time, it)
+        with prof("render_fwd"):
+            r = cfg.render
+            out = render(g.means, g.quats, g.scales, g.opacities, g.sh, frame.camera,
+                         sh_degree=self.sh_degree(it), background=self.background, backend=self.backend,
+                         near=r.near, eps2d=r.eps2d, antialiased=r.antialiased, tile_size=r.tile_size)
+        with prof("loss"):
+            lam = cfg.optim.lambda_dssim
+            loss_l1 = l1(out.image, frame.image)
+            loss_dssim = 1.0 - ssim(out.image, frame.image)
+            loss = (1 - lam) * loss_l1 + lam * loss_dssim
+        with prof("backward"):
+            loss.backward()
+        with prof("optimizer"):
+            for o in self.optimizers.values():
+                o.step()
+                o.zero_grad(set_to_none=True)
+            if it >= cfg.baseline.warmup:
+                self.deform_opt.step()
+            self.deform_opt.zero_grad(set_to_none=True)
+        with prof("densify"):
+            info = self.strategy.step_post_backward(
+                self.params, self.optimizers, self.strategy_state, it + 1, out.means2d, out.radii,
+                frame.camera.width, frame.camera.height)
+        self.step = it + 1
+        return {"loss": float(loss), "l1": float(loss_l1), "dssim": float(loss_dssim),
+                "psnr": float(psnr(out.image.detach(), frame.image)), **{f"densify_{k}": v for k, v in info.items()},
+                "_out": out, "_frame": frame}
+
+    def train(self) -> None:
+        cfg = self.cfg
+        ckpt = self.run_dir / CKPT
+        if cfg.train.resume and ckpt.is_file():
+            self.load(ckpt)
+            print(f"[stdr] resumed from {ckpt} at iteration {self.step}")
+        total = cfg.optim.iterations
+        tb = self._tb()
+        bar = None
+        if cfg.train.progress:
+            from tqdm import tqdm
+            bar = tqdm(total=total, initial=self.step, dynamic_ncols=True, desc="train")
+        warmup = cfg.baseline.warmup
+        while self.step < total:
+            t0 = time.perf_counter()
+            logs = self.train_step()
+            dt = time.perf_counter() - t0
+            self.train_seconds += dt
+            it = self.step
+            if it % cfg.train.log_every == 0 or it == total:
+                self._log_scalars(tb, it, logs, dt)
+            if cfg.train.image_every and (it % cfg.train.image_every == 0 or it == total):
+                self._log_image(tb, it, logs["_out"].image.detach(), logs["_frame"].image)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{logs['loss']:.4f}", psnr=f"{logs['psnr']:.2f}",
+                                N=num_gaussians(self.params))
+            if cfg.train.eval_at_warmup_end and it == warmup and warmup < total:
+                self.evaluate(cfg.data.eval_split, tag="static_warmup", step=warmup - 1)
+            elif cfg.train.eval_every and it % cfg.train.eval_every == 0 and it < total:
+                self.evaluate(cfg.data.eval_split, tag="periodic")
+            if cfg.train.checkpoint_every and it % cfg.train.checkpoint_every == 0 and it < total:
+                self.save()
+        if bar is not None:
+            bar.close()
+        self.save()
+        save_ply(self.params, self.run_dir / "point_cloud.ply")
+        (self.run_dir / "train_profile.json").write_text(json.dumps(self.profile_summary(), indent=1))
+
+    def profile_summary(self) -> dict[str, Any]:
+        tot = sum(self.profile.seconds.values()) or 1.0
+        return {"seconds": dict(self.profile.seconds),
+                "fraction": {k: v / tot for k, v in self.profile.seconds.items()},
+                "iterations_timed": self.step}
+
+    def _log_scalars(self, tb, it, logs, dt) -> None:
+        for k in ("loss", "l1", "dssim"):
+            tb.add_scalar(f"loss/{k}", logs[k], it)
+        tb.add_scalar("train/psnr", logs["psnr"], it)
+        tb.add_scalar("gaussians/count", num_gaussians(self.params), it)
+        tb.add_scalar("time/seconds_per_iteration", dt, it)
+        for k, o in self.optimizers.items():
+            tb.add_scalar(f"lr/{k}", o.param_groups[0]["lr"], it)
+        tb.add_scalar("lr/deform", self.deform_opt.param_groups[0]["lr"], it)
+        for k, v in logs.items():
+            if k.startswith("densify_"):
+                tb.add_scalar(f"densify/{k[8:]}", v, it)
+
+    def _log_image(self, tb, it, img: Tensor, gt: Tensor, tag: str = "train/render_gt_error") -> None:
+        err = (img - gt).abs().mean(-1, keepdim=True).expand(-1, -1, 3)
+        grid = torch.cat([img.clamp(0, 1), gt, (err * 4).clamp(0, 1)], 1)  # [H, 3W, 3]
+        tb.add_image(tag, grid, it, dataformats="HWC")
+
+    # ----------------------------------------------------------------- evaluation
+    @torch.no_grad()
+    def evaluate(self, split: str, tag: str = "final", step: Optional[int] = None,
+                 lpips_fn=None, save_dir: Optional[Path] = None, fps_warmup: int = 3) -> dict[str, Any]:
+        """Render `split` at the model's state and compute metrics (see stdr.eval.evaluate)."""
+        from ..eval.evaluate import evaluate_trainer
+        res = evaluate_trainer(self, split, step=self.step if step is None else step, lpips_fn=lpips_fn,
+                               save_dir=save_dir, fps_warmup=fps_warmup)
+        rec = {"tag": tag, "iteration": self.step, "split": split,
+               **{k: res[k] for k in ("psnr", "ssim", "lpips", "num_gaussians")}}
+        self.history.append(rec)
+        if self.writer is not None:
+            for k in ("psnr", "ssim", "lpips"):
+                if res[k] is not None:
+                    self.writer.add_scalar(f"eval_{split}/{k}", res[k], self.step)
+        return res

@@ -1,0 +1,65 @@
+"""Test helpers: random scenes and a brute-force per-pixel renderer (independent of tiles)."""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from stdr.cameras import Camera
+from stdr.render.projection import SIGMA_EXTENT
+
+
+def look_at_camera(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0), width=32, height=24,
+                   fov_x=0.8, dtype=torch.float32, cx=None, cy=None) -> Camera:
+    eye = torch.tensor(eye, dtype=torch.float64)
+    f = torch.tensor(target, dtype=torch.float64) - eye
+    f = f / f.norm()
+    r = torch.linalg.cross(f, torch.tensor(up, dtype=torch.float64))
+    r = r / r.norm()
+    d = torch.linalg.cross(f, r)  # camera y points down
+    R = torch.stack([r, d, f])
+    t = -R @ eye
+    fx = 0.5 * width / math.tan(0.5 * fov_x)
+    return Camera(R=R.to(dtype), t=t.to(dtype), fx=fx, fy=fx, cx=width / 2 if cx is None else cx,
+                  cy=height / 2 if cy is None else cy, width=width, height=height)
+
+
+def random_gaussians(n, seed=0, dtype=torch.float32, spread=0.6, scale=(-2.5, -1.2)):
+    g = torch.Generator().manual_seed(seed)
+    means = (torch.rand(n, 3, generator=g, dtype=dtype) * 2 - 1) * spread
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    scales = torch.exp(torch.rand(n, 3, generator=g, dtype=dtype) * (scale[1] - scale[0]) + scale[0])
+    opac = torch.rand(n, generator=g, dtype=dtype) * 0.9 + 0.05
+    colors = torch.rand(n, 3, generator=g, dtype=dtype)
+    return means, quats, scales, opac, colors
+
+
+def brute_force_composite(means2d, conics, opacities, features, depths, radii, width, height):
+    """Per-pixel loop over all Gaussians in depth order: the semantics, written the slow way."""
+    order = sorted(range(means2d.shape[0]), key=lambda i: (float(depths[i]), i))
+    order = [i for i in order if int(radii[i]) > 0]
+    F = features.shape[1]
+    img = torch.zeros(height, width, F, dtype=means2d.dtype)
+    Tm = torch.ones(height, width, dtype=means2d.dtype)
+    for y in range(height):
+        for x in range(width):
+            T = 1.0
+            acc = torch.zeros(F, dtype=means2d.dtype)
+            for i in order:
+                dx = x + 0.5 - means2d[i, 0]
+                dy = y + 0.5 - means2d[i, 1]
+                a, b, c = conics[i]
+                maha = a * dx * dx + 2 * b * dx * dy + c * dy * dy
+                if maha > SIGMA_EXTENT ** 2:
+                    continue
+                alpha = min(0.99, float(opacities[i] * torch.exp(-0.5 * maha)))
+                if alpha < 1.0 / 255.0:
+                    continue
+                test_T = T * (1 - alpha)
+                if test_T < 1e-4:
+                    break
+                acc = acc + alpha * T * features[i]
+                T = test_T
+            img[y, x] = acc
+            Tm[y, x] = T
+    return img, Tm
