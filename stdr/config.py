@@ -100,7 +100,7 @@ class DensifyConfig:
 @dataclass
 class RenderConfig:
     backend: str = "auto"       # auto | reference
-    tile_size: int = 16
+    tile_size: int = 8
     antialiased: bool = False
     eps2d: float = 0.3
     near: float = 0.01

@@ -19,6 +19,9 @@ def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict:
     from ..train.trainer import Trainer
 
     run_dir.mkdir(parents=True, exist_ok=True)
+    if not cfg.data.name:  # label for tables: the scene folder's name
+        from ..data.load import scene_folder
+        cfg.data.name = scene_folder(cfg.data, data_base).name
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     split = cfg.data.eval_split
     trainer = Trainer(cfg, run_dir, splits=("train", split), data_base=data_base)

@@ -41,7 +41,7 @@ class RenderOutput:
 def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor,
            camera: Camera, sh_degree: int, background: Optional[Tensor] = None,
            backend: str = "reference", near: float = 0.01, eps2d: float = 0.3,
-           antialiased: bool = False, tile_size: int = 16) -> RenderOutput:
+           antialiased: bool = False, tile_size: int = 8) -> RenderOutput:
     """Render N Gaussians seen by `camera`.
 
     means [N, 3]; quats [N, 4] (w, x, y, z; any norm); scales [N, 3] (activated);
@@ -59,7 +59,7 @@ def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: 
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
-    dirs = means.detach() - camera.center.to(means)
+    dirs = means - camera.center.to(means)  # gradient flows through the view direction, as in 3DGS
     dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     colors = eval_sh(sh_degree, sh, dirs)  # [N, 3]
     feats = torch.cat([colors, proj.depths[:, None]], -1)  # depth rides along as a 4th channel

@@ -13,10 +13,12 @@ Semantics (identical in every backend):
 Implementation: Gaussians are binned into tiles (a Gaussian-tile pair per tile its 3-sigma
 square touches), pairs are sorted by (tile, depth), and each tile's depth-ordered list is
 processed in chunks of `chunk` Gaussians at a time across all tiles at once, carrying the
-transmittance between chunks. Tiles are ordered by pair count, so the tiles still alive at chunk
-j are a prefix and every step is a slice, not a masked scatter.
+transmittance between chunks. A tile leaves the batch when its list is exhausted or all its
+pixels have stopped (T < 1e-4), as a CUDA block would exit early.
 """
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
@@ -71,40 +73,52 @@ def rasterize_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, feat
 
     counts = torch.bincount(tid, minlength=n_tiles)
     starts = torch.cumsum(counts, 0) - counts
-    tiles = torch.argsort(counts, descending=True, stable=True)
-    counts_s, starts_s = counts[tiles], starts[tiles]
-    n_alive = [int(x) for x in torch.stack(
-        [(counts_s > j * chunk).sum() for j in range(-(-int(counts.max()) // chunk))]
-    )] if tid.numel() else []
+    n_chunks = -(-int(counts.max()) // chunk) if tid.numel() else 0
+    tiles = torch.arange(n_tiles, device=dev)
 
-    # pixel centres of every tile, in the sorted tile order: [n_tiles, Pt, 2]
-    iy, ix = torch.meshgrid(torch.arange(tile_size, device=dev), torch.arange(tile_size, device=dev),
-                            indexing="ij")
+    # Per-pixel exponent as one batched matmul. In tile-local coordinates (u, v) = pixel centre
+    # minus tile centre, the exponent log(o) - 0.5 (d^T Q d) with d = (u, v) - m is a quadratic
+    # polynomial: coef [.., 6] . (u^2, uv, v^2, u, v, 1). Local coordinates keep |u|, |v| <=
+    # tile_size / 2 so the expansion loses no meaningful precision.
+    half = tile_size / 2.0
+    lc = torch.arange(tile_size, device=dev, dtype=dt) + 0.5 - half
+    v_, u_ = torch.meshgrid(lc, lc, indexing="ij")
+    u_, v_ = u_.reshape(-1), v_.reshape(-1)
+    basis = torch.stack([u_ * u_, u_ * v_, v_ * v_, u_, v_, torch.ones_like(u_)])  # [6, Pt]
     ty, tx = tiles // ntx, tiles % ntx
-    px = (tx[:, None] * tile_size + ix.reshape(1, -1)).to(dt) + 0.5
-    py = (ty[:, None] * tile_size + iy.reshape(1, -1)).to(dt) + 0.5
+    centre = torch.stack([tx, ty], -1).to(dt) * tile_size + half  # [n_tiles, 2] in sorted order
+    log_op = torch.log(opacities.clamp_min(1e-30))
+    # per-Gaussian cut-off on the exponent: inside the 3-sigma ellipse and alpha >= 1/255
+    cut = torch.maximum(log_op - 0.5 * SIGMA_EXTENT ** 2, torch.full_like(log_op, math.log(ALPHA_MIN)))
 
     ar = torch.arange(chunk, device=dev)
-    T = torch.ones(n_tiles, Pt, dtype=dt, device=dev)
-    acc = torch.zeros(n_tiles, Pt, F, dtype=dt, device=dev)
-    done = torch.zeros(n_tiles, Pt, dtype=torch.bool, device=dev)
-    out_T, out_acc = [], []
-    cur = n_tiles
-    for j, n in enumerate(n_alive):
-        if n < cur:  # tiles with no more pairs are final
-            out_T.append(T[n:cur]); out_acc.append(acc[n:cur])
-            T, acc, done = T[:n], acc[:n], done[:n]
-            cur = n
-        pos = starts_s[:n, None] + j * chunk + ar  # [n, C]
-        valid = pos < (starts_s[:n] + counts_s[:n])[:, None]
+    ids = torch.nonzero(counts > 0).squeeze(1)  # tiles still compositing
+    T = torch.ones(ids.numel(), Pt, dtype=dt, device=dev)
+    acc = torch.zeros(ids.numel(), Pt, F, dtype=dt, device=dev)
+    done = torch.zeros(ids.numel(), Pt, dtype=torch.bool, device=dev)
+    out_ids, out_T, out_acc = [torch.nonzero(counts == 0).squeeze(1)], [], []
+    out_T.append(torch.ones(out_ids[0].numel(), Pt, dtype=dt, device=dev))
+    out_acc.append(torch.zeros(out_ids[0].numel(), Pt, F, dtype=dt, device=dev))
+    for j in range(n_chunks):
+        # a tile is final when its list is exhausted or every pixel has stopped (T < 1e-4)
+        alive = (counts[ids] > j * chunk) & ~done.all(1)
+        if not bool(alive.all()):
+            out_ids.append(ids[~alive]); out_T.append(T[~alive]); out_acc.append(acc[~alive])
+            ids, T, acc, done = ids[alive], T[alive], acc[alive], done[alive]
+            if ids.numel() == 0:
+                break
+        pos = starts[ids, None] + j * chunk + ar  # [n, C]
+        valid = pos < (starts[ids] + counts[ids])[:, None]
         g = gid[torch.where(valid, pos, torch.zeros_like(pos))]  # [n, C]
-        dx = px[:n, None, :] - means2d[g, 0][:, :, None]  # [n, C, Pt]
-        dy = py[:n, None, :] - means2d[g, 1][:, :, None]
-        cg = conics[g]
-        maha = cg[:, :, 0, None] * dx * dx + 2.0 * cg[:, :, 1, None] * dx * dy + cg[:, :, 2, None] * dy * dy
-        alpha = torch.clamp_max(opacities[g][:, :, None] * torch.exp(-0.5 * maha), ALPHA_MAX)
-        use = valid[:, :, None] & (maha <= SIGMA_EXTENT ** 2) & (alpha >= ALPHA_MIN)
-        alpha = torch.where(use, alpha, torch.zeros_like(alpha))
+        m = means2d[g] - centre[ids, None, :]  # [n, C, 2] mean relative to the tile centre
+        a, b, c = conics[g].unbind(-1)
+        mx, my = m.unbind(-1)
+        coef = torch.stack([-0.5 * a, -b, -0.5 * c, a * mx + b * my, b * mx + c * my,
+                            log_op[g] - 0.5 * (a * mx * mx + 2 * b * mx * my + c * my * my)], -1)
+        power = torch.matmul(coef, basis)  # [n, C, Pt]
+        thr = torch.where(valid, cut[g], torch.full_like(cut[g], math.inf))
+        use = power >= thr[:, :, None]
+        alpha = torch.where(use, torch.exp(power).clamp_max(ALPHA_MAX), torch.zeros_like(power))
         cp = torch.cumprod(1.0 - alpha, dim=1)  # [n, C, Pt]
         T_incl = T[:, None, :] * cp
         T_excl = torch.cat([T[:, None, :], T_incl[:, :-1]], 1)
@@ -113,13 +127,13 @@ def rasterize_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, feat
         acc = acc + torch.bmm(w.transpose(1, 2), features[g])
         T = torch.where(keep, T_incl, T[:, None, :]).amin(1)
         done = done | (T_incl[:, -1] < T_MIN)
-    out_T.append(T); out_acc.append(acc)
-    T_all = torch.cat(out_T[::-1], 0)  # sorted tile order
-    acc_all = torch.cat(out_acc[::-1], 0)
-    inv = torch.empty_like(tiles)
-    inv[tiles] = torch.arange(n_tiles, device=dev)
-    T_img = T_all[inv].reshape(nty, ntx, tile_size, tile_size).permute(0, 2, 1, 3)
-    acc_img = acc_all[inv].reshape(nty, ntx, tile_size, tile_size, F).permute(0, 2, 1, 3, 4)
+    out_ids.append(ids); out_T.append(T); out_acc.append(acc)
+    order = torch.cat(out_ids)
+    inv = torch.empty_like(order)
+    inv[order] = torch.arange(order.numel(), device=dev)
+    T_all, acc_all = torch.cat(out_T, 0)[inv], torch.cat(out_acc, 0)[inv]  # tile-index order
+    T_img = T_all.reshape(nty, ntx, tile_size, tile_size).permute(0, 2, 1, 3)
+    acc_img = acc_all.reshape(nty, ntx, tile_size, tile_size, F).permute(0, 2, 1, 3, 4)
     T_img = T_img.reshape(nty * tile_size, ntx * tile_size)[:height, :width]
     acc_img = acc_img.reshape(nty * tile_size, ntx * tile_size, F)[:height, :width]
     return acc_img, T_img

@@ -223,7 +223,7 @@ class Trainer:
                 self.params, self.optimizers, self.strategy_state, it + 1, out.means2d, out.radii,
                 frame.camera.width, frame.camera.height)
         self.step = it + 1
-        return {"loss": float(loss), "l1": float(loss_l1), "dssim": float(loss_dssim),
+        return {"loss": loss.item(), "l1": loss_l1.item(), "dssim": loss_dssim.item(),
                 "psnr": float(psnr(out.image.detach(), frame.image)), **{f"densify_{k}": v for k, v in info.items()},
                 "_out": out, "_frame": frame}
 

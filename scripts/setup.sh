@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# One-time set-up from a clean clone: a local venv (.venv) with torch and stdr installed.
+#  - Machine without a GPU: the CPU build of torch (torch==2.13.0); a CUDA build is never pulled.
+#  - Machine with an NVIDIA GPU: the torch you already have is kept (the venv sees the system
+#    site-packages); torch is installed only if none is importable.
+#  - tcmalloc (Debian libtcmalloc-minimal4) is installed when run as root with apt, because
+#    torch CPU code runs 2-2.5x faster with it; scripts/run.sh preloads it. STDR_NO_APT=1 skips.
+# Re-running is cheap: each step is skipped when already done.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+TORCH_SPEC=${STDR_TORCH:-torch==2.13.0}
+
+has_gpu() { command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; }
+
+if [ ! -x .venv/bin/python ]; then
+  if has_gpu && "$PY" -c "import torch" >/dev/null 2>&1; then
+    echo "[setup] GPU machine with torch $("$PY" -c 'import torch; print(torch.__version__)'): keeping it"
+    "$PY" -m venv --system-site-packages .venv
+  else
+    "$PY" -m venv .venv
+  fi
+fi
+pip() { .venv/bin/python -m pip "$@"; }
+
+if ! .venv/bin/python -c "import torch" >/dev/null 2>&1; then
+  if has_gpu; then
+    echo "[setup] installing $TORCH_SPEC (GPU machine)"
+    pip install -q "$TORCH_SPEC"
+  else
+    echo "[setup] installing the CPU build of $TORCH_SPEC"
+    # a local CPU wheel (find-links) first, then PyTorch's CPU index; never PyPI's CUDA build
+    pip install -q --no-index "$TORCH_SPEC" 2>/dev/null \
+      || pip install -q "$TORCH_SPEC" --index-url https://download.pytorch.org/whl/cpu
+  fi
+fi
+if ! has_gpu && .venv/bin/python -c "import torch,sys; sys.exit(0 if torch.version.cuda else 1)" 2>/dev/null; then
+  echo "[setup] warning: the venv's torch is a CUDA build on a machine without a GPU" >&2
+fi
+
+pip install -q -e ".[test]"
+
+if [ "${STDR_NO_APT:-0}" != 1 ] && [ ! -f /usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4 ] \
+   && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+  echo "[setup] installing libtcmalloc-minimal4 (faster torch on the CPU)"
+  (apt-get install -y -q libtcmalloc-minimal4 >/dev/null 2>&1 \
+    || (apt-get update -q >/dev/null 2>&1 && apt-get install -y -q libtcmalloc-minimal4 >/dev/null 2>&1)) \
+    || echo "[setup] tcmalloc not installed (optional)"
+fi
+.venv/bin/python -c "import torch, stdr; print(f'[setup] ok: torch {torch.__version__}, cuda={torch.cuda.is_available()}, stdr {stdr.__version__}')"

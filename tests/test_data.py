@@ -1,0 +1,124 @@
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from stdr.data.dnerf import load_dnerf, load_dnerf_split
+from stdr.data.procedural import SceneOptions, generate_scene, render_frame
+
+SMALL = SceneOptions(n_train=6, n_val=2, n_test=3, resolution=24)
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    return generate_scene(tmp_path_factory.mktemp("proc") / "scene", SMALL)
+
+
+def _copy(src, tmp_path):
+    dst = tmp_path / "scene"
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_procedural_scene_is_deterministic_and_dnerf_shaped(small_scene, tmp_path):
+    again = generate_scene(tmp_path / "again", SMALL)
+    for f in ("transforms_train.json", "train/r_000.png", "test/r_002.png"):
+        assert (small_scene / f).read_bytes() == (again / f).read_bytes(), f
+    d = load_dnerf(small_scene, ["train", "val", "test"])
+    assert [len(d.frames(s)) for s in ("train", "val", "test")] == [6, 2, 3]
+    train_t = d.train_times()
+    assert train_t[0] == 0.0 and train_t[-1] == 1.0
+    for s in ("val", "test"):
+        for f in d.frames(s):
+            assert np.abs(train_t - f.time).min() > 1e-3  # held-out times are unseen times
+    f0 = d.frames("train")[0]
+    assert f0.image.shape == (24, 24, 3) and f0.alpha is not None
+    assert 0.02 < float(f0.alpha.mean()) < 0.9  # an object on a transparent background
+    # each frame has its own camera
+    assert not torch.allclose(d.frames("train")[0].camera.R, d.frames("train")[1].camera.R)
+
+
+def test_procedural_motion_changes_the_image():
+    c2w = np.eye(4)
+    c2w[:3, 3] = [0, -3.3, 0.5]
+    c2w[:3, :3] = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]]).T @ np.eye(3)
+    from stdr.data.procedural import look_at_c2w
+    c2w = look_at_c2w(np.array([0.5, -3.3, 0.8]))
+    a, b = render_frame(c2w, 0.0, SMALL), render_frame(c2w, 0.25, SMALL)
+    assert np.abs(a.astype(int) - b.astype(int)).mean() > 1.0
+
+
+def test_background_and_resolution(small_scene):
+    w = load_dnerf_split(small_scene, "train", background=(1, 1, 1))
+    b = load_dnerf_split(small_scene, "train", background=(0, 0, 0))
+    a = w[0].alpha
+    assert torch.allclose(w[0].image - b[0].image, (1 - a)[..., None].expand(-1, -1, 3), atol=1e-5)
+    half = load_dnerf_split(small_scene, "train", resolution_scale=0.5)
+    assert half[0].image.shape == (12, 12, 3)
+    assert half[0].camera.fx == pytest.approx(w[0].camera.fx / 2)
+    capped = load_dnerf_split(small_scene, "train", max_width=8)
+    assert capped[0].camera.width == 8 and capped[0].camera.height == 8
+
+
+def test_missing_transforms(tmp_path):
+    with pytest.raises(FileNotFoundError, match="transforms_train.json"):
+        load_dnerf(tmp_path, ["train"])
+
+
+def test_malformed_json(small_scene, tmp_path):
+    d = _copy(small_scene, tmp_path)
+    (d / "transforms_test.json").write_text('{"camera_angle_x": 0.7, "frames": [')
+    with pytest.raises(ValueError, match=r"transforms_test.json: malformed JSON at line 1"):
+        load_dnerf(d, ["test"])
+
+
+def test_missing_image(small_scene, tmp_path):
+    d = _copy(small_scene, tmp_path)
+    (d / "train" / "r_003.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"frames\[3\] image './train/r_003' not found"):
+        load_dnerf(d, ["train"])
+
+
+def test_mismatched_image_size(small_scene, tmp_path):
+    import cv2
+    d = _copy(small_scene, tmp_path)
+    cv2.imwrite(str(d / "train" / "r_002.png"), np.zeros((10, 12, 4), np.uint8))
+    with pytest.raises(ValueError, match=r"r_002.png: image is 12x10 but r_000.png is 24x24"):
+        load_dnerf(d, ["train"])
+
+
+@pytest.mark.parametrize("edit,match", [
+    (lambda m: m.pop("camera_angle_x"), "missing key 'camera_angle_x'"),
+    (lambda m: m["frames"][1].pop("time"), r"frames\[1\] has no 'time'"),
+    (lambda m: m["frames"][1].update(time=1.5), r"frames\[1\].time=1.5 is outside"),
+    (lambda m: m["frames"][0].update(file_path="../../etc/passwd"), "outside the scene folder"),
+    (lambda m: m["frames"][0].update(transform_matrix=[[1, 0], [0, 1]]), r"frames\[0\].transform_matrix"),
+])
+def test_bad_keys(small_scene, tmp_path, edit, match):
+    d = _copy(small_scene, tmp_path)
+    meta = json.loads((d / "transforms_train.json").read_text())
+    edit(meta)
+    (d / "transforms_train.json").write_text(json.dumps(meta))
+    with pytest.raises((KeyError, ValueError), match=match):
+        load_dnerf(d, ["train"])
+
+
+def test_shared_dnerf_scenes_load(shared_dir):
+    expect = {"bouncingballs": 150, "hellwarrior": 100, "jumpingjacks": 200, "standup": 150}
+    for name, n_train in expect.items():
+        root = shared_dir / "data" / "dnerf" / name
+        d = load_dnerf(root, ["train", "test"], background="white", max_width=200)
+        assert len(d.frames("train")) == n_train and len(d.frames("test")) == 20
+        f = d.frames("train")[0]
+        assert (f.camera.width, f.camera.height) == (200, 200)
+        assert f.camera.fx == pytest.approx(0.5 * 200 / np.tan(0.5 * 0.6911112070083618), rel=1e-6)
+        # D-NeRF cameras look at the origin from about 4 units away: the origin projects near the centre
+        uv, z = f.camera.project(torch.zeros(1, 3))
+        assert 2.0 < float(z) < 6.0
+        assert torch.allclose(uv, torch.tensor([[100.0, 100.0]]), atol=20)
+        # times are read as written (in these copies every test time is also a train time:
+        # the test views differ from the training views in camera, not in time)
+        js = json.loads((root / "transforms_test.json").read_text())["frames"]
+        assert [f.time for f in d.frames("test")] == [float(x["time"]) for x in js]

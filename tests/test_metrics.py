@@ -1,0 +1,62 @@
+import json
+
+import cv2
+import pytest
+import torch
+
+from stdr.eval.lpips import LPIPS
+from stdr.metrics import psnr, ssim
+
+
+def test_psnr_known_value():
+    a = torch.zeros(4, 4, 3)
+    b = torch.full((4, 4, 3), 0.1)
+    assert float(psnr(a, b)) == pytest.approx(20.0, abs=1e-4)
+
+
+def test_ssim_identity_and_against_direct_window_computation():
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(20, 18, 3, generator=g)
+    assert float(ssim(a, a)) == pytest.approx(1.0, abs=1e-6)
+    b = (a + 0.1 * torch.randn(20, 18, 3, generator=g)).clamp(0, 1)
+    # direct computation at one interior pixel/channel, 11x11 Gaussian window sigma 1.5
+    x = torch.arange(11, dtype=torch.float64) - 5
+    w1 = torch.exp(-x ** 2 / 4.5)
+    w = (w1[:, None] * w1[None]) / (w1.sum() ** 2)
+    pa, pb = a[5:16, 4:15, 1].double(), b[5:16, 4:15, 1].double()
+    mu_a, mu_b = (w * pa).sum(), (w * pb).sum()
+    va = (w * pa * pa).sum() - mu_a ** 2
+    vb = (w * pb * pb).sum() - mu_b ** 2
+    cov = (w * pa * pb).sum() - mu_a * mu_b
+    C1, C2 = 0.01 ** 2, 0.03 ** 2
+    direct = ((2 * mu_a * mu_b + C1) * (2 * cov + C2)) / ((mu_a ** 2 + mu_b ** 2 + C1) * (va + vb + C2))
+    from stdr import metrics
+    import torch.nn.functional as F
+    win = metrics._window(11, 1.5, 3, torch.float64, a.device)
+    A, B = a.double().permute(2, 0, 1)[None], b.double().permute(2, 0, 1)[None]
+    m1, m2 = F.conv2d(A, win, padding=5, groups=3), F.conv2d(B, win, padding=5, groups=3)
+    s1 = F.conv2d(A * A, win, padding=5, groups=3) - m1 ** 2
+    s2 = F.conv2d(B * B, win, padding=5, groups=3) - m2 ** 2
+    s12 = F.conv2d(A * B, win, padding=5, groups=3) - m1 * m2
+    mp = ((2 * m1 * m2 + C1) * (2 * s12 + C2)) / ((m1 ** 2 + m2 ** 2 + C1) * (s1 + s2 + C2))
+    assert float(mp[0, 1, 10, 9]) == pytest.approx(float(direct), abs=1e-10)
+    assert float(ssim(a.double(), b.double())) == pytest.approx(float(mp.mean()), abs=1e-12)
+
+
+def _img(path):
+    return torch.from_numpy(cv2.imread(str(path))[..., ::-1].copy()).float() / 255
+
+
+@pytest.mark.parametrize("net", ["vgg", "alex"])
+def test_lpips_calibration(shared_dir, net):
+    root = shared_dir / "data" / "lpips_calibration"
+    ref = json.loads((root / "scores.json").read_text())[f"lpips_{net}"]
+    m = LPIPS(net, weights_dir=shared_dir / "weights" / "lpips")
+    for name, score in ref.items():
+        got = float(m(_img(root / "ref" / f"{name}.png"), _img(root / "dist" / f"{name}.png")))
+        assert got == pytest.approx(score, abs=1e-3), name
+
+
+def test_lpips_missing_weights_message(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"vgg16_features.pth.*eval.lpips_weights"):
+        LPIPS("vgg", weights_dir=tmp_path)

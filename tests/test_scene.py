@@ -1,0 +1,130 @@
+import torch
+from torch import nn
+
+from stdr.scene.gaussians import init_params
+from stdr.scene.knn import knn
+from stdr.scene.ply import load_ply, save_ply
+from stdr.scene.strategy import DensifyStrategy, duplicate, remove, split
+
+
+def _params(n=20, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    p = init_params(torch.rand(n, 3, generator=g), torch.rand(n, 3, generator=g), sh_degree=3)
+    with torch.no_grad():
+        p["shN"].normal_(generator=g)
+        p["quats"].normal_(generator=g)
+    # an extra per-Gaussian attribute, like STDR's N x K mask: each row tagged with its identity
+    p["mask"] = nn.Parameter(torch.arange(n, dtype=torch.float32)[:, None].repeat(1, 5))
+    return p
+
+
+def test_ply_roundtrip_with_extra_attribute(tmp_path):
+    p = _params()
+    save_ply(p, tmp_path / "a.ply")
+    q = load_ply(tmp_path / "a.ply", extra_keys={"mask": (5,)})
+    for k in p:
+        assert torch.equal(p[k].detach(), q[k].detach()), k
+    text = (tmp_path / "a.ply").read_bytes()[:2000].decode("latin-1")
+    for prop in ("property float x", "property float f_dc_0", "property float f_rest_44",
+                 "property float opacity", "property float scale_2", "property float rot_3"):
+        assert prop in text
+
+
+def test_ply_rejects_non_3dgs(tmp_path):
+    from plyfile import PlyData, PlyElement
+    import numpy as np
+    import pytest
+    arr = np.zeros(3, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    PlyData([PlyElement.describe(arr, "vertex")]).write(str(tmp_path / "b.ply"))
+    with pytest.raises(ValueError, match="missing properties"):
+        load_ply(tmp_path / "b.ply")
+
+
+def _optimizers(p):
+    return {k: torch.optim.Adam([v], lr=1e-3) for k, v in p.items()}
+
+
+def _step(p, opts):
+    loss = sum((v.float() ** 2).sum() * (i + 1) for i, v in enumerate(p.values()))
+    loss.backward()
+    for o in opts.values():
+        o.step()
+        o.zero_grad()
+
+
+def _check_aligned(p, opts, state):
+    n = p["means"].shape[0]
+    for k, v in p.items():
+        assert v.shape[0] == n, k
+        st = opts[k].state[v]
+        assert opts[k].param_groups[0]["params"][0] is v
+        assert st["exp_avg"].shape == v.shape and st["exp_avg_sq"].shape == v.shape
+    for k, v in state.items():
+        if torch.is_tensor(v):
+            assert v.shape[0] == n, k
+
+
+def test_duplicate_split_remove_keep_rows_and_adam_state_aligned():
+    p = _params(12)
+    opts = _optimizers(p)
+    _step(p, opts)
+    state = {"grad2d": torch.arange(12.0), "count": torch.ones(12)}
+    avg_before = {k: opts[k].state[p[k]]["exp_avg"].clone() for k in p}
+    sh_before = p["sh0"].detach().clone()
+    mask_before = p["mask"].detach().clone()
+
+    dup = torch.zeros(12, dtype=torch.bool); dup[[1, 5]] = True
+    duplicate(p, opts, state, dup)
+    _check_aligned(p, opts, state)
+    assert torch.equal(p["mask"][12:], mask_before[[1, 5]])  # children inherit parent rows
+    assert torch.equal(p["mask"][:12], mask_before)
+    assert torch.equal(opts["sh0"].state[p["sh0"]]["exp_avg"][:12], avg_before["sh0"])
+    assert (opts["sh0"].state[p["sh0"]]["exp_avg"][12:] == 0).all()
+
+    spl = torch.zeros(14, dtype=torch.bool); spl[[0, 13]] = True  # an original and a clone
+    split(p, opts, state, spl, generator=torch.Generator().manual_seed(0))
+    _check_aligned(p, opts, state)
+    assert p["means"].shape[0] == 16
+    assert torch.equal(p["mask"][-4:], mask_before[[0, 5, 0, 5]])
+    assert torch.allclose(p["sh0"][-4:-2], torch.stack([sh_before[0], sh_before[5]]))
+    parent_scale = torch.exp(p["scales"][-1]).detach()
+    assert torch.allclose(torch.exp(p["scales"][-3]).detach(), parent_scale)
+
+    rm = torch.zeros(16, dtype=torch.bool); rm[:3] = True
+    kept_mask = p["mask"][3:, 0].detach().clone()
+    remove(p, opts, state, rm)
+    _check_aligned(p, opts, state)
+    assert torch.equal(p["mask"][:, 0], kept_mask)
+    _step(p, opts)  # the optimizer still runs on the edited tensors
+
+
+def test_strategy_refine_grows_prunes_and_caps():
+    torch.manual_seed(0)
+    p = _params(50)
+    opts = _optimizers(p)
+    _step(p, opts)
+    strat = DensifyStrategy(grow_grad2d=1e-3, grow_scale3d=0.05, refine_start=0, refine_every=1,
+                            reset_every=0, max_gaussians=60, prune_opa=0.0)
+    state = strat.initialize_state(50, scene_extent=1.0)
+    with torch.no_grad():
+        p["scales"][:25] = -6.0   # small: cloned
+        p["scales"][25:] = -1.0   # large: split
+    means2d = torch.zeros(50, 2, requires_grad=True)
+    means2d.grad = torch.zeros(50, 2)
+    means2d.grad[:, 0] = torch.linspace(0, 1e-3, 50)  # NDC grad = 0.5 * W * g
+    radii = torch.full((50,), 3, dtype=torch.int32)
+    info = strat.step_post_backward(p, opts, state, 1, means2d, radii, width=10, height=10)
+    _check_aligned(p, opts, state)
+    # gradients above threshold: 0.5*10*g > 1e-3 -> g > 2e-4: 40 candidates, but the cap allows 10
+    assert info["cloned"] + info["split"] == 10
+    assert p["means"].shape[0] == 60
+    assert info["split"] == 10  # the largest gradients are the large Gaussians
+
+
+def test_knn_matches_brute_force():
+    x = torch.rand(300, 3, generator=torch.Generator().manual_seed(0))
+    d, i = knn(x, x, 4, exclude_self=True, chunk=64)
+    full = torch.cdist(x, x).square()
+    full.fill_diagonal_(float("inf"))
+    dd, ii = torch.topk(full, 4, largest=False)
+    assert torch.equal(i, ii) and torch.allclose(d, dd, atol=1e-6)
