@@ -8,7 +8,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from ..config import register
+from ..config import Config, register
 from .common import CONFIG_DIR
 
 register()
@@ -29,14 +29,12 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
         if not cfg_path.is_file():
             raise FileNotFoundError(f"{rd} is not a stdr run directory (no config.yaml); "
                                     "pass folders that stdr-train wrote")
-        cfg = OmegaConf.merge(OmegaConf.structured(__import__("stdr.config", fromlist=["Config"]).Config),
-                              OmegaConf.load(cfg_path))
+        cfg = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(cfg_path))
         sp = split or cfg.data.eval_split
         if reevaluate:
             if render_cfg is not None:
                 cfg.render = render_cfg
-            cfg.train.threads = cfg.train.threads
-            tr = Trainer(cfg, rd, splits=(sp,), data_base=base)
+            tr = Trainer(cfg, rd, splits=(sp,), data_base=base, init_gaussians=False)
             tr.load(rd / CKPT, training=False)
             res = evaluate_run(tr, sp, eval_cfg)
         else:

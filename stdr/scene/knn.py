@@ -6,7 +6,7 @@ from torch import Tensor
 
 
 def knn(query: Tensor, points: Tensor, k: int, exclude_self: bool = False,
-        chunk: int = 4096) -> tuple[Tensor, Tensor]:
+        chunk: int = 1024) -> tuple[Tensor, Tensor]:
     """Squared distances [Q, k] and indices [Q, k] of the k nearest `points` [P, D] to `query` [Q, D].
 
     With exclude_self, query i is assumed to be points i and is not its own neighbour.

@@ -73,7 +73,9 @@ def build_deformation_from_cfg(cfg, cond_dim: int = 0):
 
 
 class Trainer:
-    def __init__(self, cfg, run_dir: str | Path, splits=("train",), data_base: Optional[str] = None):
+    def __init__(self, cfg, run_dir: str | Path, splits=("train",), data_base: Optional[str] = None,
+                 init_gaussians: bool = True):
+        """Set up a run. With init_gaussians=False the Gaussians are left empty for `load()`."""
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -86,7 +88,9 @@ class Trainer:
         self.backend = resolve_backend(cfg.render.backend)
         gen = torch.Generator().manual_seed(cfg.seed)
         m = cfg.model
-        if m.init == "random":
+        if not init_gaussians:
+            pts = None
+        elif m.init == "random":
             pts = random_cube_points(m.init_num, m.init_extent, gen)
         elif m.init == "points":
             if self.scene.init_points is None:
@@ -94,14 +98,17 @@ class Trainer:
             pts = torch.from_numpy(self.scene.init_points).float()
         else:
             raise ValueError(f"model.init={m.init!r}: use 'random' or 'points'")
-        colors = torch.rand(pts.shape[0], 3, generator=gen)
-        self.params = init_params(pts, colors, sh_degree=m.sh_degree, init_opacity=m.init_opacity)
+        if pts is None:
+            self.params = torch.nn.ParameterDict()
+        else:
+            colors = torch.rand(pts.shape[0], 3, generator=gen)
+            self.params = init_params(pts, colors, sh_degree=m.sh_degree, init_opacity=m.init_opacity)
         self.deform = build_deformation_from_cfg(cfg)
         self.optimizers = self._make_optimizers()
         self.deform_opt = torch.optim.Adam(self.deform.parameters(), lr=cfg.baseline.lr_init, eps=1e-15)
         self.strategy = DensifyStrategy(**OmegaConf.to_container(cfg.densify))
         extent = scene_extent(self.scene.camera_centers("train")) if "train" in self.scene.splits else 1.0
-        self.strategy_state = self.strategy.initialize_state(num_gaussians(self.params), extent)
+        self.strategy_state = self.strategy.initialize_state(len(pts) if pts is not None else 0, extent)
         self.sampler = CameraSampler(len(self.scene.splits.get("train", [])), cfg.seed)
         self.step = 0
         self.train_seconds = 0.0
