@@ -10,21 +10,8 @@ from typing import Any, List, Optional
 
 from hydra.core.config_store import ConfigStore
 
-
-@dataclass
-class ProceduralConfig:
-    """Options of the embedded procedural scene (see stdr.data.procedural.SceneOptions)."""
-
-    n_train: int = 60
-    n_val: int = 10
-    n_test: int = 10
-    resolution: int = 128
-    motion_speed: float = 1.0
-    swing_degrees: float = 60.0
-    bounce_height: float = 0.8
-    time_sampling: str = "uniform"
-    camera_radius: float = 3.3
-    seed: int = 0
+from .data.procedural import SceneOptions
+from .scene.strategy import DensifyStrategy
 
 
 @dataclass
@@ -37,7 +24,7 @@ class DataConfig:
     resolution_scale: float = 1.0
     max_width: Optional[int] = None  # after resolution_scale, cap the width (aspect kept)
     eval_split: str = "test"    # test | val (D-NeRF lego's test split disagrees with train)
-    procedural: ProceduralConfig = field(default_factory=ProceduralConfig)
+    procedural: SceneOptions = field(default_factory=SceneOptions)  # generator options
 
 
 @dataclass
@@ -61,6 +48,7 @@ class BaselineConfig:
     t_freqs: int = 6
     time_net: bool = True
     time_out: int = 30
+    head_init_std: Optional[float] = None  # None: PyTorch default (published); 1e-5: start at identity
     lr_init: float = 8e-4
     lr_final: float = 1.6e-6
     lr_max_steps: int = 40_000
@@ -79,22 +67,6 @@ class OptimConfig:
     opacities_lr: float = 0.05
     sh0_lr: float = 2.5e-3
     shN_lr: float = 1.25e-4
-
-
-@dataclass
-class DensifyConfig:
-    grow_grad2d: float = 2e-4
-    grow_scale3d: float = 0.01
-    prune_opa: float = 0.005
-    prune_scale3d: float = 0.1
-    prune_scale2d: float = 20.0
-    prune_big_after: int = 3000
-    refine_start: int = 500
-    refine_stop: int = 15_000
-    refine_every: int = 100
-    reset_every: int = 3000
-    reset_value: float = 0.01
-    max_gaussians: int = 0
 
 
 @dataclass
@@ -137,7 +109,7 @@ class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
-    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    densify: DensifyStrategy = field(default_factory=DensifyStrategy)  # the strategy is its own schema
     render: RenderConfig = field(default_factory=RenderConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)

@@ -14,7 +14,7 @@ from stdr.config import register
 
 register()
 
-TINY_SCENE = ["data.procedural.resolution=48", "data.procedural.n_train=16", "data.procedural.n_val=2",
+TINY_SCENE = ["data.procedural.resolution=64", "data.procedural.n_train=40", "data.procedural.n_val=2",
               "data.procedural.n_test=4"]
 
 
@@ -53,7 +53,6 @@ def test_resume_gives_the_same_result_as_an_uninterrupted_run(tmp_path):
     b2 = Trainer(_tiny(tmp_path, sched), tmp_path / "b")
     b2.train()  # resumes from b/checkpoints/last.pt
     assert b2.step == a.step == 60
-    assert b1.params["means"].shape != a.params["means"].shape or True
     for k in a.params:
         assert torch.equal(a.params[k], b2.params[k]), k
     for (ka, va), (kb, vb) in zip(a.deform.state_dict().items(), b2.deform.state_dict().items()):
@@ -62,7 +61,8 @@ def test_resume_gives_the_same_result_as_an_uninterrupted_run(tmp_path):
 
 @pytest.mark.slow
 def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
-    cfg = _tiny(tmp_path, ["optim.iterations=900", "baseline.warmup=300", "densify.refine_stop=700"])
+    cfg = _tiny(tmp_path, ["optim.iterations=900", "baseline.warmup=300", "densify.refine_stop=700",
+                           "densify.grow_grad2d=1e-4", "baseline.head_init_std=1e-5"])
     run_dir = tmp_path / "run"
     res = run(cfg, run_dir)
     metrics = json.loads((run_dir / "metrics.json").read_text())

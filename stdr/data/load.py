@@ -1,7 +1,6 @@
 """Build a SceneData from the `data` config."""
 from __future__ import annotations
 
-from dataclasses import fields
 from pathlib import Path
 from typing import Iterable
 
@@ -26,8 +25,7 @@ def resolve_data_path(path: str, base: str | Path | None = None) -> Path:
 def scene_folder(cfg, base: str | Path | None = None) -> Path:
     """The on-disk D-NeRF-format folder the config points at (generating the embedded scene)."""
     if cfg.format == "procedural":
-        names = {f.name for f in fields(SceneOptions)}
-        opts = SceneOptions(**{k: v for k, v in dict(cfg.procedural).items() if k in names})
+        opts = SceneOptions(**dict(cfg.procedural))
         cache = Path(cfg.cache_dir)
         if not cache.is_absolute():
             cache = project_root() / cache

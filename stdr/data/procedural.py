@@ -19,14 +19,15 @@ import numpy as np
 LIGHT = np.array([0.4, 0.3, 0.85]) / np.linalg.norm([0.4, 0.3, 0.85])
 
 
-@dataclass(frozen=True)
+@dataclass
 class SceneOptions:
     n_train: int = 60
     n_val: int = 10
     n_test: int = 10
     resolution: int = 128
     motion_speed: float = 1.0      # cycles of the arm swing over t in [0, 1]
-    swing_degrees: float = 60.0    # arm swing amplitude
+    swing_degrees: float = 30.0    # arm swing amplitude (60 makes the arm vanish in short runs)
+    arm_half_width: float = 0.15
     bounce_height: float = 0.8
     time_sampling: str = "uniform"  # "uniform" or "random" train times
     camera_radius: float = 3.3
@@ -83,7 +84,8 @@ def scene_state(t: float, opt: SceneOptions) -> dict:
     hinge = np.array([0.0, 0.0, -0.45])
     return {
         "base": (np.array([0.0, 0.0, -0.7]), np.array([0.45, 0.45, 0.25]), np.eye(3)),
-        "arm": (hinge + R_arm @ np.array([0.0, 0.0, 0.5]), np.array([0.1, 0.1, 0.5]), R_arm),
+        "arm": (hinge + R_arm @ np.array([0.0, 0.0, 0.5]),
+                np.array([opt.arm_half_width, opt.arm_half_width, 0.5]), R_arm),
         "ball": (np.array([0.8, 0.0, -0.7 + 0.25 + bounce]), 0.25),
     }
 
@@ -162,9 +164,10 @@ def _times(opt: SceneOptions, rng: np.random.Generator) -> dict[str, np.ndarray]
     return out
 
 
-def generate_scene(out_dir: str | Path, opt: SceneOptions = SceneOptions()) -> Path:
+def generate_scene(out_dir: str | Path, opt: SceneOptions | None = None) -> Path:
     """Write a D-NeRF-format scene to out_dir (transforms_*.json + RGBA PNGs)."""
     out = Path(out_dir)
+    opt = opt or SceneOptions()
     rng = np.random.default_rng(opt.seed)
     times = _times(opt, rng)
     for split, ts in times.items():
@@ -185,8 +188,9 @@ def generate_scene(out_dir: str | Path, opt: SceneOptions = SceneOptions()) -> P
     return out
 
 
-def embedded_scene(cache_dir: str | Path, opt: SceneOptions = SceneOptions()) -> Path:
+def embedded_scene(cache_dir: str | Path, opt: SceneOptions | None = None) -> Path:
     """The scene for `opt`, generated into cache_dir/<options hash> on first use."""
+    opt = opt or SceneOptions()
     path = Path(cache_dir) / f"procedural-{opt.key()}"
     if not (path / "generator.json").is_file():
         tmp = path.with_name(path.name + ".tmp")

@@ -28,13 +28,17 @@ class DeformMLP(Deformation):
     Linear(., width)-ReLU-Linear(width, time_out) net) or raw PE(t) (real data), plus an
     optional conditioning vector per Gaussian. Canonical xyz is detached: no gradient reaches
     the Gaussians' positions through the network. Heads: dxyz (3), dq (4), ds (3).
+
+    head_init_std: None keeps PyTorch's default init (the published code); its heads then start
+    with random deltas of ~0.3 scene units. A small value (1e-5) starts the deformation at
+    identity, which short schedules need.
     """
 
     apply_rule = staticmethod(apply_post_activation)
 
     def __init__(self, depth: int = 8, width: int = 256, skips: Sequence[int] = (4,),
                  xyz_freqs: int = 10, t_freqs: int = 6, time_net: bool = True, time_out: int = 30,
-                 cond_dim: int = 0):
+                 cond_dim: int = 0, head_init_std: float | None = None):
         super().__init__()
         self.xyz_freqs, self.t_freqs, self.cond_dim = xyz_freqs, t_freqs, cond_dim
         self.skips = tuple(skips)
@@ -51,6 +55,10 @@ class DeformMLP(Deformation):
         self.head_xyz = nn.Linear(width, 3)
         self.head_rot = nn.Linear(width, 4)
         self.head_scale = nn.Linear(width, 3)
+        if head_init_std is not None:  # near-identity start (as SC-GS); None = PyTorch default init
+            for head in (self.head_xyz, self.head_rot, self.head_scale):
+                nn.init.normal_(head.weight, std=head_init_std)
+                nn.init.zeros_(head.bias)
 
     def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:
         xyz = params["means"].detach()

@@ -69,7 +69,7 @@ def build_deformation_from_cfg(cfg, cond_dim: int = 0):
     b = cfg.baseline
     return build_deformation(b.name, depth=b.depth, width=b.width, skips=list(b.skips),
                              xyz_freqs=b.xyz_freqs, t_freqs=b.t_freqs, time_net=b.time_net,
-                             time_out=b.time_out, cond_dim=cond_dim)
+                             time_out=b.time_out, cond_dim=cond_dim, head_init_std=b.head_init_std)
 
 
 class Trainer:
