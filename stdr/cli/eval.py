@@ -46,7 +46,7 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
                 raise KeyError(f"{mp} has no split {sp!r}")
         c = OmegaConf.to_container(cfg, resolve=True)
         rows.append({"method": method_name(c), "scene": cfg.data.name, "split": sp, "metrics": res,
-                     "run_dir": str(rd)})
+                     "run_dir": str(rd), "config": {k: v for k, v in c.items() if k not in ("eval", "train")}})
     table = collect(rows)
     paths = write_tables(table, out_dir)
     print(markdown(table))

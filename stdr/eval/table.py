@@ -25,16 +25,46 @@ def method_name(cfg) -> str:
     return name
 
 
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        out.update(_flatten(v, key + ".") if isinstance(v, dict) else {key: v})
+    return out
+
+
+SEED_KEYS = ("seed",)  # runs of one method and scene may differ only here; they are averaged
+
+
 def collect(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """rows: {method, scene, split, metrics}. Returns {methods, scenes, cells, means}."""
+    """rows: {method, scene, split, metrics, run_dir[, config]}. Returns {methods, scenes, cells, means}.
+
+    Several runs of one method on one scene (seeds) are averaged, and `n_runs` records how many.
+    If their configs differ in anything but the seed, that is an error naming the keys.
+    """
     methods = list(dict.fromkeys(r["method"] for r in rows))
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
-    cells: dict[str, dict[str, dict[str, Any]]] = {m: {} for m in methods}
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for r in rows:
-        if r["scene"] in cells[r["method"]]:
-            raise ValueError(f"two runs for method {r['method']!r} on scene {r['scene']!r}: "
-                             f"{cells[r['method']][r['scene']]['run_dir']} and {r['run_dir']}")
-        cells[r["method"]][r["scene"]] = {**{k: r["metrics"].get(k) for k in METRICS}, "run_dir": r["run_dir"]}
+        groups.setdefault((r["method"], r["scene"]), []).append(r)
+    cells: dict[str, dict[str, dict[str, Any]]] = {m: {} for m in methods}
+    for (m, sc), rs in groups.items():
+        if len(rs) > 1 and all("config" in r for r in rs):
+            base = _flatten(rs[0]["config"])
+            for r in rs[1:]:
+                other = _flatten(r["config"])
+                diff = sorted(k for k in base.keys() | other.keys()
+                              if base.get(k) != other.get(k) and k not in SEED_KEYS)
+                if diff:
+                    raise ValueError(f"runs {rs[0]['run_dir']} and {r['run_dir']} are both {m!r} on {sc!r} "
+                                     f"but their configs differ in {diff[:8]}; tabulate them separately")
+        cell: dict[str, Any] = {}
+        for k in METRICS:
+            vals = [r["metrics"].get(k) for r in rs]
+            cell[k] = None if any(v is None for v in vals) else sum(vals) / len(vals)
+        cell["n_runs"] = len(rs)
+        cell["run_dirs"] = [r["run_dir"] for r in rs]
+        cells[m][sc] = cell
     means = {}
     for m in methods:
         means[m] = {}

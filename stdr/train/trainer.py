@@ -150,12 +150,15 @@ class Trainer:
             return activate(self.params)
         return self.deform.deform(self.params, t)
 
-    def render_frame(self, frame: Frame, step: int) -> RenderOutput:
-        g = self.deformed(frame.time, step)
+    def render_gaussians(self, g: Gaussians, frame: Frame, step: int) -> RenderOutput:
         r = self.cfg.render
         return render(g.means, g.quats, g.scales, g.opacities, g.sh, frame.camera,
                       sh_degree=self.sh_degree(step), background=self.background, backend=self.backend,
                       near=r.near, eps2d=r.eps2d, antialiased=r.antialiased, tile_size=r.tile_size)
+
+    def render_frame(self, frame: Frame, step: int) -> RenderOutput:
+        """Deformed (after warm-up) Gaussians at the frame's time, rendered from its camera."""
+        return self.render_gaussians(self.deformed(frame.time, step), frame, step)
 
     # ----------------------------------------------------------------- checkpoints
     def checkpoint_payload(self) -> dict[str, Any]:
@@ -207,10 +210,7 @@ class Trainer:
         with prof("deform"):
             g = self.deformed(frame.time, it)
         with prof("render_fwd"):
-            r = cfg.render
-            out = render(g.means, g.quats, g.scales, g.opacities, g.sh, frame.camera,
-                         sh_degree=self.sh_degree(it), background=self.background, backend=self.backend,
-                         near=r.near, eps2d=r.eps2d, antialiased=r.antialiased, tile_size=r.tile_size)
+            out = self.render_gaussians(g, frame, it)
         with prof("loss"):
             lam = cfg.optim.lambda_dssim
             loss_l1 = l1(out.image, frame.image)
