@@ -5,7 +5,6 @@ convolution, C1 = 0.01^2, C2 = 0.03^2 (data range 1), mean over pixels and chann
 """
 from __future__ import annotations
 
-import math
 
 import torch
 import torch.nn.functional as F

@@ -8,7 +8,6 @@ Children of a clone or split inherit the parent's row.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, Callable
 

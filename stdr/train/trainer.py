@@ -5,7 +5,6 @@ Baselines differ only in the deformation module (stdr.deform) and their config.
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections import defaultdict
 from contextlib import contextmanager
