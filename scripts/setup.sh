@@ -29,9 +29,14 @@ if ! .venv/bin/python -c "import torch" >/dev/null 2>&1; then
     pip install -q "$TORCH_SPEC"
   else
     echo "[setup] installing the CPU build of $TORCH_SPEC"
-    # a local CPU wheel (find-links) first, then PyTorch's CPU index; never PyPI's CUDA build
-    pip install -q --no-index "$TORCH_SPEC" 2>/dev/null \
-      || pip install -q "$TORCH_SPEC" --index-url https://download.pytorch.org/whl/cpu
+    # A local CPU wheel (pip's find-links) if there is one, its dependencies then from the usual
+    # index (the installed CPU build already satisfies the pin); else PyTorch's CPU index.
+    # Never PyPI's CUDA build.
+    if pip install -q --no-deps --no-index "$TORCH_SPEC" 2>/dev/null; then
+      pip install -q "$TORCH_SPEC"
+    else
+      pip install -q "$TORCH_SPEC" --index-url https://download.pytorch.org/whl/cpu
+    fi
   fi
 fi
 if ! has_gpu && .venv/bin/python -c "import torch,sys; sys.exit(0 if torch.version.cuda else 1)" 2>/dev/null; then

@@ -19,7 +19,7 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
     import json
 
     from ..eval.evaluate import evaluate_run
-    from ..eval.table import collect, method_name, markdown, write_tables
+    from ..eval.table import collect, markdown, table_row, write_tables
     from ..train.trainer import CKPT, Trainer
 
     rows = []
@@ -44,9 +44,7 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
             res = json.loads(mp.read_text()).get(sp)
             if res is None:
                 raise KeyError(f"{mp} has no split {sp!r}")
-        c = OmegaConf.to_container(cfg, resolve=True)
-        rows.append({"method": method_name(c), "scene": cfg.data.name, "split": sp, "metrics": res,
-                     "run_dir": str(rd), "config": {k: v for k, v in c.items() if k not in ("eval", "train")}})
+        rows.append(table_row(OmegaConf.to_container(cfg, resolve=True), sp, res, str(rd)))
     table = collect(rows)
     paths = write_tables(table, out_dir)
     print(markdown(table))

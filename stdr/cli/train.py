@@ -39,10 +39,8 @@ def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict:
     if warm:
         print(f"[stdr] static warm-up (iteration {warm[-1]['iteration']}): PSNR {warm[-1]['psnr']:.2f} dB "
               f"-> final {res['psnr']:.2f} dB")
-    from ..eval.table import collect, markdown, method_name
-    c = OmegaConf.to_container(cfg, resolve=True)
-    print(markdown(collect([{"method": method_name(c), "scene": cfg.data.name, "split": split,
-                             "metrics": res, "run_dir": str(run_dir)}])))
+    from ..eval.table import collect, markdown, table_row
+    print(markdown(collect([table_row(OmegaConf.to_container(cfg, resolve=True), split, res, str(run_dir))])))
     print(f"[stdr] metrics: {run_dir / 'metrics.json'}  (tables over runs: stdr-eval RUN_DIR ...)")
     return res
 

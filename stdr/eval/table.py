@@ -25,6 +25,12 @@ def method_name(cfg) -> str:
     return name
 
 
+def table_row(cfg: dict[str, Any], split: str, metrics: dict[str, Any], run_dir: str) -> dict[str, Any]:
+    """One run's row for `collect`, from its resolved config (a plain dict)."""
+    return {"method": method_name(cfg), "scene": cfg["data"]["name"], "split": split, "metrics": metrics,
+            "run_dir": run_dir, "config": {k: v for k, v in cfg.items() if k not in ("eval", "train")}}
+
+
 def _flatten(d: dict, prefix: str = "") -> dict:
     out = {}
     for k, v in d.items():
