@@ -52,4 +52,7 @@ if [ "${STDR_NO_APT:-0}" != 1 ] && [ ! -f /usr/lib/x86_64-linux-gnu/libtcmalloc_
     || (apt-get update -q >/dev/null 2>&1 && apt-get install -y -q libtcmalloc-minimal4 >/dev/null 2>&1)) \
     || echo "[setup] tcmalloc not installed (optional)"
 fi
+# Compile the rasterizer now (cached; otherwise it is built on first use). A failure is not
+# fatal: render.backend=auto then falls back to the pure-torch reference with a warning.
+.venv/bin/stdr-build || echo "[setup] warning: compiled rasterizer not built; the reference backend will be used" >&2
 .venv/bin/python -c "import torch, stdr; print(f'[setup] ok: torch {torch.__version__}, cuda={torch.cuda.is_available()}, stdr {stdr.__version__}')"

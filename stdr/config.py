@@ -71,8 +71,8 @@ class OptimConfig:
 
 @dataclass
 class RenderConfig:
-    backend: str = "auto"       # auto | reference
-    tile_size: int = 8
+    backend: str = "auto"       # auto (cuda > cpu > reference) | cuda | cpu | reference
+    tile_size: int = 0          # 0 = the backend's measured default (stdr.render.DEFAULT_TILE)
     antialiased: bool = False
     eps2d: float = 0.3
     near: float = 0.01

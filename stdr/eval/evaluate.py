@@ -77,7 +77,7 @@ def evaluate_trainer(trainer, split: str, step: int, lpips_fn=None, save_dir: Op
     }
 
 
-def metric_conventions(eval_cfg, lpips_fn) -> dict[str, Any]:
+def metric_conventions(eval_cfg, lpips_fn, backend: str) -> dict[str, Any]:
     return {
         "psnr": "float render clamped to [0,1], data range 1, full image",
         "ssim": "3DGS: 11x11 Gaussian window sigma 1.5, zero padding, data range 1",
@@ -85,6 +85,7 @@ def metric_conventions(eval_cfg, lpips_fn) -> dict[str, Any]:
         "fps": "deformation + projection + rasterization, perf_counter, after warm-up, no I/O",
         "device": "cuda" if torch.cuda.is_available() else "cpu",
         "torch_threads": torch.get_num_threads(),
+        "render_backend": backend,
     }
 
 
@@ -94,7 +95,7 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
     save_dir = trainer.run_dir / "renders" / split if eval_cfg.save_images else None
     res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup)
     res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step,
-                "conventions": metric_conventions(eval_cfg, lp)})
+                "conventions": metric_conventions(eval_cfg, lp, trainer.backend)})
     path = trainer.run_dir / "metrics.json"
     metrics = json.loads(path.read_text()) if path.is_file() else {}
     metrics[split] = res

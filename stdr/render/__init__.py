@@ -1,6 +1,7 @@
 """One entry point, `render()`: project, shade (SH), rasterize with the selected backend."""
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Optional
 
@@ -9,23 +10,57 @@ from torch import Tensor
 
 from ..cameras import Camera
 from .projection import Projection, project_gaussians
+from . import compiled
 from .reference import rasterize_reference
 from .sh import eval_sh
 
-BACKENDS = ("reference",)
+BACKENDS = ("cuda", "cpu", "reference")  # compiled CUDA, compiled C++ (CPU), pure torch
+# Tile size per backend when `tile_size` is 0 (auto). Measured in docs/rasterizer.md.
+DEFAULT_TILE = {"cuda": 16, "cpu": 8, "reference": 8}
+_warned: set[str] = set()
 
 
-def resolve_backend(name: str) -> str:
-    """Map a `render.backend` value to an available backend.
+def resolve_backend(name: str, device: str | torch.device = "cpu") -> str:
+    """Map a `render.backend` value to an available backend for tensors on `device`.
 
-    `auto` picks the fastest available one (compiled backends arrive in their own module;
-    until then `auto` means `reference`).
+    `auto` picks compiled CUDA for CUDA tensors, then the compiled CPU backend, then the
+    reference (with one warning saying why a compiled backend is unavailable). Naming a compiled
+    backend that cannot be built is an error, never a silent fallback.
     """
+    dev = torch.device(device).type
     if name == "auto":
+        for kind in (("cuda",) if dev == "cuda" else ("cpu",)):
+            if compiled.available(kind):
+                return kind
+            if kind not in _warned:
+                _warned.add(kind)
+                warnings.warn(f"render.backend=auto: the compiled {kind} rasterizer is unavailable "
+                              f"({compiled.build_error(kind)}); using the pure-torch reference "
+                              f"(much slower)", RuntimeWarning, stacklevel=2)
         return "reference"
     if name not in BACKENDS:
         raise ValueError(f"render.backend={name!r} is not one of {('auto',) + BACKENDS}")
+    if name != "reference":
+        if (name == "cuda") != (dev == "cuda"):
+            raise ValueError(f"render.backend={name!r} cannot render tensors on {dev!r}")
+        compiled.load_extension(name)  # raises BuildError with the compiler's message
     return name
+
+
+def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
+              depths: Tensor, radii: Tensor, width: int, height: int, tile_size: int = 0,
+              backend: str = "reference") -> tuple[Tensor, Tensor]:
+    """Composite projected Gaussians with one backend (all share reference.py's semantics).
+
+    means2d [N, 2], conics [N, 3], opacities [N], features [N, F], depths [N], radii [N].
+    Returns (feature image [H, W, F] without background, transmittance [H, W]).
+    """
+    tile = tile_size or DEFAULT_TILE[backend]
+    if backend == "reference":
+        return rasterize_reference(means2d, conics, opacities, features, depths, radii, width,
+                                   height, tile_size=tile)
+    return compiled.rasterize_compiled(means2d, conics, opacities, features, depths, radii,
+                                       width, height, tile_size=tile, kind=backend)
 
 
 @dataclass
@@ -41,19 +76,21 @@ class RenderOutput:
 def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor,
            camera: Camera, sh_degree: int, background: Optional[Tensor] = None,
            backend: str = "reference", near: float = 0.01, eps2d: float = 0.3,
-           antialiased: bool = False, tile_size: int = 8) -> RenderOutput:
+           antialiased: bool = False, tile_size: int = 0) -> RenderOutput:
     """Render N Gaussians seen by `camera`.
 
     means [N, 3]; quats [N, 4] (w, x, y, z; any norm); scales [N, 3] (activated);
     opacities [N] (activated, in [0, 1]); sh [N, K, 3] SH coefficients (K >= (sh_degree+1)^2);
-    background [3] colour or None for black.
+    background [3] colour or None for black. backend: a resolved name (see resolve_backend);
+    tile_size 0 = the backend's default.
     """
     N = means.shape[0]
     for name, x, shape in (("means", means, (N, 3)), ("quats", quats, (N, 4)),
                            ("scales", scales, (N, 3)), ("opacities", opacities, (N,))):
         if tuple(x.shape) != shape:
             raise ValueError(f"render: {name} must have shape {shape}, got {tuple(x.shape)}")
-    backend = resolve_backend(backend)
+    if backend not in BACKENDS:
+        backend = resolve_backend(backend, means.device)
     proj = project_gaussians(means, quats, scales, opacities, camera, near=near, eps2d=eps2d,
                              antialiased=antialiased)
     means2d = proj.means2d
@@ -63,8 +100,8 @@ def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: 
     dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     colors = eval_sh(sh_degree, sh, dirs)  # [N, 3]
     feats = torch.cat([colors, proj.depths[:, None]], -1)  # depth rides along as a 4th channel
-    acc, T = rasterize_reference(means2d, proj.conics, proj.opacities, feats, proj.depths,
-                                 proj.radii, camera.width, camera.height, tile_size=tile_size)
+    acc, T = rasterize(means2d, proj.conics, proj.opacities, feats, proj.depths, proj.radii,
+                       camera.width, camera.height, tile_size=tile_size, backend=backend)
     image = acc[..., :3]
     if background is not None:
         image = image + T[..., None] * background.to(image)

@@ -1,0 +1,202 @@
+"""Compiled rasterizer backends: C++ (CPU, vectorized, multi-threaded) and CUDA.
+
+Both are built just in time on first use with `torch.utils.cpp_extension` into a cache keyed by
+the sources, flags, torch version and CPU, or ahead of time with `stdr-build`. The CUDA backend is
+built only when torch has CUDA. They share one math header (`csrc/raster_math.h`) and the
+semantics of `reference.py`, which the tests pin them to.
+
+The extension sorts the visible Gaussians by depth (a stable radix sort), packs one row per
+visible Gaussian, [mx, my, a, b, c, o, f_0..f_{F-1}], bins Gaussian-tile pairs with an exact
+ellipse/tile test, composites, and in the backward scatters gradients straight back to the
+2D means (densification reads them), conics, opacities and features.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+import sys
+import threading
+import time
+import warnings
+from pathlib import Path
+from typing import Optional
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+CSRC = Path(__file__).resolve().parent / "csrc"
+CPU_SOURCES = [CSRC / "cpu" / "raster_cpu.cpp"]
+CUDA_SOURCES = [CSRC / "cuda" / "raster_cuda.cpp", CSRC / "cuda" / "raster_kernels.cu"]
+HEADERS = [CSRC / "raster_math.h", CSRC / "cuda" / "raster_kernels.h"]
+PORTABLE_ENV = "STDR_PORTABLE_BUILD"  # =1: no -march=native (e.g. a cache shared by machines)
+
+_lock = threading.Lock()
+_modules: dict[str, object] = {}
+_errors: dict[str, str] = {}
+
+
+class BuildError(RuntimeError):
+    pass
+
+
+def cache_root() -> Path:
+    """Where compiled extensions live: $STDR_EXT_DIR, else ~/.cache/stdr/extensions."""
+    env = os.environ.get("STDR_EXT_DIR")
+    return Path(env) if env else Path.home() / ".cache" / "stdr" / "extensions"
+
+
+def _cpu_id() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                return line
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _cpu_flags(native: bool) -> list[str]:
+    # -fopenmp: ATen's parallel_for is inline OpenMP code, serial without it. The extension then
+    # needs libgomp.so.1, which resolves to the copy torch has already loaded (same soname), so
+    # torch and the rasterizer share one thread pool.
+    flags = ["-O3", "-fopenmp", "-std=c++17"]
+    if native:
+        flags += ["-march=native", "-mprefer-vector-width=512"]
+    return flags + os.environ.get("STDR_EXTRA_CFLAGS", "").split()
+
+
+def _key(kind: str, sources: list[Path], flags: list[str]) -> str:
+    h = hashlib.sha1()
+    for p in sources + HEADERS:
+        if p.exists():
+            h.update(p.read_bytes())
+    h.update(" ".join(flags).encode())
+    h.update(torch.__version__.encode())
+    h.update(str(torch.version.cuda).encode())
+    h.update(_cpu_id().encode())
+    h.update(sys.version.encode())
+    return f"stdr_raster_{kind}_{h.hexdigest()[:12]}"
+
+
+def _compile(kind: str, verbose: bool = False):
+    import shutil
+
+    from torch.utils import cpp_extension
+
+    # the `ninja` pip package installs next to the interpreter, which may not be on PATH
+    bindir = str(Path(sys.executable).parent)
+    if shutil.which("ninja") is None and (Path(bindir) / "ninja").exists():
+        os.environ["PATH"] = bindir + os.pathsep + os.environ.get("PATH", "")
+
+    native = os.environ.get(PORTABLE_ENV, "0") != "1" and platform.machine() in ("x86_64", "AMD64")
+    attempts = [native, False] if native else [False]
+    last_err: Optional[BaseException] = None
+    for use_native in attempts:
+        cflags = _cpu_flags(use_native)
+        if kind == "cpu":
+            sources, extra = CPU_SOURCES, {}
+        else:
+            sources = CUDA_SOURCES
+            extra = {"extra_cuda_cflags": ["-O3", "--use_fast_math", "-std=c++17"],
+                     "with_cuda": True}
+        name = _key(kind, sources, cflags + extra.get("extra_cuda_cflags", []))
+        build_dir = cache_root() / name
+        build_dir.mkdir(parents=True, exist_ok=True)
+        cached = any(build_dir.glob(f"{name}*.so"))
+        if not cached:
+            print(f"[stdr] compiling the {kind.upper()} rasterizer into {build_dir} "
+                  f"(first use only; ~20-60 s)...", file=sys.stderr, flush=True)
+        t0 = time.perf_counter()
+        try:
+            mod = cpp_extension.load(name=name, sources=[str(s) for s in sources],
+                                     extra_cflags=cflags, extra_ldflags=["-fopenmp"],
+                                     build_directory=str(build_dir),
+                                     verbose=verbose, **extra)
+        except Exception as e:  # compiler missing, unsupported flag, ...
+            last_err = e
+            continue
+        if not cached:
+            print(f"[stdr] {kind.upper()} rasterizer built in {time.perf_counter() - t0:.0f} s",
+                  file=sys.stderr, flush=True)
+        return mod
+    raise BuildError(f"could not build the {kind} rasterizer: {last_err}")
+
+
+def load_extension(kind: str, verbose: bool = False):
+    """The compiled module for `kind` ('cpu' or 'cuda'), building it if needed (cached)."""
+    if kind not in ("cpu", "cuda"):
+        raise ValueError(f"unknown compiled backend {kind!r}")
+    with _lock:
+        if kind in _modules:
+            return _modules[kind]
+        if kind in _errors:
+            raise BuildError(_errors[kind])
+        if kind == "cuda" and not (torch.cuda.is_available() and torch.version.cuda):
+            _errors[kind] = "torch has no CUDA here; the CUDA rasterizer is not built"
+            raise BuildError(_errors[kind])
+        try:
+            _modules[kind] = _compile(kind, verbose=verbose)
+        except BuildError as e:
+            _errors[kind] = str(e)
+            raise
+        return _modules[kind]
+
+
+def available(kind: str) -> bool:
+    try:
+        load_extension(kind)
+        return True
+    except BuildError:
+        return False
+
+
+def build_error(kind: str) -> Optional[str]:
+    return _errors.get(kind)
+
+
+class _Rasterize(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, features, depths, radii, width, height, tile, ext):
+        acc, T, last, ids, offsets, packed, order = ext.forward(
+            means2d.detach(), conics.detach(), opacities.detach(), features.detach(),
+            depths.detach(), radii, width, height, tile)
+        ctx.save_for_backward(packed, order, ids, offsets, T, last)
+        ctx.meta = (means2d.shape[0], width, height, tile, ext)
+        return acc, T
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_acc: Optional[Tensor], g_T: Optional[Tensor]):
+        packed, order, ids, offsets, T, last = ctx.saved_tensors
+        n, width, height, tile, ext = ctx.meta
+        if g_acc is None:
+            g_acc = torch.zeros(height, width, packed.shape[1] - 6, dtype=packed.dtype,
+                                device=packed.device)
+        if g_T is None:
+            g_T = torch.zeros_like(T)
+        g_m, g_c, g_o, g_f = ext.backward(packed, order, n, ids, offsets, T, last,
+                                          g_acc.contiguous(), g_T.contiguous(), width, height,
+                                          tile)
+        return g_m, g_c, g_o, g_f, None, None, None, None, None, None
+
+
+def depth_order(radii: Tensor, depths: Tensor) -> Tensor:
+    """Indices of the visible Gaussians (radii > 0), front to back; ties keep index order."""
+    vis = torch.nonzero(radii > 0).squeeze(1)
+    return vis[torch.argsort(depths.detach()[vis], stable=True)]
+
+
+def rasterize_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
+                       depths: Tensor, radii: Tensor, width: int, height: int,
+                       tile_size: int = 16, kind: str = "cpu") -> tuple[Tensor, Tensor]:
+    """Same contract as `rasterize_reference`.
+
+    means2d [N, 2], conics [N, 3], opacities [N], features [N, F], depths [N], radii [N].
+    Returns (feature image [H, W, F] without background, transmittance [H, W]).
+    """
+    ext = load_extension(kind)
+    return _Rasterize.apply(means2d, conics, opacities, features, depths,
+                            radii.to(torch.int32).contiguous(), int(width), int(height),
+                            int(tile_size), ext)

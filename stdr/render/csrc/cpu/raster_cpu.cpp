@@ -1,0 +1,363 @@
+// CPU backend: tile-based forward and hand-written backward, parallel over tiles with ATen's
+// thread pool (the same OpenMP runtime torch uses, so no second pool competes for the cores),
+// vectorized across the pixels of a tile (`#pragma omp simd`, compiled with -fopenmp-simd).
+//
+// Inputs are packed by stdr/render/compiled.py: one row per visible Gaussian in depth order,
+// [mx, my, a, b, c, o, f_0..f_{F-1}] (see raster_math.h), plus the projection radii.
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cstring>
+#include <type_traits>
+#include <vector>
+
+#include "../raster_math.h"
+
+namespace {
+
+using stdr::PACK_BASE;
+
+struct Grid {
+  int width, height, tile, ntx, nty, n_tiles, pt;
+  Grid(int64_t w, int64_t h, int64_t t)
+      : width((int)w), height((int)h), tile((int)t), ntx((int)((w + t - 1) / t)),
+        nty((int)((h + t - 1) / t)), n_tiles(ntx * nty), pt((int)(t * t)) {}
+};
+
+// Work split shared by every parallel loop: slot s of `slots` handles tiles s, s + slots, ...
+// Interleaving balances dense and empty image regions; a fixed assignment keeps the backward's
+// per-slot gradient sums (and so the result) deterministic for a given thread count.
+template <typename Fn> void for_each_slot(int slots, Fn fn) {
+  at::parallel_for(0, slots, 1, [&](int64_t b, int64_t e) {
+    for (int64_t s = b; s < e; ++s) fn((int)s);
+  });
+}
+
+// Gaussian-tile pairs, sorted by tile then depth, by a two-pass counting sort: each slot counts
+// the exact ellipse/tile overlaps of a contiguous depth range of Gaussians per tile, then writes
+// its pair ids at its own offset inside each tile's list, so lists come out in depth order.
+template <typename T>
+void bin_pairs(const T* packed, const int32_t* radii, int64_t V, int64_t D, const Grid& gr,
+               int slots, at::Tensor& pair_ids, at::Tensor& tile_offsets) {
+  std::vector<int64_t> hist((size_t)slots * gr.n_tiles, 0);
+  auto visit = [&](int s, auto&& emit) {
+    const int64_t v0 = V * s / slots, v1 = V * (s + 1) / slots;
+    for (int64_t v = v0; v < v1; ++v) {
+      const T* g = packed + v * D;
+      int tx0, tx1, ty0, ty1;
+      T cut;
+      bool exact;
+      if (!stdr::tile_range(g, radii[v], gr.width, gr.height, gr.tile, tx0, tx1, ty0, ty1, cut,
+                            exact))
+        continue;
+      for (int ty = ty0; ty < ty1; ++ty)
+        for (int tx = tx0; tx < tx1; ++tx)
+          if (stdr::tile_overlaps(g, cut, exact, tx, ty, gr.tile, gr.width, gr.height))
+            emit(v, ty * gr.ntx + tx);
+    }
+  };
+  for_each_slot(slots, [&](int s) {
+    int64_t* h = hist.data() + (size_t)s * gr.n_tiles;
+    visit(s, [&](int64_t, int t) { ++h[t]; });
+  });
+  tile_offsets = at::empty({gr.n_tiles + 1}, at::kLong);
+  int64_t* off = tile_offsets.data_ptr<int64_t>();
+  int64_t run = 0;
+  for (int t = 0; t < gr.n_tiles; ++t) {
+    off[t] = run;
+    for (int s = 0; s < slots; ++s) {
+      int64_t c = hist[(size_t)s * gr.n_tiles + t];
+      hist[(size_t)s * gr.n_tiles + t] = run;  // becomes the slot's write cursor
+      run += c;
+    }
+  }
+  off[gr.n_tiles] = run;
+  pair_ids = at::empty({run}, at::kInt);
+  int32_t* ids = pair_ids.data_ptr<int32_t>();
+  for_each_slot(slots, [&](int s) {
+    int64_t* cur = hist.data() + (size_t)s * gr.n_tiles;
+    visit(s, [&](int64_t v, int t) { ids[cur[t]++] = (int32_t)v; });
+  });
+}
+
+template <typename T>
+void tile_pixels(const Grid& gr, int t, T* px, T* py, int* inside) {
+  const int tx = t % gr.ntx, ty = t / gr.ntx;
+  for (int p = 0; p < gr.pt; ++p) {
+    const int x = tx * gr.tile + p % gr.tile, y = ty * gr.tile + p / gr.tile;
+    px[p] = T(x) + T(0.5);
+    py[p] = T(y) + T(0.5);
+    inside[p] = (x < gr.width && y < gr.height) ? 1 : 0;
+  }
+}
+
+template <typename T, int F>
+void forward_tiles(const T* packed, int64_t D, const int32_t* ids, const int64_t* off,
+                   const Grid& gr, int slots, T* out_acc, T* out_T, int32_t* out_last) {
+  for_each_slot(slots, [&](int s) {
+    const int Pt = gr.pt;
+    std::vector<T> px(Pt), py(Pt), Tb(Pt), acc((size_t)F * Pt);
+    std::vector<int> inside(Pt), done(Pt), last(Pt);
+    for (int t = s; t < gr.n_tiles; t += slots) {
+      tile_pixels(gr, t, px.data(), py.data(), inside.data());
+      int live = 0;
+      for (int p = 0; p < Pt; ++p) {
+        Tb[p] = T(1);
+        done[p] = inside[p] ? 0 : 1;
+        last[p] = 0;
+        live += inside[p];
+      }
+      std::fill(acc.begin(), acc.end(), T(0));
+      T* A = acc.data();
+      T* Tp = Tb.data();
+      int *dn = done.data(), *ls = last.data();
+      const T *X = px.data(), *Y = py.data();
+      for (int64_t k = off[t]; k < off[t + 1] && live > 0; ++k) {
+        const T* g = packed + (int64_t)ids[k] * D;
+        const int idx = (int)(k - off[t]);
+        int stops = 0;
+#pragma omp simd reduction(+ : stops)
+        for (int p = 0; p < Pt; ++p)
+          stops += stdr::forward_pixel<T, F>(g, X[p], Y[p], idx, Tp[p], dn[p], ls[p], A + p, Pt);
+        live -= stops;
+      }
+      const int tx = t % gr.ntx, ty = t / gr.ntx;
+      for (int p = 0; p < Pt; ++p) {
+        if (!inside[p]) continue;
+        const int64_t pix = (int64_t)(ty * gr.tile + p / gr.tile) * gr.width + tx * gr.tile +
+                            p % gr.tile;
+        out_T[pix] = Tb[p];
+        out_last[pix] = last[p];
+        for (int f = 0; f < F; ++f) out_acc[pix * F + f] = acc[(size_t)f * Pt + p];
+      }
+    }
+  });
+}
+
+template <typename T, int F>
+void backward_tiles(const T* packed, int64_t D, const int32_t* ids, const int64_t* off,
+                    const Grid& gr, int slots, const T* g_acc, const T* g_T, const T* Tfin_img,
+                    const int32_t* last_img, T* grads /* [slots, V, D] */, int64_t V) {
+  for_each_slot(slots, [&](int s) {
+    const int Pt = gr.pt;
+    std::vector<T> px(Pt), py(Pt), Tp(Pt), Tf(Pt), GT(Pt), G((size_t)F * Pt),
+        behind((size_t)F * Pt), contrib((size_t)D * Pt);
+    std::vector<int> inside(Pt), last(Pt);
+    T* mine = grads + (int64_t)s * V * D;
+    for (int t = s; t < gr.n_tiles; t += slots) {
+      if (off[t] == off[t + 1]) continue;
+      tile_pixels(gr, t, px.data(), py.data(), inside.data());
+      const int tx = t % gr.ntx, ty = t / gr.ntx;
+      int max_last = 0;
+      for (int p = 0; p < Pt; ++p) {
+        const int64_t pix = (int64_t)(ty * gr.tile + p / gr.tile) * gr.width + tx * gr.tile +
+                            p % gr.tile;
+        const bool in = inside[p];
+        Tf[p] = in ? Tfin_img[pix] : T(1);
+        Tp[p] = Tf[p];
+        GT[p] = in ? g_T[pix] : T(0);
+        last[p] = in ? last_img[pix] : 0;
+        max_last = std::max(max_last, last[p]);
+        for (int f = 0; f < F; ++f) {
+          G[(size_t)f * Pt + p] = in ? g_acc[pix * F + f] : T(0);
+          behind[(size_t)f * Pt + p] = T(0);
+        }
+      }
+      T *TP = Tp.data(), *B = behind.data(), *C = contrib.data();
+      const T *X = px.data(), *Y = py.data(), *Gp = G.data(), *GTp = GT.data(), *TF = Tf.data();
+      const int* LS = last.data();
+      for (int idx = max_last - 1; idx >= 0; --idx) {
+        const int64_t v = ids[off[t] + idx];
+        const T* g = packed + v * D;
+#pragma omp simd
+        for (int p = 0; p < Pt; ++p)
+          stdr::backward_pixel<T, F>(g, X[p], Y[p], idx < LS[p], TP[p], B + p, Gp + p, GTp[p],
+                                     TF[p], Pt, C + p);
+        T* out = mine + v * D;
+        for (int j = 0; j < PACK_BASE + F; ++j) {
+          const T* cj = C + (size_t)j * Pt;
+          T sum = T(0);
+#pragma omp simd reduction(+ : sum)
+          for (int p = 0; p < Pt; ++p) sum += cj[p];
+          out[j] += sum;
+        }
+      }
+    }
+  });
+}
+
+// Visible Gaussians (radius > 0) front to back, ties in index order: an LSD radix sort on the
+// depth's bits (visible depths are > near > 0, where IEEE order equals unsigned-integer order),
+// stable like torch.argsort(stable=True).
+template <typename T>
+std::vector<int64_t> depth_order(const T* depths, const int32_t* radii, int64_t N) {
+  using K = typename std::conditional<sizeof(T) == 4, uint32_t, uint64_t>::type;
+  std::vector<int64_t> idx, tmp;
+  std::vector<K> key, ktmp;
+  for (int64_t i = 0; i < N; ++i)
+    if (radii[i] > 0) {
+      idx.push_back(i);
+      K k;
+      std::memcpy(&k, depths + i, sizeof(K));
+      key.push_back(k);
+    }
+  const size_t V = idx.size();
+  tmp.resize(V);
+  ktmp.resize(V);
+  for (unsigned shift = 0; shift < 8 * sizeof(K); shift += 8) {
+    size_t count[257] = {0};
+    for (size_t i = 0; i < V; ++i) ++count[((key[i] >> shift) & 255) + 1];
+    if (count[((key.empty() ? 0 : (key[0] >> shift) & 255)) + 1] == V) continue;  // one bucket
+    for (int b = 0; b < 256; ++b) count[b + 1] += count[b];
+    for (size_t i = 0; i < V; ++i) {
+      const size_t dst = count[(key[i] >> shift) & 255]++;
+      tmp[dst] = idx[i];
+      ktmp[dst] = key[i];
+    }
+    idx.swap(tmp);
+    key.swap(ktmp);
+  }
+  return idx;
+}
+
+void check_inputs(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac,
+                  const at::Tensor& feats, const at::Tensor& depths, const at::Tensor& radii,
+                  int64_t width, int64_t height, int64_t tile) {
+  const int64_t N = means2d.size(0);
+  for (const at::Tensor* t : {&means2d, &conics, &opac, &feats, &depths, &radii})
+    TORCH_CHECK(t->device().is_cpu(), "stdr CPU rasterizer: tensors must be on the CPU");
+  TORCH_CHECK(means2d.dim() == 2 && means2d.size(1) == 2, "stdr rasterizer: means2d must be [N, 2]");
+  TORCH_CHECK(conics.dim() == 2 && conics.size(0) == N && conics.size(1) == 3,
+              "stdr rasterizer: conics must be [N, 3]");
+  TORCH_CHECK(opac.dim() == 1 && opac.size(0) == N, "stdr rasterizer: opacities must be [N]");
+  TORCH_CHECK(depths.dim() == 1 && depths.size(0) == N, "stdr rasterizer: depths must be [N]");
+  TORCH_CHECK(feats.dim() == 2 && feats.size(0) == N && feats.size(1) >= 1,
+              "stdr rasterizer: features must be [N, F]");
+  TORCH_CHECK(feats.size(1) <= stdr::MAX_CHANNELS, "stdr rasterizer: at most ",
+              stdr::MAX_CHANNELS, " feature channels (got ", feats.size(1),
+              "); use render.backend=reference");
+  TORCH_CHECK(radii.dim() == 1 && radii.size(0) == N && radii.scalar_type() == at::kInt,
+              "stdr rasterizer: radii must be int32 [N]");
+  for (const at::Tensor* t : {&conics, &opac, &feats, &depths})
+    TORCH_CHECK(t->scalar_type() == means2d.scalar_type(),
+                "stdr rasterizer: all float inputs must share one dtype");
+  TORCH_CHECK(width > 0 && height > 0, "stdr rasterizer: empty image");
+  TORCH_CHECK(tile >= 1 && tile <= 32, "stdr rasterizer: tile_size must be in [1, 32]");
+}
+
+template <typename Fn> void dispatch_channels(int64_t F, Fn fn) {
+  switch (F) {
+#define STDR_CASE(n) \
+  case n: fn(std::integral_constant<int, n>{}); break;
+    STDR_CASE(1) STDR_CASE(2) STDR_CASE(3) STDR_CASE(4)
+    STDR_CASE(5) STDR_CASE(6) STDR_CASE(7) STDR_CASE(8)
+#undef STDR_CASE
+    default: TORCH_CHECK(false, "stdr rasterizer: unsupported channel count ", F);
+  }
+}
+
+// Returns (acc [H, W, F], T [H, W], last [H, W] int32, pair_ids [P] int32, tile_offsets [n+1],
+// packed [V, 6+F], order [V] int64): the last four are what the backward needs.
+std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
+                                at::Tensor feats, at::Tensor depths, at::Tensor radii,
+                                int64_t width, int64_t height, int64_t tile) {
+  check_inputs(means2d, conics, opac, feats, depths, radii, width, height, tile);
+  means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
+  feats = feats.contiguous(); depths = depths.contiguous(); radii = radii.contiguous();
+  const Grid gr(width, height, tile);
+  const int64_t N = means2d.size(0), F = feats.size(1), D = PACK_BASE + F;
+  const int slots = std::max(1, at::get_num_threads());
+  auto acc = at::zeros({height, width, F}, means2d.options());
+  auto T_img = at::ones({height, width}, means2d.options());
+  auto last = at::zeros({height, width}, means2d.options().dtype(at::kInt));
+  at::Tensor pair_ids, tile_offsets, packed, order, vradii;
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "stdr_forward", [&] {
+    const std::vector<int64_t> ord = depth_order(depths.data_ptr<scalar_t>(),
+                                                 radii.data_ptr<int32_t>(), N);
+    const int64_t V = (int64_t)ord.size();
+    order = at::empty({V}, at::kLong);
+    std::copy(ord.begin(), ord.end(), order.data_ptr<int64_t>());
+    packed = at::empty({V, D}, means2d.options());
+    vradii = at::empty({V}, at::kInt);
+    const scalar_t *m = means2d.data_ptr<scalar_t>(), *c = conics.data_ptr<scalar_t>(),
+                   *o = opac.data_ptr<scalar_t>(), *f = feats.data_ptr<scalar_t>();
+    const int32_t* r = radii.data_ptr<int32_t>();
+    scalar_t* P = packed.data_ptr<scalar_t>();
+    int32_t* vr = vradii.data_ptr<int32_t>();
+    at::parallel_for(0, V, 4096, [&](int64_t b, int64_t e) {
+      for (int64_t v = b; v < e; ++v) {
+        const int64_t g = ord[v];
+        scalar_t* row = P + v * D;
+        row[0] = m[2 * g]; row[1] = m[2 * g + 1];
+        row[2] = c[3 * g]; row[3] = c[3 * g + 1]; row[4] = c[3 * g + 2];
+        row[5] = o[g];
+        for (int64_t j = 0; j < F; ++j) row[PACK_BASE + j] = f[g * F + j];
+        vr[v] = r[g];
+      }
+    });
+    bin_pairs<scalar_t>(P, vr, V, D, gr, slots, pair_ids, tile_offsets);
+    dispatch_channels(F, [&](auto fc) {
+      forward_tiles<scalar_t, decltype(fc)::value>(
+          P, D, pair_ids.data_ptr<int32_t>(), tile_offsets.data_ptr<int64_t>(), gr, slots,
+          acc.data_ptr<scalar_t>(), T_img.data_ptr<scalar_t>(), last.data_ptr<int32_t>());
+    });
+  });
+  return {acc, T_img, last, pair_ids, tile_offsets, packed, order};
+}
+
+// Gradients for (means2d [N, 2], conics [N, 3], opacities [N], features [N, F]); rows of
+// Gaussians that were not rendered are zero.
+std::vector<at::Tensor> backward(at::Tensor packed, at::Tensor order, int64_t N,
+                                 at::Tensor pair_ids, at::Tensor tile_offsets, at::Tensor T_img,
+                                 at::Tensor last, at::Tensor g_acc, at::Tensor g_T,
+                                 int64_t width, int64_t height, int64_t tile) {
+  g_acc = g_acc.contiguous();
+  g_T = g_T.contiguous();
+  const Grid gr(width, height, tile);
+  const int64_t V = packed.size(0), D = packed.size(1), F = D - PACK_BASE;
+  TORCH_CHECK(g_acc.size(0) == height && g_acc.size(1) == width && g_acc.size(2) == F,
+              "stdr rasterizer backward: gradient shape mismatch");
+  const int slots = std::max(1, at::get_num_threads());
+  auto grads = at::zeros({slots, V, D}, packed.options());
+  auto opt = packed.options();
+  auto g_m = at::zeros({N, 2}, opt), g_c = at::zeros({N, 3}, opt), g_o = at::zeros({N}, opt),
+       g_f = at::zeros({N, F}, opt);
+  AT_DISPATCH_FLOATING_TYPES(packed.scalar_type(), "stdr_backward", [&] {
+    dispatch_channels(F, [&](auto fc) {
+      backward_tiles<scalar_t, decltype(fc)::value>(
+          packed.data_ptr<scalar_t>(), D, pair_ids.data_ptr<int32_t>(),
+          tile_offsets.data_ptr<int64_t>(), gr, slots, g_acc.data_ptr<scalar_t>(),
+          g_T.data_ptr<scalar_t>(), T_img.data_ptr<scalar_t>(), last.data_ptr<int32_t>(),
+          grads.data_ptr<scalar_t>(), V);
+    });
+    // sum the slots' partial gradients (fixed order: deterministic) and scatter to the inputs
+    const scalar_t* G = grads.data_ptr<scalar_t>();
+    const int64_t* ord = order.data_ptr<int64_t>();
+    scalar_t *gm = g_m.data_ptr<scalar_t>(), *gc = g_c.data_ptr<scalar_t>(),
+             *go = g_o.data_ptr<scalar_t>(), *gf = g_f.data_ptr<scalar_t>();
+    at::parallel_for(0, V, 4096, [&](int64_t b, int64_t e) {
+      scalar_t row[PACK_BASE + stdr::MAX_CHANNELS];
+      for (int64_t v = b; v < e; ++v) {
+        for (int64_t j = 0; j < D; ++j) {
+          scalar_t sum = 0;
+          for (int s = 0; s < slots; ++s) sum += G[((int64_t)s * V + v) * D + j];
+          row[j] = sum;
+        }
+        const int64_t g = ord[v];
+        gm[2 * g] = row[0]; gm[2 * g + 1] = row[1];
+        gc[3 * g] = row[2]; gc[3 * g + 1] = row[3]; gc[3 * g + 2] = row[4];
+        go[g] = row[5];
+        for (int64_t j = 0; j < F; ++j) gf[g * F + j] = row[PACK_BASE + j];
+      }
+    });
+  });
+  return {g_m, g_c, g_o, g_f};
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &forward, "tile rasterizer forward (CPU)");
+  m.def("backward", &backward, "tile rasterizer backward (CPU)");
+}

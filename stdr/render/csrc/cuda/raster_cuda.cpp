@@ -1,0 +1,97 @@
+// Torch binding of the CUDA rasterizer: same functions and return values as the CPU backend
+// (raster_cpu.cpp), so stdr/render/compiled.py drives both the same way. Sorting (depth order,
+// Gaussian-tile keys) and scans use ATen; the kernels live in raster_kernels.cu.
+#include <torch/extension.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+
+#include "../raster_math.h"
+#include "raster_kernels.h"
+
+namespace {
+
+void check(const at::Tensor& t, const char* name) {
+  TORCH_CHECK(t.is_cuda(), "stdr CUDA rasterizer: ", name, " must be a CUDA tensor");
+}
+
+std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
+                                at::Tensor feats, at::Tensor depths, at::Tensor radii,
+                                int64_t width, int64_t height, int64_t tile) {
+  for (auto* p : {&means2d, &conics, &opac, &feats, &depths, &radii}) check(*p, "input");
+  TORCH_CHECK(means2d.scalar_type() == at::kFloat,
+              "stdr CUDA rasterizer: float32 inputs only (got ", means2d.scalar_type(), ")");
+  TORCH_CHECK(tile * tile % 32 == 0 && tile <= 32,
+              "stdr CUDA rasterizer: tile_size must be 8, 16 or 32 (got ", tile, ")");
+  const int64_t F = feats.size(1);
+  TORCH_CHECK(F >= 1 && F <= stdr::MAX_CHANNELS, "stdr CUDA rasterizer: 1..",
+              stdr::MAX_CHANNELS, " feature channels (got ", F, ")");
+  const at::cuda::CUDAGuard guard(means2d.device());
+  auto stream = c10::cuda::getCurrentCUDAStream().stream();
+  means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
+  feats = feats.contiguous(); depths = depths.contiguous(); radii = radii.contiguous();
+  const int D = stdr::PACK_BASE + (int)F;
+  const int ntx = (int)((width + tile - 1) / tile), nty = (int)((height + tile - 1) / tile);
+  const int64_t n_tiles = (int64_t)ntx * nty;
+
+  auto vis = at::nonzero(radii > 0).squeeze(1);
+  auto order = vis.index_select(0, at::argsort(depths.index_select(0, vis), /*stable=*/true));
+  const int64_t V = order.size(0);
+  auto packed = at::empty({V, D}, means2d.options());
+  auto vradii = at::empty({V}, radii.options());
+  stdr_cuda::pack_rows(means2d.data_ptr<float>(), conics.data_ptr<float>(),
+                       opac.data_ptr<float>(), feats.data_ptr<float>(),
+                       radii.data_ptr<int32_t>(), order.data_ptr<int64_t>(), V, (int)F,
+                       packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), stream);
+  auto counts = at::zeros({V}, radii.options());
+  stdr_cuda::count_tiles(packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D,
+                         (int)width, (int)height, (int)tile, counts.data_ptr<int32_t>(), stream);
+  auto ends = at::cumsum(counts, 0, at::kLong);
+  const int64_t P = V > 0 ? ends[-1].item<int64_t>() : 0;
+  auto offsets = ends - counts.to(at::kLong);
+  auto keys = at::empty({P}, means2d.options().dtype(at::kLong));
+  stdr_cuda::emit_pairs(packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D, (int)width,
+                        (int)height, (int)tile, offsets.data_ptr<int64_t>(),
+                        keys.data_ptr<int64_t>(), stream);
+  auto sorted = std::get<0>(at::sort(keys));  // (tile, depth rank): radix sort on the GPU
+  auto pair_ids = at::bitwise_and(sorted, 0xffffffffLL).to(at::kInt);
+  auto tiles = at::bitwise_right_shift(sorted, 32);
+  auto bounds = at::arange(n_tiles + 1, tiles.options());
+  auto tile_offsets = at::searchsorted(tiles, bounds);  // first pair of each tile, and P
+
+  auto acc = at::zeros({height, width, F}, means2d.options());
+  auto T_img = at::ones({height, width}, means2d.options());
+  auto last = at::zeros({height, width}, radii.options());
+  stdr_cuda::forward(packed.data_ptr<float>(), (int)F, pair_ids.data_ptr<int32_t>(),
+                     tile_offsets.data_ptr<int64_t>(), (int)width, (int)height, (int)tile,
+                     acc.data_ptr<float>(), T_img.data_ptr<float>(), last.data_ptr<int32_t>(),
+                     stream);
+  return {acc, T_img, last, pair_ids, tile_offsets, packed, order};
+}
+
+std::vector<at::Tensor> backward(at::Tensor packed, at::Tensor order, int64_t N,
+                                 at::Tensor pair_ids, at::Tensor tile_offsets, at::Tensor T_img,
+                                 at::Tensor last, at::Tensor g_acc, at::Tensor g_T,
+                                 int64_t width, int64_t height, int64_t tile) {
+  check(packed, "packed");
+  const at::cuda::CUDAGuard guard(packed.device());
+  auto stream = c10::cuda::getCurrentCUDAStream().stream();
+  g_acc = g_acc.contiguous().to(at::kFloat);
+  g_T = g_T.contiguous().to(at::kFloat);
+  const int64_t D = packed.size(1), F = D - stdr::PACK_BASE;
+  auto grad_packed = at::zeros_like(packed);
+  stdr_cuda::backward(packed.data_ptr<float>(), (int)F, pair_ids.data_ptr<int32_t>(),
+                      tile_offsets.data_ptr<int64_t>(), (int)width, (int)height, (int)tile,
+                      g_acc.data_ptr<float>(), g_T.data_ptr<float>(), T_img.data_ptr<float>(),
+                      last.data_ptr<int32_t>(), grad_packed.data_ptr<float>(), stream);
+  auto full = at::zeros({N, D}, packed.options());
+  full.index_copy_(0, order, grad_packed);
+  return {full.slice(1, 0, 2).contiguous(), full.slice(1, 2, 5).contiguous(),
+          full.select(1, 5).contiguous(), full.slice(1, stdr::PACK_BASE, D).contiguous()};
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &forward, "tile rasterizer forward (CUDA)");
+  m.def("backward", &backward, "tile rasterizer backward (CUDA)");
+}

@@ -1,0 +1,253 @@
+// CUDA kernels of the rasterizer. The per-Gaussian and per-pixel arithmetic is the shared
+// header's (raster_math.h), the same functions the CPU backend runs and the CPU tests check.
+#include "raster_kernels.h"
+#include "../raster_math.h"
+
+namespace stdr_cuda {
+namespace {
+
+constexpr int WARP = 32;
+
+__global__ void pack_kernel(const float* __restrict__ means2d, const float* __restrict__ conics,
+                            const float* __restrict__ opac, const float* __restrict__ feats,
+                            const int32_t* __restrict__ radii, const int64_t* __restrict__ order,
+                            int64_t V, int F, float* __restrict__ packed,
+                            int32_t* __restrict__ vradii) {
+  const int64_t v = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (v >= V) return;
+  const int64_t g = order[v];
+  const int D = stdr::PACK_BASE + F;
+  float* row = packed + v * D;
+  row[0] = means2d[2 * g];
+  row[1] = means2d[2 * g + 1];
+  row[2] = conics[3 * g];
+  row[3] = conics[3 * g + 1];
+  row[4] = conics[3 * g + 2];
+  row[5] = opac[g];
+  for (int j = 0; j < F; ++j) row[stdr::PACK_BASE + j] = feats[g * F + j];
+  vradii[v] = radii[g];
+}
+
+template <bool EMIT>
+__global__ void tiles_kernel(const float* __restrict__ packed, const int32_t* __restrict__ vradii,
+                             int64_t V, int D, int width, int height, int tile,
+                             int32_t* __restrict__ counts, const int64_t* __restrict__ offsets,
+                             int64_t* __restrict__ keys) {
+  const int64_t v = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (v >= V) return;
+  const float* g = packed + v * D;
+  int tx0, tx1, ty0, ty1;
+  float cut;
+  bool exact;
+  int n = 0;
+  const int ntx = (width + tile - 1) / tile;
+  if (stdr::tile_range(g, vradii[v], width, height, tile, tx0, tx1, ty0, ty1, cut, exact)) {
+    int64_t at = EMIT ? offsets[v] : 0;
+    for (int ty = ty0; ty < ty1; ++ty)
+      for (int tx = tx0; tx < tx1; ++tx)
+        if (stdr::tile_overlaps(g, cut, exact, tx, ty, tile, width, height)) {
+          if (EMIT) keys[at++] = ((int64_t)(ty * ntx + tx) << 32) | (int64_t)v;
+          ++n;
+        }
+  }
+  if (!EMIT) counts[v] = n;
+}
+
+template <int F>
+__global__ void forward_kernel(const float* __restrict__ packed,
+                               const int32_t* __restrict__ pair_ids,
+                               const int64_t* __restrict__ tile_offsets, int width, int height,
+                               int tile, float* __restrict__ out_acc, float* __restrict__ out_T,
+                               int32_t* __restrict__ out_last) {
+  constexpr int D = stdr::PACK_BASE + F;
+  extern __shared__ float rows[];  // [block, D]
+  const int ntx = (width + tile - 1) / tile;
+  const int t = blockIdx.x;
+  const int lx = threadIdx.x % tile, ly = threadIdx.x / tile;
+  const int x = (t % ntx) * tile + lx, y = (t / ntx) * tile + ly;
+  const bool inside = x < width && y < height;
+  const float px = x + 0.5f, py = y + 0.5f;
+  const int block = blockDim.x;
+  const int64_t start = tile_offsets[t], end = tile_offsets[t + 1];
+
+  float Tp = 1.0f, acc[F];
+#pragma unroll
+  for (int f = 0; f < F; ++f) acc[f] = 0.0f;
+  int done = inside ? 0 : 1, last = 0;
+  for (int64_t base = start; base < end; base += block) {
+    if (__syncthreads_count(done) == block) break;
+    const int64_t k = base + threadIdx.x;
+    if (k < end) {
+      const float* src = packed + (int64_t)pair_ids[k] * D;
+#pragma unroll
+      for (int j = 0; j < D; ++j) rows[threadIdx.x * D + j] = src[j];
+    }
+    __syncthreads();
+    const int n = (int)min((int64_t)block, end - base);
+    for (int i = 0; i < n && !done; ++i)
+      stdr::forward_pixel<float, F>(rows + i * D, px, py, (int)(base - start) + i, Tp, done,
+                                    last, acc, 1);
+  }
+  if (inside) {
+    const int64_t pix = (int64_t)y * width + x;
+    out_T[pix] = Tp;
+    out_last[pix] = last;
+#pragma unroll
+    for (int f = 0; f < F; ++f) out_acc[pix * F + f] = acc[f];
+  }
+}
+
+__device__ __forceinline__ float warp_sum(float v) {
+#pragma unroll
+  for (int o = WARP / 2; o > 0; o >>= 1) v += __shfl_down_sync(0xffffffffu, v, o);
+  return v;
+}
+
+template <int F>
+__global__ void backward_kernel(const float* __restrict__ packed,
+                                const int32_t* __restrict__ pair_ids,
+                                const int64_t* __restrict__ tile_offsets, int width, int height,
+                                int tile, const float* __restrict__ g_acc,
+                                const float* __restrict__ g_T, const float* __restrict__ T_img,
+                                const int32_t* __restrict__ last_img,
+                                float* __restrict__ grad_packed) {
+  constexpr int D = stdr::PACK_BASE + F;
+  extern __shared__ float smem[];
+  float* rows = smem;                                   // [block, D]
+  int32_t* ids = (int32_t*)(smem + blockDim.x * D);     // [block]
+  __shared__ int max_last;
+  const int ntx = (width + tile - 1) / tile;
+  const int t = blockIdx.x;
+  const int lx = threadIdx.x % tile, ly = threadIdx.x / tile;
+  const int x = (t % ntx) * tile + lx, y = (t / ntx) * tile + ly;
+  const bool inside = x < width && y < height;
+  const float px = x + 0.5f, py = y + 0.5f;
+  const int block = blockDim.x;
+  const int64_t start = tile_offsets[t];
+  const int64_t pix = (int64_t)y * width + x;
+
+  float G[F], behind[F];
+#pragma unroll
+  for (int f = 0; f < F; ++f) {
+    G[f] = inside ? g_acc[pix * F + f] : 0.0f;
+    behind[f] = 0.0f;
+  }
+  const float Tfin = inside ? T_img[pix] : 1.0f;
+  const float GT = inside ? g_T[pix] : 0.0f;
+  const int last = inside ? last_img[pix] : 0;
+  float Tp = Tfin;
+  if (threadIdx.x == 0) max_last = 0;
+  __syncthreads();
+  atomicMax(&max_last, last);
+  __syncthreads();
+  const int count = max_last;  // entries [0, count) of this tile's list matter
+
+  float out[D];
+  for (int top = count; top > 0; top -= block) {  // batches, back to front
+    const int lo = max(0, top - block);
+    __syncthreads();
+    const int i = lo + threadIdx.x;
+    if (i < top) {
+      const int32_t v = pair_ids[start + i];
+      ids[threadIdx.x] = v;
+      const float* src = packed + (int64_t)v * D;
+#pragma unroll
+      for (int j = 0; j < D; ++j) rows[threadIdx.x * D + j] = src[j];
+    }
+    __syncthreads();
+    for (int idx = top - 1; idx >= lo; --idx) {  // every thread walks the same entries
+      const int r = idx - lo;
+      stdr::backward_pixel<float, F>(rows + r * D, px, py, idx < last, Tp, behind, G, GT, Tfin,
+                                     1, out);
+      float* dst = grad_packed + (int64_t)ids[r] * D;
+#pragma unroll
+      for (int j = 0; j < D; ++j) {
+        const float s = warp_sum(out[j]);
+        if ((threadIdx.x & (WARP - 1)) == 0 && s != 0.0f) atomicAdd(dst + j, s);
+      }
+    }
+  }
+}
+
+template <int F> void launch_forward(const float* packed, const int32_t* pair_ids,
+                                     const int64_t* tile_offsets, int width, int height,
+                                     int tile, float* out_acc, float* out_T, int32_t* out_last,
+                                     cudaStream_t stream) {
+  const int ntiles = ((width + tile - 1) / tile) * ((height + tile - 1) / tile);
+  const int block = tile * tile;
+  const size_t shm = (size_t)block * (stdr::PACK_BASE + F) * sizeof(float);
+  forward_kernel<F><<<ntiles, block, shm, stream>>>(packed, pair_ids, tile_offsets, width,
+                                                    height, tile, out_acc, out_T, out_last);
+}
+
+template <int F> void launch_backward(const float* packed, const int32_t* pair_ids,
+                                      const int64_t* tile_offsets, int width, int height,
+                                      int tile, const float* g_acc, const float* g_T,
+                                      const float* T_img, const int32_t* last_img,
+                                      float* grad_packed, cudaStream_t stream) {
+  const int ntiles = ((width + tile - 1) / tile) * ((height + tile - 1) / tile);
+  const int block = tile * tile;
+  const size_t shm = (size_t)block * ((stdr::PACK_BASE + F) * sizeof(float) + sizeof(int32_t));
+  backward_kernel<F><<<ntiles, block, shm, stream>>>(packed, pair_ids, tile_offsets, width,
+                                                     height, tile, g_acc, g_T, T_img, last_img,
+                                                     grad_packed);
+}
+
+#define STDR_DISPATCH_F(F, CALL)          \
+  switch (F) {                            \
+    case 1: CALL(1); break;               \
+    case 2: CALL(2); break;               \
+    case 3: CALL(3); break;               \
+    case 4: CALL(4); break;               \
+    case 5: CALL(5); break;               \
+    case 6: CALL(6); break;               \
+    case 7: CALL(7); break;               \
+    case 8: CALL(8); break;               \
+    default: break;                       \
+  }
+
+}  // namespace
+
+void pack_rows(const float* means2d, const float* conics, const float* opac, const float* feats,
+               const int32_t* radii, const int64_t* order, int64_t V, int F, float* packed,
+               int32_t* vradii, cudaStream_t stream) {
+  if (V == 0) return;
+  pack_kernel<<<(unsigned)((V + 255) / 256), 256, 0, stream>>>(means2d, conics, opac, feats,
+                                                               radii, order, V, F, packed, vradii);
+}
+
+void count_tiles(const float* packed, const int32_t* vradii, int64_t V, int D, int width,
+                 int height, int tile, int32_t* counts, cudaStream_t stream) {
+  if (V == 0) return;
+  tiles_kernel<false><<<(unsigned)((V + 255) / 256), 256, 0, stream>>>(
+      packed, vradii, V, D, width, height, tile, counts, nullptr, nullptr);
+}
+
+void emit_pairs(const float* packed, const int32_t* vradii, int64_t V, int D, int width,
+                int height, int tile, const int64_t* offsets, int64_t* keys,
+                cudaStream_t stream) {
+  if (V == 0) return;
+  tiles_kernel<true><<<(unsigned)((V + 255) / 256), 256, 0, stream>>>(
+      packed, vradii, V, D, width, height, tile, nullptr, offsets, keys);
+}
+
+void forward(const float* packed, int F, const int32_t* pair_ids, const int64_t* tile_offsets,
+             int width, int height, int tile, float* out_acc, float* out_T, int32_t* out_last,
+             cudaStream_t stream) {
+#define STDR_CALL(n) launch_forward<n>(packed, pair_ids, tile_offsets, width, height, tile, \
+                                       out_acc, out_T, out_last, stream)
+  STDR_DISPATCH_F(F, STDR_CALL)
+#undef STDR_CALL
+}
+
+void backward(const float* packed, int F, const int32_t* pair_ids, const int64_t* tile_offsets,
+              int width, int height, int tile, const float* g_acc, const float* g_T,
+              const float* T_img, const int32_t* last_img, float* grad_packed,
+              cudaStream_t stream) {
+#define STDR_CALL(n) launch_backward<n>(packed, pair_ids, tile_offsets, width, height, tile, \
+                                        g_acc, g_T, T_img, last_img, grad_packed, stream)
+  STDR_DISPATCH_F(F, STDR_CALL)
+#undef STDR_CALL
+}
+
+}  // namespace stdr_cuda

@@ -1,0 +1,36 @@
+// Launchers for the CUDA rasterizer kernels. Plain C++ on raw device pointers: no torch headers,
+// so raster_kernels.cu compiles with nvcc alone in seconds (tests do `nvcc -c` on it), and the
+// torch binding (raster_cuda.cpp) does allocation, sorting and scans with ATen.
+#pragma once
+
+#include <cstdint>
+#include <cuda_runtime.h>
+
+namespace stdr_cuda {
+
+// packed[v] = [mx, my, a, b, c, o, f_0..f_{F-1}] of Gaussian order[v]; vradii[v] = radii[order[v]]
+void pack_rows(const float* means2d, const float* conics, const float* opac, const float* feats,
+               const int32_t* radii, const int64_t* order, int64_t V, int F, float* packed,
+               int32_t* vradii, cudaStream_t stream);
+
+// counts[v] = number of tiles whose in-image pixel centres the Gaussian's footprint reaches
+void count_tiles(const float* packed, const int32_t* vradii, int64_t V, int D, int width,
+                 int height, int tile, int32_t* counts, cudaStream_t stream);
+
+// keys[offsets[v] + k] = (tile << 32) | v for the k-th touched tile (offsets: exclusive scan)
+void emit_pairs(const float* packed, const int32_t* vradii, int64_t V, int D, int width,
+                int height, int tile, const int64_t* offsets, int64_t* keys,
+                cudaStream_t stream);
+
+// One block per tile (tile x tile threads): front-to-back compositing.
+void forward(const float* packed, int F, const int32_t* pair_ids, const int64_t* tile_offsets,
+             int width, int height, int tile, float* out_acc, float* out_T, int32_t* out_last,
+             cudaStream_t stream);
+
+// One block per tile: back-to-front gradients, accumulated into grad_packed [V, 6 + F].
+void backward(const float* packed, int F, const int32_t* pair_ids, const int64_t* tile_offsets,
+              int width, int height, int tile, const float* g_acc, const float* g_T,
+              const float* T_img, const int32_t* last_img, float* grad_packed,
+              cudaStream_t stream);
+
+}  // namespace stdr_cuda
