@@ -63,3 +63,25 @@ def brute_force_composite(means2d, conics, opacities, features, depths, radii, w
             img[y, x] = acc
             Tm[y, x] = T
     return img, Tm
+
+
+def hard_case_scene(dtype=torch.float64, extra_rows=()):
+    """(means, quats, scales, opacities, colors) of the rasterizer's hard cases, seen from
+    look_at_camera((3, 0, 0)): row 1 is behind the camera and row 7 entirely off-screen."""
+    rows = [
+        ([0.0, 0.0, 0.0], [0.2, 0.2, 0.2], 0.5),      # central
+        ([4.0, 0.0, 0.0], [0.2, 0.2, 0.2], 0.9),      # behind the camera
+        ([0.0, 1.2, 0.0], [0.3, 0.3, 0.3], 0.8),      # partly off-screen
+        ([0.0, 0.0, 0.1], [0.001, 0.5, 0.001], 0.9),  # very thin
+        ([0.5, 0.0, 0.0], [3.0, 3.0, 3.0], 0.3),      # very large
+        ([0.0, 0.1, 0.1], [0.1, 0.1, 0.1], 1.0),      # saturated alpha (clamped to 0.99)
+        ([0.0, -0.1, 0.1], [0.1, 0.1, 0.1], 1.0),     # equal depth to the previous one
+        ([0.0, 9.0, 9.0], [0.1, 0.1, 0.1], 0.9),      # entirely off-screen: empty tiles elsewhere
+        *extra_rows,
+    ]
+    means = torch.tensor([r[0] for r in rows], dtype=dtype)
+    scales = torch.tensor([r[1] for r in rows], dtype=dtype)
+    opac = torch.tensor([r[2] for r in rows], dtype=dtype)
+    quats = torch.tensor([[1.0, 0, 0, 0]], dtype=dtype).repeat(len(rows), 1)
+    colors = torch.rand(len(rows), 3, dtype=dtype, generator=torch.Generator().manual_seed(0))
+    return means, quats, scales, opac, colors

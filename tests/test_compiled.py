@@ -4,7 +4,6 @@ The CPU extension runs the math header the CUDA kernels share, so these tests ch
 CUDA-specific tests run only where torch has CUDA, and every .cu file is compiled with nvcc
 when nvcc is on PATH.
 """
-import math
 import shutil
 import subprocess
 import warnings
@@ -16,7 +15,7 @@ from stdr import render as render_mod
 from stdr.render import compiled, rasterize, render, resolve_backend
 from stdr.render.projection import project_gaussians
 
-from helpers import brute_force_composite, look_at_camera, random_gaussians
+from helpers import brute_force_composite, hard_case_scene, look_at_camera, random_gaussians
 
 BACKENDS = ["cpu"] + (["cuda"] if torch.cuda.is_available() and torch.version.cuda else [])
 
@@ -87,23 +86,8 @@ def test_cpu_float64_matches_brute_force_exactly():
 
 
 def _hard_scene(dtype):
-    rows = [
-        ([0.0, 0.0, 0.0], [0.2, 0.2, 0.2], 0.5),      # central
-        ([4.0, 0.0, 0.0], [0.2, 0.2, 0.2], 0.9),      # behind the camera
-        ([0.0, 1.2, 0.0], [0.3, 0.3, 0.3], 0.8),      # partly off-screen
-        ([0.0, 0.0, 0.1], [0.001, 0.5, 0.001], 0.9),  # very thin
-        ([0.5, 0.0, 0.0], [3.0, 3.0, 3.0], 0.3),      # very large
-        ([0.0, 0.1, 0.1], [0.1, 0.1, 0.1], 1.0),      # saturated alpha (clamped to 0.99)
-        ([0.0, -0.1, 0.1], [0.1, 0.1, 0.1], 1.0),     # equal depth to the previous one
-        ([0.0, 9.0, 9.0], [0.1, 0.1, 0.1], 0.9),      # entirely off-screen: empty tiles elsewhere
-        ([0.0, 0.3, -0.3], [0.05, 0.05, 0.05], 0.003),  # below 1/255 everywhere
-    ]
-    means = torch.tensor([r[0] for r in rows], dtype=dtype)
-    scales = torch.tensor([r[1] for r in rows], dtype=dtype)
-    opac = torch.tensor([r[2] for r in rows], dtype=dtype)
-    quats = torch.tensor([[1.0, 0, 0, 0]], dtype=dtype).repeat(len(rows), 1)
-    colors = torch.rand(len(rows), 3, dtype=dtype, generator=torch.Generator().manual_seed(0))
-    return means, quats, scales, opac, colors
+    # the reference's hard cases plus an opacity below 1/255 (invisible everywhere)
+    return hard_case_scene(dtype, extra_rows=[([0.0, 0.3, -0.3], [0.05, 0.05, 0.05], 0.003)])
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

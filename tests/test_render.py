@@ -1,4 +1,3 @@
-import math
 
 import pytest
 import torch
@@ -8,7 +7,7 @@ from stdr.render.projection import project_gaussians
 from stdr.render.reference import rasterize_reference
 from stdr.render.sh import C0, eval_sh
 
-from helpers import brute_force_composite, look_at_camera, random_gaussians
+from helpers import brute_force_composite, hard_case_scene, look_at_camera, random_gaussians
 
 
 def _compare(means, quats, scales, opac, colors, cam, tile_sizes=(16, 8, 4), chunk=4):
@@ -33,22 +32,7 @@ def test_reference_matches_brute_force_random_scene():
 def test_reference_hard_cases():
     d = torch.float64
     cam = look_at_camera((3.0, 0.0, 0.0), width=20, height=14, dtype=d)
-    q = torch.tensor([[1.0, 0, 0, 0]], dtype=d)
-    rows = [
-        ([0.0, 0.0, 0.0], [0.2, 0.2, 0.2], 0.5),     # central
-        ([4.0, 0.0, 0.0], [0.2, 0.2, 0.2], 0.9),     # behind the camera
-        ([0.0, 1.2, 0.0], [0.3, 0.3, 0.3], 0.8),     # partly off-screen
-        ([0.0, 0.0, 0.1], [0.001, 0.5, 0.001], 0.9),  # very thin
-        ([0.5, 0.0, 0.0], [3.0, 3.0, 3.0], 0.3),     # very large
-        ([0.0, 0.1, 0.1], [0.1, 0.1, 0.1], 1.0),     # saturated alpha (clamped to 0.99)
-        ([0.0, -0.1, 0.1], [0.1, 0.1, 0.1], 1.0),    # equal depth to the previous one
-        ([0.0, 9.0, 9.0], [0.1, 0.1, 0.1], 0.9),     # entirely off-screen: empty tiles elsewhere
-    ]
-    means = torch.tensor([r[0] for r in rows], dtype=d)
-    scales = torch.tensor([r[1] for r in rows], dtype=d)
-    opac = torch.tensor([r[2] for r in rows], dtype=d)
-    quats = q.repeat(len(rows), 1)
-    colors = torch.rand(len(rows), 3, dtype=d, generator=torch.Generator().manual_seed(0))
+    means, quats, scales, opac, colors = hard_case_scene(d)
     p, _ = _compare(means, quats, scales, opac, colors, cam)
     assert int(p.radii[1]) == 0 and int(p.radii[7]) == 0  # culled
     assert int(p.radii[2]) > 0

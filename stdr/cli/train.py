@@ -1,7 +1,6 @@
 """stdr-train: train one model (Hydra app). `stdr-train --help` lists the config groups."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import hydra

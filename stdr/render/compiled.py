@@ -18,7 +18,6 @@ import platform
 import sys
 import threading
 import time
-import warnings
 from pathlib import Path
 from typing import Optional
 
@@ -180,12 +179,6 @@ class _Rasterize(torch.autograd.Function):
                                           g_acc.contiguous(), g_T.contiguous(), width, height,
                                           tile)
         return g_m, g_c, g_o, g_f, None, None, None, None, None, None
-
-
-def depth_order(radii: Tensor, depths: Tensor) -> Tensor:
-    """Indices of the visible Gaussians (radii > 0), front to back; ties keep index order."""
-    vis = torch.nonzero(radii > 0).squeeze(1)
-    return vis[torch.argsort(depths.detach()[vis], stable=True)]
 
 
 def rasterize_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,

@@ -8,6 +8,23 @@ namespace {
 
 constexpr int WARP = 32;
 
+// This thread's pixel: block = tile, thread = pixel of the tile in row-major order.
+struct TilePixel {
+  int x, y;
+  bool inside;
+  float px, py;  // pixel centre
+  int64_t pix;   // row-major image index (valid when inside)
+  __device__ TilePixel(int width, int height, int tile) {
+    const int ntx = (width + tile - 1) / tile;
+    x = ((int)blockIdx.x % ntx) * tile + (int)threadIdx.x % tile;
+    y = ((int)blockIdx.x / ntx) * tile + (int)threadIdx.x / tile;
+    inside = x < width && y < height;
+    px = x + 0.5f;
+    py = y + 0.5f;
+    pix = (int64_t)y * width + x;
+  }
+};
+
 __global__ void pack_kernel(const float* __restrict__ means2d, const float* __restrict__ conics,
                             const float* __restrict__ opac, const float* __restrict__ feats,
                             const int32_t* __restrict__ radii, const int64_t* __restrict__ order,
@@ -61,14 +78,11 @@ __global__ void forward_kernel(const float* __restrict__ packed,
                                int32_t* __restrict__ out_last) {
   constexpr int D = stdr::PACK_BASE + F;
   extern __shared__ float rows[];  // [block, D]
-  const int ntx = (width + tile - 1) / tile;
-  const int t = blockIdx.x;
-  const int lx = threadIdx.x % tile, ly = threadIdx.x / tile;
-  const int x = (t % ntx) * tile + lx, y = (t / ntx) * tile + ly;
-  const bool inside = x < width && y < height;
-  const float px = x + 0.5f, py = y + 0.5f;
+  const TilePixel me(width, height, tile);
+  const bool inside = me.inside;
+  const float px = me.px, py = me.py;
   const int block = blockDim.x;
-  const int64_t start = tile_offsets[t], end = tile_offsets[t + 1];
+  const int64_t start = tile_offsets[blockIdx.x], end = tile_offsets[blockIdx.x + 1];
 
   float Tp = 1.0f, acc[F];
 #pragma unroll
@@ -89,7 +103,7 @@ __global__ void forward_kernel(const float* __restrict__ packed,
                                     last, acc, 1);
   }
   if (inside) {
-    const int64_t pix = (int64_t)y * width + x;
+    const int64_t pix = me.pix;
     out_T[pix] = Tp;
     out_last[pix] = last;
 #pragma unroll
@@ -116,15 +130,12 @@ __global__ void backward_kernel(const float* __restrict__ packed,
   float* rows = smem;                                   // [block, D]
   int32_t* ids = (int32_t*)(smem + blockDim.x * D);     // [block]
   __shared__ int max_last;
-  const int ntx = (width + tile - 1) / tile;
-  const int t = blockIdx.x;
-  const int lx = threadIdx.x % tile, ly = threadIdx.x / tile;
-  const int x = (t % ntx) * tile + lx, y = (t / ntx) * tile + ly;
-  const bool inside = x < width && y < height;
-  const float px = x + 0.5f, py = y + 0.5f;
+  const TilePixel me(width, height, tile);
+  const bool inside = me.inside;
+  const float px = me.px, py = me.py;
   const int block = blockDim.x;
-  const int64_t start = tile_offsets[t];
-  const int64_t pix = (int64_t)y * width + x;
+  const int64_t start = tile_offsets[blockIdx.x];
+  const int64_t pix = me.pix;
 
   float G[F], behind[F];
 #pragma unroll
