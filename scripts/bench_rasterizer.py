@@ -86,7 +86,7 @@ def pair_work(p, width, height, tile: int = 16) -> tuple[int, int]:
     """
     from stdr.render.compiled import load_extension
     c = lambda x: x.detach().cpu().contiguous()  # noqa: E731
-    _, _, last, ids, _, _, _ = load_extension("cpu").forward(
+    _, _, last, ids, *_ = load_extension("cpu").forward(
         c(p.means2d), c(p.conics), c(p.opacities), c(p.depths[:, None]), c(p.depths),
         p.radii.int().cpu().contiguous(), width, height, tile)
     ntx, nty = -(-width // tile), -(-height // tile)
