@@ -68,6 +68,9 @@ def _cpu_flags(native: bool) -> list[str]:
 
 def _key(kind: str, sources: list[Path], flags: list[str]) -> str:
     h = hashlib.sha1()
+    # torch's JIT loader rebuilds when a build directory was last built from sources at other
+    # paths, so each checkout gets its own entry (no rebuild ping-pong between clones)
+    h.update(str(CSRC).encode())
     for p in sources + HEADERS:
         if p.exists():
             h.update(p.read_bytes())
