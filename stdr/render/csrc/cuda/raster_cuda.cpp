@@ -2,6 +2,7 @@
 // (raster_cpu.cpp), so stdr/render/compiled.py drives both the same way. Sorting (depth order,
 // Gaussian-tile keys) and scans use ATen; the kernels live in raster_kernels.cu.
 #include <torch/extension.h>
+#include <c10/cuda/CUDAException.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 
@@ -20,8 +21,9 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   for (auto* p : {&means2d, &conics, &opac, &feats, &depths, &radii}) check(*p, "input");
   TORCH_CHECK(means2d.scalar_type() == at::kFloat,
               "stdr CUDA rasterizer: float32 inputs only (got ", means2d.scalar_type(), ")");
-  TORCH_CHECK(tile * tile % 32 == 0 && tile <= 32,
-              "stdr CUDA rasterizer: tile_size must be 8, 16 or 32 (got ", tile, ")");
+  // whole warps per block (the backward's warp sums) and shared memory under the 48 KB default
+  TORCH_CHECK(tile == 8 || tile == 16,
+              "stdr CUDA rasterizer: render.tile_size must be 8 or 16 (got ", tile, ")");
   const int64_t F = feats.size(1);
   TORCH_CHECK(F >= 1 && F <= stdr::MAX_CHANNELS, "stdr CUDA rasterizer: 1..",
               stdr::MAX_CHANNELS, " feature channels (got ", F, ")");
@@ -42,9 +44,11 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
                        opac.data_ptr<float>(), feats.data_ptr<float>(),
                        radii.data_ptr<int32_t>(), order.data_ptr<int64_t>(), V, (int)F,
                        packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
   auto counts = at::zeros({V}, radii.options());
   stdr_cuda::count_tiles(packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D,
                          (int)width, (int)height, (int)tile, counts.data_ptr<int32_t>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
   auto ends = at::cumsum(counts, 0, at::kLong);
   const int64_t P = V > 0 ? ends[-1].item<int64_t>() : 0;
   auto offsets = ends - counts.to(at::kLong);
@@ -52,6 +56,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   stdr_cuda::emit_pairs(packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D, (int)width,
                         (int)height, (int)tile, offsets.data_ptr<int64_t>(),
                         keys.data_ptr<int64_t>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
   auto sorted = std::get<0>(at::sort(keys));  // (tile, depth rank): radix sort on the GPU
   auto pair_ids = at::bitwise_and(sorted, 0xffffffffLL).to(at::kInt);
   auto tiles = at::bitwise_right_shift(sorted, 32);
@@ -65,6 +70,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
                      tile_offsets.data_ptr<int64_t>(), (int)width, (int)height, (int)tile,
                      acc.data_ptr<float>(), T_img.data_ptr<float>(), last.data_ptr<int32_t>(),
                      stream);
+  C10_CUDA_CHECK(cudaGetLastError());
   return {acc, T_img, last, pair_ids, tile_offsets, packed, order};
 }
 
@@ -83,6 +89,7 @@ std::vector<at::Tensor> backward(at::Tensor packed, at::Tensor order, int64_t N,
                       tile_offsets.data_ptr<int64_t>(), (int)width, (int)height, (int)tile,
                       g_acc.data_ptr<float>(), g_T.data_ptr<float>(), T_img.data_ptr<float>(),
                       last.data_ptr<int32_t>(), grad_packed.data_ptr<float>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
   auto full = at::zeros({N, D}, packed.options());
   full.index_copy_(0, order, grad_packed);
   return {full.slice(1, 0, 2).contiguous(), full.slice(1, 2, 5).contiguous(),
