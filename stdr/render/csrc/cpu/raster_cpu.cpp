@@ -1,9 +1,11 @@
 // CPU backend: tile-based forward and hand-written backward, parallel over tiles with ATen's
-// thread pool (the same OpenMP runtime torch uses, so no second pool competes for the cores),
-// vectorized across the pixels of a tile (`#pragma omp simd`, compiled with -fopenmp-simd).
+// thread pool (built with -fopenmp, it shares torch's OpenMP runtime, so no second pool
+// competes for the cores), vectorized across the pixels of a tile (`#pragma omp simd`).
 //
-// Inputs are packed by stdr/render/compiled.py: one row per visible Gaussian in depth order,
-// [mx, my, a, b, c, o, f_0..f_{F-1}] (see raster_math.h), plus the projection radii.
+// forward() sorts the visible Gaussians by depth, packs one row per Gaussian,
+// [mx, my, a, b, c, o, f_0..f_{F-1}] (see raster_math.h), bins Gaussian-tile pairs and
+// composites; backward() walks the same lists back to front and scatters the gradients to
+// the inputs' rows.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
