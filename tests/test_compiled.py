@@ -245,3 +245,10 @@ def test_cuda_binding_compiles_against_torch_headers(tmp_path):
                            *incs, str(src)], capture_output=True, text=True, timeout=300)
     errors = [ln for ln in proc.stderr.splitlines() if "error" in ln]
     assert proc.returncode == 0 and not errors, "\n".join(errors[:20]) or proc.stderr[-3000:]
+
+
+def test_cpu_rejects_bad_tile_size():
+    cam = look_at_camera((2.5, 0.3, 0.8), width=8, height=8)
+    leaves, p = _inputs(*random_gaussians(5, seed=7), cam)
+    with pytest.raises(RuntimeError, match="render.tile_size"):
+        _run("cpu", leaves, p, cam, 64)

@@ -29,14 +29,14 @@ def resolve_backend(name: str, device: str | torch.device = "cpu") -> str:
     """
     dev = torch.device(device).type
     if name == "auto":
-        for kind in (("cuda",) if dev == "cuda" else ("cpu",)):
-            if compiled.available(kind):
-                return kind
-            if kind not in _warned:
-                _warned.add(kind)
-                warnings.warn(f"render.backend=auto: the compiled {kind} rasterizer is unavailable "
-                              f"({compiled.build_error(kind)}); using the pure-torch reference "
-                              f"(much slower)", RuntimeWarning, stacklevel=2)
+        kind = "cuda" if dev == "cuda" else "cpu"
+        if compiled.available(kind):
+            return kind
+        if kind not in _warned:
+            _warned.add(kind)
+            warnings.warn(f"render.backend=auto: the compiled {kind} rasterizer is unavailable "
+                          f"({compiled.build_error(kind)}); using the pure-torch reference "
+                          f"(much slower)", RuntimeWarning, stacklevel=2)
         return "reference"
     if name not in BACKENDS:
         raise ValueError(f"render.backend={name!r} is not one of {('auto',) + BACKENDS}")

@@ -245,7 +245,8 @@ void check_inputs(const at::Tensor& means2d, const at::Tensor& conics, const at:
     TORCH_CHECK(t->scalar_type() == means2d.scalar_type(),
                 "stdr rasterizer: all float inputs must share one dtype");
   TORCH_CHECK(width > 0 && height > 0, "stdr rasterizer: empty image");
-  TORCH_CHECK(tile >= 1 && tile <= 32, "stdr rasterizer: tile_size must be in [1, 32]");
+  TORCH_CHECK(tile >= 1 && tile <= 32,
+              "stdr CPU rasterizer: render.tile_size must be in [1, 32] (got ", tile, ")");
 }
 
 template <typename Fn> void dispatch_channels(int64_t F, Fn fn) {
