@@ -55,6 +55,40 @@ class BaselineConfig:
 
 
 @dataclass
+class StdrConfig:
+    """STDR plug-in (docs/stdr.md: what the paper says, what is chosen here, and why)."""
+
+    enabled: bool = False
+    # ablation switches
+    mask: bool = True             # false: no mask (the field, if on, gets a uniform p)
+    temporal_reg: bool = True
+    spatial_reg: bool = True
+    separated_field: bool = True
+    # the mask
+    time_bins: int = 0            # 0: one column per distinct training time; else K evenly spaced bins
+    mask_init: float = 2.0        # initial logit (sigmoid 0.88: visible, with gradient)
+    mask_lr: float = 0.05         # Adam lr of the mask logits (that of opacity logits)
+    mask_after_freeze: bool = True  # the frozen sigmoid mask keeps modulating opacity
+    prune_by_mask: bool = True    # prune on sigmoid(o) * max_t mask, the opacity a Gaussian reaches
+    # phases: null = the baseline's static warm-up (baseline.warmup) and twice it
+    warmup_end: Optional[int] = None
+    freeze_at: Optional[int] = None
+    # regularizers
+    lambda_temp: float = 0.1      # x mean_{i,t} (mask_t - mask_{t+1})^2
+    lambda_spatial: float = 0.2   # x mean KL(p_i || p_j) over sampled Gaussians and their KNN
+    knn_samples: int = 1000
+    knn_candidates: int = 20000
+    knn_k: int = 5
+    knn_every: int = 100          # resample queries and recompute neighbours (and after densification)
+    # separated deformation field
+    field_width: int = 64
+    temporal_dim: int = 16
+    dropout: float = 0.1
+    field_pe_xyz: bool = False    # also feed PE(x) (baseline.xyz_freqs) to the field
+    scale_deltas_by_dynamic: bool = False  # multiply the deformation deltas by the dynamic probability
+
+
+@dataclass
 class OptimConfig:
     iterations: int = 40_000
     lambda_dssim: float = 0.2
@@ -110,6 +144,7 @@ class Config:
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     densify: DensifyStrategy = field(default_factory=DensifyStrategy)  # the strategy is its own schema
+    stdr: StdrConfig = field(default_factory=StdrConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)

@@ -71,8 +71,21 @@ class Deformation(nn.Module):
 
     apply_rule = staticmethod(apply_post_activation)
 
-    def deform(self, params, t: float, cond: Optional[Tensor] = None) -> Gaussians:
-        """Deformed, activated Gaussians at time t."""
-        if cond is not None and cond.shape != (params["means"].shape[0], self.cond_dim):
+    def deform(self, params, t: float, cond: Optional[Tensor] = None,
+               delta_scale: Optional[Tensor] = None) -> Gaussians:
+        """Deformed, activated Gaussians at time t.
+
+        cond [N, cond_dim]: per-Gaussian conditioning (STDR's separated field).
+        delta_scale [N, 1]: every delta is multiplied by it before it is applied (STDR's dynamic
+        probability, when stdr.scale_deltas_by_dynamic is on).
+        """
+        n = params["means"].shape[0]
+        if cond is not None and cond.shape != (n, self.cond_dim):
             raise ValueError(f"conditioning must be [N, {self.cond_dim}], got {tuple(cond.shape)}")
-        return self.apply(params, self.forward(params, t, cond))
+        d = self.forward(params, t, cond)
+        if delta_scale is not None:
+            if delta_scale.shape != (n, 1):
+                raise ValueError(f"delta_scale must be [N, 1], got {tuple(delta_scale.shape)}")
+            d = Deltas(**{k: None if v is None else v * (delta_scale if v.dim() == 2 else delta_scale[:, 0])
+                          for k, v in vars(d).items()})
+        return self.apply(params, d)

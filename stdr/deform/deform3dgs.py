@@ -55,6 +55,11 @@ class DeformMLP(Deformation):
         self.head_xyz = nn.Linear(width, 3)
         self.head_rot = nn.Linear(width, 4)
         self.head_scale = nn.Linear(width, 3)
+        if cond_dim:  # cond inputs start at zero weight: adding them later does not change the output
+            with torch.no_grad():
+                for i, layer in enumerate(self.layers):
+                    if i == 0 or (i - 1) in self.skips:
+                        layer.weight[:, -cond_dim:] = 0.0
         if head_init_std is not None:  # near-identity start (as SC-GS); None = PyTorch default init
             for head in (self.head_xyz, self.head_rot, self.head_scale):
                 nn.init.normal_(head.weight, std=head_init_std)

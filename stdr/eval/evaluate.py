@@ -96,6 +96,8 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
     res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup)
     res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step,
                 "conventions": metric_conventions(eval_cfg, lp, trainer.backend)})
+    if getattr(trainer, "stdr", None) is not None:  # mask memory, KNN time, mask/field statistics
+        res["stdr"] = trainer.stdr.stats(trainer.params)
     path = trainer.run_dir / "metrics.json"
     metrics = json.loads(path.read_text()) if path.is_file() else {}
     metrics[split] = res

@@ -17,11 +17,22 @@ FORMATS = {"psnr": "{:.2f}", "ssim": "{:.4f}", "lpips": "{:.4f}", "fps": "{:.1f}
            "num_gaussians": "{:,.0f}", "train_seconds": "{:.0f}"}
 
 
+ABLATION_SWITCHES = ("mask", "temporal_reg", "spatial_reg", "separated_field")
+NON_DEFAULT_OPTIONS = {"mask_after_freeze": (False, "no mask after freeze"),
+                       "scale_deltas_by_dynamic": (True, "deltas x dynamic")}
+
+
 def method_name(cfg) -> str:
+    """Row label: the baseline, '+STDR', and any ablation switch or option that differs from
+    the default (e.g. 'deform+STDR w/o spatial_reg'), so ablation rows never merge."""
     name = cfg["baseline"]["name"]
     stdr = cfg.get("stdr")
     if isinstance(stdr, dict) and stdr.get("enabled"):
         name += "+STDR"
+        tags = [f"w/o {k}" for k in ABLATION_SWITCHES if stdr.get(k) is False]
+        tags += [label for k, (val, label) in NON_DEFAULT_OPTIONS.items() if stdr.get(k) == val]
+        if tags:
+            name += " " + ", ".join(tags)
     return name
 
 

@@ -137,10 +137,13 @@ class DensifyStrategy:
 
     def step_post_backward(self, params, optimizers, state, step: int, means2d: Tensor,
                            radii: Tensor, width: int, height: int,
-                           generator: torch.Generator | None = None) -> dict[str, int]:
+                           generator: torch.Generator | None = None,
+                           opacity_fn: Callable[[Any], Tensor] | None = None) -> dict[str, int]:
         """Accumulate statistics from this step's render and refine when due.
 
         `step` counts from 1 (the number of completed optimizer steps after this one).
+        `opacity_fn(params) -> [N]`: the opacity pruning compares with prune_opa (default
+        sigmoid of the opacity logits; STDR passes the largest masked opacity over time).
         Returns counts of what was done (for logging).
         """
         if step >= self.refine_stop:
@@ -156,14 +159,14 @@ class DensifyStrategy:
             state["max_radii"][vis] = torch.maximum(state["max_radii"][vis], radii[vis].float())
         out: dict[str, int] = {}
         if step > self.refine_start and step % self.refine_every == 0:
-            out = self._refine(params, optimizers, state, step, generator)
+            out = self._refine(params, optimizers, state, step, generator, opacity_fn)
         if self.reset_every > 0 and step % self.reset_every == 0:
             reset_opacity(params, optimizers, self.reset_value)
             out["reset"] = 1
         return out
 
     @torch.no_grad()
-    def _refine(self, params, optimizers, state, step, generator) -> dict[str, int]:
+    def _refine(self, params, optimizers, state, step, generator, opacity_fn=None) -> dict[str, int]:
         extent = state["scene_extent"]
         avg = state["grad2d"] / state["count"].clamp_min(1)
         cand = avg > self.grow_grad2d
@@ -180,7 +183,8 @@ class DensifyStrategy:
         spl = torch.cat([spl, torch.zeros(n_dup, dtype=torch.bool)])
         split(params, optimizers, state, spl, generator=generator)
 
-        prune = torch.sigmoid(params["opacities"]) < self.prune_opa
+        opa = torch.sigmoid(params["opacities"]) if opacity_fn is None else opacity_fn(params)
+        prune = opa < self.prune_opa
         if step > self.prune_big_after:
             prune |= torch.exp(params["scales"]).amax(-1) > self.prune_scale3d * extent
             prune |= state["max_radii"] > self.prune_scale2d

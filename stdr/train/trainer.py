@@ -18,6 +18,7 @@ from torch import Tensor
 
 from ..data.load import load_scene
 from ..data.types import Frame
+from ..decouple import MASK_KEY, STDR
 from ..deform import build_deformation
 from ..metrics import l1, psnr, ssim
 from ..render import RenderOutput, render, resolve_backend
@@ -102,9 +103,15 @@ class Trainer:
         else:
             colors = torch.rand(pts.shape[0], 3, generator=gen)
             self.params = init_params(pts, colors, sh_degree=m.sh_degree, init_opacity=m.init_opacity)
-        self.deform = build_deformation_from_cfg(cfg)
+        self.stdr = self._make_stdr() if cfg.stdr.enabled else None
+        if self.stdr is not None and pts is not None:
+            self.stdr.add_mask(self.params)
+        self.deform = build_deformation_from_cfg(cfg, cond_dim=self.stdr.cond_dim if self.stdr else 0)
         self.optimizers = self._make_optimizers()
-        self.deform_opt = torch.optim.Adam(self.deform.parameters(), lr=cfg.baseline.lr_init, eps=1e-15)
+        groups = [{"params": list(self.deform.parameters()), "name": "deform"}]
+        if self.stdr is not None and self.stdr.field is not None:  # trained on the deformation's schedule
+            groups.append({"params": list(self.stdr.field.parameters()), "name": "stdr_field"})
+        self.deform_opt = torch.optim.Adam(groups, lr=cfg.baseline.lr_init, eps=1e-15)
         self.strategy = DensifyStrategy(**OmegaConf.to_container(cfg.densify))
         extent = scene_extent(self.scene.camera_centers("train")) if "train" in self.scene.splits else 1.0
         self.strategy_state = self.strategy.initialize_state(len(pts) if pts is not None else 0, extent)
@@ -115,6 +122,12 @@ class Trainer:
         self.history: list[dict[str, Any]] = []
         self.writer = None
 
+    def _make_stdr(self) -> STDR:
+        """The STDR plug-in; its time knots come from the training split (or later the checkpoint)."""
+        c = self.cfg
+        knots = STDR.knots_for(c.stdr, self.scene.train_times()) if "train" in self.scene.splits else None
+        return STDR(c.stdr, c.baseline.warmup, knots, xyz_freqs=c.baseline.xyz_freqs, seed=c.seed)
+
     # ----------------------------------------------------------------- optimizers
     def _lr(self, key: str, step: int) -> float:
         o = self.cfg.optim
@@ -122,14 +135,16 @@ class Trainer:
         if key == "means":
             return exp_lr(step, o.means_lr_init * s, o.means_lr_final * s, o.means_lr_max_steps)
         fixed = {"scales": o.scales_lr * s, "quats": o.quats_lr, "opacities": o.opacities_lr,
-                 "sh0": o.sh0_lr, "shN": o.shN_lr}
+                 "sh0": o.sh0_lr, "shN": o.shN_lr, MASK_KEY: self.cfg.stdr.mask_lr}
         if key not in fixed:
             raise KeyError(f"no learning rate configured for per-Gaussian parameter {key!r}")
         return fixed[key]
 
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        """One Adam per per-Gaussian parameter, including those frozen for a phase (STDR), so the
+        optimizer set does not depend on the step; a parameter without a gradient is not updated."""
         return {k: torch.optim.Adam([{"params": [p], "lr": self._lr(k, 0), "name": k}], eps=1e-15)
-                for k, p in self.params.items() if p.requires_grad}
+                for k, p in self.params.items()}
 
     def _update_lrs(self, step: int) -> None:
         for k, opt in self.optimizers.items():
@@ -145,9 +160,25 @@ class Trainer:
         return min(m.sh_degree, step // max(m.sh_interval, 1))
 
     def deformed(self, t: float, step: int) -> Gaussians:
+        """Activated Gaussians at time t: deformed after the static warm-up, opacity times the
+        STDR mask when it is on."""
+        s = self.stdr
         if step < self.cfg.baseline.warmup:
-            return activate(self.params)
-        return self.deform.deform(self.params, t)
+            g = activate(self.params)
+        else:
+            cond, scale = s.conditioning(self.params, step) if s is not None else (None, None)
+            g = self.deform.deform(self.params, t, cond, scale)
+        if s is not None:
+            f = s.opacity_factor(self.params, t, step)
+            if f is not None:
+                g = g._replace(opacities=g.opacities * f)
+        return g
+
+    def set_training(self, mode: bool) -> None:
+        """Train mode (BatchNorm batch statistics, dropout) in train steps, eval mode elsewhere."""
+        self.deform.train(mode)
+        if self.stdr is not None and self.stdr.field is not None:
+            self.stdr.field.train(mode)
 
     def render_gaussians(self, g: Gaussians, frame: Frame, step: int) -> RenderOutput:
         r = self.cfg.render
@@ -172,6 +203,7 @@ class Trainer:
             "rng": rng_state(),
             "train_seconds": self.train_seconds,
             "history": self.history,
+            "stdr": None if self.stdr is None else self.stdr.state_dict(),
         }
 
     def save(self) -> None:
@@ -179,10 +211,15 @@ class Trainer:
 
     def load(self, path: str | Path, training: bool = True) -> None:
         ck = load_checkpoint(path)
+        if (self.stdr is None) != (ck.get("stdr") is None):
+            raise ValueError(f"{path}: checkpoint has stdr={'off' if ck.get('stdr') is None else 'on'} but the "
+                             f"config has stdr.enabled={self.cfg.stdr.enabled}; use the run's own config.yaml")
         self.params.clear()
         for k, v in ck["params"].items():
             self.params[k] = torch.nn.Parameter(v)
         self.deform.load_state_dict(ck["deform"])
+        if self.stdr is not None:
+            self.stdr.load_state_dict(ck["stdr"], self.params)
         self.step = int(ck["step"])
         self.train_seconds = float(ck["train_seconds"])
         self.history = list(ck.get("history", []))
@@ -206,6 +243,9 @@ class Trainer:
         cfg, it, prof = self.cfg, self.step, self.profile
         self._update_lrs(it)
         frame = self.scene.frames("train")[self.sampler.next()]
+        self.set_training(True)
+        if self.stdr is not None:
+            self.stdr.configure_step(self.params, it)
         with prof("deform"):
             g = self.deformed(frame.time, it)
         with prof("render_fwd"):
@@ -215,6 +255,12 @@ class Trainer:
             loss_l1 = l1(out.image, frame.image)
             loss_dssim = 1.0 - ssim(out.image, frame.image)
             loss = (1 - lam) * loss_l1 + lam * loss_dssim
+        regs: dict[str, Tensor] = {}
+        if self.stdr is not None:
+            with prof("stdr_reg"):
+                regs = self.stdr.regularizers(self.params, it)
+                for v in regs.values():
+                    loss = loss + v
         with prof("backward"):
             loss.backward()
         with prof("optimizer"):
@@ -225,12 +271,16 @@ class Trainer:
                 self.deform_opt.step()
             self.deform_opt.zero_grad(set_to_none=True)
         with prof("densify"):
+            opacity_fn = None
+            if self.stdr is not None and self.cfg.stdr.prune_by_mask:
+                opacity_fn = lambda p: self.stdr.effective_opacity(p, it)  # noqa: E731
             info = self.strategy.step_post_backward(
                 self.params, self.optimizers, self.strategy_state, it + 1, out.means2d, out.radii,
-                frame.camera.width, frame.camera.height)
+                frame.camera.width, frame.camera.height, opacity_fn=opacity_fn)
         self.step = it + 1
         return {"loss": loss.item(), "l1": loss_l1.item(), "dssim": loss_dssim.item(),
                 "psnr": float(psnr(out.image.detach(), frame.image)), **{f"densify_{k}": v for k, v in info.items()},
+                **{f"stdr_{k}": v.item() for k, v in regs.items()},
                 "_out": out, "_frame": frame}
 
     def train(self) -> None:
@@ -254,6 +304,9 @@ class Trainer:
             it = self.step
             if it % cfg.train.log_every == 0 or it == total:
                 self._log_scalars(tb, it, logs, dt)
+                if self.stdr is not None:
+                    img_due = bool(cfg.train.image_every) and (it % cfg.train.image_every == 0 or it == total)
+                    self.stdr.log(tb, self.params, it - 1, images=img_due, x=it)
             if cfg.train.image_every and (it % cfg.train.image_every == 0 or it == total):
                 self._log_image(tb, it, logs["_out"].image.detach(), logs["_frame"].image)
             if bar is not None:
@@ -290,6 +343,8 @@ class Trainer:
         for k, v in logs.items():
             if k.startswith("densify_"):
                 tb.add_scalar(f"densify/{k[8:]}", v, it)
+            elif k.startswith("stdr_"):
+                tb.add_scalar(f"loss/{k}", v, it)
 
     def _log_image(self, tb, it, img: Tensor, gt: Tensor, tag: str = "train/render_gt_error") -> None:
         err = (img - gt).abs().mean(-1, keepdim=True).expand(-1, -1, 3)
@@ -302,6 +357,7 @@ class Trainer:
                  lpips_fn=None, save_dir: Optional[Path] = None, fps_warmup: int = 3) -> dict[str, Any]:
         """Render `split` at the model's state and compute metrics (see stdr.eval.evaluate)."""
         from ..eval.evaluate import evaluate_trainer
+        self.set_training(False)
         res = evaluate_trainer(self, split, step=self.step if step is None else step, lpips_fn=lpips_fn,
                                save_dir=save_dir, fps_warmup=fps_warmup)
         rec = {"tag": tag, "iteration": self.step, "split": split,

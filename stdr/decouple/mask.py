@@ -1,0 +1,109 @@
+"""STDR's spatio-temporal mask: stateless functions with shape contracts.
+
+The mask is a per-Gaussian row of K logits, m [N, K], one column per *knot time*
+tau_0 < ... < tau_{K-1} (the distinct training timestamps, or `time_bins` evenly spaced bins).
+It is activated with a sigmoid like opacity; at time t the activated mask is interpolated
+linearly between the two neighbouring knots (exact at knots, clamped outside [tau_0, tau_{K-1}]),
+and multiplies the Gaussian's opacity.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+
+def knot_times(train_times, time_bins: int = 0) -> Tensor:
+    """Knot times [K] (float64): the sorted distinct training times, or `time_bins` bins on [0, 1]."""
+    if time_bins and time_bins > 0:
+        if time_bins < 2:
+            raise ValueError(f"stdr.time_bins={time_bins}: use 0 (one column per training time) or >= 2")
+        return torch.linspace(0.0, 1.0, time_bins, dtype=torch.float64)
+    t = np.unique(np.asarray(train_times, dtype=np.float64))
+    if t.size == 0:
+        raise ValueError("STDR needs at least one training timestamp")
+    return torch.from_numpy(t)
+
+
+def interp_weights(t: float, knots: Tensor) -> tuple[int, int, float]:
+    """(j0, j1, w): the mask at t is (1 - w) * col j0 + w * col j1. Exact (w = 0) at knots."""
+    K = knots.numel()
+    t = float(t)
+    if K == 1 or t <= float(knots[0]):
+        return 0, 0, 0.0
+    if t >= float(knots[-1]):
+        return K - 1, K - 1, 0.0
+    j1 = int(torch.searchsorted(knots, torch.tensor([t], dtype=knots.dtype), right=True)[0])
+    j0 = j1 - 1
+    t0, t1 = float(knots[j0]), float(knots[j1])
+    w = (t - t0) / (t1 - t0)
+    if w == 0.0:
+        return j0, j0, 0.0
+    return j0, j1, w
+
+
+def mask_at(logits: Tensor, t: float, knots: Tensor) -> Tensor:
+    """Activated mask [N] at time t from logits [N, K] (linear interpolation of sigmoids)."""
+    j0, j1, w = interp_weights(t, knots)
+    a = torch.sigmoid(logits[:, j0])
+    if w == 0.0:
+        return a
+    return (1.0 - w) * a + w * torch.sigmoid(logits[:, j1])
+
+
+def temporal_loss(logits: Tensor) -> Tensor:
+    """mean_{i,t} (sigmoid(m_i^t) - sigmoid(m_i^{t+1}))^2 over N Gaussians and K-1 steps.
+
+    The paper sums over i and t; the mean keeps lambda_1 independent of N and K.
+    """
+    if logits.shape[1] < 2 or logits.shape[0] == 0:
+        return logits.sum() * 0.0
+    a = torch.sigmoid(logits)  # [N, K]
+    return (a[:, 1:] - a[:, :-1]).square().mean()
+
+
+def spatial_kl(logits: Tensor, query: Tensor, neighbours: Tensor) -> Tensor:
+    """mean over queries i [M] and their neighbours j [M, k] of KL(p_i || p_j), p = softmax_t(m)."""
+    if query.numel() == 0:
+        return logits.sum() * 0.0
+    logp_i = torch.log_softmax(logits[query], -1)          # [M, K]
+    logp_j = torch.log_softmax(logits[neighbours], -1)     # [M, k, K]
+    kl = (logp_i.exp()[:, None] * (logp_i[:, None] - logp_j)).sum(-1)  # [M, k]
+    return kl.mean()
+
+
+def temporal_entropy(logits: Tensor) -> Tensor:
+    """Entropy of p_i = softmax_t(m_i) divided by log K: [N] in [0, 1] (1 = spread over all times)."""
+    K = logits.shape[1]
+    if K < 2:
+        return torch.zeros(logits.shape[0], dtype=logits.dtype, device=logits.device)
+    logp = torch.log_softmax(logits, -1)
+    return -(logp.exp() * logp).sum(-1) / math.log(K)
+
+
+def sample_neighbours(means: Tensor, n_query: int, n_candidates: int, k: int,
+                      generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Query rows [M] and their k nearest neighbours [M, k] in xyz, both indices into means [N, 3].
+
+    Candidates: at most n_candidates rows drawn without replacement; queries: at most n_query of
+    the candidates; neighbours are searched among the candidates (the query itself excluded).
+    Returns empty tensors when there are not more than k candidates.
+    """
+    from ..scene.knn import knn
+
+    N = means.shape[0]
+    empty = torch.zeros(0, dtype=torch.long), torch.zeros(0, k, dtype=torch.long)
+    if N <= k:
+        return empty
+    cand = torch.randperm(N, generator=generator)[:min(n_candidates, N)] if N > n_candidates \
+        else torch.arange(N)
+    q_local = torch.randperm(cand.numel(), generator=generator)[:min(n_query, cand.numel())]
+    pts = means[cand].detach()
+    d2, nbr_local = knn(pts[q_local], pts, k + 1)  # the query is among the candidates
+    # drop the query itself (distance 0, but ties with duplicates are possible): remove its index
+    is_self = nbr_local == q_local[:, None]
+    keep = torch.where(is_self.any(1, keepdim=True), ~is_self, torch.arange(k + 1) < k)
+    nbr_local = nbr_local[keep].reshape(-1, k)
+    return cand[q_local], cand[nbr_local]

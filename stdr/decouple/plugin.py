@@ -1,0 +1,266 @@
+"""STDR as a plug-in of the training loop: mask, phases, regularizers, separated field.
+
+The trainer asks the plug-in four things per step, whatever the baseline:
+  - `configure_step(params, step)`: which of opacity / mask train in this phase;
+  - `conditioning(params, step)`: the per-Gaussian input of the deformation network (and the
+    dynamic probability, when it scales the deltas);
+  - `opacity_factor(params, t, step)`: the activated mask at time t, multiplied into opacity;
+  - `regularizers(params, step)`: the weighted L_temp and L_spatial.
+Phases (steps count from 0): warm-up [0, warmup_end) - opacity frozen, mask trains;
+regularized [0, freeze_at); frozen [freeze_at, end) - mask frozen, field on.
+Everything per Gaussian lives in the parameter dict (key `stdr_mask`), so densification keeps
+it aligned; p = softmax_t(m) is a cache recomputed whenever the mask tensor is replaced.
+"""
+from __future__ import annotations
+
+import time
+from enum import IntEnum
+from typing import Any, Optional
+
+import torch
+from torch import Tensor
+
+from ..deform.deform3dgs import positional_encoding
+from .field import SeparatedField
+from .mask import knot_times, mask_at, sample_neighbours, spatial_kl, temporal_entropy, temporal_loss
+
+MASK_KEY = "stdr_mask"
+
+
+class Phase(IntEnum):
+    WARMUP = 0       # [0, warmup_end): opacity frozen, mask trains, regularized
+    REGULARIZED = 1  # [warmup_end, freeze_at): opacity and mask train, regularized
+    FROZEN = 2       # [freeze_at, end): mask frozen, separated field on
+
+
+def resolve_phases(stdr_cfg, baseline_warmup: int) -> tuple[int, int]:
+    """(warmup_end, freeze_at): explicit values, or the baseline's static warm-up and twice it."""
+    w = int(baseline_warmup if stdr_cfg.warmup_end is None else stdr_cfg.warmup_end)
+    f = int(2 * w if stdr_cfg.freeze_at is None else stdr_cfg.freeze_at)
+    if w < 0 or f < w:
+        raise ValueError(f"stdr.warmup_end={w} and stdr.freeze_at={f}: need 0 <= warmup_end <= freeze_at")
+    return w, f
+
+
+def phase_at(step: int, warmup_end: int, freeze_at: int) -> Phase:
+    if step >= freeze_at:
+        return Phase.FROZEN
+    return Phase.WARMUP if step < warmup_end else Phase.REGULARIZED
+
+
+class STDR:
+    """State and rules of the plug-in. `cfg` is the `stdr` config node (StdrConfig)."""
+
+    def __init__(self, cfg, baseline_warmup: int, knots: Optional[Tensor], xyz_freqs: int, seed: int):
+        self.cfg = cfg
+        self.warmup_end, self.freeze_at = resolve_phases(cfg, baseline_warmup)
+        self.xyz_freqs = xyz_freqs if cfg.field_pe_xyz else -1
+        self.gen = torch.Generator().manual_seed(seed + 7919)
+        self.knn_seconds = 0.0
+        self.knn_refreshes = 0
+        self._knn: Optional[tuple[Tensor, Tensor]] = None
+        self._knn_for: Optional[Tensor] = None   # mask tensor the neighbour cache was built for
+        self._knn_step = -1
+        self._p_for: Optional[Tensor] = None
+        self._p: Optional[Tensor] = None
+        self.last_dynamic: Optional[Tensor] = None
+        self.knots: Optional[Tensor] = None
+        self.field: Optional[SeparatedField] = None
+        if knots is not None:
+            self._set_knots(knots)
+
+    # ----------------------------------------------------------------- set-up
+    @staticmethod
+    def knots_for(cfg, train_times) -> Tensor:
+        return knot_times(train_times, cfg.time_bins)
+
+    def _set_knots(self, knots: Tensor) -> None:
+        self.knots = knots.double().cpu()
+        if self.cfg.separated_field:
+            pe = 0 if self.xyz_freqs < 0 else 3 * (1 + 2 * self.xyz_freqs)
+            self.field = SeparatedField(self.K + pe, self.cfg.field_width, self.cfg.temporal_dim,
+                                        self.cfg.dropout)
+
+    @property
+    def K(self) -> int:
+        return int(self.knots.numel())
+
+    @property
+    def cond_dim(self) -> int:
+        return self.cfg.temporal_dim + 1 if self.cfg.separated_field else 0
+
+    def add_mask(self, params) -> None:
+        """Add the mask logits [N, K] to the parameter dict (no-op with stdr.mask=false)."""
+        if self.cfg.mask:
+            n = params["means"].shape[0]
+            params[MASK_KEY] = torch.nn.Parameter(torch.full((n, self.K), float(self.cfg.mask_init)))
+
+    def phase(self, step: int) -> Phase:
+        return phase_at(step, self.warmup_end, self.freeze_at)
+
+    def has_mask(self, params) -> bool:
+        return MASK_KEY in params
+
+    # ----------------------------------------------------------------- per step
+    def configure_step(self, params, step: int) -> None:
+        """Opacity trains outside the warm-up; the mask trains until the freeze."""
+        ph = self.phase(step)
+        if self.has_mask(params):
+            params["opacities"].requires_grad_(ph != Phase.WARMUP)
+            params[MASK_KEY].requires_grad_(ph != Phase.FROZEN)
+
+    def mask_modulates(self, step: int) -> bool:
+        return self.cfg.mask and (self.phase(step) != Phase.FROZEN or self.cfg.mask_after_freeze)
+
+    def opacity_factor(self, params, t: float, step: int) -> Optional[Tensor]:
+        """Activated mask [N] at time t, or None when the mask does not modulate opacity now."""
+        if not self.has_mask(params) or not self.mask_modulates(step):
+            return None
+        return mask_at(params[MASK_KEY], t, self.knots)
+
+    def effective_opacity(self, params, step: int) -> Tensor:
+        """Largest opacity [N] a Gaussian reaches over time (what pruning should look at)."""
+        o = torch.sigmoid(params["opacities"].detach())
+        if self.has_mask(params) and self.mask_modulates(step):
+            o = o * torch.sigmoid(params[MASK_KEY].detach()).amax(1)
+        return o
+
+    def probabilities(self, params) -> Tensor:
+        """p = softmax_t(m) [N, K], computed once per mask tensor (uniform without a mask)."""
+        if not self.has_mask(params):
+            n = params["means"].shape[0]
+            return torch.full((n, self.K), 1.0 / self.K)
+        m = params[MASK_KEY]
+        if self._p_for is not m:
+            self._p = torch.softmax(m.detach(), -1)
+            self._p_for = m
+        return self._p
+
+    def conditioning(self, params, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
+        """(cond [N, cond_dim] or None, delta scale [N, 1] or None) for the deformation network.
+
+        Before the freeze the field is off and cond is zeros (the network's cond inputs start at
+        zero weight, so switching the field on does not change the render).
+        """
+        if self.field is None:
+            return None, None
+        n = params["means"].shape[0]
+        if self.phase(step) != Phase.FROZEN:
+            return torch.zeros(n, self.cond_dim), None
+        x = self.probabilities(params)
+        if self.xyz_freqs >= 0:
+            x = torch.cat([x, positional_encoding(params["means"].detach(), self.xyz_freqs)], -1)
+        z, d = self.field(x)
+        self.last_dynamic = d.detach()
+        return torch.cat([z, d], -1), (d if self.cfg.scale_deltas_by_dynamic else None)
+
+    def regularizers(self, params, step: int) -> dict[str, Tensor]:
+        """Weighted L_temp and L_spatial while the phase is warm-up or regularized."""
+        if not self.has_mask(params) or self.phase(step) == Phase.FROZEN:
+            return {}
+        m = params[MASK_KEY]
+        out = {}
+        if self.cfg.temporal_reg and self.cfg.lambda_temp > 0:
+            out["temporal"] = self.cfg.lambda_temp * temporal_loss(m)
+        if self.cfg.spatial_reg and self.cfg.lambda_spatial > 0:
+            q, nbr = self.neighbours(params, step)
+            out["spatial"] = self.cfg.lambda_spatial * spatial_kl(m, q, nbr)
+        return out
+
+    def neighbours(self, params, step: int) -> tuple[Tensor, Tensor]:
+        """The sampled queries and their KNN, refreshed every knn_every steps or when rows change."""
+        m = params[MASK_KEY]
+        due = self._knn is None or self._knn_for is not m or \
+            (self.cfg.knn_every > 0 and step - self._knn_step >= self.cfg.knn_every)
+        if due:
+            t0 = time.perf_counter()
+            self._knn = sample_neighbours(params["means"], self.cfg.knn_samples, self.cfg.knn_candidates,
+                                          self.cfg.knn_k, self.gen)
+            self.knn_seconds += time.perf_counter() - t0
+            self.knn_refreshes += 1
+            self._knn_for, self._knn_step = m, step
+        return self._knn
+
+    # ----------------------------------------------------------------- state
+    def state_dict(self) -> dict[str, Any]:
+        return {"knots": self.knots, "field": None if self.field is None else self.field.state_dict(),
+                "gen": self.gen.get_state(), "knn": self._knn, "knn_step": self._knn_step,
+                "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes}
+
+    def load_state_dict(self, s: dict[str, Any], params) -> None:
+        if self.knots is None or not torch.equal(self.knots, s["knots"]):
+            if self.knots is not None:
+                raise ValueError(f"checkpoint has {s['knots'].numel()} STDR time knots, this run {self.K}")
+            self._set_knots(s["knots"])
+        if self.field is not None:
+            self.field.load_state_dict(s["field"])
+        self.gen.set_state(s["gen"])
+        self._knn = s["knn"]
+        self._knn_step = int(s["knn_step"])
+        self._knn_for = params.get(MASK_KEY) if self._knn is not None else None
+        self.knn_seconds = float(s["knn_seconds"])
+        self.knn_refreshes = int(s["knn_refreshes"])
+
+    # ----------------------------------------------------------------- monitoring
+    def log(self, tb, params, step: int, images: bool, x: Optional[int] = None) -> None:
+        """TensorBoard: the phase of iteration `step`, mask statistics; with images also the
+        entropy and dynamic-probability histograms and the mask-over-time image. x: the axis value."""
+        x = step if x is None else x
+        tb.add_scalar("stdr/phase", int(self.phase(step)), x)
+        if not self.has_mask(params):
+            return
+        m = params[MASK_KEY].detach()
+        a = torch.sigmoid(m)
+        tb.add_scalar("stdr/mask_mean", float(a.mean()), x)
+        tb.add_scalar("stdr/mask_min_over_time_mean", float(a.amin(1).mean()), x)
+        if images:
+            tb.add_histogram("stdr/temporal_entropy", temporal_entropy(m), x)
+            if self.last_dynamic is not None and self.last_dynamic.shape[0] == m.shape[0]:
+                tb.add_histogram("stdr/dynamic_probability", self.last_dynamic.flatten(), x)
+            tb.add_image("stdr/mask_over_time", self.mask_image(a), x, dataformats="HW")
+
+    @staticmethod
+    def mask_image(a: Tensor, rows: int = 64, cell: int = 4) -> Tensor:
+        """[rows*cell, K*cell] grey image: activated mask of evenly spaced Gaussians (rows)
+        sorted by the time of their peak, time left to right."""
+        n = a.shape[0]
+        if n == 0:
+            return torch.zeros(cell, cell)
+        idx = torch.linspace(0, n - 1, min(rows, n)).long()
+        s = a[idx]
+        s = s[torch.argsort(s.argmax(1), stable=True)]
+        return s.repeat_interleave(cell, 0).repeat_interleave(cell, 1).clamp(0, 1)
+
+    def stats(self, params) -> dict[str, Any]:
+        """Numbers for metrics.json: mask size and memory, KNN time, mask and field statistics."""
+        out: dict[str, Any] = {"K": self.K, "warmup_end": self.warmup_end, "freeze_at": self.freeze_at,
+                               "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes}
+        if self.has_mask(params):
+            m = params[MASK_KEY].detach()
+            n = m.shape[0]
+            b = m.numel() * m.element_size()
+            a = torch.sigmoid(m)
+            ent = temporal_entropy(m)
+            out.update({
+                "num_gaussians": n,
+                "mask_bytes": b, "mask_adam_bytes": 2 * b, "mask_total_mib": 3 * b / 2 ** 20,
+                "mask_mean": float(a.mean()),
+                "mask_min_over_time_mean": float(a.amin(1).mean()),
+                "fraction_time_gated": float((a.amin(1) < 0.5).float().mean()),  # off at some time
+                "fraction_never_off": float((a.amin(1) >= 0.5).float().mean()),
+                "temporal_entropy_mean": float(ent.mean()),
+                "temporal_entropy_quantiles": [float(x) for x in
+                                               torch.quantile(ent.float(), torch.tensor([0.1, 0.5, 0.9]))]
+                if n else [],
+            })
+        if self.field is not None:
+            was = self.field.training
+            self.field.eval()
+            with torch.no_grad():
+                self.conditioning(params, self.freeze_at)  # sets last_dynamic (eval mode)
+            self.field.train(was)
+            d = self.last_dynamic
+            if d is not None and d.numel():
+                out["dynamic_probability_mean"] = float(d.mean())
+                out["fraction_dynamic"] = float((d > 0.5).float().mean())
+        return out
