@@ -25,7 +25,9 @@ class SceneOptions:
     n_val: int = 10
     n_test: int = 10
     resolution: int = 128
-    motion_speed: float = 1.0      # cycles of the arm swing over t in [0, 1]
+    motion: str = "swing"          # swing: arm swings, ball bounces | jump: static arm, the ball
+                                   # jumps between two places (the ghosting case, see jump_positions)
+    motion_speed: float = 1.0      # cycles of the arm swing (or of the jump) over t in [0, 1]
     swing_degrees: float = 30.0    # arm swing amplitude (60 makes the arm vanish in short runs)
     arm_half_width: float = 0.15
     bounce_height: float = 0.8
@@ -76,17 +78,33 @@ def _rot_x(a):
     return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
 
 
+JUMP_A = np.array([0.8, 0.0, -0.2])   # the ball's place in the first half of each jump cycle
+JUMP_B = np.array([-0.8, 0.0, -0.2])  # and in the second half
+
+
+def jump_at_a(t, opt: SceneOptions):
+    """motion=jump: True where the ball is at JUMP_A at time t (array or float)."""
+    return np.mod(np.asarray(t) * opt.motion_speed, 1.0) < 0.5
+
+
 def scene_state(t: float, opt: SceneOptions) -> dict:
     """Object poses at time t in [0, 1]."""
-    swing = np.deg2rad(opt.swing_degrees) * np.sin(2 * np.pi * opt.motion_speed * t)
-    bounce = opt.bounce_height * np.abs(np.sin(np.pi * opt.motion_speed * t * 2))
-    R_arm = _rot_x(swing)
+    if opt.motion not in ("swing", "jump"):
+        raise ValueError(f"data.procedural.motion={opt.motion!r}: use 'swing' or 'jump'")
     hinge = np.array([0.0, 0.0, -0.45])
+    if opt.motion == "jump":
+        R_arm = np.eye(3)
+        ball = JUMP_A if jump_at_a(t, opt) else JUMP_B
+    else:
+        swing = np.deg2rad(opt.swing_degrees) * np.sin(2 * np.pi * opt.motion_speed * t)
+        bounce = opt.bounce_height * np.abs(np.sin(np.pi * opt.motion_speed * t * 2))
+        R_arm = _rot_x(swing)
+        ball = np.array([0.8, 0.0, -0.7 + 0.25 + bounce])
     return {
         "base": (np.array([0.0, 0.0, -0.7]), np.array([0.45, 0.45, 0.25]), np.eye(3)),
         "arm": (hinge + R_arm @ np.array([0.0, 0.0, 0.5]),
                 np.array([opt.arm_half_width, opt.arm_half_width, 0.5]), R_arm),
-        "ball": (np.array([0.8, 0.0, -0.7 + 0.25 + bounce]), 0.25),
+        "ball": (ball, 0.25),
     }
 
 
