@@ -1,0 +1,274 @@
+"""STDR: mask maths against hand computations, phases in the real training loop, the separated
+field, config/table plumbing, exact resume, and the ghosting behaviour it exists for."""
+import math
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from stdr.config import StdrConfig
+from stdr.decouple import (MASK_KEY, Phase, SeparatedField, interp_weights, knot_times, mask_at,
+                           phase_at, resolve_phases, sample_neighbours, spatial_kl, temporal_entropy,
+                           temporal_loss)
+from stdr.deform import DeformMLP
+from stdr.eval.table import method_name
+from stdr.scene.gaussians import init_params
+from stdr.scene.strategy import DensifyStrategy
+
+from test_train import TINY_SCENE, make_cfg
+
+
+# ----------------------------------------------------------------------------- the mask maths
+def test_interpolation_is_exact_at_knots_and_linear_between():
+    knots = torch.tensor([0.0, 0.2, 0.5, 1.0], dtype=torch.float64)
+    logits = torch.randn(7, 4, generator=torch.Generator().manual_seed(0))
+    a = torch.sigmoid(logits)
+    for j, t in enumerate(knots.tolist()):
+        assert torch.equal(mask_at(logits, t, knots), a[:, j])
+    for t, (j0, j1) in ((0.1, (0, 1)), (0.35, (1, 2)), (0.9, (2, 3))):
+        w = (t - knots[j0].item()) / (knots[j1] - knots[j0]).item()
+        assert interp_weights(t, knots) == (j0, j1, pytest.approx(w))
+        torch.testing.assert_close(mask_at(logits, t, knots), (1 - w) * a[:, j0] + w * a[:, j1])
+    # outside the knots: the end columns
+    assert torch.equal(mask_at(logits, -0.5, knots), a[:, 0])
+    assert torch.equal(mask_at(logits, 1.5, knots), a[:, 3])
+
+
+def test_knots_are_distinct_training_times_or_bins():
+    assert knot_times([0.5, 0.0, 0.5, 1.0]).tolist() == [0.0, 0.5, 1.0]
+    assert knot_times([0.5, 0.0], time_bins=5).tolist() == [0.0, 0.25, 0.5, 0.75, 1.0]
+    with pytest.raises(ValueError, match="time_bins"):
+        knot_times([0.0], time_bins=1)
+
+
+def test_temporal_loss_equals_hand_computation():
+    m = torch.tensor([[0.0, 1.0, -2.0], [3.0, 3.0, 0.5]])
+    s = 1 / (1 + np.exp(-m.numpy().astype(np.float64)))
+    hand = sum((s[i, t] - s[i, t + 1]) ** 2 for i in range(2) for t in range(2)) / (2 * 2)
+    assert temporal_loss(m).item() == pytest.approx(hand, rel=1e-6)
+    # normalized: duplicating Gaussians or stretching time does not change it
+    assert temporal_loss(m.repeat(5, 1)).item() == pytest.approx(hand, rel=1e-6)
+
+
+def test_spatial_kl_equals_hand_computation():
+    g = torch.Generator().manual_seed(1)
+    m = torch.randn(6, 4, generator=g, dtype=torch.float64)
+    q = torch.tensor([0, 3])
+    nbr = torch.tensor([[1, 2], [5, 0]])
+    p = np.exp(m.numpy()) / np.exp(m.numpy()).sum(1, keepdims=True)
+    hand = np.mean([sum(p[i, t] * math.log(p[i, t] / p[j, t]) for t in range(4))
+                    for i, js in zip(q.tolist(), nbr.tolist()) for j in js])
+    assert spatial_kl(m, q, nbr).item() == pytest.approx(hand, rel=1e-9)
+    assert spatial_kl(m, q, q[:, None].repeat(1, 2)).item() == pytest.approx(0.0, abs=1e-12)
+
+
+def test_entropy_is_one_for_uniform_and_zero_for_one_hot():
+    m = torch.tensor([[0.0, 0.0, 0.0, 0.0], [100.0, -100.0, -100.0, -100.0]])
+    e = temporal_entropy(m)
+    assert e[0].item() == pytest.approx(1.0) and e[1].item() == pytest.approx(0.0, abs=1e-6)
+
+
+def test_sampled_neighbours_equal_brute_force():
+    g = torch.Generator().manual_seed(2)
+    means = torch.rand(300, 3, generator=g)
+    q, nbr = sample_neighbours(means, n_query=40, n_candidates=120, k=5, generator=g)
+    assert q.shape == (40,) and nbr.shape == (40, 5)
+    cand = torch.unique(torch.cat([q, nbr.flatten()]))
+    assert cand.numel() <= 120
+    # recover the candidate set: the same draw again
+    g2 = torch.Generator().manual_seed(2)
+    torch.rand(300, 3, generator=g2)
+    cands = torch.randperm(300, generator=g2)[:120]
+    for i, row in zip(q.tolist(), nbr.tolist()):
+        assert i in cands.tolist() and i not in row
+        d = (means[cands] - means[i]).norm(dim=1)
+        d[cands == i] = float("inf")
+        brute = cands[torch.argsort(d)[:5]]
+        assert sorted(row) == sorted(brute.tolist())
+
+
+# ----------------------------------------------------------------------------- phases and the field
+def test_phases_default_to_the_baseline_warmup_and_twice_it():
+    cfg = OmegaConf.structured(StdrConfig)
+    assert resolve_phases(cfg, 3000) == (3000, 6000)
+    cfg.warmup_end, cfg.freeze_at = 100, 50
+    with pytest.raises(ValueError, match="stdr.freeze_at"):
+        resolve_phases(cfg, 3000)
+    assert [phase_at(s, 3, 6) for s in (0, 2, 3, 5, 6, 100)] == \
+        [Phase.WARMUP, Phase.WARMUP, Phase.REGULARIZED, Phase.REGULARIZED, Phase.FROZEN, Phase.FROZEN]
+
+
+def test_separated_field_shapes_ranges_and_eval_determinism():
+    f = SeparatedField(in_dim=10, width=32, temporal_dim=16, dropout=0.5)
+    assert any(isinstance(m, torch.nn.BatchNorm1d) for m in f.modules())
+    assert any(isinstance(m, torch.nn.Dropout) for m in f.modules())
+    x = torch.softmax(torch.randn(50, 10), -1)
+    z, d = f(x)
+    assert z.shape == (50, 16) and d.shape == (50, 1)
+    assert z.abs().max() < 1 and (d > 0).all() and (d < 1).all()
+    f.eval()
+    assert torch.equal(f(x)[0], f(x)[0])  # no dropout, running statistics
+    f.train()
+    assert not torch.equal(f(x)[0], f(x)[0])  # dropout is active in training
+
+
+def test_cond_inputs_start_at_zero_weight_so_switching_the_field_on_changes_nothing():
+    p = init_params(torch.rand(30, 3), sh_degree=1)
+    net = DeformMLP(depth=4, width=32, skips=[1], cond_dim=17, head_init_std=None)
+    zero = net(p, 0.3, torch.zeros(30, 17))
+    cond = net(p, 0.3, torch.randn(30, 17))
+    assert torch.equal(zero.means, cond.means) and torch.equal(zero.scales, cond.scales)
+
+
+def test_delta_scale_zero_means_no_deformation():
+    p = init_params(torch.rand(30, 3), sh_degree=1)
+    net = DeformMLP(depth=2, width=16, skips=[], head_init_std=None)
+    g = net.deform(p, 0.5, delta_scale=torch.zeros(30, 1))
+    assert torch.equal(g.means, p["means"])
+    moved = net.deform(p, 0.5, delta_scale=torch.ones(30, 1))
+    assert not torch.equal(moved.means, p["means"])
+
+
+def test_densification_keeps_mask_rows_with_their_gaussians():
+    """Clone, split and prune through the strategy: every mask row stays with its Gaussian
+    (tagged by its colour), children inherit the parent's row."""
+    g = torch.Generator().manual_seed(3)
+    n = 40
+    p = init_params(torch.rand(n, 3, generator=g), sh_degree=1)
+    with torch.no_grad():
+        p["sh0"].copy_(torch.arange(n, dtype=torch.float32)[:, None, None].repeat(1, 1, 3))
+        p["scales"][: n // 2] = math.log(0.5)  # large: split; the rest small: clone
+        p["opacities"][-3:] = -20.0             # pruned
+    p[MASK_KEY] = torch.nn.Parameter(torch.arange(n, dtype=torch.float32)[:, None] * 10 + torch.arange(6))
+    opts = {k: torch.optim.Adam([v], lr=0.01) for k, v in p.items()}
+    strat = DensifyStrategy(grow_grad2d=0.0, refine_start=0, refine_every=1, reset_every=0, prune_big_after=10**6)
+    state = strat.initialize_state(n, 1.0)
+    state["grad2d"][:] = 1.0
+    state["count"][:] = 1.0
+    strat._refine(p, opts, state, 1, g)
+    tag = p["sh0"][:, 0, 0].detach()
+    assert p[MASK_KEY].shape[0] == p["means"].shape[0] > n
+    torch.testing.assert_close(p[MASK_KEY].detach(), tag[:, None] * 10 + torch.arange(6.0))
+    assert opts[MASK_KEY].param_groups[0]["params"][0] is p[MASK_KEY]
+    assert not any(t in tag.tolist() for t in (37.0, 38.0, 39.0))
+
+
+# ----------------------------------------------------------------------------- the training loop
+def _stdr_cfg(tmp_path, extra=()):
+    return make_cfg(TINY_SCENE + [
+        "experiment=embedded_deform_stdr", f"data.cache_dir={tmp_path / 'cache'}", "model.init_num=800",
+        "eval.lpips=false", "train.progress=false", "eval.save_images=false", "train.image_every=0",
+        "train.eval_at_warmup_end=false", "train.checkpoint_every=0", "baseline.warmup=6",
+        "stdr.knn_samples=50", "stdr.knn_every=4", *extra])
+
+
+def test_phases_in_the_training_loop(tmp_path):
+    """Warm-up: opacity untouched while the mask trains. Frozen: the mask is bit-identical
+    step to step, p rows sum to 1, the field and the deformation train."""
+    from stdr.train.trainer import Trainer
+    t = Trainer(_stdr_cfg(tmp_path, ["densify.refine_start=1000"]), tmp_path / "run")
+    assert t.stdr.warmup_end == 6 and t.stdr.freeze_at == 12 and MASK_KEY in t.params
+    assert t.params[MASK_KEY].shape == (t.params["means"].shape[0], t.stdr.K)
+    assert t.stdr.K == len(t.scene.frames("train"))
+    o0, m0 = t.params["opacities"].detach().clone(), t.params[MASK_KEY].detach().clone()
+    for _ in range(6):
+        logs = t.train_step()
+        assert logs["stdr_temporal"] >= 0 and logs["stdr_spatial"] >= 0
+    assert torch.equal(t.params["opacities"].detach(), o0)
+    assert t.optimizers["opacities"].state.get(t.params["opacities"]) is None  # never stepped
+    assert not torch.equal(t.params[MASK_KEY].detach(), m0)
+    for _ in range(6):  # regularized: both train
+        o1 = t.params["opacities"].detach().clone()
+        t.train_step()
+    assert not torch.equal(t.params["opacities"].detach(), o1)
+    field0 = [q.detach().clone() for q in t.stdr.field.parameters()]
+    m_frozen = t.params[MASK_KEY].detach().clone()
+    for _ in range(4):
+        logs = t.train_step()
+        assert "stdr_temporal" not in logs
+        assert torch.equal(t.params[MASK_KEY].detach(), m_frozen)
+    p = t.stdr.probabilities(t.params)
+    torch.testing.assert_close(p.sum(1), torch.ones(p.shape[0]))
+    assert any(not torch.equal(a, b.detach()) for a, b in zip(field0, t.stdr.field.parameters()))
+
+
+def test_resume_with_stdr_matches_an_uninterrupted_run(tmp_path):
+    from stdr.train.trainer import Trainer
+    sched = ["optim.iterations=30", "densify.refine_start=4", "densify.refine_every=5"]
+    a = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / "a")
+    a.train()
+    st = a.stdr.stats(a.params)
+    n, K = a.params["means"].shape[0], a.stdr.K
+    assert st["mask_bytes"] == 4 * n * K and st["mask_adam_bytes"] == 8 * n * K
+    assert st["knn_refreshes"] >= 3 and st["knn_seconds"] > 0 and 0 <= st["fraction_time_gated"] <= 1
+    assert 0 < st["dynamic_probability_mean"] < 1
+    b1 = Trainer(_stdr_cfg(tmp_path, sched[1:] + ["optim.iterations=9"]), tmp_path / "b")
+    b1.train()  # stops inside the regularized phase, with a cached neighbour sample
+    b2 = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / "b")
+    b2.train()
+    for k in a.params:
+        assert torch.equal(a.params[k], b2.params[k]), k
+    for (ka, va), (kb, vb) in zip(a.stdr.field.state_dict().items(), b2.stdr.field.state_dict().items()):
+        assert torch.equal(va, vb), ka
+    # a checkpoint with STDR cannot be loaded into a run without it
+    c = Trainer(make_cfg(TINY_SCENE + [f"data.cache_dir={tmp_path / 'cache'}", "model.init_num=800"]),
+                tmp_path / "c")
+    with pytest.raises(ValueError, match="stdr.enabled"):
+        c.load(tmp_path / "a" / "checkpoints" / "last.pt")
+
+
+def test_configs_and_table_labels():
+    cfg = make_cfg(["experiment=dnerf_deform_stdr", "data.path=/x"])
+    assert cfg.name == "dnerf_deform_stdr" and cfg.stdr.enabled and cfg.data.format == "dnerf"
+    assert not make_cfg(["experiment=dnerf_deform", "data.path=/x"]).stdr.enabled
+    assert make_cfg(["stdr=on"]).stdr.enabled
+    c = OmegaConf.to_container(make_cfg(["stdr=on", "stdr.spatial_reg=false", "stdr.mask_after_freeze=false"]))
+    assert method_name(c) == "deform+STDR w/o spatial_reg, no mask after freeze"
+    assert method_name(OmegaConf.to_container(make_cfg(["stdr=on"]))) == "deform+STDR"
+    assert method_name(OmegaConf.to_container(make_cfg([]))) == "deform"
+
+
+@pytest.mark.slow
+def test_ghosting_scene_masks_separate_the_two_places_and_stdr_beats_the_baseline(tmp_path):
+    """An object that jumps between two places: deform alone leaves ghosts; with STDR the
+    Gaussians at A are on at A's times and off at B's, and test PSNR is higher."""
+    from stdr.data.procedural import JUMP_A, JUMP_B, SceneOptions, jump_at_a
+    from stdr.train.trainer import Trainer
+    common = ["data.procedural.resolution=64", "data.procedural.n_train=40", "data.procedural.n_val=2",
+              "data.procedural.n_test=8", "data.procedural.motion=jump", f"data.cache_dir={tmp_path / 'cache'}",
+              "model.init_num=2000", "eval.lpips=false", "train.progress=false", "eval.save_images=false",
+              "optim.iterations=600", "baseline.warmup=200", "densify.refine_start=50", "densify.refine_stop=450",
+              "densify.refine_every=50", "densify.max_gaussians=6000", "train.eval_at_warmup_end=false",
+              "train.image_every=0", "train.checkpoint_every=0"]
+    psnr = {}
+    for exp in ("embedded_deform", "embedded_deform_stdr"):
+        t = Trainer(make_cfg(common + [f"experiment={exp}"]), tmp_path / exp, splits=("train", "test"))
+        t.train()
+        psnr[exp] = t.evaluate("test")["psnr"]
+    assert psnr["embedded_deform_stdr"] > psnr["embedded_deform"] + 0.5, psnr
+    opt = SceneOptions(**OmegaConf.to_container(t.cfg.data.procedural))
+    at_a = torch.from_numpy(jump_at_a(t.stdr.knots.numpy(), opt))
+    assert 0 < int(at_a.sum()) < at_a.numel()
+    a = torch.sigmoid(t.params[MASK_KEY].detach())
+    for place, on, off in ((JUMP_A, at_a, ~at_a), (JUMP_B, ~at_a, at_a)):
+        near = (t.params["means"].detach() - torch.tensor(place, dtype=torch.float32)).norm(dim=1) < 0.3
+        assert int(near.sum()) >= 10
+        m_on, m_off = a[near][:, on].mean().item(), a[near][:, off].mean().item()
+        assert m_on > 0.8 and m_off < 0.6 and m_on - m_off > 0.3, (place, m_on, m_off)
+
+
+def test_tensorboard_shows_phase_losses_histograms_and_mask_image(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from stdr.train.trainer import Trainer
+    t = Trainer(_stdr_cfg(tmp_path, ["optim.iterations=16", "train.log_every=4", "train.image_every=8"]),
+                tmp_path / "run")
+    t.train()
+    t.writer.flush()
+    ev = EventAccumulator(str(tmp_path / "run" / "tb"), size_guidance={"histograms": 0, "images": 0}).Reload()
+    tags = ev.Tags()
+    for k in ("stdr/phase", "loss/stdr_temporal", "loss/stdr_spatial", "stdr/mask_mean"):
+        assert k in tags["scalars"], k
+    assert {"stdr/temporal_entropy", "stdr/dynamic_probability"} <= set(tags["histograms"])
+    assert "stdr/mask_over_time" in tags["images"]
+    assert [e.value for e in ev.Scalars("stdr/phase")] == [0.0, 1.0, 1.0, 2.0]  # iterations 3, 7, 11, 15
