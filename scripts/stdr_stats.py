@@ -1,0 +1,68 @@
+#!/usr/bin/env python
+"""STDR statistics per run, generated from each run's metrics.json and train_profile.json.
+
+One row per run directory:
+* method, scene and the quality metrics;
+* the N x K mask's memory with its Adam state;
+* KNN time and the time of the regularizers;
+* mask statistics: the share of Gaussians switched off at some time, and the mean normalized
+  temporal entropy;
+* the field's dynamic probability.
+Runs without STDR show only the metrics.
+
+    scripts/run.sh python scripts/stdr_stats.py RUN_DIR... --out docs/measurements/x
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from stdr.eval.table import method_name  # noqa: E402
+
+COLS = [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("lpips", "LPIPS", "{:.4f}"),
+        ("fps", "FPS", "{:.1f}"), ("num_gaussians", "#G", "{:,.0f}"), ("train_seconds", "train s", "{:.0f}"),
+        ("K", "K", "{}"), ("mask_total_mib", "mask+Adam MiB", "{:.1f}"), ("knn_seconds", "KNN s", "{:.2f}"),
+        ("knn_refreshes", "KNN refreshes", "{}"), ("stdr_reg_seconds", "reg s", "{:.1f}"),
+        ("fraction_time_gated", "gated", "{:.2f}"), ("temporal_entropy_mean", "entropy", "{:.3f}"),
+        ("dynamic_probability_mean", "dyn p", "{:.3f}"), ("fraction_dynamic", "dyn>0.5", "{:.2f}")]
+
+
+def load(run: Path, split: str) -> dict:
+    m = json.loads((run / "metrics.json").read_text())[split]
+    cfg = yaml.safe_load((run / "config.yaml").read_text())
+    prof = run / "train_profile.json"
+    reg = json.loads(prof.read_text())["seconds"].get("stdr_reg") if prof.is_file() else None
+    return {"run_dir": str(run), "method": method_name(cfg), "scene": cfg["data"]["name"],
+            **{k: m.get(k) for k in ("psnr", "ssim", "lpips", "fps", "num_gaussians", "train_seconds")},
+            **(m.get("stdr") or {}), "stdr_reg_seconds": reg}
+
+
+def fmt(v, f):
+    return "–" if v is None else f.format(v)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--out", type=Path, default=None, help="write OUT.md and OUT.json")
+    args = ap.parse_args(argv)
+    rows = [load(r, args.split) for r in args.runs]
+    lines = ["| scene | method | " + " | ".join(h for _, h, _ in COLS) + " |", "|---|---|" + "---|" * len(COLS)]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['method']} | " + " | ".join(fmt(r.get(k), f) for k, _, f in COLS) + " |")
+    md = "\n".join(lines) + "\n"
+    print(md)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.with_suffix(".md").write_text(md)
+        args.out.with_suffix(".json").write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
