@@ -31,8 +31,13 @@ def test_deform_input_is_detached_and_cond_is_used():
     d1 = net(p, 0.3, cond)
     (d1.means.sum() + d1.scales.sum() + d1.quats.sum()).backward()
     assert p["means"].grad is None                         # canonical xyz detached
+    # cond columns start at zero weight (no jump when STDR's field switches on) but train
+    assert torch.equal(net(p, 0.3, cond + 1).means, d1.means)
+    assert net.layers[0].weight.grad[:, -2:].abs().sum() > 0
+    with torch.no_grad():
+        net.layers[0].weight[:, -2:] = 0.5
     d2 = net(p, 0.3, cond + 1)
-    assert not torch.allclose(d1.means, d2.means)           # conditioning reaches the network
+    assert not torch.allclose(net(p, 0.3, cond).means, d2.means)  # conditioning reaches the network
     d3 = net(p, 0.7, cond)
     assert not torch.allclose(d1.means, d3.means)           # time too
 
