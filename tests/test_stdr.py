@@ -40,6 +40,8 @@ def test_knots_are_distinct_training_times_or_bins():
     assert knot_times([0.5, 0.0], time_bins=5).tolist() == [0.0, 0.25, 0.5, 0.75, 1.0]
     with pytest.raises(ValueError, match="time_bins"):
         knot_times([0.0], time_bins=1)
+    with pytest.raises(ValueError, match="time_bins"):
+        knot_times([0.0], time_bins=-3)  # not silently treated as 0
 
 
 def test_temporal_loss_equals_hand_computation():

@@ -26,7 +26,7 @@ class SceneOptions:
     n_test: int = 10
     resolution: int = 128
     motion: str = "swing"          # swing: arm swings, ball bounces | jump: static arm, the ball
-                                   # jumps between two places (the ghosting case, see jump_positions)
+                                   # jumps between two places (the ghosting case: JUMP_A / JUMP_B)
     motion_speed: float = 1.0      # cycles of the arm swing (or of the jump) over t in [0, 1]
     swing_degrees: float = 30.0    # arm swing amplitude (60 makes the arm vanish in short runs)
     arm_half_width: float = 0.15

@@ -25,10 +25,6 @@ class SeparatedField(nn.Module):
         self.temporal = branch(temporal_dim, nn.Tanh())
         self.motion = branch(1, nn.Sigmoid())
 
-    @property
-    def out_dim(self) -> int:
-        return self.temporal_dim + 1
-
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """x [N, in_dim] -> (z [N, temporal_dim] in (-1, 1), d [N, 1] in (0, 1))."""
         if x.shape[0] == 1 and self.training:  # BatchNorm needs two rows to normalize in training

@@ -17,7 +17,7 @@ from torch import Tensor
 
 def knot_times(train_times, time_bins: int = 0) -> Tensor:
     """Knot times [K] (float64): the sorted distinct training times, or `time_bins` bins on [0, 1]."""
-    if time_bins and time_bins > 0:
+    if time_bins:
         if time_bins < 2:
             raise ValueError(f"stdr.time_bins={time_bins}: use 0 (one column per training time) or >= 2")
         return torch.linspace(0.0, 1.0, time_bins, dtype=torch.float64)
@@ -101,7 +101,7 @@ def sample_neighbours(means: Tensor, n_query: int, n_candidates: int, k: int,
         else torch.arange(N)
     q_local = torch.randperm(cand.numel(), generator=generator)[:min(n_query, cand.numel())]
     pts = means[cand].detach()
-    d2, nbr_local = knn(pts[q_local], pts, k + 1)  # the query is among the candidates
+    _, nbr_local = knn(pts[q_local], pts, k + 1)  # the query is among the candidates
     # drop the query itself (distance 0, but ties with duplicates are possible): remove its index
     is_self = nbr_local == q_local[:, None]
     keep = torch.where(is_self.any(1, keepdim=True), ~is_self, torch.arange(k + 1) < k)
