@@ -16,15 +16,25 @@ from .scene.strategy import DensifyStrategy
 
 @dataclass
 class DataConfig:
-    format: str = "procedural"  # procedural | dnerf
+    format: str = "procedural"  # procedural | dnerf | nerfies
     name: Optional[str] = "embedded"  # scene label in tables (null: the folder name)
-    path: Optional[str] = None  # scene folder (dnerf); procedural: the generated cache folder
+    path: Optional[str] = None  # scene folder (dnerf, nerfies); procedural: the generated cache folder
     cache_dir: str = "data/embedded"  # where the procedural scene is generated (repo-relative)
     background: Any = "white"   # white | black | [r, g, b]
     resolution_scale: float = 1.0
     max_width: Optional[int] = None  # after resolution_scale, cap the width (aspect kept)
     eval_split: str = "test"    # test | val (D-NeRF lego's test split disagrees with train)
     procedural: SceneOptions = field(default_factory=SceneOptions)  # generator options
+    # Nerfies format (NeRF-DS, HyperNeRF); docs/data.md. Nothing is read from folder names.
+    split_mode: Optional[str] = None  # ids (train_ids / val_ids) | interp (ids[::4] / ids[2::4]); required
+    image_scale: Optional[int] = None  # N of the rgb/<N>x folder; intrinsics scale to match; required
+    time_key: str = "auto"       # auto (time_id, else warp_id) | time_id | warp_id; t = key / max key
+    normalize_scene: bool = True  # positions and points: (x - scene.json center) * scene.json scale
+    distortion: str = "undistort"  # undistort (once, cached) | error | ignore (peers' pinhole, warned)
+    intrinsics: str = "camera"   # camera (camera/<id>.json) | colmap (colmap/sparse/0)
+    points_source: str = "auto"  # auto (points.npy, else COLMAP) | points_npy | colmap | none
+    undistort_cache: Optional[str] = "data/cache/undistorted"  # repo-relative; null: no cache
+    scenes: List[str] = field(default_factory=list)  # the benchmark's scene folders (scripts iterate them)
 
 
 @dataclass

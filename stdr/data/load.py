@@ -4,11 +4,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Iterable
 
-from .dnerf import load_dnerf
+from .dnerf import load_dnerf, parse_background
+from .nerfies import load_nerfies
 from .procedural import SceneOptions, embedded_scene
 from .types import SceneData
 
-FORMATS = ("procedural", "dnerf")
+FORMATS = ("procedural", "dnerf", "nerfies")
 
 
 def project_root() -> Path:
@@ -22,25 +23,37 @@ def resolve_data_path(path: str, base: str | Path | None = None) -> Path:
     return p.resolve()
 
 
+def repo_path(path: str) -> Path:
+    """A cache path from the config: relative paths are under the project root."""
+    p = Path(path).expanduser()
+    return p if p.is_absolute() else project_root() / p
+
+
 def scene_folder(cfg, base: str | Path | None = None) -> Path:
-    """The on-disk D-NeRF-format folder the config points at (generating the embedded scene)."""
+    """The scene folder the config points at (generating the embedded scene)."""
     if cfg.format == "procedural":
         opts = SceneOptions(**dict(cfg.procedural))
-        cache = Path(cfg.cache_dir)
-        if not cache.is_absolute():
-            cache = project_root() / cache
-        return embedded_scene(cache, opts)
-    if cfg.format == "dnerf":
+        return embedded_scene(repo_path(cfg.cache_dir), opts)
+    if cfg.format in ("dnerf", "nerfies"):
         if not cfg.path:
-            raise ValueError("data.path is not set: point it at a D-NeRF scene folder "
-                             "(the one holding transforms_train.json)")
+            what = ("a D-NeRF scene folder (the one holding transforms_train.json)" if cfg.format == "dnerf"
+                    else "a Nerfies-format scene folder (the one holding dataset.json)")
+            raise ValueError(f"data.path is not set: point it at {what}")
         return resolve_data_path(cfg.path, base)
     raise ValueError(f"data.format={cfg.format!r} is not one of {FORMATS}")
 
 
 def load_scene(cfg, splits: Iterable[str], base: str | Path | None = None) -> SceneData:
     folder = scene_folder(cfg, base)
-    scene = load_dnerf(folder, splits, background=cfg.background,
-                       resolution_scale=cfg.resolution_scale, max_width=cfg.max_width)
+    if cfg.format == "nerfies":
+        scene = load_nerfies(folder, splits, split_mode=cfg.split_mode, image_scale=cfg.image_scale,
+                             time_key=cfg.time_key, normalize_scene=cfg.normalize_scene,
+                             distortion=cfg.distortion, intrinsics=cfg.intrinsics,
+                             points_source=cfg.points_source, background=parse_background(cfg.background),
+                             resolution_scale=cfg.resolution_scale, max_width=cfg.max_width,
+                             cache_dir=repo_path(cfg.undistort_cache) if cfg.undistort_cache else None)
+    else:
+        scene = load_dnerf(folder, splits, background=cfg.background,
+                           resolution_scale=cfg.resolution_scale, max_width=cfg.max_width)
     scene.meta["name"] = cfg.name
     return scene

@@ -27,6 +27,7 @@ class SceneData:
     splits: dict[str, list[Frame]]
     background: tuple[float, float, float]
     init_points: Optional[np.ndarray] = None  # [P, 3] from the data, when it has any
+    init_colors: Optional[np.ndarray] = None  # [P, 3] in [0, 1], when the points come with colours
     meta: dict = field(default_factory=dict)
 
     def frames(self, split: str) -> list[Frame]:

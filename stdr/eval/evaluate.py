@@ -95,7 +95,8 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
     save_dir = trainer.run_dir / "renders" / split if eval_cfg.save_images else None
     res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup)
     res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step,
-                "conventions": metric_conventions(eval_cfg, lp, trainer.backend)})
+                "conventions": metric_conventions(eval_cfg, lp, trainer.backend),
+                "data": trainer.scene.meta})  # how the scene was read (split, scale, intrinsics, ...)
     if getattr(trainer, "stdr", None) is not None:  # mask memory, KNN time, mask/field statistics
         res["stdr"] = trainer.stdr.stats(trainer.params)
     path = trainer.run_dir / "metrics.json"

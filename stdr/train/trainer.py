@@ -102,6 +102,8 @@ class Trainer:
             self.params = torch.nn.ParameterDict()
         else:
             colors = torch.rand(pts.shape[0], 3, generator=gen)
+            if m.init == "points" and self.scene.init_colors is not None:
+                colors = torch.from_numpy(self.scene.init_colors).float()
             self.params = init_params(pts, colors, sh_degree=m.sh_degree, init_opacity=m.init_opacity)
         self.stdr = self._make_stdr() if cfg.stdr.enabled else None
         if self.stdr is not None and pts is not None:

@@ -1,0 +1,390 @@
+"""Loader for the Nerfies on-disk format (NeRF-DS, HyperNeRF, Nerfies captures).
+
+Layout (docs/data.md): dataset.json (ids, train_ids, val_ids), metadata.json ({id: {time_id |
+warp_id, appearance_id, camera_id}}), scene.json (center, scale, near, far), camera/<id>.json,
+rgb/<N>x/<id>.png, optional points.npy and colmap/sparse/0.
+
+Nothing is inferred from folder names: the split rule (`split_mode`), the image folder
+(`image_scale`), the time key, the scene normalization, the source of the intrinsics and what to
+do with lens distortion are arguments, and every choice is recorded in `SceneData.meta`.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from dataclasses import asdict
+from pathlib import Path
+from typing import Iterable, Optional
+
+import cv2
+import numpy as np
+import torch
+
+from ..cameras import Camera
+from .colmap import ColmapModel, read_model
+from .dnerf import output_size
+from .distortion import LensCamera, remap, undistortion
+from .images import read_image, resize
+from .types import Frame, SceneData
+
+log = logging.getLogger(__name__)
+
+SPLIT_MODES = ("ids", "interp")
+TIME_KEYS = ("auto", "time_id", "warp_id")
+DISTORTION_MODES = ("undistort", "error", "ignore")
+INTRINSICS_SOURCES = ("camera", "colmap")
+POINTS_SOURCES = ("auto", "points_npy", "colmap", "none")
+HELD_OUT = ("test", "val")  # both names address the held-out frames
+CACHE_VERSION = 2  # bump when the cached content or manifest layout changes
+COLMAP_DIR = "colmap/sparse/0"
+
+
+def _read_json(path: Path, what: str) -> dict:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found: {what}")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: malformed JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+
+
+def _need(d: dict, key: str, path: Path, where: str = ""):
+    if not isinstance(d, dict) or key not in d:
+        raise KeyError(f"{path}: missing key {key!r}{where}")
+    return d[key]
+
+
+def _choice(name: str, value, allowed) -> None:
+    if value not in allowed:
+        raise ValueError(f"data.{name}={value!r}: use one of {', '.join(map(str, allowed))}")
+
+
+# ----------------------------------------------------------------------------- splits and time
+def split_ids(dataset: dict, path: Path, mode: str) -> tuple[list[str], list[str]]:
+    """(train ids, held-out ids) under `split_mode`.
+
+    ids: dataset.json's train_ids / val_ids. interp: every 4th id of `ids` for training and the
+    ids two after those for testing (the HyperNeRF interpolation protocol: test times are unseen).
+    """
+    _choice("split_mode", mode, SPLIT_MODES)
+    ids = [str(i) for i in _need(dataset, "ids", path)]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"{path}: 'ids' has duplicates")
+    if mode == "interp":
+        return ids[::4], ids[2::4]
+    train = [str(i) for i in _need(dataset, "train_ids", path, " (data.split_mode=ids needs it; "
+                                   "data.split_mode=interp splits 'ids' instead)")]
+    val = [str(i) for i in dataset.get("val_ids", [])]
+    unknown = sorted(set(train + val) - set(ids))
+    if unknown:
+        raise ValueError(f"{path}: train_ids/val_ids name ids that are not in 'ids': {unknown[:5]}")
+    both = sorted(set(train) & set(val))
+    if both:
+        raise ValueError(f"{path}: {len(both)} ids are in both train_ids and val_ids (e.g. {both[0]}); "
+                         "the held-out frames would be trained on")
+    if not train:
+        raise ValueError(f"{path}: train_ids is empty")
+    return train, val
+
+
+def frame_times(metadata: dict, ids: list[str], path: Path, time_key: str) -> tuple[dict[str, float], str]:
+    """Normalized times {id: t in [0, 1]} = key / max(key over `ids`), and the key used.
+
+    time_key=auto reads `time_id`, falling back to `warp_id` when no entry has a time_id (the
+    original Nerfies release and phone captures have only warp_id).
+    """
+    _choice("time_key", time_key, TIME_KEYS)
+    missing = [i for i in ids if i not in metadata]
+    if missing:
+        raise KeyError(f"{path}: no entry for id {missing[0]!r} ({len(missing)} ids missing)")
+    key = time_key
+    if key == "auto":
+        has = [("time_id" in metadata[i]) for i in ids]
+        if all(has):
+            key = "time_id"
+        elif not any(has):
+            key = "warp_id"
+        else:
+            bad = ids[has.index(False)]
+            raise KeyError(f"{path}: some entries have 'time_id' and some not (e.g. {bad!r}); "
+                           "set data.time_key=warp_id to use warp_id for all")
+    raw = {}
+    for i in ids:
+        v = _need(metadata[i], key, path, f" in entry {i!r} (data.time_key={time_key})")
+        if not isinstance(v, (int, float)) or v < 0 or int(v) != v:
+            raise ValueError(f"{path}: entry {i!r} has {key}={v!r}; expected a non-negative integer")
+        raw[i] = int(v)
+    top = max(raw.values())
+    if top == 0:
+        raise ValueError(f"{path}: every frame has {key}=0; a dynamic scene needs more than one time")
+    return {i: v / top for i, v in raw.items()}, key
+
+
+# ----------------------------------------------------------------------------- cameras
+def lens_from_camera_json(cam: dict, path: Path) -> LensCamera:
+    """The 1x intrinsics of a Nerfies camera file."""
+    f = float(_need(cam, "focal_length", path))
+    pp = _need(cam, "principal_point", path)
+    size = _need(cam, "image_size", path)
+    if len(pp) != 2 or len(size) != 2:
+        raise ValueError(f"{path}: principal_point and image_size must have two values [x, y] / [w, h]")
+    radial = list(cam.get("radial_distortion", [0.0, 0.0, 0.0]))
+    if not 1 <= len(radial) <= 3:
+        raise ValueError(f"{path}: radial_distortion must hold k1[, k2[, k3]], got {radial}")
+    radial = (radial + [0.0, 0.0])[:3]
+    tang = cam.get("tangential_distortion", cam.get("tangential", [0.0, 0.0]))
+    if len(tang) != 2:
+        raise ValueError(f"{path}: tangential_distortion must hold p1, p2, got {tang}")
+    par = float(cam.get("pixel_aspect_ratio", 1.0))
+    if f <= 0 or par <= 0:
+        raise ValueError(f"{path}: focal_length and pixel_aspect_ratio must be positive")
+    return LensCamera(fx=f, fy=f * par, cx=float(pp[0]), cy=float(pp[1]), skew=float(cam.get("skew", 0.0)),
+                      k=tuple(float(v) for v in radial), p=tuple(float(v) for v in tang),
+                      width=int(size[0]), height=int(size[1]))
+
+
+def lens_from_colmap(model: ColmapModel, image_name: str, folder: Path) -> LensCamera:
+    """The intrinsics COLMAP estimated for one image (at the size COLMAP saw)."""
+    img = next((im for im in model.images.values() if Path(im.name).stem == image_name), None)
+    if img is None:
+        raise KeyError(f"{folder}: no image named {image_name}.* in the COLMAP model; "
+                       "use data.intrinsics=camera")
+    c = model.cameras[img.camera_id]
+    p = c.params
+    z = 0.0
+    table = {
+        "SIMPLE_PINHOLE": lambda: (p[0], p[0], p[1], p[2], (z, z, z), (z, z)),
+        "PINHOLE": lambda: (p[0], p[1], p[2], p[3], (z, z, z), (z, z)),
+        "SIMPLE_RADIAL": lambda: (p[0], p[0], p[1], p[2], (p[3], z, z), (z, z)),
+        "RADIAL": lambda: (p[0], p[0], p[1], p[2], (p[3], p[4], z), (z, z)),
+        "OPENCV": lambda: (p[0], p[1], p[2], p[3], (p[4], p[5], z), (p[6], p[7])),
+        "FULL_OPENCV": lambda: (p[0], p[1], p[2], p[3], (p[4], p[5], p[8]), (p[6], p[7])),
+    }
+    if c.model not in table or (c.model == "FULL_OPENCV" and np.any(p[9:] != 0)):
+        raise ValueError(f"{folder}: COLMAP camera model {c.model} is not supported; "
+                         "use data.intrinsics=camera")
+    fx, fy, cx, cy, k, tp = table[c.model]()
+    return LensCamera(float(fx), float(fy), float(cx), float(cy), 0.0, tuple(map(float, k)),
+                      tuple(map(float, tp)), c.width, c.height)
+
+
+def check_rotation(R: np.ndarray, path: Path) -> None:
+    if R.shape != (3, 3):
+        raise ValueError(f"{path}: orientation must be a 3x3 matrix, got shape {R.shape}")
+    err = np.abs(R @ R.T - np.eye(3)).max()
+    if err > 1e-3 or np.linalg.det(R) < 0:
+        raise ValueError(f"{path}: orientation is not a rotation (|R R^T - I| = {err:.1e}, "
+                         f"det = {np.linalg.det(R):.3f})")
+
+
+def scale_for(w1: int, h1: int, w: int, h: int, image_scale: int, img_path: Path, cam_path: Path) -> None:
+    """Raise unless (w, h) is the 1x size divided by image_scale (either rounding)."""
+    ew, eh = w1 / image_scale, h1 / image_scale
+    if abs(w - ew) >= 1.0 or abs(h - eh) >= 1.0:
+        raise ValueError(f"{img_path}: image is {w}x{h}, but {cam_path.name} gives image_size "
+                         f"{w1}x{h1}, so rgb/{image_scale}x should hold {ew:g}x{eh:g} images; "
+                         "check data.image_scale and that the rgb folders are not mixed up")
+
+
+# ----------------------------------------------------------------------------- undistortion cache
+def _sha1(data: bytes) -> str:
+    return hashlib.sha1(data).hexdigest()
+
+
+class UndistortCache:
+    """Undistorted images as 16-bit PNGs with a manifest per image; a manifest mismatch (source
+    bytes, lens, version) recomputes. One folder per scene path and image scale."""
+
+    def __init__(self, root: Optional[Path], scene: Path, image_scale: int):
+        self.dir = None
+        if root is not None:
+            key = _sha1(str(scene.resolve()).encode())[:10]
+            self.dir = root / f"{scene.name}-{key}" / f"{image_scale}x"
+        self.maps: dict[LensCamera, tuple[LensCamera, np.ndarray, np.ndarray]] = {}
+        self.hits = 0
+        self.misses = 0
+
+    def _map(self, lens: LensCamera):
+        if lens not in self.maps:
+            self.maps[lens] = undistortion(lens)
+        return self.maps[lens]
+
+    def get(self, frame_id: str, src: Path, lens: LensCamera) -> tuple[np.ndarray, LensCamera]:
+        raw = src.read_bytes()
+        manifest = {"version": CACHE_VERSION, "source_sha1": _sha1(raw), "lens": asdict(lens)}
+        if self.dir is not None:
+            png, js = self.dir / f"{frame_id}.png", self.dir / f"{frame_id}.json"
+            if png.is_file() and js.is_file():
+                try:
+                    saved = json.loads(js.read_text())
+                except json.JSONDecodeError:
+                    saved = {}
+                if {k: saved.get(k) for k in manifest} == json.loads(json.dumps(manifest)):
+                    try:
+                        pin = LensCamera.from_dict(saved["pinhole"])
+                    except (KeyError, TypeError):  # unreadable manifest: recompute below
+                        pin = None
+                    if pin is not None:
+                        self.hits += 1
+                        return read_image(png), pin
+        pin, mx, my = self._map(lens)
+        img = remap(read_image(src), mx, my)  # [H, W, C] RGB(A), float in [0, 1]
+        self.misses += 1
+        if self.dir is not None:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            out = np.clip(np.round(img * 65535.0), 0, 65535).astype(np.uint16)
+            cv2.imwrite(str(png), out[..., [2, 1, 0, 3]] if out.shape[2] == 4 else out[..., ::-1])
+            js.write_text(json.dumps({**manifest, "pinhole": asdict(pin)}, indent=1))
+        return np.ascontiguousarray(img), pin
+
+
+# ----------------------------------------------------------------------------- points
+def load_points(root: Path, source: str, model: Optional[ColmapModel]):
+    """(points [P, 3], colours [P, 3] in [0, 1] or None, source used) in the data's world frame."""
+    _choice("points_source", source, POINTS_SOURCES)
+    npy = root / "points.npy"
+    if source == "none":
+        return None, None, "none"
+    if source in ("auto", "points_npy") and npy.is_file():
+        pts = np.load(npy, allow_pickle=False)
+        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+            raise ValueError(f"{npy}: expected a non-empty [P, 3] array, got shape {pts.shape}")
+        return pts.astype(np.float64), None, "points_npy"
+    if source == "points_npy":
+        raise FileNotFoundError(f"{npy} not found (data.points_source=points_npy)")
+    if model is None:
+        if source == "colmap":
+            raise FileNotFoundError(f"{root / COLMAP_DIR}: no COLMAP model (data.points_source=colmap)")
+        return None, None, "none"
+    return model.xyz.copy(), model.rgb.astype(np.float32) / 255.0, "colmap"
+
+
+# ----------------------------------------------------------------------------- the loader
+def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *, split_mode: Optional[str],
+                 image_scale: Optional[int], time_key: str = "auto", normalize_scene: bool = True,
+                 distortion: str = "undistort", intrinsics: str = "camera", points_source: str = "auto",
+                 background=(0.0, 0.0, 0.0), resolution_scale: float = 1.0, max_width: Optional[int] = None,
+                 cache_dir: Optional[str | Path] = None) -> SceneData:
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"Nerfies scene folder not found: {root} (set data.path)")
+    if split_mode is None:
+        raise ValueError("data.split_mode is not set: use 'ids' (dataset.json train_ids/val_ids: NeRF-DS, "
+                         "HyperNeRF vrig) or 'interp' (every 4th frame trains, +2 tests: HyperNeRF interp)")
+    if image_scale is None or int(image_scale) != image_scale or image_scale < 1:
+        raise ValueError(f"data.image_scale={image_scale!r}: set the integer N of the rgb/<N>x folder to load")
+    image_scale = int(image_scale)
+    for name, value, allowed in (("distortion", distortion, DISTORTION_MODES),
+                                 ("intrinsics", intrinsics, INTRINSICS_SOURCES)):
+        _choice(name, value, allowed)
+    dpath, mpath, spath = root / "dataset.json", root / "metadata.json", root / "scene.json"
+    dataset = _read_json(dpath, "a Nerfies scene folder holds dataset.json, metadata.json, scene.json, "
+                         "camera/ and rgb/<N>x/")
+    metadata = _read_json(mpath, "it maps every id to its time_id or warp_id")
+    train_ids, held_ids = split_ids(dataset, dpath, split_mode)
+    splits = list(dict.fromkeys(splits))
+    for s in splits:
+        if s != "train" and s not in HELD_OUT:
+            raise ValueError(f"split {s!r}: a Nerfies scene has 'train' and the held-out frames "
+                             "('test' or 'val', the same frames)")
+        if s in HELD_OUT and not held_ids:
+            raise ValueError(f"{dpath}: val_ids is empty, so there is nothing to evaluate on; "
+                             "use data.split_mode=interp for a single-sequence capture")
+    times, used_key = frame_times(metadata, train_ids + held_ids, mpath, time_key)
+
+    center, scale = np.zeros(3), 1.0
+    if normalize_scene:
+        sc = _read_json(spath, "set data.normalize_scene=false to use the raw world frame")
+        center = np.asarray(_need(sc, "center", spath), dtype=np.float64)
+        scale = float(_need(sc, "scale", spath))
+        if center.shape != (3,) or not scale > 0:
+            raise ValueError(f"{spath}: center must have 3 values and scale must be positive")
+
+    colmap_dir = root / COLMAP_DIR
+    model = read_model(colmap_dir) if (colmap_dir / "points3D.bin").is_file() else None
+    if intrinsics == "colmap" and model is None:
+        raise FileNotFoundError(f"{colmap_dir}: data.intrinsics=colmap needs a COLMAP sparse model")
+    img_dir = root / "rgb" / f"{image_scale}x"
+    if not img_dir.is_dir():
+        have = sorted(p.name for p in (root / "rgb").glob("*x")) if (root / "rgb").is_dir() else []
+        raise FileNotFoundError(f"{img_dir} not found (data.image_scale={image_scale}); this scene has "
+                                f"rgb/{{{','.join(have)}}}")
+    cache_root = Path(cache_dir) if (cache_dir is not None and distortion == "undistort") else None
+    cache = UndistortCache(cache_root, root, image_scale)
+    notes: dict = {}
+
+    def load_frame(fid: str) -> Frame:
+        cpath = root / "camera" / f"{fid}.json"
+        cam = _read_json(cpath, f"every id needs a camera file (id {fid!r} from {dpath.name})")
+        R = np.asarray(_need(cam, "orientation", cpath), dtype=np.float64)
+        check_rotation(R, cpath)
+        pos = np.asarray(_need(cam, "position", cpath), dtype=np.float64)
+        if pos.shape != (3,):
+            raise ValueError(f"{cpath}: position must have 3 values")
+        lens1 = lens_from_camera_json(cam, cpath)
+        ip = img_dir / f"{fid}.png"
+        if not ip.is_file():
+            alt = [p for p in (img_dir / f"{fid}.jpg", img_dir / f"{fid}.jpeg") if p.is_file()]
+            if not alt:
+                raise FileNotFoundError(f"image for id {fid!r} not found: {ip}")
+            ip = alt[0]
+        hdr = cv2.imread(str(ip), cv2.IMREAD_UNCHANGED)
+        if hdr is None:
+            raise ValueError(f"could not decode image {ip} (corrupt or unsupported format)")
+        h, w = hdr.shape[:2]
+        scale_for(lens1.width, lens1.height, w, h, image_scale, ip, cpath)
+        lens = lens1.scaled(w, h)
+        if intrinsics == "colmap":
+            lens = lens_from_colmap(model, fid, colmap_dir).scaled(w, h)
+        elif model is not None and "intrinsics_check" not in notes:
+            other = lens_from_colmap(model, fid, colmap_dir).scaled(w, h)
+            rel = max(abs(other.fx / lens.fx - 1), abs(other.fy / lens.fy - 1))
+            notes["intrinsics_check"] = {"camera_json": [lens.fx, lens.fy, lens.cx, lens.cy],
+                                         "colmap": [other.fx, other.fy, other.cx, other.cy],
+                                         "max_rel_focal_diff": rel}
+            if rel > 5e-3:
+                log.warning("%s: focal lengths (fx, fy) = (%.2f, %.2f) differ from the COLMAP model's "
+                            "(%.2f, %.2f) by %.1f%%; set data.intrinsics=colmap to use COLMAP's "
+                            "(docs/data.md)", cpath, lens.fx, lens.fy, other.fx, other.fy, 100 * rel)
+        if lens.is_pinhole or distortion == "ignore":
+            if not lens.is_pinhole and "ignored" not in notes:
+                notes["ignored"] = {"k": lens.k, "p": lens.p, "skew": lens.skew}
+                log.warning("%s: lens distortion k=%s p=%s skew=%g IGNORED (data.distortion=ignore); "
+                            "geometry is wrong away from the image centre", cpath, lens.k, lens.p, lens.skew)
+            img = read_image(ip)
+            pin = LensCamera.pinhole(lens.fx, lens.fy, lens.cx, lens.cy, w, h)
+        elif distortion == "error":
+            raise ValueError(f"{cpath}: the camera has lens distortion (radial {list(lens.k)}, tangential "
+                             f"{list(lens.p)}, skew {lens.skew}); set data.distortion=undistort to "
+                             "undistort the images once (cached), or data.distortion=ignore to reproduce "
+                             "the peers' pinhole approximation")
+        else:
+            img, pin = cache.get(fid, ip, lens)
+        img = img[..., :3]
+        c_world = (pos - center) * scale
+        Rt = torch.from_numpy(R).float()
+        camera = Camera(R=Rt, t=torch.from_numpy(-R @ c_world).float(), fx=pin.fx, fy=pin.fy,
+                        cx=pin.cx, cy=pin.cy, width=pin.width, height=pin.height)
+        W, H = output_size(w, h, resolution_scale, max_width)
+        if (W, H) != (w, h):
+            img = resize(img, W, H)
+            camera = camera.scaled(W / w, H / h)
+        return Frame(camera=camera, image=torch.from_numpy(np.ascontiguousarray(img)), time=times[fid],
+                     name=f"rgb/{image_scale}x/{ip.name}")
+
+    data = {}
+    for s in splits:
+        data[s] = [load_frame(i) for i in (train_ids if s == "train" else held_ids)]
+    pts, cols, psrc = load_points(root, points_source, model)
+    if pts is not None:
+        pts = (pts - center) * scale
+    meta = {"format": "nerfies", "split_mode": split_mode, "image_scale": image_scale, "time_key": used_key,
+            "normalize_scene": normalize_scene, "scene_center": center.tolist(), "scene_scale": scale,
+            "distortion": distortion, "intrinsics": intrinsics, "points_source": psrc,
+            "num_points": 0 if pts is None else int(len(pts)),
+            "num_ids": {"train": len(train_ids), "held_out": len(held_ids)},
+            "undistort_cache": {"hits": cache.hits, "misses": cache.misses,
+                                "dir": None if cache.dir is None else str(cache.dir)}, **notes}
+    return SceneData(root=str(root), splits=data, background=tuple(background), init_points=pts,
+                     init_colors=cols, meta=meta)
