@@ -30,6 +30,14 @@ def test_configs_compose_for_every_experiment_and_budget():
     assert paper.optim.iterations == 40000 and paper.baseline.width == 256 and paper.baseline.depth == 8
     assert paper.model.init_num == 100000 and paper.data.max_width is None
     assert cpu.optim.iterations < paper.optim.iterations and cpu.data.max_width == 200
+    for ds, fmt_scale in (("nerfds", 1), ("hypernerf", 2)):
+        for suffix, enabled in (("", False), ("_stdr", True)):
+            c = make_cfg([f"experiment={ds}_deform{suffix}", "data.path=/x"])
+            assert c.name == f"{ds}_deform{suffix}" and c.stdr.enabled == enabled
+            assert c.data.format == "nerfies" and c.data.split_mode == "ids" and c.data.image_scale == fmt_scale
+            assert c.model.init == "points" and c.data.background == "black"
+    interp = make_cfg(["experiment=hypernerf_deform", "data=hypernerf_interp", "data.path=/x"])
+    assert interp.data.split_mode == "interp" and interp.name == "hypernerf_deform"
     demo = make_cfg([])
     assert demo.name == "embedded_deform" and demo.budget == "demo" and demo.data.format == "procedural"
 
