@@ -8,7 +8,8 @@ One row per run directory:
 * mask statistics: the share of Gaussians switched off at some time, and the mean normalized
   temporal entropy;
 * the field's dynamic probability.
-Runs without STDR show only the metrics.
+Runs without STDR show only the metrics. `--config-cols KEY...` adds config values (dotted keys,
+e.g. data.image_scale data.intrinsics) and `--size` the evaluated image size (metrics.json).
 
     scripts/run.sh python scripts/stdr_stats.py RUN_DIR... --out docs/measurements/x
 """
@@ -32,14 +33,26 @@ COLS = [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("lpips", "LPIPS
         ("dynamic_probability_mean", "dyn p", "{:.3f}"), ("fraction_dynamic", "dyn>0.5", "{:.2f}")]
 
 
-def load(run: Path, split: str) -> dict:
+def config_value(cfg: dict, key: str):
+    v = cfg
+    for part in key.split("."):
+        if not isinstance(v, dict) or part not in v:
+            raise KeyError(f"config key {key!r} not found in the run's config.yaml")
+        v = v[part]
+    return v
+
+
+def load(run: Path, split: str, config_cols=(), size=False) -> dict:
     m = json.loads((run / "metrics.json").read_text())[split]
     cfg = yaml.safe_load((run / "config.yaml").read_text())
+    extra = {k: config_value(cfg, k) for k in config_cols}
+    if size:
+        extra["size"] = f"{m['width']}x{m['height']}" if "width" in m else None
     prof = run / "train_profile.json"
     reg = json.loads(prof.read_text())["seconds"].get("stdr_reg") if prof.is_file() else None
     return {"run_dir": str(run), "method": method_name(cfg), "scene": cfg["data"]["name"],
             **{k: m.get(k) for k in ("psnr", "ssim", "lpips", "fps", "num_gaussians", "train_seconds")},
-            **(m.get("stdr") or {}), "stdr_reg_seconds": reg}
+            **(m.get("stdr") or {}), "stdr_reg_seconds": reg, "extra": extra}
 
 
 def fmt(v, f):
@@ -51,11 +64,16 @@ def main(argv=None):
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--split", default="test")
     ap.add_argument("--out", type=Path, default=None, help="write OUT.md and OUT.json")
+    ap.add_argument("--config-cols", nargs="*", default=[], help="config keys to show, e.g. data.image_scale")
+    ap.add_argument("--size", action="store_true", help="show the evaluated image size")
     args = ap.parse_args(argv)
-    rows = [load(r, args.split) for r in args.runs]
-    lines = ["| scene | method | " + " | ".join(h for _, h, _ in COLS) + " |", "|---|---|" + "---|" * len(COLS)]
+    rows = [load(r, args.split, args.config_cols, args.size) for r in args.runs]
+    extra = list(rows[0]["extra"])
+    lines = ["| scene | method | " + " | ".join(extra + [h for _, h, _ in COLS]) + " |",
+             "|---|---|" + "---|" * (len(extra) + len(COLS))]
     for r in rows:
-        lines.append(f"| {r['scene']} | {r['method']} | " + " | ".join(fmt(r.get(k), f) for k, _, f in COLS) + " |")
+        lines.append(f"| {r['scene']} | {r['method']} | " + " | ".join(
+            [str(r["extra"][k]) for k in extra] + [fmt(r.get(k), f) for k, _, f in COLS]) + " |")
     md = "\n".join(lines) + "\n"
     print(md)
     if args.out:

@@ -1,0 +1,108 @@
+#!/usr/bin/env python
+"""Seconds per training iteration of a config at Gaussian counts a short run cannot reach.
+
+Estimates what a full schedule (e.g. budget=paper) costs on this machine without running it:
+1. Build the target config's trainer: resolution, deformation network, STDR as configured.
+2. Take the trained Gaussians of an existing run (realistic opacities and footprints). Replicate
+   them to each requested count N: each copy is jittered by half its scale, and the scales are
+   shrunk by sqrt(copies) so that the covered area stays about the same.
+3. Time full training steps (deformation on, densification off) after a few untimed ones.
+
+The estimate is then iterations x seconds per iteration at the count the schedule ends with.
+It assumes that count is known (pass it). Densification, evaluation and checkpointing are not
+included.
+
+    scripts/run.sh python scripts/cost_probe.py outputs/toy/deform_2x --gaussians 50000 150000 \\
+        --iters 10 --out docs/measurements/x.json -- experiment=nerfds_deform budget=paper data.path=...
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from hydra import compose, initialize_config_dir  # noqa: E402
+
+from stdr.cli.common import CONFIG_DIR  # noqa: E402
+from stdr.config import register  # noqa: E402
+from stdr.scene.gaussians import GAUSSIAN_KEYS, num_gaussians, scene_extent  # noqa: E402
+from stdr.train.checkpoint import load_checkpoint  # noqa: E402
+from stdr.train.trainer import Trainer  # noqa: E402
+
+
+def replicate(params: dict, n: int, gen: torch.Generator) -> dict:
+    """Resample the Gaussians of `params` to n: copies jittered by half their scale."""
+    n0 = params["means"].shape[0]
+    idx = torch.randint(0, n0, (n,), generator=gen) if n < n0 else torch.arange(n) % n0
+    copies = max(1.0, n / n0)
+    out = {k: params[k][idx].clone() for k in GAUSSIAN_KEYS}
+    sigma = out["scales"].exp()
+    out["means"] += 0.5 * sigma * torch.randn(n, 3, generator=gen)
+    out["scales"] -= 0.5 * math.log(copies)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="the target config's Hydra overrides follow --")
+    ap.add_argument("run", type=Path, help="a finished run whose checkpoint supplies the Gaussians")
+    ap.add_argument("--gaussians", type=int, nargs="+", required=True)
+    ap.add_argument("--iters", type=int, default=10)
+    ap.add_argument("--warmup-iters", type=int, default=3)
+    ap.add_argument("--out", type=Path, default=None)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    overrides = argv[argv.index("--") + 1:] if "--" in argv else []
+    args = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
+    args.overrides = overrides
+    register()
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
+        cfg = compose("train", overrides=list(args.overrides) + [
+            "densify.refine_start=1000000000", "train.progress=false", "eval.lpips=false"])
+    ck = load_checkpoint(args.run / "checkpoints" / "last.pt")
+    gen = torch.Generator().manual_seed(0)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        tr = Trainer(cfg, tmp, splits=("train",))
+        f0 = tr.scene.frames("train")[0]
+        extent = scene_extent(tr.scene.camera_centers("train"))
+        for n in args.gaussians:
+            tr.params.clear()
+            for k, v in replicate(ck["params"], n, gen).items():
+                tr.params[k] = torch.nn.Parameter(v)
+            if tr.stdr is not None:
+                tr.stdr.add_mask(tr.params)
+            tr.optimizers = tr._make_optimizers()
+            tr.strategy_state = tr.strategy.initialize_state(n, extent)
+            tr.step = cfg.baseline.warmup  # deformation on
+            times = []
+            for i in range(args.warmup_iters + args.iters):
+                t0 = time.perf_counter()
+                tr.train_step()
+                if i >= args.warmup_iters:
+                    times.append(time.perf_counter() - t0)
+            s = statistics.median(times)
+            row = {"gaussians": num_gaussians(tr.params), "seconds_per_iter": s,
+                   "iterations": cfg.optim.iterations, "hours_for_schedule": s * cfg.optim.iterations / 3600}
+            rows.append(row)
+            print(f"N={row['gaussians']:>8,}  {s:.3f} s/iter  -> {row['hours_for_schedule']:.1f} h for "
+                  f"{cfg.optim.iterations} iterations at {f0.camera.width}x{f0.camera.height}", flush=True)
+    res = {"source_run": str(args.run), "overrides": list(args.overrides),
+           "resolution": [f0.camera.width, f0.camera.height], "threads": torch.get_num_threads(),
+           "deform": {"depth": cfg.baseline.depth, "width": cfg.baseline.width}, "stdr": bool(cfg.stdr.enabled),
+           "rows": rows}
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(res, indent=1))
+        print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
