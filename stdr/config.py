@@ -48,8 +48,52 @@ class ModelConfig:
 
 
 @dataclass
+class ScgsConfig:
+    """SC-GS control nodes (docs/baselines.md)."""
+
+    num_nodes: int = 512
+    hyper_dim: int = 8
+    knn_k: int = 3
+    node_stage_end: int = 10000     # nodes resampled by FPS over trajectories, skinning starts
+    main_warmup: int = 3000         # node deltas detached for this many steps after the switch
+    trajectory_samples: int = 16
+    local_frame: bool = True
+    feature_lr: float = 2.5e-3      # per-Gaussian hyper-coordinates
+    arap_k: int = 10
+    arap_dt: float = 0.05
+    arap_steps: List[int] = field(default_factory=lambda: [0, 5000, 10000, 20000, 20001])  # after node_stage_end
+    arap_weights: List[float] = field(default_factory=lambda: [1e-4, 1e-4, 1e-5, 1e-5, 0.0])
+
+
+@dataclass
+class SpgsConfig:
+    """SP-GS superpoints (docs/baselines.md)."""
+
+    num_superpoints: int = 300
+    knn_k: int = 5
+    assoc_lr: float = 1e-3          # constant, as published (its schedule never applies)
+    lambda_xyz: float = 1e-3        # property-reconstruction weights
+    lambda_rot: float = 100.0
+    lambda_off: float = 100.0
+
+
+@dataclass
+class HexPlaneConfig:
+    """4DGaussians HexPlane field and decoder (docs/baselines.md)."""
+
+    base_res: int = 64
+    multires: List[int] = field(default_factory=lambda: [1, 2])
+    channels: int = 32
+    time_res: int = 0               # 0: half the number of distinct training times (the published values)
+    grid_lr_mult: float = 10.0      # grid lr = 10 x the network lr (1.6e-3 vs 1.6e-4)
+    plane_tv: float = 1e-4
+    time_smooth: float = 1e-2
+    l1_time: float = 1e-4
+
+
+@dataclass
 class BaselineConfig:
-    name: str = "deform"
+    name: str = "deform"            # deform | scgs | spgs | 4dgs
     warmup: int = 3000          # static iterations before the deformation is applied
     depth: int = 8
     width: int = 256
@@ -62,6 +106,10 @@ class BaselineConfig:
     lr_init: float = 8e-4
     lr_final: float = 1.6e-6
     lr_max_steps: int = 40_000
+    lr_from_warmup: bool = False    # the network's lr schedule starts at the warm-up's end (4DGS restarts it)
+    scgs: ScgsConfig = field(default_factory=ScgsConfig)
+    spgs: SpgsConfig = field(default_factory=SpgsConfig)
+    hexplane: HexPlaneConfig = field(default_factory=HexPlaneConfig)
 
 
 @dataclass

@@ -58,10 +58,40 @@ def apply_pre_activation(params, d: Deltas) -> Gaussians:
 
 
 class Deformation(nn.Module):
-    """Base class. Subclasses implement `forward` and set `apply_rule` (or override `apply`)."""
+    """Base class. Subclasses implement `forward` and set `apply_rule` (or override `apply`).
+
+    Hooks the one training loop calls (all optional; the defaults do nothing):
+    - `gaussian_params(n)`: per-Gaussian tensors the method adds to the parameter dict (SC-GS's
+      hyper-coordinates, SP-GS's association logits), so densification keeps them aligned;
+      `gaussian_lr(key)` gives their learning rates.
+    - `setup(params, train_times)`: once the Gaussians exist (4DGS's bounds from the points).
+    - `before_step(params, step)`: every training step (SP-GS refreshes superpoint centres,
+      SC-GS switches from its node stage to skinning).
+    - `regularizers(params, t, step)`: named loss terms, already weighted, added after the
+      static warm-up.
+    - `param_groups()`: network parameter groups with an lr multiplier each (4DGS's grid).
+    """
 
     #: width of the per-Gaussian conditioning input this module was built for (0 = none)
     cond_dim: int = 0
+
+    def gaussian_params(self, n: int) -> dict[str, Tensor]:
+        return {}
+
+    def gaussian_lr(self, key: str) -> Optional[float]:
+        return None
+
+    def setup(self, params, train_times: Optional[Tensor]) -> None:
+        pass
+
+    def before_step(self, params, step: int) -> None:
+        pass
+
+    def regularizers(self, params, t: float, step: int) -> dict[str, Tensor]:
+        return {}
+
+    def param_groups(self) -> list[dict]:
+        return [{"params": list(self.parameters()), "name": "deform", "lr_mult": 1.0}]
 
     def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:  # pragma: no cover
         raise NotImplementedError

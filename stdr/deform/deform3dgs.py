@@ -38,7 +38,7 @@ class DeformMLP(Deformation):
 
     def __init__(self, depth: int = 8, width: int = 256, skips: Sequence[int] = (4,),
                  xyz_freqs: int = 10, t_freqs: int = 6, time_net: bool = True, time_out: int = 30,
-                 cond_dim: int = 0, head_init_std: float | None = None):
+                 cond_dim: int = 0, head_init_std: float | None = None, heads: bool = True):
         super().__init__()
         self.xyz_freqs, self.t_freqs, self.cond_dim = xyz_freqs, t_freqs, cond_dim
         self.skips = tuple(skips)
@@ -52,21 +52,29 @@ class DeformMLP(Deformation):
             d_in = in_dim if i == 0 else width + (in_dim if (i - 1) in self.skips else 0)
             layers.append(nn.Linear(d_in, width))
         self.layers = nn.ModuleList(layers)
-        self.head_xyz = nn.Linear(width, 3)
-        self.head_rot = nn.Linear(width, 4)
-        self.head_scale = nn.Linear(width, 3)
+        self.width = width
         if cond_dim:  # cond inputs start at zero weight: adding them later does not change the output
             with torch.no_grad():
                 for i, layer in enumerate(self.layers):
                     if i == 0 or (i - 1) in self.skips:
                         layer.weight[:, -cond_dim:] = 0.0
+        if not heads:  # a trunk for modules with their own heads (SP-GS, SC-GS)
+            return
+        self.head_xyz = nn.Linear(width, 3)
+        self.head_rot = nn.Linear(width, 4)
+        self.head_scale = nn.Linear(width, 3)
         if head_init_std is not None:  # near-identity start (as SC-GS); None = PyTorch default init
             for head in (self.head_xyz, self.head_rot, self.head_scale):
                 nn.init.normal_(head.weight, std=head_init_std)
                 nn.init.zeros_(head.bias)
 
     def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:
-        xyz = params["means"].detach()
+        h = self.trunk(params["means"].detach(), t, cond)
+        return Deltas(means=self.head_xyz(h), quats=self.head_rot(h), scales=self.head_scale(h))
+
+    def trunk(self, xyz: Tensor, t: float, cond: Optional[Tensor] = None) -> Tensor:
+        """Hidden features [N, width] at points xyz [N, 3] and time t (the baselines that query
+        the network at control nodes or superpoints call this directly)."""
         N = xyz.shape[0]
         t_in = torch.full((1, 1), float(t), dtype=xyz.dtype, device=xyz.device)
         t_emb = positional_encoding(t_in, self.t_freqs)
@@ -83,4 +91,4 @@ class DeformMLP(Deformation):
             h = torch.relu(layer(h))
             if i in self.skips:
                 h = torch.cat([h, x0], -1)
-        return Deltas(means=self.head_xyz(h), quats=self.head_rot(h), scales=self.head_scale(h))
+        return h

@@ -19,7 +19,7 @@ from torch import Tensor
 from ..data.load import load_scene
 from ..data.types import Frame
 from ..decouple import MASK_KEY, STDR
-from ..deform import build_deformation
+from ..deform import build_deformation, deformation_kwargs
 from ..metrics import l1, psnr, ssim
 from ..render import RenderOutput, render, resolve_backend
 from ..scene.gaussians import Gaussians, activate, init_params, num_gaussians, random_cube_points, scene_extent
@@ -65,11 +65,9 @@ class CameraSampler:
         self.stack = list(s["stack"])
 
 
-def build_deformation_from_cfg(cfg, cond_dim: int = 0):
+def build_deformation_from_cfg(cfg, cond_dim: int = 0, train_times=None):
     b = cfg.baseline
-    return build_deformation(b.name, depth=b.depth, width=b.width, skips=list(b.skips),
-                             xyz_freqs=b.xyz_freqs, t_freqs=b.t_freqs, time_net=b.time_net,
-                             time_out=b.time_out, cond_dim=cond_dim, head_init_std=b.head_init_std)
+    return build_deformation(b.name, **deformation_kwargs(b, cond_dim, train_times, seed=cfg.seed))
 
 
 class Trainer:
@@ -108,11 +106,17 @@ class Trainer:
         self.stdr = self._make_stdr() if cfg.stdr.enabled else None
         if self.stdr is not None and pts is not None:
             self.stdr.add_mask(self.params)
-        self.deform = build_deformation_from_cfg(cfg, cond_dim=self.stdr.cond_dim if self.stdr else 0)
+        train_times = self.scene.train_times() if "train" in self.scene.splits else None
+        self.deform = build_deformation_from_cfg(cfg, cond_dim=self.stdr.cond_dim if self.stdr else 0,
+                                                 train_times=train_times)
+        if pts is not None:  # per-Gaussian state of the baseline (kept aligned by densification)
+            self.deform.setup(self.params, train_times)
+            for k, v in self.deform.gaussian_params(len(pts)).items():
+                self.params[k] = torch.nn.Parameter(v)
         self.optimizers = self._make_optimizers()
-        groups = [{"params": list(self.deform.parameters()), "name": "deform"}]
+        groups = [dict(g) for g in self.deform.param_groups()]
         if self.stdr is not None and self.stdr.field is not None:  # trained on the deformation's schedule
-            groups.append({"params": list(self.stdr.field.parameters()), "name": "stdr_field"})
+            groups.append({"params": list(self.stdr.field.parameters()), "name": "stdr_field", "lr_mult": 1.0})
         self.deform_opt = torch.optim.Adam(groups, lr=cfg.baseline.lr_init, eps=1e-15)
         self.strategy = DensifyStrategy(**OmegaConf.to_container(cfg.densify))
         extent = scene_extent(self.scene.camera_centers("train")) if "train" in self.scene.splits else 1.0
@@ -138,6 +142,8 @@ class Trainer:
             return exp_lr(step, o.means_lr_init * s, o.means_lr_final * s, o.means_lr_max_steps)
         fixed = {"scales": o.scales_lr * s, "quats": o.quats_lr, "opacities": o.opacities_lr,
                  "sh0": o.sh0_lr, "shN": o.shN_lr, MASK_KEY: self.cfg.stdr.mask_lr}
+        if key not in fixed and self.deform.gaussian_lr(key) is not None:
+            return self.deform.gaussian_lr(key)
         if key not in fixed:
             raise KeyError(f"no learning rate configured for per-Gaussian parameter {key!r}")
         return fixed[key]
@@ -153,8 +159,9 @@ class Trainer:
             for g in opt.param_groups:
                 g["lr"] = self._lr(k, step)
         b = self.cfg.baseline
+        s = max(step - b.warmup, 0) if b.lr_from_warmup else step
         for g in self.deform_opt.param_groups:
-            g["lr"] = exp_lr(step, b.lr_init, b.lr_final, b.lr_max_steps)
+            g["lr"] = exp_lr(s, b.lr_init, b.lr_final, b.lr_max_steps) * g.get("lr_mult", 1.0)
 
     # ----------------------------------------------------------------- rendering
     def sh_degree(self, step: int) -> int:
@@ -246,6 +253,7 @@ class Trainer:
         self._update_lrs(it)
         frame = self.scene.frames("train")[self.sampler.next()]
         self.set_training(True)
+        self.deform.before_step(self.params, it)
         if self.stdr is not None:
             self.stdr.configure_step(self.params, it)
         with prof("deform"):
@@ -262,6 +270,12 @@ class Trainer:
             with prof("stdr_reg"):
                 regs = self.stdr.regularizers(self.params, it)
                 for v in regs.values():
+                    loss = loss + v
+        dregs: dict[str, Tensor] = {}
+        if it >= cfg.baseline.warmup:  # the baseline's own terms (ARAP, HexPlane smoothness, ...)
+            with prof("deform_reg"):
+                dregs = self.deform.regularizers(self.params, frame.time, it)
+                for v in dregs.values():
                     loss = loss + v
         with prof("backward"):
             loss.backward()
@@ -283,6 +297,7 @@ class Trainer:
         return {"loss": loss.item(), "l1": loss_l1.item(), "dssim": loss_dssim.item(),
                 "psnr": float(psnr(out.image.detach(), frame.image)), **{f"densify_{k}": v for k, v in info.items()},
                 **{f"stdr_{k}": v.item() for k, v in regs.items()},
+                **{f"reg_{k}": v.item() for k, v in dregs.items()},
                 "_out": out, "_frame": frame}
 
     def train(self) -> None:
@@ -341,12 +356,15 @@ class Trainer:
         tb.add_scalar("time/seconds_per_iteration", dt, it)
         for k, o in self.optimizers.items():
             tb.add_scalar(f"lr/{k}", o.param_groups[0]["lr"], it)
-        tb.add_scalar("lr/deform", self.deform_opt.param_groups[0]["lr"], it)
+        for g in self.deform_opt.param_groups:
+            tb.add_scalar(f"lr/{g.get('name', 'deform')}", g["lr"], it)
         for k, v in logs.items():
             if k.startswith("densify_"):
                 tb.add_scalar(f"densify/{k[8:]}", v, it)
             elif k.startswith("stdr_"):
                 tb.add_scalar(f"loss/{k}", v, it)
+            elif k.startswith("reg_"):
+                tb.add_scalar(f"loss/{k[4:]}", v, it)
 
     def _log_image(self, tb, it, img: Tensor, gt: Tensor, tag: str = "train/render_gt_error") -> None:
         err = (img - gt).abs().mean(-1, keepdim=True).expand(-1, -1, 3)

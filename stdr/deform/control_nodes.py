@@ -1,0 +1,215 @@
+"""SC-GS (Huang et al. 2024): sparse control nodes that drive the Gaussians by skinning.
+
+Stages (by training step):
+1. [0, start_step): static warm-up (the training loop renders the canonical Gaussians).
+2. [start_step, node_stage_end): node stage. The Gaussians stand in for the nodes: they are
+   rendered isotropic and moved directly by the node MLP, which learns the motion field.
+3. At node_stage_end the M nodes are resampled by farthest-point sampling over the Gaussians'
+   trajectories (positions at `trajectory_samples` times, flattened), and skinning starts.
+4. [node_stage_end, ...): each Gaussian blends its K = 3 nearest nodes (in [xyz, hyper-coords]
+   space), w_k = exp(-d_k^2 / (2 r_k^2)) * sigmoid(node weight k), normalized. In local frames:
+   x_t = sum_k w_k (R_k (x - p_k) + p_k + T_k); raw quaternion + sum_k w_k dq_k; exp(log s) +
+   sum_k w_k ds_k. For `main_warmup` steps the node deltas are detached (as published).
+   ARAP over node neighbourhoods regularizes, with the published decaying weight.
+
+Differences from the published code (docs/baselines.md): the node stage trains the run's own
+Gaussians instead of a separate node model, which then continue as the skinned Gaussians.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional, Sequence
+
+import torch
+from torch import Tensor, nn
+
+from ..scene.knn import knn
+from .base import Deformation, Deltas
+from .deform3dgs import DeformMLP
+from .geometry import farthest_point_sampling, quat_to_rotmat
+
+FEATURE_KEY = "scgs_feature"
+
+
+def skinning_weights(d2: Tensor, radius: Tensor, node_weight: Tensor) -> Tensor:
+    """w [N, K] from squared distances d2 [N, K] and the neighbours' radii and weight logits
+    [N, K]: exp(-d2 / (2 r^2)) * sigmoid(weight), plus 1e-7, normalized to sum 1."""
+    w = torch.exp(-d2 / (2.0 * radius.square())) * torch.sigmoid(node_weight) + 1e-7
+    return w / w.sum(-1, keepdim=True)
+
+
+def blend_translation(x: Tensor, p: Tensor, R: Tensor, T: Tensor, w: Tensor, local_frame: bool = True) -> Tensor:
+    """New positions [N, 3] of points x [N, 3] under their K nodes' motions: positions p [N, K, 3],
+    rotations R [N, K, 3, 3], translations T [N, K, 3], weights w [N, K]."""
+    if not local_frame:
+        return x + (w[..., None] * T).sum(1)
+    local = (R @ (x[:, None, :] - p)[..., None])[..., 0] + p + T  # [N, K, 3]
+    return (w[..., None] * local).sum(1)
+
+
+def arap_energy(p1: Tensor, p2: Tensor, nbr: Tensor) -> Tensor:
+    """As-rigid-as-possible energy between node positions at two times, p1, p2 [M, 3], over
+    neighbourhoods nbr [M, J]: mean_k,j |e2_kj - R_k e1_kj|^2 with each R_k the best rotation
+    (Kabsch, by SVD)."""
+    e1 = p1[nbr] - p1[:, None]  # [M, J, 3]
+    e2 = p2[nbr] - p2[:, None]
+    H = e1.transpose(1, 2) @ e2  # [M, 3, 3]
+    U, _, Vh = torch.linalg.svd(H.detach())
+    d = torch.sign(torch.linalg.det(Vh.transpose(1, 2) @ U.transpose(1, 2)))
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+    R = Vh.transpose(1, 2) @ D @ U.transpose(1, 2)  # maps e1 onto e2
+    return (e2 - (R[:, None] @ e1[..., None])[..., 0]).square().sum(-1).mean()
+
+
+def log_interp_schedule(step: int, steps: Sequence[int], values: Sequence[float]) -> float:
+    """Piecewise log-linear interpolation of `values` at `steps` (linear where a value is 0)."""
+    if step <= steps[0]:
+        return float(values[0])
+    for (s0, v0), (s1, v1) in zip(zip(steps, values), zip(steps[1:], values[1:])):
+        if step <= s1:
+            a = (step - s0) / max(s1 - s0, 1)
+            if v0 > 0 and v1 > 0:
+                return float(math.exp((1 - a) * math.log(v0) + a * math.log(v1)))
+            return float((1 - a) * v0 + a * v1)
+    return float(values[-1])
+
+
+class ControlNodeDeformation(Deformation):
+    def __init__(self, num_nodes: int = 512, hyper_dim: int = 8, knn_k: int = 3, start_step: int = 2000,
+                 node_stage_end: int = 10000, main_warmup: int = 3000, trajectory_samples: int = 16,
+                 local_frame: bool = True, depth: int = 8, width: int = 256, skips=(4,), xyz_freqs: int = 10,
+                 t_freqs: int = 6, time_net: bool = True, time_out: int = 30, cond_dim: int = 0,
+                 head_init_std: Optional[float] = 1e-5, feature_lr: float = 2.5e-3, arap_k: int = 10,
+                 arap_dt: float = 0.05, arap_steps: Sequence[int] = (0, 5000, 10000, 20000, 20001),
+                 arap_weights: Sequence[float] = (1e-4, 1e-4, 1e-5, 1e-5, 0.0), seed: int = 0):
+        super().__init__()
+        if node_stage_end < start_step:
+            raise ValueError(f"baseline.scgs.node_stage_end ({node_stage_end}) must be >= the warm-up ({start_step})")
+        self.m, self.hyper_dim, self.k = num_nodes, hyper_dim, knn_k
+        self.start_step, self.node_stage_end, self.main_warmup = start_step, node_stage_end, main_warmup
+        self.trajectory_samples, self.local_frame = trajectory_samples, local_frame
+        self.cond_dim, self.feature_lr, self.seed = cond_dim, feature_lr, seed
+        self.arap_k, self.arap_dt = arap_k, arap_dt
+        self.arap_steps, self.arap_weights = list(arap_steps), list(arap_weights)
+        self.net = DeformMLP(depth, width, skips, xyz_freqs, t_freqs, time_net, time_out, cond_dim, heads=False)
+        self.head_xyz, self.head_rot, self.head_scale = nn.Linear(width, 3), nn.Linear(width, 4), nn.Linear(width, 3)
+        if head_init_std is not None:  # published: dxyz 1e-5, dscale 1e-8, drot 1e-5, zero bias
+            for h, s in ((self.head_xyz, head_init_std), (self.head_rot, head_init_std),
+                         (self.head_scale, head_init_std * 1e-3)):
+                nn.init.normal_(h.weight, std=s)
+                nn.init.zeros_(h.bias)
+        self.nodes = nn.Parameter(torch.zeros(num_nodes, 3 + hyper_dim))   # xyz + hyper-coordinates
+        self.node_log_radius = nn.Parameter(torch.zeros(num_nodes))
+        self.node_weight = nn.Parameter(torch.zeros(num_nodes))             # sigmoid -> 0.5
+        self.register_buffer("stage", torch.zeros((), dtype=torch.long))    # 0 static, 1 nodes, 2 skinning
+        self.gen = torch.Generator().manual_seed(seed)
+
+    # -------------------------------------------------------------- per-Gaussian state
+    def gaussian_params(self, n: int) -> dict[str, Tensor]:
+        return {FEATURE_KEY: torch.full((n, self.hyper_dim), -1e-2)}
+
+    def gaussian_lr(self, key: str) -> Optional[float]:
+        return self.feature_lr if key == FEATURE_KEY else None
+
+    # -------------------------------------------------------------- node MLP
+    def node_deltas(self, xyz: Tensor, t: float, cond: Optional[Tensor] = None) -> tuple[Tensor, Tensor, Tensor]:
+        h = self.net.trunk(xyz, t, cond)
+        return self.head_xyz(h), self.head_rot(h), self.head_scale(h)
+
+    @torch.no_grad()
+    def resample_nodes(self, params) -> None:
+        """Nodes := FPS over the Gaussians' trajectories; radius := mean distance to 3 nearest nodes."""
+        x = params["means"].detach()
+        if x.shape[0] < self.m:
+            raise ValueError(f"SC-GS needs at least {self.m} Gaussians to place its nodes, has {x.shape[0]}; "
+                             "lower baseline.scgs.num_nodes")
+        zero = torch.zeros(x.shape[0], self.cond_dim) if self.cond_dim else None
+        traj = []
+        for t in torch.linspace(0.0, 1.0, self.trajectory_samples).tolist():
+            dx, _, _ = self.node_deltas(x, t, zero)
+            traj.append(x + dx)
+        idx = farthest_point_sampling(torch.cat(traj, -1), self.m, self.gen)
+        p = x[idx]
+        d2, _ = knn(p, p, min(3, self.m - 1), exclude_self=True)
+        self.nodes.zero_()
+        self.nodes[:, :3] = p
+        self.node_log_radius.copy_(torch.log(d2.mean(1).sqrt().clamp_min(1e-6)))
+        self.node_weight.zero_()
+
+    def before_step(self, params, step: int) -> None:
+        if step < self.start_step:
+            self.stage.fill_(0)
+        elif step < self.node_stage_end:
+            self.stage.fill_(1)
+        elif int(self.stage) != 2:
+            self.resample_nodes(params)
+            self.stage.fill_(2)
+        self._detach = int(self.stage) == 2 and step < self.node_stage_end + self.main_warmup
+
+    # -------------------------------------------------------------- skinning
+    def neighbours(self, params) -> tuple[Tensor, Tensor]:
+        """(node indices [N, K], squared distances [N, K] with gradients to the hyper-coordinates
+        and node radii) of each Gaussian in [xyz, hyper] space, node xyz detached."""
+        x = torch.cat([params["means"].detach(), params[FEATURE_KEY]], -1)
+        nodes = torch.cat([self.nodes[:, :3].detach(), self.nodes[:, 3:]], -1)
+        with torch.no_grad():
+            _, idx = knn(x.detach(), nodes.detach(), min(self.k, self.m))
+        d2 = (x[:, None, :] - nodes[idx]).square().sum(-1)
+        return idx, d2
+
+    def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:
+        if self.cond_dim and cond is None:
+            raise ValueError("this deformation was built with cond_dim > 0 and needs cond")
+        if int(self.stage) == 1:  # node stage: the Gaussians are the nodes, moved directly
+            dx, _, _ = self.node_deltas(params["means"].detach(), t, cond)
+            return Deltas(means=dx)
+        idx, d2 = self.neighbours(params)
+        w = skinning_weights(d2, self.node_log_radius.exp()[idx], self.node_weight[idx])
+        cond_n = None
+        if self.cond_dim:
+            from .superpoints import scatter_mean
+            cond_n, _ = scatter_mean(cond[:, None, :].expand(-1, idx.shape[1], -1), idx, w.detach(), self.m)
+        p = self.nodes[:, :3]
+        if getattr(self, "_detach", False):
+            with torch.no_grad():
+                T, dq, ds = self.node_deltas(p.detach(), t, cond_n)
+        else:
+            T, dq, ds = self.node_deltas(p.detach(), t, cond_n)
+        self._last_t = t
+        ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dq.dtype)
+        R = quat_to_rotmat(ident + dq)  # [M, 3, 3]
+        x = params["means"]
+        x_t = blend_translation(x, p[idx], R[idx], T[idx], w, self.local_frame)
+        wq = (w[..., None] * dq[idx]).sum(1)
+        wsc = (w[..., None] * ds[idx]).sum(1)
+        return Deltas(means=x_t - x, quats=wq, scales=wsc)
+
+    def apply(self, params, d: Deltas):
+        """Node stage: isotropic, unrotated Gaussians moved by dxyz. Skinning: dxyz added to the
+        means, the blended dq added to the *raw* quaternion, ds after activation (SC-GS)."""
+        from ..scene.gaussians import Gaussians
+        sh = torch.cat([params["sh0"], params["shN"]], 1)
+        op = torch.sigmoid(params["opacities"])
+        if int(self.stage) == 1:
+            s = torch.exp(params["scales"].mean(-1, keepdim=True)).expand(-1, 3)
+            q = torch.zeros_like(params["quats"])
+            q[:, 0] = 1.0
+            return Gaussians(means=params["means"] + d.means, quats=q, scales=s, opacities=op, sh=sh)
+        q = params["quats"] + (0 if d.quats is None else d.quats)
+        s = torch.exp(params["scales"]) + (0 if d.scales is None else d.scales)
+        return Gaussians(means=params["means"] + d.means, quats=q, scales=s, opacities=op, sh=sh)
+
+    def regularizers(self, params, t: float, step: int) -> dict[str, Tensor]:
+        if int(self.stage) != 2 or getattr(self, "_detach", False):
+            return {}
+        lam = log_interp_schedule(step - self.node_stage_end, self.arap_steps, self.arap_weights)
+        if lam <= 0:
+            return {}
+        t1 = float(torch.rand((), generator=self.gen)) * (1.0 - self.arap_dt)
+        t2 = t1 + self.arap_dt
+        p = self.nodes[:, :3].detach()
+        _, nbr = knn(p, p, min(self.arap_k, self.m - 1), exclude_self=True)
+        zero = torch.zeros(self.m, self.cond_dim) if self.cond_dim else None
+        p1 = p + self.node_deltas(p, t1, zero)[0]
+        p2 = p + self.node_deltas(p, t2, zero)[0]
+        return {"scgs_arap": lam * arap_energy(p1, p2, nbr)}

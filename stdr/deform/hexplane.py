@@ -1,0 +1,165 @@
+"""4DGaussians (Wu et al. 2024): a HexPlane field over (x, y, z, t) and a small decoder.
+
+Six feature planes, one per pair of the four coordinates (xy, xz, xt, yz, yt, zt), at several
+spatial resolutions (the time resolution is the same at every scale). A point's feature is the
+product over the six bilinear plane samples, concatenated over scales. A decoder maps it to
+position, log-scale and raw-quaternion deltas, added *before* activation.
+
+Coordinates: space is mapped to [-1, 1] by bounds taken from the initial points; time t in
+[0, 1] is mapped to 2t - 1, so the whole time axis of the planes is used. The published code
+feeds raw t in [0, 1] and so uses only half of the time axis (4DGaussians issue #251).
+"""
+from __future__ import annotations
+
+import itertools
+from typing import Optional, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from .base import Deformation, Deltas, apply_pre_activation
+
+PAIRS = list(itertools.combinations(range(4), 2))  # (0,1) (0,2) (0,3) (1,2) (1,3) (2,3)
+TIME_PLANES = [i for i, p in enumerate(PAIRS) if 3 in p]   # 2, 4, 5
+SPACE_PLANES = [i for i, p in enumerate(PAIRS) if 3 not in p]  # 0, 1, 3
+
+
+def sample_plane(plane: Tensor, uv: Tensor) -> Tensor:
+    """Bilinear sample of plane [C, H, W] at uv [N, 2] in [-1, 1] (u along W, v along H;
+    -1 and 1 are the centres of the corner cells, zero outside) -> [N, C]."""
+    out = F.grid_sample(plane[None], uv[None, :, None, :], mode="bilinear", padding_mode="zeros",
+                        align_corners=True)  # [1, C, N, 1]
+    return out[0, :, :, 0].T
+
+
+def second_difference_smoothness(plane: Tensor) -> Tensor:
+    """mean over the plane of the squared second difference along its H axis (for a time
+    plane, along time). plane [C, H, W]."""
+    d1 = plane[:, 1:, :] - plane[:, :-1, :]
+    d2 = d1[:, 1:, :] - d1[:, :-1, :]
+    return d2.square().mean()
+
+
+class HexPlaneField(nn.Module):
+    def __init__(self, base_res: int = 64, multires: Sequence[int] = (1, 2), channels: int = 32,
+                 time_res: int = 25):
+        super().__init__()
+        if time_res < 2:
+            raise ValueError(f"HexPlane time resolution must be >= 2, got {time_res}")
+        self.channels, self.multires = channels, tuple(multires)
+        self.grids = nn.ModuleList()
+        for m in self.multires:
+            res = [base_res * m] * 3 + [time_res]
+            planes = nn.ParameterList()
+            for i, j in PAIRS:
+                # plane for coordinates (i, j): W along coordinate i, H along coordinate j
+                shape = (channels, res[j], res[i])
+                p = torch.ones(shape) if j == 3 else torch.empty(shape).uniform_(0.1, 0.5)
+                planes.append(nn.Parameter(p))
+            self.grids.append(planes)
+        self.register_buffer("aabb", torch.tensor([[-1.0] * 3, [1.0] * 3]))  # [2, 3] min, max
+
+    @property
+    def feat_dim(self) -> int:
+        return self.channels * len(self.multires)
+
+    def set_bounds(self, points: Tensor) -> None:
+        lo, hi = points.min(0).values, points.max(0).values
+        pad = 1e-6 * (hi - lo).clamp_min(1e-6)
+        self.aabb.copy_(torch.stack([lo - pad, hi + pad]))
+
+    def normalize(self, xyz: Tensor, t: float) -> Tensor:
+        """[N, 3] world points and a time in [0, 1] -> [N, 4] coordinates in [-1, 1]."""
+        lo, hi = self.aabb[0], self.aabb[1]
+        x = (xyz - lo) / (hi - lo) * 2.0 - 1.0
+        tt = torch.full_like(x[:, :1], 2.0 * float(t) - 1.0)
+        return torch.cat([x, tt], -1)
+
+    def forward(self, xyz: Tensor, t: float) -> Tensor:  # [N, 3] -> [N, feat_dim]
+        c = self.normalize(xyz, t)
+        feats = []
+        for planes in self.grids:
+            f = 1.0
+            for (i, j), plane in zip(PAIRS, planes):
+                f = f * sample_plane(plane, c[:, [i, j]])
+            feats.append(f)
+        return torch.cat(feats, -1)
+
+    def regularizers(self) -> dict[str, Tensor]:
+        """The published terms, unweighted: smoothness of the space planes (second differences,
+        named plane_tv in the paper's code), smoothness along time, and L1 of (1 - time planes)."""
+        space = sum(second_difference_smoothness(g[i]) for g in self.grids for i in SPACE_PLANES)
+        time = sum(second_difference_smoothness(g[i]) for g in self.grids for i in TIME_PLANES)
+        l1 = sum((1.0 - g[i]).abs().mean() for g in self.grids for i in TIME_PLANES)
+        return {"plane_tv": space, "time_smooth": time, "l1_time": l1}
+
+
+class HexPlaneDeformation(Deformation):
+    """HexPlane field + decoder (`feature_out` Linear, `depth` x [ReLU, Linear], then per head
+    ReLU-Linear-ReLU-Linear) giving dxyz, dlog-scale, dquat. STDR's conditioning enters the
+    decoder input (zero-initialized columns)."""
+
+    apply_rule = staticmethod(apply_pre_activation)
+
+    def __init__(self, base_res: int = 64, multires: Sequence[int] = (1, 2), channels: int = 32,
+                 time_res: int = 25, depth: int = 0, width: int = 64, cond_dim: int = 0,
+                 head_init_std: Optional[float] = None, grid_lr_mult: float = 10.0,
+                 weights: Optional[dict] = None):
+        super().__init__()
+        self.cond_dim = cond_dim
+        self.grid = HexPlaneField(base_res, multires, channels, time_res)
+        self.grid_lr_mult = grid_lr_mult
+        self.weights = dict(weights or {"plane_tv": 1e-4, "time_smooth": 1e-2, "l1_time": 1e-4})
+        layers: list[nn.Module] = [nn.Linear(self.grid.feat_dim + cond_dim, width)]
+        for _ in range(depth):
+            layers += [nn.ReLU(), nn.Linear(width, width)]
+        self.feature_out = nn.Sequential(*layers)
+
+        def head(k):
+            return nn.Sequential(nn.ReLU(), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, k))
+        self.head_xyz, self.head_scale, self.head_rot = head(3), head(3), head(4)
+        if cond_dim:
+            with torch.no_grad():
+                self.feature_out[0].weight[:, -cond_dim:] = 0.0
+        if head_init_std is not None:
+            for h in (self.head_xyz, self.head_scale, self.head_rot):
+                nn.init.normal_(h[-1].weight, std=head_init_std)
+                nn.init.zeros_(h[-1].bias)
+
+    def setup(self, params, train_times: Optional[Tensor]) -> None:
+        if params is not None and "means" in params and params["means"].shape[0] > 0:
+            self.grid.set_bounds(params["means"].detach())
+
+    def param_groups(self) -> list[dict]:
+        grid = list(self.grid.parameters())
+        ids = {id(p) for p in grid}
+        return [{"params": [p for p in self.parameters() if id(p) not in ids], "name": "deform", "lr_mult": 1.0},
+                {"params": grid, "name": "hexplane", "lr_mult": self.grid_lr_mult}]
+
+    def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:
+        xyz = params["means"].detach()
+        h = self.grid(xyz, t)
+        if self.cond_dim:
+            if cond is None:
+                raise ValueError("this deformation was built with cond_dim > 0 and needs cond")
+            h = torch.cat([h, cond], -1)
+        h = self.feature_out(h)
+        return Deltas(means=self.head_xyz(h), scales=self.head_scale(h), quats=self.head_rot(h))
+
+    def regularizers(self, params, t: float, step: int) -> dict[str, Tensor]:
+        return {f"hexplane_{k}": self.weights[k] * v for k, v in self.grid.regularizers().items()
+                if self.weights.get(k, 0.0) > 0}
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Planes whose time resolution came from another scene's frame count are resized to the
+        checkpoint's shapes before loading (evaluation builds the module without train times)."""
+        for gi, planes in enumerate(self.grids_list()):
+            for pi in range(len(planes)):
+                key = f"grid.grids.{gi}.{pi}"
+                if key in state_dict and state_dict[key].shape != planes[pi].shape:
+                    planes[pi] = nn.Parameter(torch.empty_like(state_dict[key]))
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+    def grids_list(self):
+        return list(self.grid.grids)

@@ -1,0 +1,146 @@
+"""SP-GS (Wan et al. 2024): Gaussians grouped into superpoints that move rigidly.
+
+- M superpoints (default 300), placed by farthest-point sampling over the canonical means when
+  the deformation first runs (the end of the static warm-up).
+- Each Gaussian keeps learned association logits over all M superpoints (`spgs_assoc`, [N, M], in
+  the parameter dict so densification keeps rows aligned). Its soft assignment is the softmax of
+  the logits of its K = 5 nearest superpoints; it moves with the hard argmax.
+- Superpoint centres are the soft-assignment-weighted means of the canonical means, refreshed
+  every training step (no gradient).
+- An MLP of (PE(centre), PE(t)) gives each superpoint a translation and an so(3) rotation
+  vector: x_t = exp(w) x + d (about the world origin, as published), q_t = q(w) * q.
+- Property-reconstruction losses tie the hard and soft assignments (see `regularizers`).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+from torch import Tensor, nn
+
+from ..scene.knn import knn
+from .base import Deformation, Deltas, apply_post_activation
+from .deform3dgs import DeformMLP
+from .geometry import farthest_point_sampling, quat_multiply, so3_exp, so3_exp_quat
+
+ASSOC_KEY = "spgs_assoc"
+
+
+def scatter_mean(values: Tensor, index: Tensor, weights: Tensor, m: int) -> tuple[Tensor, Tensor]:
+    """Weighted means per target: values [N, K, D] sent to index [N, K] with weights [N, K] ->
+    ([m, D] means, [m] total weight)."""
+    D = values.shape[-1]
+    num = torch.zeros(m, D, dtype=values.dtype).index_add_(0, index.reshape(-1),
+                                                           (values * weights[..., None]).reshape(-1, D))
+    den = torch.zeros(m, dtype=values.dtype).index_add_(0, index.reshape(-1), weights.reshape(-1))
+    return num / den.clamp_min(1e-12)[:, None], den
+
+
+class SuperpointDeformation(Deformation):
+    apply_rule = staticmethod(apply_post_activation)
+
+    def __init__(self, num_superpoints: int = 300, knn_k: int = 5, start_step: int = 3000, depth: int = 8,
+                 width: int = 256, skips=(4,), xyz_freqs: int = 10, t_freqs: int = 6, cond_dim: int = 0,
+                 head_init_std: Optional[float] = None, assoc_lr: float = 1e-3,
+                 weights: Optional[dict] = None, seed: int = 0):
+        super().__init__()
+        self.m, self.k, self.start_step = num_superpoints, knn_k, start_step
+        self.cond_dim, self.assoc_lr = cond_dim, assoc_lr
+        self.weights = dict(weights or {"xyz": 1e-3, "rot": 100.0, "off": 100.0})
+        self.seed = seed
+        self.net = DeformMLP(depth, width, skips, xyz_freqs, t_freqs, time_net=False, cond_dim=cond_dim,
+                             heads=False)
+        self.head_t = nn.Linear(width, 3)
+        self.head_w = nn.Linear(width, 3)
+        if head_init_std is not None:
+            for h in (self.head_t, self.head_w):
+                nn.init.normal_(h.weight, std=head_init_std)
+                nn.init.zeros_(h.bias)
+        self.register_buffer("centers", torch.zeros(num_superpoints, 3))
+        self.register_buffer("ready", torch.zeros((), dtype=torch.bool))
+        self._last: dict = {}
+
+    # -------------------------------------------------------------- per-Gaussian state
+    def gaussian_params(self, n: int) -> dict[str, Tensor]:
+        return {ASSOC_KEY: torch.zeros(n, self.m)}
+
+    def gaussian_lr(self, key: str) -> Optional[float]:
+        return self.assoc_lr if key == ASSOC_KEY else None
+
+    def initialize(self, params) -> None:
+        """Superpoints by FPS over the canonical means; logits 0.1 + 0.9 one-hot(nearest)."""
+        x = params["means"].detach()
+        if x.shape[0] < self.m:
+            raise ValueError(f"SP-GS needs at least {self.m} Gaussians for its superpoints, has {x.shape[0]}; "
+                             "lower baseline.spgs.num_superpoints")
+        idx = farthest_point_sampling(x, self.m, torch.Generator().manual_seed(self.seed))
+        self.centers.copy_(x[idx])
+        _, nearest = knn(x, self.centers, 1)
+        with torch.no_grad():
+            a = params[ASSOC_KEY]
+            a.fill_(0.1)
+            a.scatter_(1, nearest, 1.0)
+        self.ready.fill_(True)
+
+    def assignment(self, params) -> tuple[Tensor, Tensor, Tensor]:
+        """(knn indices [N, K], soft weights [N, K], hard superpoint [N]) for the current centres."""
+        x = params["means"].detach()
+        with torch.no_grad():
+            _, idx = knn(x, self.centers, min(self.k, self.m))
+        G = torch.softmax(params[ASSOC_KEY].gather(1, idx), -1)
+        hard = idx.gather(1, G.detach().argmax(-1, keepdim=True))[:, 0]
+        return idx, G, hard
+
+    def before_step(self, params, step: int) -> None:
+        if step < self.start_step:
+            return
+        if not bool(self.ready):
+            self.initialize(params)
+            return
+        with torch.no_grad():  # centres: soft-assignment-weighted means of the canonical means
+            idx, G, _ = self.assignment(params)
+            x = params["means"].detach()
+            new, w = scatter_mean(x[:, None, :].expand(-1, idx.shape[1], -1), idx, G, self.m)
+            keep = w > 1e-8
+            self.centers[keep] = new[keep]
+
+    # -------------------------------------------------------------- deformation
+    def superpoint_motion(self, t: float, cond_sp: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
+        """(translations [M, 3], rotation vectors [M, 3]) at time t."""
+        h = self.net.trunk(self.centers, t, cond_sp)
+        return self.head_t(h), self.head_w(h)
+
+    def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:
+        if not bool(self.ready):
+            raise RuntimeError("SP-GS superpoints are not initialized (the training loop does this at "
+                               "the end of the static warm-up)")
+        idx, G, hard = self.assignment(params)
+        cond_sp = None
+        if self.cond_dim:
+            if cond is None:
+                raise ValueError("this deformation was built with cond_dim > 0 and needs cond")
+            cond_sp, _ = scatter_mean(cond[:, None, :].expand(-1, idx.shape[1], -1), idx, G.detach(), self.m)
+        d, w = self.superpoint_motion(t, cond_sp)
+        self._last = {"idx": idx, "G": G, "hard": hard, "d": d, "w": w}
+        x = params["means"]
+        R = so3_exp(w)[hard]  # [N, 3, 3]
+        x_t = (R @ x[..., None])[..., 0] + d[hard]
+        q = params["quats"]
+        qn = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        q_t = quat_multiply(so3_exp_quat(w)[hard], qn)
+        # expressed as post-activation deltas so that every baseline shares the apply rule
+        return Deltas(means=x_t - x, quats=q_t - qn)
+
+    def regularizers(self, params, t: float, step: int) -> dict[str, Tensor]:
+        """Property reconstruction (SP-GS): a Gaussian's position, and its superpoint's rotation
+        and translation, should equal their soft-assignment blends over its K superpoints."""
+        if not self._last:
+            return {}
+        idx, G, hard, d, w = (self._last[k] for k in ("idx", "G", "hard", "d", "w"))
+        x = params["means"].detach()
+        blend = lambda v: (G[..., None] * v[idx]).sum(1)  # noqa: E731
+        terms = {"xyz": (x - blend(self.centers)).square().sum(-1).mean(),
+                 "rot": (w[hard] - blend(w)).square().sum(-1).mean(),
+                 "off": (d[hard] - blend(d)).square().sum(-1).mean()}
+        self._last = {}
+        return {f"spgs_re_{k}": self.weights[k] * v for k, v in terms.items() if self.weights.get(k, 0) > 0}
