@@ -14,6 +14,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..ops import take_rows
+
 
 def knot_times(train_times, time_bins: int = 0) -> Tensor:
     """Knot times [K] (float64): the sorted distinct training times, or `time_bins` bins on [0, 1]."""
@@ -68,8 +70,8 @@ def spatial_kl(logits: Tensor, query: Tensor, neighbours: Tensor) -> Tensor:
     """mean over queries i [M] and their neighbours j [M, k] of KL(p_i || p_j), p = softmax_t(m)."""
     if query.numel() == 0:
         return logits.sum() * 0.0
-    logp_i = torch.log_softmax(logits[query], -1)          # [M, K]
-    logp_j = torch.log_softmax(logits[neighbours], -1)     # [M, k, K]
+    logp_i = torch.log_softmax(take_rows(logits, query), -1)       # [M, K]
+    logp_j = torch.log_softmax(take_rows(logits, neighbours), -1)  # [M, k, K]
     kl = (logp_i.exp()[:, None] * (logp_i[:, None] - logp_j)).sum(-1)  # [M, k]
     return kl.mean()
 

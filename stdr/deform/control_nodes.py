@@ -23,6 +23,7 @@ from typing import Optional, Sequence
 import torch
 from torch import Tensor, nn
 
+from ..ops import take_rows
 from ..scene.knn import knn
 from .base import Deformation, Deltas
 from .deform3dgs import DeformMLP
@@ -51,8 +52,8 @@ def arap_energy(p1: Tensor, p2: Tensor, nbr: Tensor) -> Tensor:
     """As-rigid-as-possible energy between node positions at two times, p1, p2 [M, 3], over
     neighbourhoods nbr [M, J]: mean_k,j |e2_kj - R_k e1_kj|^2 with each R_k the best rotation
     (Kabsch, by SVD)."""
-    e1 = p1[nbr] - p1[:, None]  # [M, J, 3]
-    e2 = p2[nbr] - p2[:, None]
+    e1 = take_rows(p1, nbr) - p1[:, None]  # [M, J, 3]
+    e2 = take_rows(p2, nbr) - p2[:, None]
     H = e1.transpose(1, 2) @ e2  # [M, 3, 3]
     U, _, Vh = torch.linalg.svd(H.detach())
     d = torch.sign(torch.linalg.det(Vh.transpose(1, 2) @ U.transpose(1, 2)))
@@ -154,7 +155,7 @@ class ControlNodeDeformation(Deformation):
         nodes = torch.cat([self.nodes[:, :3].detach(), self.nodes[:, 3:]], -1)
         with torch.no_grad():
             _, idx = knn(x.detach(), nodes.detach(), min(self.k, self.m))
-        d2 = (x[:, None, :] - nodes[idx]).square().sum(-1)
+        d2 = (x[:, None, :] - take_rows(nodes, idx)).square().sum(-1)
         return idx, d2
 
     def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:
@@ -164,7 +165,7 @@ class ControlNodeDeformation(Deformation):
             dx, _, _ = self.node_deltas(params["means"].detach(), t, cond)
             return Deltas(means=dx)
         idx, d2 = self.neighbours(params)
-        w = skinning_weights(d2, self.node_log_radius.exp()[idx], self.node_weight[idx])
+        w = skinning_weights(d2, take_rows(self.node_log_radius.exp(), idx), take_rows(self.node_weight, idx))
         cond_n = None
         if self.cond_dim:
             from .superpoints import scatter_mean
@@ -179,9 +180,9 @@ class ControlNodeDeformation(Deformation):
         ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dq.dtype)
         R = quat_to_rotmat(ident + dq)  # [M, 3, 3]
         x = params["means"]
-        x_t = blend_translation(x, p[idx], R[idx], T[idx], w, self.local_frame)
-        wq = (w[..., None] * dq[idx]).sum(1)
-        wsc = (w[..., None] * ds[idx]).sum(1)
+        x_t = blend_translation(x, take_rows(p, idx), take_rows(R, idx), take_rows(T, idx), w, self.local_frame)
+        wq = (w[..., None] * take_rows(dq, idx)).sum(1)
+        wsc = (w[..., None] * take_rows(ds, idx)).sum(1)
         return Deltas(means=x_t - x, quats=wq, scales=wsc)
 
     def apply(self, params, d: Deltas):
@@ -205,7 +206,9 @@ class ControlNodeDeformation(Deformation):
         lam = log_interp_schedule(step - self.node_stage_end, self.arap_steps, self.arap_weights)
         if lam <= 0:
             return {}
-        t1 = float(torch.rand((), generator=self.gen)) * (1.0 - self.arap_dt)
+        # the pair of times comes from (seed, step), so a resumed run draws the same ones
+        g = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
+        t1 = float(torch.rand((), generator=g)) * (1.0 - self.arap_dt)
         t2 = t1 + self.arap_dt
         p = self.nodes[:, :3].detach()
         _, nbr = knn(p, p, min(self.arap_k, self.m - 1), exclude_self=True)

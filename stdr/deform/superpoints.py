@@ -18,6 +18,7 @@ from typing import Optional
 import torch
 from torch import Tensor, nn
 
+from ..ops import take_rows
 from ..scene.knn import knn
 from .base import Deformation, Deltas, apply_post_activation
 from .deform3dgs import DeformMLP
@@ -123,11 +124,11 @@ class SuperpointDeformation(Deformation):
         d, w = self.superpoint_motion(t, cond_sp)
         self._last = {"idx": idx, "G": G, "hard": hard, "d": d, "w": w}
         x = params["means"]
-        R = so3_exp(w)[hard]  # [N, 3, 3]
-        x_t = (R @ x[..., None])[..., 0] + d[hard]
+        R = take_rows(so3_exp(w), hard)  # [N, 3, 3]
+        x_t = (R @ x[..., None])[..., 0] + take_rows(d, hard)
         q = params["quats"]
         qn = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        q_t = quat_multiply(so3_exp_quat(w)[hard], qn)
+        q_t = quat_multiply(take_rows(so3_exp_quat(w), hard), qn)
         # expressed as post-activation deltas so that every baseline shares the apply rule
         return Deltas(means=x_t - x, quats=q_t - qn)
 
@@ -138,9 +139,9 @@ class SuperpointDeformation(Deformation):
             return {}
         idx, G, hard, d, w = (self._last[k] for k in ("idx", "G", "hard", "d", "w"))
         x = params["means"].detach()
-        blend = lambda v: (G[..., None] * v[idx]).sum(1)  # noqa: E731
+        blend = lambda v: (G[..., None] * take_rows(v, idx)).sum(1)  # noqa: E731
         terms = {"xyz": (x - blend(self.centers)).square().sum(-1).mean(),
-                 "rot": (w[hard] - blend(w)).square().sum(-1).mean(),
-                 "off": (d[hard] - blend(d)).square().sum(-1).mean()}
+                 "rot": (take_rows(w, hard) - blend(w)).square().sum(-1).mean(),
+                 "off": (take_rows(d, hard) - blend(d)).square().sum(-1).mean()}
         self._last = {}
         return {f"spgs_re_{k}": self.weights[k] * v for k, v in terms.items() if self.weights.get(k, 0) > 0}
