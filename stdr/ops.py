@@ -1,6 +1,7 @@
 """Small tensor helpers shared across modules."""
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 
@@ -13,3 +14,13 @@ def take_rows(x: Tensor, idx: Tensor) -> Tensor:
     deterministic. Bit-exact resume depends on it.
     """
     return x.index_select(0, idx.reshape(-1)).reshape(*idx.shape, *x.shape[1:])
+
+
+def scatter_mean(values: Tensor, index: Tensor, weights: Tensor, m: int) -> tuple[Tensor, Tensor]:
+    """Weighted means per target: values [N, K, D] sent to index [N, K] with weights [N, K] ->
+    ([m, D] means, [m] total weight)."""
+    D = values.shape[-1]
+    num = torch.zeros(m, D, dtype=values.dtype).index_add_(0, index.reshape(-1),
+                                                           (values * weights[..., None]).reshape(-1, D))
+    den = torch.zeros(m, dtype=values.dtype).index_add_(0, index.reshape(-1), weights.reshape(-1))
+    return num / den.clamp_min(1e-12)[:, None], den

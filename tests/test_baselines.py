@@ -166,7 +166,7 @@ def test_spgs_superpoints_assignment_and_identity_start():
     g = m.deform(params, 0.5)
     assert (g.means - params["means"]).abs().max() < 1e-3
     # each step the centres become the G-weighted means of their members' canonical means
-    from stdr.deform.superpoints import scatter_mean
+    from stdr.ops import scatter_mean
     with torch.no_grad():
         params["means"].add_(0.05 * torch.randn(400, 3))
     idx, G, _ = m.assignment(params)

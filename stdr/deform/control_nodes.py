@@ -23,7 +23,7 @@ from typing import Optional, Sequence
 import torch
 from torch import Tensor, nn
 
-from ..ops import take_rows
+from ..ops import scatter_mean, take_rows
 from ..scene.knn import knn
 from .base import Deformation, Deltas
 from .deform3dgs import DeformMLP
@@ -168,7 +168,6 @@ class ControlNodeDeformation(Deformation):
         w = skinning_weights(d2, take_rows(self.node_log_radius.exp(), idx), take_rows(self.node_weight, idx))
         cond_n = None
         if self.cond_dim:
-            from .superpoints import scatter_mean
             cond_n, _ = scatter_mean(cond[:, None, :].expand(-1, idx.shape[1], -1), idx, w.detach(), self.m)
         p = self.nodes[:, :3]
         if getattr(self, "_detach", False):
@@ -176,7 +175,6 @@ class ControlNodeDeformation(Deformation):
                 T, dq, ds = self.node_deltas(p.detach(), t, cond_n)
         else:
             T, dq, ds = self.node_deltas(p.detach(), t, cond_n)
-        self._last_t = t
         ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dq.dtype)
         R = quat_to_rotmat(ident + dq)  # [M, 3, 3]
         x = params["means"]

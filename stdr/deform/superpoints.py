@@ -18,23 +18,13 @@ from typing import Optional
 import torch
 from torch import Tensor, nn
 
-from ..ops import take_rows
+from ..ops import scatter_mean, take_rows
 from ..scene.knn import knn
 from .base import Deformation, Deltas, apply_post_activation
 from .deform3dgs import DeformMLP
 from .geometry import farthest_point_sampling, quat_multiply, so3_exp, so3_exp_quat
 
 ASSOC_KEY = "spgs_assoc"
-
-
-def scatter_mean(values: Tensor, index: Tensor, weights: Tensor, m: int) -> tuple[Tensor, Tensor]:
-    """Weighted means per target: values [N, K, D] sent to index [N, K] with weights [N, K] ->
-    ([m, D] means, [m] total weight)."""
-    D = values.shape[-1]
-    num = torch.zeros(m, D, dtype=values.dtype).index_add_(0, index.reshape(-1),
-                                                           (values * weights[..., None]).reshape(-1, D))
-    den = torch.zeros(m, dtype=values.dtype).index_add_(0, index.reshape(-1), weights.reshape(-1))
-    return num / den.clamp_min(1e-12)[:, None], den
 
 
 class SuperpointDeformation(Deformation):
