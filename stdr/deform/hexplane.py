@@ -154,12 +154,9 @@ class HexPlaneDeformation(Deformation):
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """Planes whose time resolution came from another scene's frame count are resized to the
         checkpoint's shapes before loading (evaluation builds the module without train times)."""
-        for gi, planes in enumerate(self.grids_list()):
+        for gi, planes in enumerate(self.grid.grids):
             for pi in range(len(planes)):
                 key = f"grid.grids.{gi}.{pi}"
                 if key in state_dict and state_dict[key].shape != planes[pi].shape:
                     planes[pi] = nn.Parameter(torch.empty_like(state_dict[key]))
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
-
-    def grids_list(self):
-        return list(self.grid.grids)
