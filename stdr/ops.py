@@ -20,7 +20,7 @@ def scatter_mean(values: Tensor, index: Tensor, weights: Tensor, m: int) -> tupl
     """Weighted means per target: values [N, K, D] sent to index [N, K] with weights [N, K] ->
     ([m, D] means, [m] total weight)."""
     D = values.shape[-1]
-    num = torch.zeros(m, D, dtype=values.dtype).index_add_(0, index.reshape(-1),
+    num = torch.zeros(m, D, dtype=values.dtype, device=values.device).index_add_(0, index.reshape(-1),
                                                            (values * weights[..., None]).reshape(-1, D))
-    den = torch.zeros(m, dtype=values.dtype).index_add_(0, index.reshape(-1), weights.reshape(-1))
+    den = torch.zeros(m, dtype=values.dtype, device=values.device).index_add_(0, index.reshape(-1), weights.reshape(-1))
     return num / den.clamp_min(1e-12)[:, None], den

@@ -37,7 +37,7 @@ def interp_weights(t: float, knots: Tensor) -> tuple[int, int, float]:
         return 0, 0, 0.0
     if t >= float(knots[-1]):
         return K - 1, K - 1, 0.0
-    j1 = int(torch.searchsorted(knots, torch.tensor([t], dtype=knots.dtype), right=True)[0])
+    j1 = int(torch.searchsorted(knots, torch.tensor([t], dtype=knots.dtype, device=knots.device), right=True)[0])
     j0 = j1 - 1
     t0, t1 = float(knots[j0]), float(knots[j1])
     w = (t - t0) / (t1 - t0)
@@ -96,16 +96,18 @@ def sample_neighbours(means: Tensor, n_query: int, n_candidates: int, k: int,
     from ..scene.knn import knn
 
     N = means.shape[0]
-    empty = torch.zeros(0, dtype=torch.long), torch.zeros(0, k, dtype=torch.long)
+    dev = means.device
+    empty = torch.zeros(0, dtype=torch.long, device=dev), torch.zeros(0, k, dtype=torch.long, device=dev)
     if N <= k:
         return empty
-    cand = torch.randperm(N, generator=generator)[:min(n_candidates, N)] if N > n_candidates \
-        else torch.arange(N)
-    q_local = torch.randperm(cand.numel(), generator=generator)[:min(n_query, cand.numel())]
+    # drawn with the CPU generator (same stream as before), then moved to the points' device
+    cand = (torch.randperm(N, generator=generator)[:min(n_candidates, N)] if N > n_candidates
+            else torch.arange(N)).to(dev)
+    q_local = torch.randperm(cand.numel(), generator=generator)[:min(n_query, cand.numel())].to(dev)
     pts = means[cand].detach()
     _, nbr_local = knn(pts[q_local], pts, k + 1)  # the query is among the candidates
     # drop the query itself (distance 0, but ties with duplicates are possible): remove its index
     is_self = nbr_local == q_local[:, None]
-    keep = torch.where(is_self.any(1, keepdim=True), ~is_self, torch.arange(k + 1) < k)
+    keep = torch.where(is_self.any(1, keepdim=True), ~is_self, torch.arange(k + 1, device=dev) < k)
     nbr_local = nbr_local[keep].reshape(-1, k)
     return cand[q_local], cand[nbr_local]

@@ -124,7 +124,7 @@ class ControlNodeDeformation(Deformation):
         if x.shape[0] < self.m:
             raise ValueError(f"SC-GS needs at least {self.m} Gaussians to place its nodes, has {x.shape[0]}; "
                              "lower baseline.scgs.num_nodes")
-        zero = torch.zeros(x.shape[0], self.cond_dim) if self.cond_dim else None
+        zero = x.new_zeros(x.shape[0], self.cond_dim) if self.cond_dim else None
         traj = []
         for t in torch.linspace(0.0, 1.0, self.trajectory_samples).tolist():
             dx, _, _ = self.node_deltas(x, t, zero)
@@ -175,7 +175,7 @@ class ControlNodeDeformation(Deformation):
                 T, dq, ds = self.node_deltas(p.detach(), t, cond_n)
         else:
             T, dq, ds = self.node_deltas(p.detach(), t, cond_n)
-        ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dq.dtype)
+        ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dq.dtype, device=dq.device)
         R = quat_to_rotmat(ident + dq)  # [M, 3, 3]
         x = params["means"]
         x_t = blend_translation(x, take_rows(p, idx), take_rows(R, idx), take_rows(T, idx), w, self.local_frame)
@@ -210,7 +210,7 @@ class ControlNodeDeformation(Deformation):
         t2 = t1 + self.arap_dt
         p = self.nodes[:, :3].detach()
         _, nbr = knn(p, p, min(self.arap_k, self.m - 1), exclude_self=True)
-        zero = torch.zeros(self.m, self.cond_dim) if self.cond_dim else None
+        zero = p.new_zeros(self.m, self.cond_dim) if self.cond_dim else None
         p1 = p + self.node_deltas(p, t1, zero)[0]
         p2 = p + self.node_deltas(p, t2, zero)[0]
         return {"scgs_arap": lam * arap_energy(p1, p2, nbr)}

@@ -68,7 +68,7 @@ def farthest_point_sampling(x: Tensor, m: int, generator: Optional[torch.Generat
     n = x.shape[0]
     if m > n:
         raise ValueError(f"farthest point sampling: asked for {m} of {n} points")
-    idx = torch.empty(m, dtype=torch.long)
+    idx = torch.empty(m, dtype=torch.long, device=x.device)
     first = int(torch.randint(n, (1,), generator=generator)) if start is None else start
     idx[0] = first
     d = (x - x[first]).square().sum(-1)
