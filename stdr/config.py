@@ -124,15 +124,22 @@ class StdrConfig:
     separated_field: bool = True
     # the mask
     time_bins: int = 0            # 0: one column per distinct training time; else K evenly spaced bins
-    mask_init: float = 2.0        # initial logit (sigmoid 0.88: visible, with gradient)
+    mask_init: Optional[float] = 2.0  # initial logit; null: sigmoid(o) * sigmoid(m) = model.init_opacity
+    opacity_init: Optional[float] = None  # opacity held during the warm-up; null: model.init_opacity
     mask_lr: float = 0.05         # Adam lr of the mask logits (that of opacity logits)
     mask_after_freeze: bool = True  # the frozen sigmoid mask keeps modulating opacity
     prune_by_mask: bool = True    # prune on sigmoid(o) * max_t mask, the opacity a Gaussian reaches
-    # phases: null = the baseline's static warm-up (baseline.warmup) and twice it
+    freeze_cleanup: float = 0.0   # at the freeze, switch off mask entries with sigmoid(o) * mask below this
+    # phases: static_warmup = the baseline's static warm-up (baseline.warmup) and twice it;
+    # fraction = warmup_fraction / freeze_fraction of optim.iterations. Explicit steps win.
+    phase_rule: str = "static_warmup"
+    warmup_fraction: float = 0.075  # the paper's 3000 / 40000
+    freeze_fraction: float = 0.15   # the paper's 6000 / 40000
     warmup_end: Optional[int] = None
     freeze_at: Optional[int] = None
     # regularizers
-    lambda_temp: float = 0.1      # x mean_{i,t} (mask_t - mask_{t+1})^2
+    lambda_temp: float = 0.1      # x L_temp = sum (or mean) over i, t of (mask_t - mask_{t+1})^2
+    temporal_reduction: str = "mean"  # sum: the paper's formula; mean: divided by N(K-1)
     lambda_spatial: float = 0.2   # x mean KL(p_i || p_j) over sampled Gaussians and their KNN
     knn_samples: int = 1000
     knn_candidates: int = 20000

@@ -44,13 +44,35 @@ def test_knots_are_distinct_training_times_or_bins():
         knot_times([0.0], time_bins=-3)  # not silently treated as 0
 
 
-def test_temporal_loss_equals_hand_computation():
+def test_temporal_loss_equals_hand_computation_for_both_reductions():
     m = torch.tensor([[0.0, 1.0, -2.0], [3.0, 3.0, 0.5]])
     s = 1 / (1 + np.exp(-m.numpy().astype(np.float64)))
-    hand = sum((s[i, t] - s[i, t + 1]) ** 2 for i in range(2) for t in range(2)) / (2 * 2)
-    assert temporal_loss(m).item() == pytest.approx(hand, rel=1e-6)
-    # normalized: duplicating Gaussians or stretching time does not change it
-    assert temporal_loss(m.repeat(5, 1)).item() == pytest.approx(hand, rel=1e-6)
+    hand = sum((s[i, t] - s[i, t + 1]) ** 2 for i in range(2) for t in range(2))
+    assert temporal_loss(m, "sum").item() == pytest.approx(hand, rel=1e-6)
+    assert temporal_loss(m, "mean").item() == pytest.approx(hand / 4, rel=1e-6)
+    # the paper's sum grows with N; the mean does not
+    assert temporal_loss(m.repeat(5, 1), "sum").item() == pytest.approx(5 * hand, rel=1e-6)
+    assert temporal_loss(m.repeat(5, 1), "mean").item() == pytest.approx(hand / 4, rel=1e-6)
+    with pytest.raises(ValueError, match="temporal_reduction"):
+        temporal_loss(m, "max")
+
+
+def test_temporal_sum_gives_each_entry_a_gradient_independent_of_n():
+    """With the sum, an entry's gradient is 2 (a_t - a_t+1) sigmoid'(m_t) (+ the other side),
+    whatever the number of Gaussians; with the mean it shrinks as 1 / (N (K - 1))."""
+    row = torch.tensor([[0.0, 1.0, -2.0, 0.5]])
+    grads = {}
+    for n in (1, 1000):
+        for red in ("sum", "mean"):
+            m = row.repeat(n, 1).requires_grad_(True)
+            temporal_loss(m, red).backward()
+            grads[n, red] = m.grad[0].clone()
+    a = torch.sigmoid(row[0])
+    ds = a * (1 - a)
+    hand0 = 2 * (a[0] - a[1]) * ds[0]
+    assert grads[1, "sum"][0].item() == pytest.approx(hand0.item(), rel=1e-5)
+    torch.testing.assert_close(grads[1000, "sum"], grads[1, "sum"])
+    torch.testing.assert_close(grads[1000, "mean"] * 1000 * 3, grads[1, "sum"])
 
 
 def test_spatial_kl_equals_hand_computation():
@@ -93,12 +115,35 @@ def test_sampled_neighbours_equal_brute_force():
 # ----------------------------------------------------------------------------- phases and the field
 def test_phases_default_to_the_baseline_warmup_and_twice_it():
     cfg = OmegaConf.structured(StdrConfig)
-    assert resolve_phases(cfg, 3000) == (3000, 6000)
+    assert resolve_phases(cfg, 3000, 40000) == (3000, 6000)
     cfg.warmup_end, cfg.freeze_at = 100, 50
     with pytest.raises(ValueError, match="stdr.freeze_at"):
-        resolve_phases(cfg, 3000)
+        resolve_phases(cfg, 3000, 40000)
     assert [phase_at(s, 3, 6) for s in (0, 2, 3, 5, 6, 100)] == \
         [Phase.WARMUP, Phase.WARMUP, Phase.REGULARIZED, Phase.REGULARIZED, Phase.FROZEN, Phase.FROZEN]
+
+
+def test_fraction_rule_gives_the_papers_share_of_the_run():
+    cfg = OmegaConf.structured(StdrConfig)
+    cfg.phase_rule = "fraction"
+    assert resolve_phases(cfg, 500, 40000) == (3000, 6000)
+    assert resolve_phases(cfg, 500, 2000) == (150, 300)
+    cfg.freeze_at = 400  # an explicit step wins
+    assert resolve_phases(cfg, 500, 2000) == (150, 400)
+    cfg.phase_rule = "halfway"
+    with pytest.raises(ValueError, match="stdr.phase_rule"):
+        resolve_phases(cfg, 500, 2000)
+
+
+def test_warmup_end_zero_without_freeze_at_is_an_error_not_a_frozen_initial_mask():
+    cfg = OmegaConf.structured(StdrConfig)
+    cfg.warmup_end = 0
+    with pytest.raises(ValueError, match="freeze_at"):
+        resolve_phases(cfg, 500, 2000)
+    cfg.freeze_at = 300  # explicit: no warm-up, mask trains with opacity until 300
+    assert resolve_phases(cfg, 500, 2000) == (0, 300)
+    cfg.freeze_at, cfg.mask = None, False  # no mask: nothing to freeze
+    assert resolve_phases(cfg, 500, 2000) == (0, 0)
 
 
 def test_separated_field_shapes_ranges_and_eval_determinism():

@@ -55,15 +55,21 @@ def mask_at(logits: Tensor, t: float, knots: Tensor) -> Tensor:
     return (1.0 - w) * a + w * torch.sigmoid(logits[:, j1])
 
 
-def temporal_loss(logits: Tensor) -> Tensor:
-    """mean_{i,t} (sigmoid(m_i^t) - sigmoid(m_i^{t+1}))^2 over N Gaussians and K-1 steps.
+def temporal_loss(logits: Tensor, reduction: str = "sum") -> Tensor:
+    """L_temp over the activated mask a = sigmoid(m) [N, K]: sum_{i,t} (a_i^t - a_i^{t+1})^2.
 
-    The paper sums over i and t; the mean keeps lambda_1 independent of N and K.
+    reduction="sum" is the paper's formula: the gradient on each mask entry is
+    2 * lambda_1 * (difference to its neighbours) whatever N and K are, so lambda_1 weighs
+    smoothness against that entry's own photometric gradient. "mean" divides by N(K-1)
+    (~1e6 at N = 10^4, K = 150), which leaves the term almost without effect (docs/stdr.md).
     """
+    if reduction not in ("sum", "mean"):
+        raise ValueError(f"stdr.temporal_reduction={reduction!r}: use 'sum' (the paper's formula) or 'mean'")
     if logits.shape[1] < 2 or logits.shape[0] == 0:
         return logits.sum() * 0.0
     a = torch.sigmoid(logits)  # [N, K]
-    return (a[:, 1:] - a[:, :-1]).square().mean()
+    d2 = (a[:, 1:] - a[:, :-1]).square()
+    return d2.sum() if reduction == "sum" else d2.mean()
 
 
 def spatial_kl(logits: Tensor, query: Tensor, neighbours: Tensor) -> Tensor:
@@ -74,6 +80,15 @@ def spatial_kl(logits: Tensor, query: Tensor, neighbours: Tensor) -> Tensor:
     logp_j = torch.log_softmax(take_rows(logits, neighbours), -1)  # [M, k, K]
     kl = (logp_i.exp()[:, None] * (logp_i[:, None] - logp_j)).sum(-1)  # [M, k]
     return kl.mean()
+
+
+def faint_fraction(opacities: Tensor, logits: Tensor, lo: float = 1.0 / 255.0, hi: float = 0.05) -> float:
+    """Share of (Gaussian, knot) entries whose masked opacity sigmoid(m) * o lies in [lo, hi]:
+    faint copies that can reappear as ghosts when opacity grows. opacities [N] (activated)."""
+    if logits.numel() == 0:
+        return 0.0
+    e = torch.sigmoid(logits) * opacities[:, None]
+    return float(((e >= lo) & (e <= hi)).float().mean())
 
 
 def temporal_entropy(logits: Tensor) -> Tensor:

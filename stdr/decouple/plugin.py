@@ -13,6 +13,7 @@ it aligned; p = softmax_t(m) is a cache recomputed whenever the mask tensor is r
 """
 from __future__ import annotations
 
+import math
 import time
 from enum import IntEnum
 from typing import Any, Optional
@@ -22,7 +23,8 @@ from torch import Tensor
 
 from ..deform.deform3dgs import positional_encoding
 from .field import SeparatedField
-from .mask import knot_times, mask_at, sample_neighbours, spatial_kl, temporal_entropy, temporal_loss
+from .mask import (faint_fraction, knot_times, mask_at, sample_neighbours, spatial_kl, temporal_entropy,
+                   temporal_loss)
 
 MASK_KEY = "stdr_mask"
 
@@ -33,12 +35,33 @@ class Phase(IntEnum):
     FROZEN = 2       # [freeze_at, end): mask frozen, separated field on
 
 
-def resolve_phases(stdr_cfg, baseline_warmup: int) -> tuple[int, int]:
-    """(warmup_end, freeze_at): explicit values, or the baseline's static warm-up and twice it."""
-    w = int(baseline_warmup if stdr_cfg.warmup_end is None else stdr_cfg.warmup_end)
-    f = int(2 * w if stdr_cfg.freeze_at is None else stdr_cfg.freeze_at)
+def resolve_phases(stdr_cfg, baseline_warmup: int, iterations: int) -> tuple[int, int]:
+    """(warmup_end, freeze_at) by `stdr.phase_rule`; explicit warmup_end / freeze_at win.
+
+    static_warmup: the baseline's static warm-up, and twice it (the paper's 3000 / 6000 at
+    Deformable 3DGS's 3000-step warm-up). fraction: the paper's share of the run,
+    warmup_fraction / freeze_fraction of `iterations` (3000 / 40000, 6000 / 40000).
+    """
+    rule = stdr_cfg.phase_rule
+    if rule == "static_warmup":
+        w_auto = int(baseline_warmup)
+    elif rule == "fraction":
+        w_auto = int(round(stdr_cfg.warmup_fraction * iterations))
+    else:
+        raise ValueError(f"stdr.phase_rule={rule!r}: use 'static_warmup' or 'fraction'")
+    w = w_auto if stdr_cfg.warmup_end is None else int(stdr_cfg.warmup_end)
+    if stdr_cfg.freeze_at is not None:
+        f = int(stdr_cfg.freeze_at)
+    elif rule == "fraction" and stdr_cfg.warmup_end is None:
+        f = int(round(stdr_cfg.freeze_fraction * iterations))
+    else:
+        f = 2 * w
     if w < 0 or f < w:
         raise ValueError(f"stdr.warmup_end={w} and stdr.freeze_at={f}: need 0 <= warmup_end <= freeze_at")
+    if f == 0 and stdr_cfg.mask:
+        raise ValueError("stdr.freeze_at resolves to 0, which freezes the mask at its initial value before it "
+                         "ever trains (stdr.warmup_end=0 gives freeze_at = 2 x 0). Set stdr.freeze_at to a step "
+                         "> 0, or switch the mask off with stdr.mask=false")
     return w, f
 
 
@@ -48,12 +71,37 @@ def phase_at(step: int, warmup_end: int, freeze_at: int) -> Phase:
     return Phase.WARMUP if step < warmup_end else Phase.REGULARIZED
 
 
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+def resolve_init(cfg, init_opacity: float) -> tuple[Optional[float], float]:
+    """(opacity the Gaussians start with, or None to keep model.init_opacity; initial mask logit).
+
+    stdr.mask_init=null: the logit that makes sigmoid(o) * sigmoid(m) equal to model.init_opacity
+    at the start, so the mask, not the frozen opacity, carries the opacity during the warm-up
+    (it needs stdr.opacity_init > model.init_opacity)."""
+    o = cfg.opacity_init
+    if o is not None and not 0.0 < o < 1.0:
+        raise ValueError(f"stdr.opacity_init={o}: must lie in (0, 1), or be null (model.init_opacity)")
+    if cfg.mask_init is not None:
+        return o, float(cfg.mask_init)
+    base = init_opacity if o is None else o
+    if init_opacity >= base:
+        raise ValueError(f"stdr.mask_init=null needs stdr.opacity_init > model.init_opacity ({init_opacity}), "
+                         f"got {o}: the mask can only lower opacity")
+    return o, _logit(init_opacity / base)
+
+
 class STDR:
     """State and rules of the plug-in. `cfg` is the `stdr` config node (StdrConfig)."""
 
-    def __init__(self, cfg, baseline_warmup: int, knots: Optional[Tensor], xyz_freqs: int, seed: int):
+    def __init__(self, cfg, baseline_warmup: int, knots: Optional[Tensor], xyz_freqs: int, seed: int,
+                 iterations: int, init_opacity: float = 0.1):
         self.cfg = cfg
-        self.warmup_end, self.freeze_at = resolve_phases(cfg, baseline_warmup)
+        self.warmup_end, self.freeze_at = resolve_phases(cfg, baseline_warmup, iterations)
+        self.opacity_init, self.mask_init = resolve_init(cfg, init_opacity)
+        self._cleaned = False
         self.xyz_freqs = xyz_freqs if cfg.field_pe_xyz else -1
         self.gen = torch.Generator().manual_seed(seed + 7919)
         self.knn_seconds = 0.0
@@ -90,10 +138,15 @@ class STDR:
         return self.cfg.temporal_dim + 1 if self.cfg.separated_field else 0
 
     def add_mask(self, params) -> None:
-        """Add the mask logits [N, K] to the parameter dict (no-op with stdr.mask=false)."""
+        """Add the mask logits [N, K] to the parameter dict (no-op with stdr.mask=false), and set
+        the opacities to stdr.opacity_init when it is given."""
         if self.cfg.mask:
             n = params["means"].shape[0]
-            params[MASK_KEY] = torch.nn.Parameter(torch.full((n, self.K), float(self.cfg.mask_init)))
+            params[MASK_KEY] = torch.nn.Parameter(torch.full((n, self.K), self.mask_init,
+                                                             device=params["means"].device))
+            if self.opacity_init is not None:
+                with torch.no_grad():
+                    params["opacities"].fill_(_logit(self.opacity_init))
 
     def phase(self, step: int) -> Phase:
         return phase_at(step, self.warmup_end, self.freeze_at)
@@ -106,8 +159,44 @@ class STDR:
         """Opacity trains outside the warm-up; the mask trains until the freeze."""
         ph = self.phase(step)
         if self.has_mask(params):
+            if ph == Phase.FROZEN and not self._cleaned:
+                self.cleanup(params)
             params["opacities"].requires_grad_(ph != Phase.WARMUP)
             params[MASK_KEY].requires_grad_(ph != Phase.FROZEN)
+
+    @torch.no_grad()
+    def cleanup(self, params) -> int:
+        """At the freeze: mask entries whose masked opacity sigmoid(o) * sigmoid(m) is below
+        stdr.freeze_cleanup are switched off for good (logit -30). Such entries no longer get a
+        gradient (the rasterizer skips alpha < 1/255) and would reappear as ghosts when opacity
+        grows after the freeze. Returns the number of entries switched off."""
+        self._cleaned = True
+        thr = float(self.cfg.freeze_cleanup)
+        if thr <= 0 or not self.has_mask(params):
+            self.cleaned_entries = 0
+            return 0
+        m = params[MASK_KEY]
+        eff = torch.sigmoid(m) * torch.sigmoid(params["opacities"])[:, None]
+        off = eff < thr
+        m.masked_fill_(off, -30.0)
+        self._p_for = None  # the softmax cache was built from the old values
+        self.cleaned_entries = int(off.sum())
+        return self.cleaned_entries
+
+    @torch.no_grad()
+    def reset_opacity(self, params, value: float, step: int) -> bool:
+        """The densification's opacity reset during the warm-up, where opacity is frozen: cap the
+        masked opacity sigmoid(o) * sigmoid(m) at `value` through the mask instead (clamping the
+        frozen opacity would hold every Gaussian under `value` until the warm-up ends). Returns
+        False outside the warm-up: the strategy then resets the opacities as usual."""
+        if not self.has_mask(params) or self.phase(step) != Phase.WARMUP:
+            return False
+        m = params[MASK_KEY]
+        o = torch.sigmoid(params["opacities"])[:, None]
+        cap = (value / o).clamp(max=1.0 - 1e-6)
+        m.copy_(torch.minimum(m, torch.log(cap / (1.0 - cap))))
+        self._p_for = None
+        return True
 
     def mask_modulates(self, step: int) -> bool:
         return self.cfg.mask and (self.phase(step) != Phase.FROZEN or self.cfg.mask_after_freeze)
@@ -161,7 +250,7 @@ class STDR:
         m = params[MASK_KEY]
         out = {}
         if self.cfg.temporal_reg and self.cfg.lambda_temp > 0:
-            out["temporal"] = self.cfg.lambda_temp * temporal_loss(m)
+            out["temporal"] = self.cfg.lambda_temp * temporal_loss(m, self.cfg.temporal_reduction)
         if self.cfg.spatial_reg and self.cfg.lambda_spatial > 0:
             q, nbr = self.neighbours(params, step)
             out["spatial"] = self.cfg.lambda_spatial * spatial_kl(m, q, nbr)
@@ -185,7 +274,8 @@ class STDR:
     def state_dict(self) -> dict[str, Any]:
         return {"knots": self.knots, "field": None if self.field is None else self.field.state_dict(),
                 "gen": self.gen.get_state(), "knn": self._knn, "knn_step": self._knn_step,
-                "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes}
+                "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes,
+                "cleaned": self._cleaned, "cleaned_entries": getattr(self, "cleaned_entries", None)}
 
     def load_state_dict(self, s: dict[str, Any], params) -> None:
         if self.knots is None or not torch.equal(self.knots, s["knots"]):
@@ -200,6 +290,8 @@ class STDR:
         self._knn_for = params.get(MASK_KEY) if self._knn is not None else None
         self.knn_seconds = float(s["knn_seconds"])
         self.knn_refreshes = int(s["knn_refreshes"])
+        self._cleaned = bool(s.get("cleaned", False))
+        self.cleaned_entries = s.get("cleaned_entries")
 
     # ----------------------------------------------------------------- monitoring
     def log(self, tb, params, step: int, images: bool, x: Optional[int] = None) -> None:
@@ -234,7 +326,9 @@ class STDR:
     def stats(self, params) -> dict[str, Any]:
         """Numbers for metrics.json: mask size and memory, KNN time, mask and field statistics."""
         out: dict[str, Any] = {"K": self.K, "warmup_end": self.warmup_end, "freeze_at": self.freeze_at,
-                               "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes}
+                               "opacity_init": self.opacity_init, "mask_init": self.mask_init,
+                               "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes,
+                "cleaned": self._cleaned, "cleaned_entries": getattr(self, "cleaned_entries", None)}
         if self.has_mask(params):
             m = params[MASK_KEY].detach()
             n = m.shape[0]
@@ -248,6 +342,9 @@ class STDR:
                 "mask_min_over_time_mean": float(a.amin(1).mean()),
                 "fraction_time_gated": float((a.amin(1) < 0.5).float().mean()),  # off at some time
                 "fraction_never_off": float((a.amin(1) >= 0.5).float().mean()),
+                # (Gaussian, time) entries with masked opacity in [1/255, 0.05]: faint copies
+                "fraction_faint": faint_fraction(torch.sigmoid(params["opacities"].detach()), m),
+                "cleaned_entries": getattr(self, "cleaned_entries", None),
                 "temporal_entropy_mean": float(ent.mean()),
                 "temporal_entropy_quantiles": [float(x) for x in
                                                torch.quantile(ent.float(), torch.tensor([0.1, 0.5, 0.9]))]

@@ -65,10 +65,13 @@ class Deformation(nn.Module):
       hyper-coordinates, SP-GS's association logits), so densification keeps them aligned;
       `gaussian_lr(key)` gives their learning rates.
     - `setup(params, train_times)`: once the Gaussians exist (4DGS's bounds from the points).
-    - `before_step(params, step)`: every training step (SP-GS refreshes superpoint centres,
-      SC-GS switches from its node stage to skinning).
-    - `regularizers(params, t, step)`: named loss terms, already weighted, added after the
+    - `before_step(params, step, cond)`: every training step (SP-GS refreshes superpoint
+      centres, SC-GS switches from its node stage to skinning).
+    - `regularizers(params, t, step, cond)`: named loss terms, already weighted, added after the
       static warm-up.
+    Both get the step's conditioning `cond` [N, cond_dim] (or None), the same tensor the render
+    uses, so a hook that evaluates the network (SC-GS's node resampling and ARAP) evaluates the
+    deformation that is rendered.
     - `param_groups()`: network parameter groups with an lr multiplier each (4DGS's grid).
     """
 
@@ -84,10 +87,10 @@ class Deformation(nn.Module):
     def setup(self, params, train_times: Optional[Tensor]) -> None:
         pass
 
-    def before_step(self, params, step: int) -> None:
+    def before_step(self, params, step: int, cond: Optional[Tensor] = None) -> None:
         pass
 
-    def regularizers(self, params, t: float, step: int) -> dict[str, Tensor]:
+    def regularizers(self, params, t: float, step: int, cond: Optional[Tensor] = None) -> dict[str, Tensor]:
         return {}
 
     def param_groups(self) -> list[dict]:

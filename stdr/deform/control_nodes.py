@@ -117,17 +117,25 @@ class ControlNodeDeformation(Deformation):
         h = self.net.trunk(xyz, t, cond)
         return self.head_xyz(h), self.head_rot(h), self.head_scale(h)
 
+    def _cond_or_zeros(self, cond: Optional[Tensor], n: int, like: Tensor) -> Optional[Tensor]:
+        if not self.cond_dim:
+            return None
+        return like.new_zeros(n, self.cond_dim) if cond is None else cond
+
     @torch.no_grad()
-    def resample_nodes(self, params) -> None:
-        """Nodes := FPS over the Gaussians' trajectories; radius := mean distance to 3 nearest nodes."""
+    def resample_nodes(self, params, cond: Optional[Tensor] = None) -> None:
+        """Nodes := FPS over the Gaussians' trajectories; radius := mean distance to 3 nearest nodes.
+
+        The trajectories are those the node stage renders: the node MLP on each Gaussian with its
+        conditioning cond [N, cond_dim] (zeros when None)."""
         x = params["means"].detach()
         if x.shape[0] < self.m:
             raise ValueError(f"SC-GS needs at least {self.m} Gaussians to place its nodes, has {x.shape[0]}; "
                              "lower baseline.scgs.num_nodes")
-        zero = x.new_zeros(x.shape[0], self.cond_dim) if self.cond_dim else None
+        c = self._cond_or_zeros(None if cond is None else cond.detach(), x.shape[0], x)
         traj = []
         for t in torch.linspace(0.0, 1.0, self.trajectory_samples).tolist():
-            dx, _, _ = self.node_deltas(x, t, zero)
+            dx, _, _ = self.node_deltas(x, t, c)
             traj.append(x + dx)
         idx = farthest_point_sampling(torch.cat(traj, -1), self.m, self.gen)
         p = x[idx]
@@ -137,13 +145,13 @@ class ControlNodeDeformation(Deformation):
         self.node_log_radius.copy_(torch.log(d2.mean(1).sqrt().clamp_min(1e-6)))
         self.node_weight.zero_()
 
-    def before_step(self, params, step: int) -> None:
+    def before_step(self, params, step: int, cond: Optional[Tensor] = None) -> None:
         if step < self.start_step:
             self.stage.fill_(0)
         elif step < self.node_stage_end:
             self.stage.fill_(1)
         elif int(self.stage) != 2:
-            self.resample_nodes(params)
+            self.resample_nodes(params, cond)
             self.stage.fill_(2)
         self._detach = int(self.stage) == 2 and step < self.node_stage_end + self.main_warmup
 
@@ -158,17 +166,26 @@ class ControlNodeDeformation(Deformation):
         d2 = (x[:, None, :] - take_rows(nodes, idx)).square().sum(-1)
         return idx, d2
 
+    def skinning(self, params) -> tuple[Tensor, Tensor]:
+        """(node indices [N, K], skinning weights [N, K]) of every Gaussian."""
+        idx, d2 = self.neighbours(params)
+        return idx, skinning_weights(d2, take_rows(self.node_log_radius.exp(), idx), take_rows(self.node_weight, idx))
+
+    def node_conditioning(self, cond: Optional[Tensor], idx: Tensor, w: Tensor) -> Optional[Tensor]:
+        """Per-node conditioning [M, cond_dim]: the skinning-weighted mean of its Gaussians' cond."""
+        if not self.cond_dim:
+            return None
+        cond_n, _ = scatter_mean(cond[:, None, :].expand(-1, idx.shape[1], -1), idx, w.detach(), self.m)
+        return cond_n
+
     def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:
         if self.cond_dim and cond is None:
             raise ValueError("this deformation was built with cond_dim > 0 and needs cond")
         if int(self.stage) == 1:  # node stage: the Gaussians are the nodes, moved directly
             dx, _, _ = self.node_deltas(params["means"].detach(), t, cond)
             return Deltas(means=dx)
-        idx, d2 = self.neighbours(params)
-        w = skinning_weights(d2, take_rows(self.node_log_radius.exp(), idx), take_rows(self.node_weight, idx))
-        cond_n = None
-        if self.cond_dim:
-            cond_n, _ = scatter_mean(cond[:, None, :].expand(-1, idx.shape[1], -1), idx, w.detach(), self.m)
+        idx, w = self.skinning(params)
+        cond_n = self.node_conditioning(cond, idx, w)
         p = self.nodes[:, :3]
         if getattr(self, "_detach", False):
             with torch.no_grad():
@@ -198,7 +215,9 @@ class ControlNodeDeformation(Deformation):
         s = torch.exp(params["scales"]) + (0 if d.scales is None else d.scales)
         return Gaussians(means=params["means"] + d.means, quats=q, scales=s, opacities=op, sh=sh)
 
-    def regularizers(self, params, t: float, step: int) -> dict[str, Tensor]:
+    def regularizers(self, params, t: float, step: int, cond: Optional[Tensor] = None) -> dict[str, Tensor]:
+        """ARAP between the nodes at two nearby times, under the node conditioning the render uses
+        (zeros when cond is None)."""
         if int(self.stage) != 2 or getattr(self, "_detach", False):
             return {}
         lam = log_interp_schedule(step - self.node_stage_end, self.arap_steps, self.arap_weights)
@@ -210,7 +229,10 @@ class ControlNodeDeformation(Deformation):
         t2 = t1 + self.arap_dt
         p = self.nodes[:, :3].detach()
         _, nbr = knn(p, p, min(self.arap_k, self.m - 1), exclude_self=True)
-        zero = p.new_zeros(self.m, self.cond_dim) if self.cond_dim else None
-        p1 = p + self.node_deltas(p, t1, zero)[0]
-        p2 = p + self.node_deltas(p, t2, zero)[0]
+        cond_n = None
+        if self.cond_dim:
+            cond_n = (p.new_zeros(self.m, self.cond_dim) if cond is None
+                      else self.node_conditioning(cond, *self.skinning(params)))
+        p1 = p + self.node_deltas(p, t1, cond_n)[0]
+        p2 = p + self.node_deltas(p, t2, cond_n)[0]
         return {"scgs_arap": lam * arap_energy(p1, p2, nbr)}

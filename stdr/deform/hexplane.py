@@ -147,7 +147,7 @@ class HexPlaneDeformation(Deformation):
         h = self.feature_out(h)
         return Deltas(means=self.head_xyz(h), scales=self.head_scale(h), quats=self.head_rot(h))
 
-    def regularizers(self, params, t: float, step: int) -> dict[str, Tensor]:
+    def regularizers(self, params, t: float, step: int, cond: Optional[Tensor] = None) -> dict[str, Tensor]:
         return {f"hexplane_{k}": self.weights[k] * v for k, v in self.grid.regularizers().items()
                 if self.weights.get(k, 0.0) > 0}
 

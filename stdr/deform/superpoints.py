@@ -82,7 +82,7 @@ class SuperpointDeformation(Deformation):
         hard = idx.gather(1, G.detach().argmax(-1, keepdim=True))[:, 0]
         return idx, G, hard
 
-    def before_step(self, params, step: int) -> None:
+    def before_step(self, params, step: int, cond: Optional[Tensor] = None) -> None:
         if step < self.start_step:
             return
         if not bool(self.ready):
@@ -122,7 +122,7 @@ class SuperpointDeformation(Deformation):
         # expressed as post-activation deltas so that every baseline shares the apply rule
         return Deltas(means=x_t - x, quats=q_t - qn)
 
-    def regularizers(self, params, t: float, step: int) -> dict[str, Tensor]:
+    def regularizers(self, params, t: float, step: int, cond: Optional[Tensor] = None) -> dict[str, Tensor]:
         """Property reconstruction (SP-GS): a Gaussian's position, and its superpoint's rotation
         and translation, should equal their soft-assignment blends over its K superpoints."""
         if not self._last:

@@ -115,7 +115,8 @@ class DensifyStrategy:
     (max scale <= grow_scale3d x extent) or split if large; then Gaussians with opacity <
     `prune_opa` are removed, and after `prune_big_after` also those larger than prune_scale3d x
     extent in the world or prune_scale2d px on screen. Opacity is reset every `reset_every`.
-    `max_gaussians` caps growth: when exceeded, the candidates with the largest gradients win.
+    With `reset_white_at_start` and a white background it is also reset once at refine_start
+    (3DGS and the peers built on it: Deformable 3DGS, SC-GS, SP-GS, 4DGaussians). `max_gaussians` caps growth: when exceeded, the candidates with the largest gradients win.
     """
 
     grow_grad2d: float = 2e-4
@@ -129,21 +130,33 @@ class DensifyStrategy:
     refine_every: int = 100
     reset_every: int = 3000
     reset_value: float = 0.01
+    reset_white_at_start: bool = False  # also reset at refine_start on a white background (3DGS)
     max_gaussians: int = 0  # 0 = no cap
 
-    def initialize_state(self, n: int, scene_extent: float) -> dict[str, Any]:
-        return {"grad2d": torch.zeros(n), "count": torch.zeros(n), "max_radii": torch.zeros(n),
-                "scene_extent": float(scene_extent)}
+    def initialize_state(self, n: int, scene_extent: float, white_background: bool = False,
+                         device: torch.device | str | None = None) -> dict[str, Any]:
+        return {"grad2d": torch.zeros(n, device=device), "count": torch.zeros(n, device=device),
+                "max_radii": torch.zeros(n, device=device), "scene_extent": float(scene_extent),
+                "white_background": bool(white_background)}
+
+    def reset_due(self, step: int, state: dict[str, Any]) -> bool:
+        """Whether the opacity reset fires after completed step `step` (counted from 1)."""
+        if self.reset_every > 0 and step % self.reset_every == 0:
+            return True
+        return self.reset_white_at_start and bool(state.get("white_background")) and step == self.refine_start
 
     def step_post_backward(self, params, optimizers, state, step: int, means2d: Tensor,
                            radii: Tensor, width: int, height: int,
                            generator: torch.Generator | None = None,
-                           opacity_fn: Callable[[Any], Tensor] | None = None) -> dict[str, int]:
+                           opacity_fn: Callable[[Any], Tensor] | None = None,
+                           reset_fn: Callable[[Any, float], bool] | None = None) -> dict[str, int]:
         """Accumulate statistics from this step's render and refine when due.
 
         `step` counts from 1 (the number of completed optimizer steps after this one).
         `opacity_fn(params) -> [N]`: the opacity pruning compares with prune_opa (default
         sigmoid of the opacity logits; STDR passes the largest masked opacity over time).
+        `reset_fn(params, value) -> bool`: a plug-in's own reset; when it returns True the
+        opacities are left alone (STDR caps its mask while opacity is frozen).
         Returns counts of what was done (for logging).
         """
         if step >= self.refine_stop:
@@ -160,8 +173,9 @@ class DensifyStrategy:
         out: dict[str, int] = {}
         if step > self.refine_start and step % self.refine_every == 0:
             out = self._refine(params, optimizers, state, step, generator, opacity_fn)
-        if self.reset_every > 0 and step % self.reset_every == 0:
-            reset_opacity(params, optimizers, self.reset_value)
+        if self.reset_due(step, state):
+            if reset_fn is None or not reset_fn(params, self.reset_value):
+                reset_opacity(params, optimizers, self.reset_value)
             out["reset"] = 1
         return out
 

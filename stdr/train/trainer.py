@@ -120,7 +120,9 @@ class Trainer:
         self.deform_opt = torch.optim.Adam(groups, lr=cfg.baseline.lr_init, eps=1e-15)
         self.strategy = DensifyStrategy(**OmegaConf.to_container(cfg.densify))
         extent = scene_extent(self.scene.camera_centers("train")) if "train" in self.scene.splits else 1.0
-        self.strategy_state = self.strategy.initialize_state(len(pts) if pts is not None else 0, extent)
+        white = all(float(c) >= 1.0 for c in self.scene.background)
+        self.strategy_state = self.strategy.initialize_state(len(pts) if pts is not None else 0, extent,
+                                                             white_background=white)
         self.sampler = CameraSampler(len(self.scene.splits.get("train", [])), cfg.seed)
         self.step = 0
         self.train_seconds = 0.0
@@ -132,7 +134,8 @@ class Trainer:
         """The STDR plug-in; its time knots come from the training split (or later the checkpoint)."""
         c = self.cfg
         knots = STDR.knots_for(c.stdr, self.scene.train_times()) if "train" in self.scene.splits else None
-        return STDR(c.stdr, c.baseline.warmup, knots, xyz_freqs=c.baseline.xyz_freqs, seed=c.seed)
+        return STDR(c.stdr, c.baseline.warmup, knots, xyz_freqs=c.baseline.xyz_freqs, seed=c.seed,
+                    iterations=c.optim.iterations, init_opacity=c.model.init_opacity)
 
     # ----------------------------------------------------------------- optimizers
     def _lr(self, key: str, step: int) -> float:
@@ -168,14 +171,22 @@ class Trainer:
         m = self.cfg.model
         return min(m.sh_degree, step // max(m.sh_interval, 1))
 
-    def deformed(self, t: float, step: int) -> Gaussians:
+    def conditioning(self, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
+        """(cond [N, cond_dim], delta scale [N, 1]) for the deformation network at `step`: STDR's
+        separated field, or (None, None) without it or during the static warm-up."""
+        if self.stdr is None or step < self.cfg.baseline.warmup:
+            return None, None
+        return self.stdr.conditioning(self.params, step)
+
+    def deformed(self, t: float, step: int,
+                 cond_scale: Optional[tuple[Optional[Tensor], Optional[Tensor]]] = None) -> Gaussians:
         """Activated Gaussians at time t: deformed after the static warm-up, opacity times the
-        STDR mask when it is on."""
+        STDR mask when it is on. cond_scale: this step's `conditioning` (computed when None)."""
         s = self.stdr
         if step < self.cfg.baseline.warmup:
             g = activate(self.params)
         else:
-            cond, scale = s.conditioning(self.params, step) if s is not None else (None, None)
+            cond, scale = self.conditioning(step) if cond_scale is None else cond_scale
             g = self.deform.deform(self.params, t, cond, scale)
         if s is not None:
             f = s.opacity_factor(self.params, t, step)
@@ -253,11 +264,14 @@ class Trainer:
         self._update_lrs(it)
         frame = self.scene.frames("train")[self.sampler.next()]
         self.set_training(True)
-        self.deform.before_step(self.params, it)
         if self.stdr is not None:
             self.stdr.configure_step(self.params, it)
         with prof("deform"):
-            g = self.deformed(frame.time, it)
+            # one conditioning per step: the render, SC-GS's node resampling and its ARAP see the same
+            cs = self.conditioning(it)
+        self.deform.before_step(self.params, it, cs[0])
+        with prof("deform"):
+            g = self.deformed(frame.time, it, cs)
         with prof("render_fwd"):
             out = self.render_gaussians(g, frame, it)
         with prof("loss"):
@@ -274,7 +288,7 @@ class Trainer:
         dregs: dict[str, Tensor] = {}
         if it >= cfg.baseline.warmup:  # the baseline's own terms (ARAP, HexPlane smoothness, ...)
             with prof("deform_reg"):
-                dregs = self.deform.regularizers(self.params, frame.time, it)
+                dregs = self.deform.regularizers(self.params, frame.time, it, cs[0])
                 for v in dregs.values():
                     loss = loss + v
         with prof("backward"):
@@ -287,12 +301,14 @@ class Trainer:
                 self.deform_opt.step()
             self.deform_opt.zero_grad(set_to_none=True)
         with prof("densify"):
-            opacity_fn = None
-            if self.stdr is not None and self.cfg.stdr.prune_by_mask:
-                opacity_fn = lambda p: self.stdr.effective_opacity(p, it)  # noqa: E731
+            opacity_fn = reset_fn = None
+            if self.stdr is not None:
+                reset_fn = lambda p, v: self.stdr.reset_opacity(p, v, it)  # noqa: E731
+                if self.cfg.stdr.prune_by_mask:
+                    opacity_fn = lambda p: self.stdr.effective_opacity(p, it)  # noqa: E731
             info = self.strategy.step_post_backward(
                 self.params, self.optimizers, self.strategy_state, it + 1, out.means2d, out.radii,
-                frame.camera.width, frame.camera.height, opacity_fn=opacity_fn)
+                frame.camera.width, frame.camera.height, opacity_fn=opacity_fn, reset_fn=reset_fn)
         self.step = it + 1
         return {"loss": loss.item(), "l1": loss_l1.item(), "dssim": loss_dssim.item(),
                 "psnr": float(psnr(out.image.detach(), frame.image)), **{f"densify_{k}": v for k, v in info.items()},
