@@ -363,3 +363,47 @@ def test_resume_is_exact_across_the_baseline_stages(tmp_path, name):
         assert torch.equal(a.params[k], b.params[k]), k
     for (ka, va), (kb, vb) in zip(a.deform.state_dict().items(), b.deform.state_dict().items()):
         assert torch.equal(va, vb), ka
+
+
+def test_scgs_resampling_and_arap_use_the_given_conditioning():
+    """With STDR's cond, node resampling follows the conditioned trajectories and ARAP regularizes
+    the conditioned node motion (not the zero-cond one that is never rendered)."""
+    params = gaussians()
+    m = _scgs(cond_dim=4, head_init_std=0.1)
+    for k, v in m.gaussian_params(400).items():
+        params[k] = torch.nn.Parameter(v)
+    with torch.no_grad():  # make the cond inputs matter (they start at zero weight)
+        for lin in m.net.modules():
+            if isinstance(lin, torch.nn.Linear):
+                lin.weight.normal_(0, 0.5, generator=torch.Generator().manual_seed(3))
+    cond = torch.randn(400, 4, generator=torch.Generator().manual_seed(4))
+    m.before_step(params, 1, cond)
+    m.resample_nodes(params, None)
+    zero_nodes = m.nodes.detach().clone()
+    m.resample_nodes(params, cond)
+    assert not torch.equal(zero_nodes, m.nodes.detach())
+    # by hand: FPS over the cond trajectories, with the module's generator state
+    m2 = _scgs(cond_dim=4, head_init_std=0.1)
+    m2.load_state_dict(m.state_dict())
+    x = params["means"].detach()
+    with torch.no_grad():
+        traj = torch.cat([x + m2.node_deltas(x, t, cond)[0] for t in torch.linspace(0, 1, m2.trajectory_samples).tolist()], -1)
+    g = torch.Generator().manual_seed(m.seed)
+    farthest_point_sampling(torch.zeros(400, 3), m.m, g)  # the draw of the first (zero-cond) resampling
+    idx = farthest_point_sampling(traj, m.m, g)
+    torch.testing.assert_close(m.nodes.detach()[:, :3], x[idx])
+    m.before_step(params, 5, cond)  # skinning
+    a_cond = m.regularizers(params, 0.4, 6, cond)["scgs_arap"]
+    a_zero = m.regularizers(params, 0.4, 6, None)["scgs_arap"]
+    assert a_cond.item() != pytest.approx(a_zero.item(), rel=1e-3)
+    # by hand with the node conditioning the render uses
+    idx, w = m.skinning(params)
+    cond_n = m.node_conditioning(cond, idx, w)
+    gen = torch.Generator().manual_seed(m.seed * 1_000_003 + 6)
+    t1 = float(torch.rand((), generator=gen)) * (1.0 - m.arap_dt)
+    p = m.nodes[:, :3].detach()
+    from stdr.scene.knn import knn
+    _, nbr = knn(p, p, min(m.arap_k, m.m - 1), exclude_self=True)
+    lam = log_interp_schedule(6 - m.node_stage_end, m.arap_steps, m.arap_weights)
+    hand = lam * arap_energy(p + m.node_deltas(p, t1, cond_n)[0], p + m.node_deltas(p, t1 + m.arap_dt, cond_n)[0], nbr)
+    torch.testing.assert_close(a_cond, hand)

@@ -317,3 +317,98 @@ def test_tensorboard_shows_phase_losses_histograms_and_mask_image(tmp_path):
     assert {"stdr/temporal_entropy", "stdr/dynamic_probability"} <= set(tags["histograms"])
     assert "stdr/mask_over_time" in tags["images"]
     assert [e.value for e in ev.Scalars("stdr/phase")] == [0.0, 1.0, 1.0, 2.0]  # iterations 3, 7, 11, 15
+
+
+# ----------------------------------------------------------------------------- fidelity fixes (issue 13)
+def _plugin(**over):
+    from stdr.decouple import STDR
+    cfg = OmegaConf.structured(StdrConfig)
+    for k, v in over.items():
+        setattr(cfg, k, v)
+    return STDR(cfg, baseline_warmup=10, knots=torch.linspace(0, 1, 5, dtype=torch.float64), xyz_freqs=2,
+                seed=0, iterations=100, init_opacity=0.1)
+
+
+def test_mask_can_carry_the_opacity_during_the_warmup():
+    """opacity_init + mask_init=null: the masked opacity starts at model.init_opacity, and the
+    mask can raise it up to opacity_init (the frozen-opacity reading caps it at 0.1)."""
+    s = _plugin(opacity_init=0.99, mask_init=None)
+    p = init_params(torch.rand(20, 3), sh_degree=1, init_opacity=0.1)
+    s.add_mask(p)
+    eff = torch.sigmoid(p["opacities"])[:, None] * torch.sigmoid(p[MASK_KEY])
+    torch.testing.assert_close(eff, torch.full_like(eff, 0.1))
+    torch.testing.assert_close(torch.sigmoid(p["opacities"]), torch.full((20,), 0.99))
+    with pytest.raises(ValueError, match="opacity_init"):
+        _plugin(opacity_init=0.05, mask_init=None)  # the mask can only lower opacity
+    with pytest.raises(ValueError, match="opacity_init"):
+        _plugin(opacity_init=1.0)
+    # defaults: opacity untouched, mask logit 2
+    s = _plugin()
+    p = init_params(torch.rand(20, 3), sh_degree=1, init_opacity=0.1)
+    o = p["opacities"].detach().clone()
+    s.add_mask(p)
+    assert torch.equal(p["opacities"].detach(), o) and torch.all(p[MASK_KEY] == 2.0)
+
+
+def test_freeze_cleanup_switches_off_faint_entries_only():
+    s = _plugin(freeze_cleanup=0.02)
+    p = init_params(torch.rand(4, 3), sh_degree=1, init_opacity=0.5)
+    s.add_mask(p)
+    with torch.no_grad():  # masked opacity 0.5 * sigmoid(m): faint (<0.02) where m is -5 (0.0033)
+        p[MASK_KEY].copy_(torch.tensor([[-5.0, 0.0, 0.0, 0.0, 0.0]] * 2 + [[0.0, -5.0, -2.0, 3.0, 0.0]] * 2))
+    before = p[MASK_KEY].detach().clone()
+    s.configure_step(p, s.freeze_at - 1)  # not yet
+    assert torch.equal(p[MASK_KEY].detach(), before)
+    s.configure_step(p, s.freeze_at)
+    m = p[MASK_KEY].detach()
+    off = before == -5.0
+    assert torch.all(m[off] == -30.0) and torch.equal(m[~off], before[~off])
+    assert s.cleaned_entries == int(off.sum()) and not p[MASK_KEY].requires_grad
+    s.configure_step(p, s.freeze_at + 1)  # once
+    assert s.cleaned_entries == int(off.sum())
+    # the statistic that motivates it: entries with masked opacity in [1/255, 0.05]
+    from stdr.decouple.mask import faint_fraction
+    assert faint_fraction(torch.tensor([0.5, 0.5]), torch.tensor([[-5.0, -3.0], [0.0, -2.5]])) == 0.5
+
+
+def test_opacity_reset_during_the_warmup_caps_the_masked_opacity_not_the_frozen_opacity():
+    s = _plugin(opacity_init=0.99, mask_init=None)
+    p = init_params(torch.rand(6, 3), sh_degree=1, init_opacity=0.1)
+    s.add_mask(p)
+    with torch.no_grad():
+        p[MASK_KEY][:3] = 4.0  # masked opacity ~0.97
+    o = p["opacities"].detach().clone()
+    assert s.reset_opacity(p, 0.01, step=s.warmup_end - 1)
+    assert torch.equal(p["opacities"].detach(), o)
+    eff = torch.sigmoid(p["opacities"])[:, None] * torch.sigmoid(p[MASK_KEY])
+    assert eff.max() <= 0.01 + 1e-6
+    assert not s.reset_opacity(p, 0.01, step=s.warmup_end)  # afterwards: the usual reset
+
+
+def test_white_background_reset_at_refine_start():
+    st = DensifyStrategy(refine_start=50, reset_every=3000, reset_white_at_start=True)
+    white, black = st.initialize_state(3, 1.0, white_background=True), st.initialize_state(3, 1.0)
+    assert st.reset_due(50, white) and not st.reset_due(50, black) and not st.reset_due(51, white)
+    assert st.reset_due(3000, black)
+    assert not DensifyStrategy(refine_start=50, reset_every=0).reset_due(50, white)
+    paper = make_cfg(["experiment=dnerf_deform", "budget=paper", "data.path=/x"])
+    cpu = make_cfg(["experiment=dnerf_deform", "budget=cpu", "data.path=/x"])
+    assert paper.densify.reset_white_at_start and not cpu.densify.reset_white_at_start
+
+
+def test_training_loop_hands_the_rendered_conditioning_to_the_deformation_hooks(tmp_path, monkeypatch):
+    """The cond that before_step and regularizers see is the tensor the render used (SC-GS
+    resamples its nodes and computes ARAP from them)."""
+    from stdr.train.trainer import Trainer
+    t = Trainer(_stdr_cfg(tmp_path, ["densify.refine_start=1000"]), tmp_path / "run")
+    seen = {}
+    orig_fwd, orig_before, orig_reg = t.deform.forward, t.deform.before_step, t.deform.regularizers
+    monkeypatch.setattr(t.deform, "forward", lambda p, tt, c=None: (seen.__setitem__("fwd", c), orig_fwd(p, tt, c))[1])
+    monkeypatch.setattr(t.deform, "before_step",
+                        lambda p, s, c=None: (seen.__setitem__("before", c), orig_before(p, s, c))[1])
+    monkeypatch.setattr(t.deform, "regularizers",
+                        lambda p, tt, s, c=None: (seen.__setitem__("reg", c), orig_reg(p, tt, s, c))[1])
+    while t.step <= t.stdr.freeze_at:
+        t.train_step()
+    assert seen["fwd"] is seen["before"] is seen["reg"]
+    assert seen["fwd"].shape == (t.params["means"].shape[0], t.stdr.cond_dim) and seen["fwd"].abs().sum() > 0
