@@ -412,3 +412,24 @@ def test_training_loop_hands_the_rendered_conditioning_to_the_deformation_hooks(
         t.train_step()
     assert seen["fwd"] is seen["before"] is seen["reg"]
     assert seen["fwd"].shape == (t.params["means"].shape[0], t.stdr.cond_dim) and seen["fwd"].abs().sum() > 0
+
+
+def test_freeze_colliding_with_a_stage_switch_is_moved_by_rule_or_rejected_when_explicit():
+    """SC-GS at budget=cpu: static to 500, node->skinning switch at 1000 (+100 detached steps).
+    The default freeze (2 x 500 = 1000) lands on it and moves to the midpoint 750; an explicit
+    freeze_at inside the window is an error; one outside is kept."""
+    from stdr.deform.control_nodes import ControlNodeDeformation
+    switches = ControlNodeDeformation(num_nodes=8, depth=2, width=8, skips=(), start_step=500,
+                                      node_stage_end=1000, main_warmup=100).stage_switches()
+    s = _plugin()
+    s.warmup_end, s.freeze_at = 500, 1000
+    assert "1000 -> 750" in s.avoid_stage_switches(switches) and s.freeze_at == 750
+    s = _plugin()
+    s.warmup_end, s.freeze_at = 500, 1200
+    assert s.avoid_stage_switches(switches) is None and s.freeze_at == 1200
+    s = _plugin(freeze_at=1050)
+    s.warmup_end = 500
+    with pytest.raises(ValueError, match="stdr.freeze_at=1050"):
+        s.avoid_stage_switches(switches)
+    cfg = make_cfg(["experiment=dnerf_scgs_stdr", "budget=cpu", "data.path=/x"])
+    assert cfg.stdr.freeze_at is None  # no magic number in the baseline's budget file

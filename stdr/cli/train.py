@@ -29,6 +29,8 @@ def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict:
           f"{trainer.scene.frames('train')[0].camera.width}x{trainer.scene.frames('train')[0].camera.height}, "
           f"backend={trainer.backend}, run dir {run_dir}")
     print(f"[stdr] TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
+    if trainer.stdr is not None:
+        print(trainer.stdr.describe_phases())
     trainer.train()
     res = evaluate_run(trainer, split, cfg.eval)
     warm = [h for h in trainer.history if h["tag"] == "static_warmup"]

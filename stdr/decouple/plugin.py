@@ -148,6 +148,30 @@ class STDR:
                 with torch.no_grad():
                     params["opacities"].fill_(_logit(self.opacity_init))
 
+    def avoid_stage_switches(self, switches) -> Optional[str]:
+        """Keep the freeze out of the deformation's stage-switch windows [first, last] (at the
+        freeze the separated field starts feeding the network; inside such a window the network
+        is being rebuilt or detached, so the field would start from a moving target).
+
+        Rule: a freeze that was resolved automatically moves to the midpoint between the end of
+        the warm-up and the start of the window (never before the warm-up's end); an explicit
+        stdr.freeze_at inside a window is an error. Returns a line for the log, or None."""
+        for name, first, last in switches:
+            if not first <= self.freeze_at <= last:
+                continue
+            if self.cfg.freeze_at is not None:
+                raise ValueError(f"stdr.freeze_at={self.freeze_at} falls in the {name} window [{first}, {last}]; "
+                                 f"choose a step outside it, or leave stdr.freeze_at=null to resolve it by rule")
+            old = self.freeze_at
+            self.freeze_at = max(self.warmup_end, (self.warmup_end + first) // 2)
+            self.freeze_moved = f"{old} -> {self.freeze_at}: {name} at [{first}, {last}]"
+            return f"[stdr] STDR freeze moved {self.freeze_moved}"
+        return None
+
+    def describe_phases(self) -> str:
+        return (f"[stdr] STDR phases: warm-up (opacity frozen) [0, {self.warmup_end}), regularized to "
+                f"{self.freeze_at}, mask frozen and separated field on from {self.freeze_at}")
+
     def phase(self, step: int) -> Phase:
         return phase_at(step, self.warmup_end, self.freeze_at)
 
@@ -327,6 +351,7 @@ class STDR:
         """Numbers for metrics.json: mask size and memory, KNN time, mask and field statistics."""
         out: dict[str, Any] = {"K": self.K, "warmup_end": self.warmup_end, "freeze_at": self.freeze_at,
                                "opacity_init": self.opacity_init, "mask_init": self.mask_init,
+                               "freeze_moved": getattr(self, "freeze_moved", None),
                                "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes,
                 "cleaned": self._cleaned, "cleaned_entries": getattr(self, "cleaned_entries", None)}
         if self.has_mask(params):

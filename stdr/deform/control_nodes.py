@@ -105,6 +105,12 @@ class ControlNodeDeformation(Deformation):
         self.register_buffer("stage", torch.zeros((), dtype=torch.long))    # 0 static, 1 nodes, 2 skinning
         self.gen = torch.Generator().manual_seed(seed)
 
+    def stage_switches(self) -> list[tuple[str, int, int]]:
+        """The node->skinning switch: nodes resampled at node_stage_end, node deltas detached for
+        main_warmup steps after it."""
+        return [("SC-GS node->skinning switch (baseline.scgs.node_stage_end + main_warmup)",
+                 self.node_stage_end, self.node_stage_end + self.main_warmup)]
+
     # -------------------------------------------------------------- per-Gaussian state
     def gaussian_params(self, n: int) -> dict[str, Tensor]:
         return {FEATURE_KEY: torch.full((n, self.hyper_dim), -1e-2)}

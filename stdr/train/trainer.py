@@ -109,6 +109,10 @@ class Trainer:
         train_times = self.scene.train_times() if "train" in self.scene.splits else None
         self.deform = build_deformation_from_cfg(cfg, cond_dim=self.stdr.cond_dim if self.stdr else 0,
                                                  train_times=train_times)
+        if self.stdr is not None:
+            moved = self.stdr.avoid_stage_switches(self.deform.stage_switches())
+            if moved:
+                print(moved)
         if pts is not None:  # per-Gaussian state of the baseline (kept aligned by densification)
             self.deform.setup(self.params, train_times)
             for k, v in self.deform.gaussian_params(len(pts)).items():
