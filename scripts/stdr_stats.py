@@ -9,7 +9,8 @@ One row per run directory:
   temporal entropy;
 * the field's dynamic probability.
 Runs without STDR show only the metrics. `--config-cols KEY...` adds config values (dotted keys,
-e.g. data.image_scale data.intrinsics) and `--size` the evaluated image size (metrics.json).
+e.g. data.image_scale data.intrinsics) and `--size` the evaluated image size (metrics.json), `--label` the name of each run folder's parent
+(the candidate, in a sweep laid out as <candidate>/<scene>).
 
     scripts/run.sh python scripts/stdr_stats.py RUN_DIR... --out docs/measurements/x
 """
@@ -66,8 +67,13 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=None, help="write OUT.md and OUT.json")
     ap.add_argument("--config-cols", nargs="*", default=[], help="config keys to show, e.g. data.image_scale")
     ap.add_argument("--size", action="store_true", help="show the evaluated image size")
+    ap.add_argument("--label", action="store_true",
+                    help="first column: the run folder's parent name (e.g. the candidate of a sweep)")
     args = ap.parse_args(argv)
     rows = [load(r, args.split, args.config_cols, args.size) for r in args.runs]
+    if args.label:
+        for r, run in zip(rows, args.runs):
+            r["extra"] = {"run": run.resolve().parent.name, **r["extra"]}
     extra = list(rows[0]["extra"])
     lines = ["| scene | method | " + " | ".join(extra + [h for _, h, _ in COLS]) + " |",
              "|---|---|" + "---|" * (len(extra) + len(COLS))]
