@@ -8,6 +8,7 @@ Children of a clone or split inherit the parent's row.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -200,8 +201,17 @@ class DensifyStrategy:
         opa = torch.sigmoid(params["opacities"]) if opacity_fn is None else opacity_fn(params)
         prune = opa < self.prune_opa
         if step > self.prune_big_after:
-            prune |= torch.exp(params["scales"]).amax(-1) > self.prune_scale3d * extent
-            prune |= state["max_radii"] > self.prune_scale2d
+            big = torch.exp(params["scales"]).amax(-1) > self.prune_scale3d * extent
+            big |= state["max_radii"] > self.prune_scale2d
+            n_big = int((big & ~prune).sum())
+            if n_big > 0.5 * prune.numel():  # measured: a short schedule can lose its whole model here
+                warnings.warn(
+                    f"densification at step {step}: the size prune removes {n_big} of {prune.numel()} Gaussians "
+                    f"(larger than {self.prune_scale3d} x extent or {self.prune_scale2d} px on screen); the model "
+                    f"has not split into small Gaussians by densify.prune_big_after={self.prune_big_after}. "
+                    "Raise densify.prune_big_after or densify.prune_scale2d, or lower densify.grow_grad2d",
+                    RuntimeWarning, stacklevel=2)
+            prune |= big
         if int(prune.sum()) >= prune.numel():  # never delete the whole model
             prune[:] = False
         n_prune = int(prune.sum())
