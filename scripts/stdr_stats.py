@@ -5,8 +5,9 @@ One row per run directory:
 * method, scene and the quality metrics;
 * the N x K mask's memory with its Adam state;
 * KNN time and the time of the regularizers;
-* mask statistics: the share of Gaussians switched off at some time, and the mean normalized
-  temporal entropy;
+* mask statistics: the share of Gaussians switched off at some time, the mean normalized
+  temporal entropy, and the share of (Gaussian, time) entries with masked opacity in
+  [1/255, 0.05] ("faint": copies that can come back as ghosts);
 * the field's dynamic probability.
 Runs without STDR show only the metrics. `--config-cols KEY...` adds config values (dotted keys,
 e.g. data.image_scale data.intrinsics) and `--size` the evaluated image size (metrics.json), `--label` the name of each run folder's parent
@@ -31,6 +32,7 @@ COLS = [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("lpips", "LPIPS
         ("K", "K", "{}"), ("mask_total_mib", "mask+Adam MiB", "{:.1f}"), ("knn_seconds", "KNN s", "{:.2f}"),
         ("knn_refreshes", "KNN refreshes", "{}"), ("stdr_reg_seconds", "reg s", "{:.1f}"),
         ("fraction_time_gated", "gated", "{:.2f}"), ("temporal_entropy_mean", "entropy", "{:.3f}"),
+        ("fraction_faint", "faint", "{:.3f}"),
         ("dynamic_probability_mean", "dyn p", "{:.3f}"), ("fraction_dynamic", "dyn>0.5", "{:.2f}")]
 
 
