@@ -62,6 +62,34 @@ def fmt(v, f):
     return "–" if v is None else f.format(v)
 
 
+def rule_summary(rows, runs, ref: str, min_gain: float, max_loss: float) -> str:
+    """Markdown: one line per candidate (the run folder's parent) against candidate `ref`."""
+    by: dict[str, dict[str, dict]] = {}
+    for r, run in zip(rows, runs):
+        by.setdefault(run.resolve().parent.name, {})[r["scene"]] = r
+    if ref not in by:
+        raise SystemExit(f"--rule {ref}: no run folder under a parent named {ref!r}")
+    scenes = sorted(by[ref])
+    out = [f"Rule: mean PSNR over {', '.join(scenes)} at least {min_gain} dB above `{ref}`, "
+           f"no scene more than {max_loss} dB below it.", "",
+           "| candidate | mean PSNR | Δ mean | worst scene Δ | mean LPIPS | mean #G | verdict |",
+           "|---|---|---|---|---|---|---|"]
+    ref_mean = sum(by[ref][s]["psnr"] for s in scenes) / len(scenes)
+    for cand, sc in by.items():
+        if sorted(sc) != scenes:
+            out.append(f"| {cand} | – | – | – | – | – | incomplete: scenes {sorted(sc)} |")
+            continue
+        mean = sum(sc[s]["psnr"] for s in scenes) / len(scenes)
+        worst = min(sc[s]["psnr"] - by[ref][s]["psnr"] for s in scenes)
+        lp = [sc[s]["lpips"] for s in scenes]
+        lps = "–" if None in lp else f"{sum(lp) / len(lp):.4f}"
+        ng = sum(sc[s]["num_gaussians"] for s in scenes) / len(scenes)
+        verdict = "reference" if cand == ref else (
+            "passes" if mean - ref_mean >= min_gain and worst >= -max_loss else "fails")
+        out.append(f"| {cand} | {mean:.3f} | {mean - ref_mean:+.3f} | {worst:+.2f} | {lps} | {ng:,.0f} | {verdict} |")
+    return "\n".join(out) + "\n"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", type=Path)
@@ -71,6 +99,11 @@ def main(argv=None):
     ap.add_argument("--size", action="store_true", help="show the evaluated image size")
     ap.add_argument("--label", action="store_true",
                     help="first column: the run folder's parent name (e.g. the candidate of a sweep)")
+    ap.add_argument("--rule", metavar="REF", default=None,
+                    help="with --label: per candidate, mean PSNR over its scenes, change against candidate REF, "
+                         "worst scene, and the screening rule's verdict (docs/measurements/stdr_fidelity_protocol.md)")
+    ap.add_argument("--min-gain", type=float, default=0.3, help="rule: mean PSNR gain needed (dB)")
+    ap.add_argument("--max-loss", type=float, default=0.3, help="rule: largest loss allowed on any scene (dB)")
     args = ap.parse_args(argv)
     rows = [load(r, args.split, args.config_cols, args.size) for r in args.runs]
     if args.label:
@@ -83,6 +116,8 @@ def main(argv=None):
         lines.append(f"| {r['scene']} | {r['method']} | " + " | ".join(
             [str(r["extra"][k]) for k in extra] + [fmt(r.get(k), f) for k, _, f in COLS]) + " |")
     md = "\n".join(lines) + "\n"
+    if args.rule:
+        md += "\n" + rule_summary(rows, args.runs, args.rule, args.min_gain, args.max_loss)
     print(md)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
