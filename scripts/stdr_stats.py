@@ -36,19 +36,28 @@ COLS = [("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("lpips", "LPIPS
         ("dynamic_probability_mean", "dyn p", "{:.3f}"), ("fraction_dynamic", "dyn>0.5", "{:.2f}")]
 
 
-def config_value(cfg: dict, key: str):
+MISSING = object()
+
+
+def config_value(cfg: dict, key: str, run: Path | None = None, allow_missing: bool = False):
     v = cfg
     for part in key.split("."):
         if not isinstance(v, dict) or part not in v:
-            raise KeyError(f"config key {key!r} not found in the run's config.yaml")
+            if allow_missing:
+                return MISSING
+            raise KeyError(f"config key {key!r} not found in {run or 'the run'}/config.yaml (a run older than the "
+                           "key: pass --allow-missing to show it as '–')")
         v = v[part]
     return v
 
 
-def load(run: Path, split: str, config_cols=(), size=False) -> dict:
+def load(run: Path, split: str, config_cols=(), size=False, allow_missing=False) -> dict:
     m = json.loads((run / "metrics.json").read_text())[split]
     cfg = yaml.safe_load((run / "config.yaml").read_text())
-    extra = {k: config_value(cfg, k) for k in config_cols}
+    extra = {}
+    for k in config_cols:
+        v = config_value(cfg, k, run, allow_missing)
+        extra[k] = "–" if v is MISSING else v
     if size:
         extra["size"] = f"{m['width']}x{m['height']}" if "width" in m else None
     prof = run / "train_profile.json"
@@ -99,13 +108,15 @@ def main(argv=None):
     ap.add_argument("--size", action="store_true", help="show the evaluated image size")
     ap.add_argument("--label", action="store_true",
                     help="first column: the run folder's parent name (e.g. the candidate of a sweep)")
+    ap.add_argument("--allow-missing", action="store_true",
+                    help="a --config-cols key absent from a run's config.yaml (an older run) shows as '–'")
     ap.add_argument("--rule", metavar="REF", default=None,
                     help="with --label: per candidate, mean PSNR over its scenes, change against candidate REF, "
                          "worst scene, and the screening rule's verdict (docs/measurements/stdr_fidelity_protocol.md)")
     ap.add_argument("--min-gain", type=float, default=0.3, help="rule: mean PSNR gain needed (dB)")
     ap.add_argument("--max-loss", type=float, default=0.3, help="rule: largest loss allowed on any scene (dB)")
     args = ap.parse_args(argv)
-    rows = [load(r, args.split, args.config_cols, args.size) for r in args.runs]
+    rows = [load(r, args.split, args.config_cols, args.size, args.allow_missing) for r in args.runs]
     if args.label:
         for r, run in zip(rows, args.runs):
             r["extra"] = {"run": run.resolve().parent.name, **r["extra"]}
