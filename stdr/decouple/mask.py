@@ -55,7 +55,7 @@ def mask_at(logits: Tensor, t: float, knots: Tensor) -> Tensor:
     return (1.0 - w) * a + w * torch.sigmoid(logits[:, j1])
 
 
-def temporal_loss(logits: Tensor, reduction: str = "sum") -> Tensor:
+def temporal_loss(logits: Tensor, reduction: str = "mean") -> Tensor:
     """L_temp over the activated mask a = sigmoid(m) [N, K]: sum_{i,t} (a_i^t - a_i^{t+1})^2.
 
     reduction="sum" is the paper's formula: the gradient on each mask entry is

@@ -102,6 +102,8 @@ class STDR:
         self.warmup_end, self.freeze_at = resolve_phases(cfg, baseline_warmup, iterations)
         self.opacity_init, self.mask_init = resolve_init(cfg, init_opacity)
         self._cleaned = False
+        self.cleaned_entries: Optional[int] = None  # set at the freeze
+        self.freeze_moved: Optional[str] = None     # set when a stage switch moved the freeze
         self.xyz_freqs = xyz_freqs if cfg.field_pe_xyz else -1
         self.gen = torch.Generator().manual_seed(seed + 7919)
         self.knn_seconds = 0.0
@@ -242,7 +244,7 @@ class STDR:
         """p = softmax_t(m) [N, K], computed once per mask tensor (uniform without a mask)."""
         if not self.has_mask(params):
             n = params["means"].shape[0]
-            return torch.full((n, self.K), 1.0 / self.K)
+            return torch.full((n, self.K), 1.0 / self.K, device=params["means"].device)
         m = params[MASK_KEY]
         if self._p_for is not m:
             self._p = torch.softmax(m.detach(), -1)
@@ -259,7 +261,7 @@ class STDR:
             return None, None
         n = params["means"].shape[0]
         if self.phase(step) != Phase.FROZEN:
-            return torch.zeros(n, self.cond_dim), None
+            return torch.zeros(n, self.cond_dim, device=params["means"].device), None
         x = self.probabilities(params)
         if self.xyz_freqs >= 0:
             x = torch.cat([x, positional_encoding(params["means"].detach(), self.xyz_freqs)], -1)
@@ -299,7 +301,7 @@ class STDR:
         return {"knots": self.knots, "field": None if self.field is None else self.field.state_dict(),
                 "gen": self.gen.get_state(), "knn": self._knn, "knn_step": self._knn_step,
                 "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes,
-                "cleaned": self._cleaned, "cleaned_entries": getattr(self, "cleaned_entries", None)}
+                "cleaned": self._cleaned, "cleaned_entries": self.cleaned_entries}
 
     def load_state_dict(self, s: dict[str, Any], params) -> None:
         if self.knots is None or not torch.equal(self.knots, s["knots"]):
@@ -351,9 +353,8 @@ class STDR:
         """Numbers for metrics.json: mask size and memory, KNN time, mask and field statistics."""
         out: dict[str, Any] = {"K": self.K, "warmup_end": self.warmup_end, "freeze_at": self.freeze_at,
                                "opacity_init": self.opacity_init, "mask_init": self.mask_init,
-                               "freeze_moved": getattr(self, "freeze_moved", None),
-                               "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes,
-                "cleaned": self._cleaned, "cleaned_entries": getattr(self, "cleaned_entries", None)}
+                               "freeze_moved": self.freeze_moved, "cleaned_entries": self.cleaned_entries,
+                               "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes}
         if self.has_mask(params):
             m = params[MASK_KEY].detach()
             n = m.shape[0]
@@ -369,7 +370,6 @@ class STDR:
                 "fraction_never_off": float((a.amin(1) >= 0.5).float().mean()),
                 # (Gaussian, time) entries with masked opacity in [1/255, 0.05]: faint copies
                 "fraction_faint": faint_fraction(torch.sigmoid(params["opacities"].detach()), m),
-                "cleaned_entries": getattr(self, "cleaned_entries", None),
                 "temporal_entropy_mean": float(ent.mean()),
                 "temporal_entropy_quantiles": [float(x) for x in
                                                torch.quantile(ent.float(), torch.tensor([0.1, 0.5, 0.9]))]

@@ -235,10 +235,8 @@ class ControlNodeDeformation(Deformation):
         t2 = t1 + self.arap_dt
         p = self.nodes[:, :3].detach()
         _, nbr = knn(p, p, min(self.arap_k, self.m - 1), exclude_self=True)
-        cond_n = None
-        if self.cond_dim:
-            cond_n = (p.new_zeros(self.m, self.cond_dim) if cond is None
-                      else self.node_conditioning(cond, *self.skinning(params)))
+        cond_n = self._cond_or_zeros(None if cond is None or not self.cond_dim
+                                     else self.node_conditioning(cond, *self.skinning(params)), self.m, p)
         p1 = p + self.node_deltas(p, t1, cond_n)[0]
         p2 = p + self.node_deltas(p, t2, cond_n)[0]
         return {"scgs_arap": lam * arap_energy(p1, p2, nbr)}

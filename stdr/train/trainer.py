@@ -125,8 +125,9 @@ class Trainer:
         self.strategy = DensifyStrategy(**OmegaConf.to_container(cfg.densify))
         extent = scene_extent(self.scene.camera_centers("train")) if "train" in self.scene.splits else 1.0
         white = all(float(c) >= 1.0 for c in self.scene.background)
+        dev = self.params["means"].device if pts is not None else None
         self.strategy_state = self.strategy.initialize_state(len(pts) if pts is not None else 0, extent,
-                                                             white_background=white)
+                                                             white_background=white, device=dev)
         self.sampler = CameraSampler(len(self.scene.splits.get("train", [])), cfg.seed)
         self.step = 0
         self.train_seconds = 0.0
