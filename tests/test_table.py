@@ -25,3 +25,40 @@ def test_table_means_and_seed_averaging():
 def test_table_refuses_to_mix_different_configs():
     with pytest.raises(ValueError, match=r"differ in \['baseline.width'\]"):
         collect([_row("deform", "a", 30.0), _row("deform", "a", 31.0, seed=1, width=256)])
+
+
+def _gap_module():
+    import importlib.util
+    from conftest import ROOT
+    spec = importlib.util.spec_from_file_location("stdr_gap", ROOT / "scripts" / "stdr_gap.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _gap_run(folder, scene, psnr, lpips, n, iterations=2000):
+    import json
+    d = folder / scene
+    d.mkdir(parents=True)
+    (d / "metrics.json").write_text(json.dumps({"val": {"psnr": psnr, "lpips": lpips, "num_gaussians": n,
+                                                        "iterations": iterations}}))
+
+
+def test_stdr_gap_pairs_scenes_and_refuses_mixed_lengths(tmp_path):
+    gap = _gap_module()
+    _gap_run(tmp_path / "p", "a", 30.0, 0.10, 1000)
+    _gap_run(tmp_path / "p", "b", 20.0, 0.20, 3000)
+    _gap_run(tmp_path / "s", "a", 31.0, 0.12, 500)
+    _gap_run(tmp_path / "s", "b", 19.0, 0.20, 3000)
+    _gap_run(tmp_path / "p", "c", 25.0, 0.1, 10)  # only in the plain folder: listed, never averaged
+    rows, missing = gap.point_rows("2k", tmp_path / "p", tmp_path / "s", "val")
+    assert [r["scene"] for r in rows] == ["a", "b"] and missing == ["c"]
+    assert rows[0]["d_psnr"] == pytest.approx(1.0) and rows[0]["g_ratio"] == pytest.approx(0.5)
+    m = gap.mean_row("2k", rows)
+    assert m["d_psnr"] == pytest.approx(0.0) and m["d_lpips"] == pytest.approx(0.01)
+    _gap_run(tmp_path / "s2", "a", 31.0, 0.12, 500, iterations=5000)
+    _gap_run(tmp_path / "p2", "a", 31.0, 0.12, 500, iterations=2000)
+    with pytest.raises(SystemExit, match="plain trained 2000 iterations, STDR 5000"):
+        gap.point_rows("x", tmp_path / "p2", tmp_path / "s2", "val")
+    with pytest.raises(SystemExit, match="no 'test' entry"):
+        gap.read(tmp_path / "p" / "a", "test")
