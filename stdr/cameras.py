@@ -48,6 +48,10 @@ class Camera:
     def center(self) -> Tensor:  # [3] camera centre in world coordinates
         return -self.R.T @ self.t
 
+    def to(self, device: torch.device | str) -> "Camera":
+        """The same camera with R and t on `device`."""
+        return replace(self, R=self.R.to(device), t=self.t.to(device))
+
     def scaled(self, sx: float, sy: float | None = None) -> "Camera":
         """The same camera for an image resized by (sx, sy); intrinsics scale with it."""
         sy = sx if sy is None else sy

@@ -204,6 +204,7 @@ class Config:
     name: str = "embedded_deform"  # experiment name (run folder, tables)
     budget: str = "cpu"
     seed: int = 0
+    device: str = "auto"  # auto (cuda when torch sees a GPU, else cpu) | cpu | cuda | cuda:<index>
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
@@ -225,6 +226,7 @@ class EvalAppConfig:
     reevaluate: bool = True      # False: only tabulate the metrics.json already in the runs
     eval: EvalConfig = field(default_factory=EvalConfig)
     render: Optional[RenderConfig] = None  # override the runs' render settings (e.g. backend)
+    device: Optional[str] = None  # override the runs' device (auto | cpu | cuda | cuda:<index>)
 
 
 def register() -> None:

@@ -16,7 +16,7 @@ _WINDOWS: dict = {}
 def _window(size: int, sigma: float, channels: int, dtype, device) -> Tensor:
     key = (size, sigma, channels, dtype, device)
     if key not in _WINDOWS:
-        x = torch.arange(size, dtype=torch.float64) - size // 2
+        x = torch.arange(size, dtype=torch.float64, device="cpu") - size // 2  # built on the host, then moved
         g = torch.exp(-x * x / (2 * sigma * sigma))
         g = g / g.sum()
         w = (g[:, None] @ g[None, :]).to(dtype=dtype, device=device)

@@ -10,6 +10,7 @@ from hydra import compose, initialize_config_dir
 from stdr.cli.common import CONFIG_DIR
 from stdr.cli.train import run
 from stdr.config import register
+from stdr.device import resolve_device
 
 register()
 
@@ -92,11 +93,15 @@ def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
     assert (run_dir / "point_cloud.ply").is_file() and (run_dir / "checkpoints" / "last.pt").is_file()
     assert list((run_dir / "tb").glob("events.out.tfevents.*"))
 
-    # stdr-eval re-renders from the checkpoint and reproduces the numbers
+    assert test["conventions"]["device"] == str(resolve_device("auto"))
+
+    # stdr-eval re-renders from the checkpoint (on the device it is told) and reproduces the numbers
     out = tmp_path / "tables"
     proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}",
-                           "eval.lpips=false"], capture_output=True, text=True, timeout=600)
+                           "eval.lpips=false", "device=cpu"],
+                          capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((run_dir / "metrics.json").read_text())["test"]["conventions"]["device"] == "cpu"
     table = json.loads((out / "table.json").read_text())
     cell = table["cells"]["deform"]["embedded"]
     assert cell["psnr"] == pytest.approx(test["psnr"], abs=1e-4)

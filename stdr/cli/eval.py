@@ -15,7 +15,7 @@ register()
 
 
 def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reevaluate: bool,
-                  out_dir: Path, base: str) -> dict:
+                  out_dir: Path, base: str, device: str | None = None) -> dict:
     import json
 
     from ..eval.evaluate import evaluate_run
@@ -34,6 +34,8 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
         if reevaluate:
             if render_cfg is not None:
                 cfg.render = render_cfg
+            if device is not None:  # e.g. a run trained on a GPU, re-evaluated on a CPU machine
+                cfg.device = device
             tr = Trainer(cfg, rd, splits=(sp,), data_base=base, init_gaussians=False)
             tr.load(rd / CKPT, training=False)
             res = evaluate_run(tr, sp, eval_cfg)
@@ -58,7 +60,7 @@ def _main(cfg: DictConfig) -> None:
         raise SystemExit("usage: stdr-eval RUN_DIR [RUN_DIR ...] [key=value ...]")
     out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
     evaluate_dirs(list(cfg.runs), cfg.split, cfg.eval, cfg.render, cfg.reevaluate, out,
-                  hydra.utils.get_original_cwd())
+                  hydra.utils.get_original_cwd(), cfg.device)
 
 
 def main() -> None:

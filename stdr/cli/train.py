@@ -27,7 +27,7 @@ def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict:
     print(f"[stdr] {cfg.name}: {len(trainer.scene.frames('train'))} train / "
           f"{len(trainer.scene.frames(split))} {split} frames at "
           f"{trainer.scene.frames('train')[0].camera.width}x{trainer.scene.frames('train')[0].camera.height}, "
-          f"backend={trainer.backend}, run dir {run_dir}")
+          f"device={trainer.device}, backend={trainer.backend}, run dir {run_dir}")
     print(f"[stdr] TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
     if trainer.stdr is not None:
         print(trainer.stdr.describe_phases())

@@ -1,7 +1,7 @@
 """The one camera/frame type every loader yields."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
@@ -18,6 +18,11 @@ class Frame:
     name: str                # file the image came from, relative to the dataset root
     alpha: Optional[Tensor] = None  # [H, W] in [0, 1] when the source has an alpha channel
 
+    def to(self, device) -> "Frame":
+        """The frame with its image (and alpha) and camera on `device`."""
+        return replace(self, camera=self.camera.to(device), image=self.image.to(device),
+                       alpha=None if self.alpha is None else self.alpha.to(device))
+
 
 @dataclass
 class SceneData:
@@ -30,6 +35,12 @@ class SceneData:
     init_colors: Optional[np.ndarray] = None  # [P, 3] in [0, 1], when the points come with colours
     meta: dict = field(default_factory=dict)
 
+    def to(self, device) -> "SceneData":
+        """Move every frame's image and camera to `device`, once (in place; returns self)."""
+        for name, frames in self.splits.items():
+            self.splits[name] = [f.to(device) for f in frames]
+        return self
+
     def frames(self, split: str) -> list[Frame]:
         if split not in self.splits:
             raise KeyError(f"split {split!r} not loaded from {self.root}; available: {sorted(self.splits)}")
@@ -40,4 +51,4 @@ class SceneData:
         return np.unique(np.array([f.time for f in self.frames("train")], dtype=np.float64))
 
     def camera_centers(self, split: str = "train") -> np.ndarray:
-        return np.stack([f.camera.center.double().numpy() for f in self.frames(split)])
+        return np.stack([f.camera.center.double().cpu().numpy() for f in self.frames(split)])

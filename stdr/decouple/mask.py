@@ -22,7 +22,7 @@ def knot_times(train_times, time_bins: int = 0) -> Tensor:
     if time_bins:
         if time_bins < 2:
             raise ValueError(f"stdr.time_bins={time_bins}: use 0 (one column per training time) or >= 2")
-        return torch.linspace(0.0, 1.0, time_bins, dtype=torch.float64)
+        return torch.linspace(0.0, 1.0, time_bins, dtype=torch.float64, device="cpu")
     t = np.unique(np.asarray(train_times, dtype=np.float64))
     if t.size == 0:
         raise ValueError("STDR needs at least one training timestamp")
@@ -116,9 +116,10 @@ def sample_neighbours(means: Tensor, n_query: int, n_candidates: int, k: int,
     if N <= k:
         return empty
     # drawn with the CPU generator (same stream as before), then moved to the points' device
-    cand = (torch.randperm(N, generator=generator)[:min(n_candidates, N)] if N > n_candidates
-            else torch.arange(N)).to(dev)
-    q_local = torch.randperm(cand.numel(), generator=generator)[:min(n_query, cand.numel())].to(dev)
+    g_dev = generator.device
+    cand = (torch.randperm(N, generator=generator, device=g_dev)[:min(n_candidates, N)] if N > n_candidates
+            else torch.arange(N, device=g_dev)).to(dev)
+    q_local = torch.randperm(cand.numel(), generator=generator, device=g_dev)[:min(n_query, cand.numel())].to(dev)
     pts = means[cand].detach()
     _, nbr_local = knn(pts[q_local], pts, k + 1)  # the query is among the candidates
     # drop the query itself (distance 0, but ties with duplicates are possible): remove its index

@@ -97,8 +97,9 @@ class STDR:
     """State and rules of the plug-in. `cfg` is the `stdr` config node (StdrConfig)."""
 
     def __init__(self, cfg, baseline_warmup: int, knots: Optional[Tensor], xyz_freqs: int, seed: int,
-                 iterations: int, init_opacity: float = 0.1):
+                 iterations: int, init_opacity: float = 0.1, device: torch.device | str = "cpu"):
         self.cfg = cfg
+        self.device = torch.device(device)  # of the separated field; the knots stay on the CPU (host-side lookups)
         self.warmup_end, self.freeze_at = resolve_phases(cfg, baseline_warmup, iterations)
         self.opacity_init, self.mask_init = resolve_init(cfg, init_opacity)
         self._cleaned = False
@@ -129,7 +130,7 @@ class STDR:
         if self.cfg.separated_field:
             pe = 0 if self.xyz_freqs < 0 else 3 * (1 + 2 * self.xyz_freqs)
             self.field = SeparatedField(self.K + pe, self.cfg.field_width, self.cfg.temporal_dim,
-                                        self.cfg.dropout)
+                                        self.cfg.dropout).to(self.device)
 
     @property
     def K(self) -> int:
@@ -311,7 +312,7 @@ class STDR:
         if self.field is not None:
             self.field.load_state_dict(s["field"])
         self.gen.set_state(s["gen"])
-        self._knn = s["knn"]
+        self._knn = None if s["knn"] is None else tuple(x.to(self.device) for x in s["knn"])
         self._knn_step = int(s["knn_step"])
         self._knn_for = params.get(MASK_KEY) if self._knn is not None else None
         self.knn_seconds = float(s["knn_seconds"])
@@ -343,8 +344,8 @@ class STDR:
         sorted by the time of their peak, time left to right."""
         n = a.shape[0]
         if n == 0:
-            return torch.zeros(cell, cell)
-        idx = torch.linspace(0, n - 1, min(rows, n)).long()
+            return torch.zeros(cell, cell, device=a.device)
+        idx = torch.linspace(0, n - 1, min(rows, n), device=a.device).long()
         s = a[idx]
         s = s[torch.argsort(s.argmax(1), stable=True)]
         return s.repeat_interleave(cell, 0).repeat_interleave(cell, 1).clamp(0, 1)
@@ -372,7 +373,7 @@ class STDR:
                 "fraction_faint": faint_fraction(torch.sigmoid(params["opacities"].detach()), m),
                 "temporal_entropy_mean": float(ent.mean()),
                 "temporal_entropy_quantiles": [float(x) for x in
-                                               torch.quantile(ent.float(), torch.tensor([0.1, 0.5, 0.9]))]
+                                               torch.quantile(ent.float(), torch.tensor([0.1, 0.5, 0.9], device=ent.device))]
                 if n else [],
             })
         if self.field is not None:

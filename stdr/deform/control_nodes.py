@@ -140,7 +140,7 @@ class ControlNodeDeformation(Deformation):
                              "lower baseline.scgs.num_nodes")
         c = self._cond_or_zeros(None if cond is None else cond.detach(), x.shape[0], x)
         traj = []
-        for t in torch.linspace(0.0, 1.0, self.trajectory_samples).tolist():
+        for t in torch.linspace(0.0, 1.0, self.trajectory_samples, device="cpu").tolist():
             dx, _, _ = self.node_deltas(x, t, c)
             traj.append(x + dx)
         idx = farthest_point_sampling(torch.cat(traj, -1), self.m, self.gen)
@@ -231,7 +231,7 @@ class ControlNodeDeformation(Deformation):
             return {}
         # the pair of times comes from (seed, step), so a resumed run draws the same ones
         g = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
-        t1 = float(torch.rand((), generator=g)) * (1.0 - self.arap_dt)
+        t1 = float(torch.rand((), generator=g, device="cpu")) * (1.0 - self.arap_dt)
         t2 = t1 + self.arap_dt
         p = self.nodes[:, :3].detach()
         _, nbr = knn(p, p, min(self.arap_k, self.m - 1), exclude_self=True)

@@ -69,7 +69,8 @@ def farthest_point_sampling(x: Tensor, m: int, generator: Optional[torch.Generat
     if m > n:
         raise ValueError(f"farthest point sampling: asked for {m} of {n} points")
     idx = torch.empty(m, dtype=torch.long, device=x.device)
-    first = int(torch.randint(n, (1,), generator=generator)) if start is None else start
+    first = int(torch.randint(n, (1,), generator=generator, device="cpu" if generator is None else generator.device)) \
+        if start is None else start
     idx[0] = first
     d = (x - x[first]).square().sum(-1)
     for i in range(1, m):

@@ -158,5 +158,5 @@ class HexPlaneDeformation(Deformation):
             for pi in range(len(planes)):
                 key = f"grid.grids.{gi}.{pi}"
                 if key in state_dict and state_dict[key].shape != planes[pi].shape:
-                    planes[pi] = nn.Parameter(torch.empty_like(state_dict[key]))
+                    planes[pi] = nn.Parameter(torch.empty_like(state_dict[key], device=planes[pi].device))
         return super().load_state_dict(state_dict, strict=strict, assign=assign)

@@ -17,6 +17,7 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
+from ..device import synchronize
 from ..metrics import psnr, ssim
 from ..scene.gaussians import num_gaussians
 from .lpips import LPIPS
@@ -36,9 +37,6 @@ def make_lpips(eval_cfg) -> Optional[LPIPS]:
         return None
 
 
-def _sync():
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
 
 
 @torch.no_grad()
@@ -51,11 +49,12 @@ def evaluate_trainer(trainer, split: str, step: int, lpips_fn=None, save_dir: Op
     # untimed warm-up renders (allocator, caches, JIT)
     for f in frames[:fps_warmup]:
         trainer.render_frame(f, step)
+    dev = trainer.device
     for i, f in enumerate(frames):
-        _sync()
+        synchronize(dev)
         t0 = time.perf_counter()
         out = trainer.render_frame(f, step)
-        _sync()
+        synchronize(dev)
         times.append(time.perf_counter() - t0)
         img = out.image.clamp(0, 1)
         ps.append(float(psnr(img, f.image)))
@@ -64,7 +63,7 @@ def evaluate_trainer(trainer, split: str, step: int, lpips_fn=None, save_dir: Op
             ls.append(float(lpips_fn(img, f.image)))
         if save_dir is not None:
             import cv2
-            both = torch.cat([img, f.image], 1).numpy()
+            both = torch.cat([img, f.image], 1).cpu().numpy()
             cv2.imwrite(str(save_dir / f"{i:03d}.png"), (both[..., ::-1] * 255 + 0.5).astype(np.uint8))
     return {
         "psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)),
@@ -77,13 +76,15 @@ def evaluate_trainer(trainer, split: str, step: int, lpips_fn=None, save_dir: Op
     }
 
 
-def metric_conventions(eval_cfg, lpips_fn, backend: str) -> dict[str, Any]:
+def metric_conventions(eval_cfg, lpips_fn, backend: str, device: torch.device) -> dict[str, Any]:
+    """How the numbers were measured, including the device and rasterizer backend the run used."""
     return {
         "psnr": "float render clamped to [0,1], data range 1, full image",
         "ssim": "3DGS: 11x11 Gaussian window sigma 1.5, zero padding, data range 1",
         "lpips": None if lpips_fn is None else f"LPIPS-{lpips_fn.net} v0.1, inputs {lpips_fn.input_range}",
         "fps": "deformation + projection + rasterization, perf_counter, after warm-up, no I/O",
-        "device": "cuda" if torch.cuda.is_available() else "cpu",
+        "device": str(device),
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "torch_threads": torch.get_num_threads(),
         "render_backend": backend,
     }
@@ -92,10 +93,12 @@ def metric_conventions(eval_cfg, lpips_fn, backend: str) -> dict[str, Any]:
 def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
     """Final evaluation of a trained run; merges the result into run_dir/metrics.json."""
     lp = make_lpips(eval_cfg)
+    if lp is not None:
+        lp = lp.to(trainer.device)
     save_dir = trainer.run_dir / "renders" / split if eval_cfg.save_images else None
     res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup)
     res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step,
-                "conventions": metric_conventions(eval_cfg, lp, trainer.backend),
+                "conventions": metric_conventions(eval_cfg, lp, trainer.backend, trainer.device),
                 "data": trainer.scene.meta})  # how the scene was read (split, scale, intrinsics, ...)
     if getattr(trainer, "stdr", None) is not None:  # mask memory, KNN time, mask/field statistics
         res["stdr"] = trainer.stdr.stats(trainer.params)

@@ -53,25 +53,27 @@ def init_params(points: Tensor, colors: Optional[Tensor] = None, sh_degree: int 
     if N < knn_k + 1:
         raise ValueError(f"init_params: need at least {knn_k + 1} points, got {N}")
     if colors is None:
-        colors = torch.rand(N, 3)
+        colors = torch.rand(N, 3, device=points.device)
     d2, _ = knn(points, points, knn_k, exclude_self=True)
     dist = torch.sqrt(d2.mean(1).clamp_min(1e-7))
     K = num_sh_bases(sh_degree)
-    quats = torch.zeros(N, 4)
+    dev = points.device
+    quats = torch.zeros(N, 4, device=dev)
     quats[:, 0] = 1.0
     return nn.ParameterDict({
         "means": nn.Parameter(points.clone()),
         "scales": nn.Parameter(torch.log(dist)[:, None].repeat(1, 3)),
         "quats": nn.Parameter(quats),
-        "opacities": nn.Parameter(torch.full((N,), math.log(init_opacity / (1 - init_opacity)))),
+        "opacities": nn.Parameter(torch.full((N,), math.log(init_opacity / (1 - init_opacity)), device=dev)),
         "sh0": nn.Parameter(rgb_to_sh(colors.float())[:, None, :]),
-        "shN": nn.Parameter(torch.zeros(N, K - 1, 3)),
+        "shN": nn.Parameter(torch.zeros(N, K - 1, 3, device=dev)),
     })
 
 
 def random_cube_points(n: int, extent: float, generator: Optional[torch.Generator] = None) -> Tensor:
     """n points uniform in [-extent, extent]^3 (D-NeRF init: 100k in [-1.3, 1.3]^3)."""
-    return (torch.rand(n, 3, generator=generator) * 2 - 1) * extent
+    dev = "cpu" if generator is None else generator.device
+    return (torch.rand(n, 3, generator=generator, device=dev) * 2 - 1) * extent
 
 
 def activate(params) -> Gaussians:

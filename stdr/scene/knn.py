@@ -19,7 +19,8 @@ def knn(query: Tensor, points: Tensor, k: int, exclude_self: bool = False,
         q = query[s:s + chunk]
         d2 = torch.cdist(q, points).square_()
         if exclude_self:
-            d2[torch.arange(q.shape[0]), torch.arange(s, s + q.shape[0])] = float("inf")
+            r = torch.arange(q.shape[0], device=q.device)
+            d2[r, r + s] = float("inf")
         d, i = torch.topk(d2, k, dim=1, largest=False)
         d_out.append(d); i_out.append(i)
     return torch.cat(d_out), torch.cat(i_out)

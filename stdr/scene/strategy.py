@@ -96,7 +96,7 @@ def remove(params, optimizers, state: dict, mask: Tensor) -> None:
 
 def reset_opacity(params, optimizers, value: float) -> None:
     """Clamp every opacity to at most `value` and zero its Adam moments."""
-    cap = float(inverse_sigmoid(torch.tensor(value)))
+    cap = float(inverse_sigmoid(torch.tensor(value, device="cpu")))
     p = params["opacities"]
     with torch.no_grad():
         p.clamp_(max=cap)
@@ -195,7 +195,7 @@ class DensifyStrategy:
         dup, spl = cand & is_small, cand & ~is_small
         n_dup, n_split = int(dup.sum()), int(spl.sum())
         duplicate(params, optimizers, state, dup)
-        spl = torch.cat([spl, torch.zeros(n_dup, dtype=torch.bool)])
+        spl = torch.cat([spl, torch.zeros(n_dup, dtype=torch.bool, device=spl.device)])
         split(params, optimizers, state, spl, generator=generator)
 
         opa = torch.sigmoid(params["opacities"]) if opacity_fn is None else opacity_fn(params)

@@ -19,6 +19,7 @@ from torch import Tensor
 from ..data.load import load_scene
 from ..data.types import Frame
 from ..decouple import MASK_KEY, STDR
+from ..device import resolve_device
 from ..deform import build_deformation, deformation_kwargs
 from ..metrics import l1, psnr, ssim
 from ..render import RenderOutput, render, resolve_backend
@@ -54,7 +55,7 @@ class CameraSampler:
 
     def next(self) -> int:
         if not self.stack:
-            self.stack = torch.randperm(self.n, generator=self.gen).tolist()
+            self.stack = torch.randperm(self.n, generator=self.gen, device="cpu").tolist()
         return self.stack.pop()
 
     def state_dict(self):
@@ -79,12 +80,13 @@ class Trainer:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         if cfg.train.threads > 0:
             torch.set_num_threads(cfg.train.threads)
-        torch.manual_seed(cfg.seed)
+        self.device = resolve_device(cfg.device)
+        torch.manual_seed(cfg.seed)  # also seeds every CUDA device
         np.random.seed(cfg.seed)
-        self.scene = load_scene(cfg.data, splits, base=data_base)
-        self.background = torch.tensor(self.scene.background, dtype=torch.float32)
-        self.backend = resolve_backend(cfg.render.backend)
-        gen = torch.Generator().manual_seed(cfg.seed)
+        self.scene = load_scene(cfg.data, splits, base=data_base).to(self.device)  # images moved once
+        self.background = torch.tensor(self.scene.background, dtype=torch.float32, device=self.device)
+        self.backend = resolve_backend(cfg.render.backend, self.device)
+        gen = torch.Generator().manual_seed(cfg.seed)  # initial points and colours: drawn on the CPU, the same on every device
         m = cfg.model
         if not init_gaussians:
             pts = None
@@ -102,13 +104,14 @@ class Trainer:
             colors = torch.rand(pts.shape[0], 3, generator=gen)
             if m.init == "points" and self.scene.init_colors is not None:
                 colors = torch.from_numpy(self.scene.init_colors).float()
-            self.params = init_params(pts, colors, sh_degree=m.sh_degree, init_opacity=m.init_opacity)
+            self.params = init_params(pts.to(self.device), colors.to(self.device), sh_degree=m.sh_degree,
+                                      init_opacity=m.init_opacity)
         self.stdr = self._make_stdr() if cfg.stdr.enabled else None
         if self.stdr is not None and pts is not None:
             self.stdr.add_mask(self.params)
         train_times = self.scene.train_times() if "train" in self.scene.splits else None
         self.deform = build_deformation_from_cfg(cfg, cond_dim=self.stdr.cond_dim if self.stdr else 0,
-                                                 train_times=train_times)
+                                                 train_times=train_times).to(self.device)
         if self.stdr is not None:
             moved = self.stdr.avoid_stage_switches(self.deform.stage_switches())
             if moved:
@@ -116,7 +119,7 @@ class Trainer:
         if pts is not None:  # per-Gaussian state of the baseline (kept aligned by densification)
             self.deform.setup(self.params, train_times)
             for k, v in self.deform.gaussian_params(len(pts)).items():
-                self.params[k] = torch.nn.Parameter(v)
+                self.params[k] = torch.nn.Parameter(v.to(self.device))
         self.optimizers = self._make_optimizers()
         groups = [dict(g) for g in self.deform.param_groups()]
         if self.stdr is not None and self.stdr.field is not None:  # trained on the deformation's schedule
@@ -125,9 +128,8 @@ class Trainer:
         self.strategy = DensifyStrategy(**OmegaConf.to_container(cfg.densify))
         extent = scene_extent(self.scene.camera_centers("train")) if "train" in self.scene.splits else 1.0
         white = all(float(c) >= 1.0 for c in self.scene.background)
-        dev = self.params["means"].device if pts is not None else None
         self.strategy_state = self.strategy.initialize_state(len(pts) if pts is not None else 0, extent,
-                                                             white_background=white, device=dev)
+                                                             white_background=white, device=self.device)
         self.sampler = CameraSampler(len(self.scene.splits.get("train", [])), cfg.seed)
         self.step = 0
         self.train_seconds = 0.0
@@ -140,7 +142,7 @@ class Trainer:
         c = self.cfg
         knots = STDR.knots_for(c.stdr, self.scene.train_times()) if "train" in self.scene.splits else None
         return STDR(c.stdr, c.baseline.warmup, knots, xyz_freqs=c.baseline.xyz_freqs, seed=c.seed,
-                    iterations=c.optim.iterations, init_opacity=c.model.init_opacity)
+                    iterations=c.optim.iterations, init_opacity=c.model.init_opacity, device=self.device)
 
     # ----------------------------------------------------------------- optimizers
     def _lr(self, key: str, step: int) -> float:
@@ -241,7 +243,7 @@ class Trainer:
                              f"config has stdr.enabled={self.cfg.stdr.enabled}; use the run's own config.yaml")
         self.params.clear()
         for k, v in ck["params"].items():
-            self.params[k] = torch.nn.Parameter(v)
+            self.params[k] = torch.nn.Parameter(v.to(self.device))
         self.deform.load_state_dict(ck["deform"])
         if self.stdr is not None:
             self.stdr.load_state_dict(ck["stdr"], self.params)
@@ -253,7 +255,8 @@ class Trainer:
             for k, o in self.optimizers.items():
                 o.load_state_dict(ck["optimizers"][k])
             self.deform_opt.load_state_dict(ck["deform_opt"])
-            self.strategy_state = ck["strategy_state"]
+            self.strategy_state = {k: v.to(self.device) if torch.is_tensor(v) else v
+                                   for k, v in ck["strategy_state"].items()}
             self.sampler.load_state_dict(ck["sampler"])
             set_rng_state(ck["rng"])
 

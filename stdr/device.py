@@ -1,0 +1,37 @@
+"""The `device` config key: where a run's tensors live."""
+from __future__ import annotations
+
+import torch
+
+
+def resolve_device(name: str) -> torch.device:
+    """`auto` = the current CUDA device when torch sees one, else the CPU; otherwise a torch
+    device name (`cpu`, `cuda`, `cuda:1`). Asking for CUDA where torch has none is an error that
+    says why, never a silent fall back to the CPU."""
+    name = str(name).strip()
+    if name == "auto":
+        return torch.device("cuda", torch.cuda.current_device()) if torch.cuda.is_available() else torch.device("cpu")
+    try:
+        dev = torch.device(name)
+    except RuntimeError as e:
+        raise ValueError(f"device={name!r} is not a torch device name ({e}); use auto, cpu, cuda or cuda:<index>") \
+            from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            why = ("this torch is a CPU-only build" if torch.version.cuda is None
+                   else f"torch (CUDA {torch.version.cuda}) sees no GPU: check the driver and CUDA_VISIBLE_DEVICES")
+            raise ValueError(f"device={name}: {why}. Use device=cpu or device=auto; README 'Training on a GPU' says "
+                             "how to install a CUDA build of torch")
+        index = torch.cuda.current_device() if dev.index is None else dev.index
+        if index >= torch.cuda.device_count():
+            raise ValueError(f"device={name}: only {torch.cuda.device_count()} CUDA device(s) visible")
+        return torch.device("cuda", index)
+    if dev.type != "cpu":
+        raise ValueError(f"device={name}: only cpu and cuda are supported (the rasterizer has no {dev.type} backend)")
+    return dev
+
+
+def synchronize(device: torch.device) -> None:
+    """Wait for queued kernels on `device` (for timings); a no-op on the CPU."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)

@@ -1,0 +1,106 @@
+"""The `device` key: every tensor of a run follows it (checked on the CPU with torch's default
+device set to 'meta'), and a short run plus a resume on CUDA where a GPU exists."""
+import importlib.util
+import json
+
+import pytest
+import torch
+
+from conftest import ROOT
+from test_train import _tiny
+
+from stdr.device import resolve_device
+
+
+def _identity_check():
+    spec = importlib.util.spec_from_file_location("identity_check", ROOT / "scripts" / "identity_check.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+# the schedule of scripts/identity_check.py, which crosses every phase boundary in 60 steps: static
+# warm-up, densification with an opacity reset, STDR's three phases, SC-GS's node -> skinning switch
+_ic = _identity_check()
+SCHEDULE = [s for s in _ic.SCHEDULE if not s.startswith("optim.iterations=")] + _ic.STDR_PHASES
+
+
+def test_device_names_resolve_or_fail_with_the_reason():
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ValueError, match="device='gpu0' is not a torch device name"):
+        resolve_device("gpu0")
+    with pytest.raises(ValueError, match="only cpu and cuda"):
+        resolve_device("meta")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="device=cuda: .*(CPU-only build|sees no GPU).*device=cpu"):
+            resolve_device("cuda")
+
+
+class _DefaultDevice:
+    """torch's default device for the `with` block: every tensor created without an explicit
+    device lands there. 'meta' tensors hold no data and refuse to mix with real ones, so any
+    factory call inside a step that ignores the run's device fails loudly."""
+
+    def __init__(self, device):
+        self.device = device
+
+    def __enter__(self):
+        torch.set_default_device(self.device)
+
+    def __exit__(self, *exc):
+        torch.set_default_device(None)
+
+
+@pytest.mark.parametrize("name", ["deform", "scgs", "spgs", "4dgs"])
+def test_no_step_creates_a_tensor_on_a_hard_coded_device(tmp_path, name):
+    """Training (densification, opacity reset, STDR's phases and field, the baseline's stages),
+    a checkpoint, a resume and the evaluation run with the default device set to 'meta', and end
+    bit-identical to the same run without it."""
+    from stdr.eval.evaluate import evaluate_run
+    from stdr.train.trainer import Trainer
+
+    sched = SCHEDULE + [f"experiment=embedded_{name}_stdr", "device=cpu"]
+    a = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "a", splits=("train", "test"))
+    a.train()
+    Trainer(_tiny(tmp_path, sched + ["optim.iterations=35"]), tmp_path / "b").train()
+    b = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "b", splits=("train", "test"))
+    with _DefaultDevice("meta"):
+        b.train()  # resumes at 35 from the checkpoint
+        res = evaluate_run(b, "test", b.cfg.eval)
+    assert b.step == a.step == 60
+    for k in a.params:
+        assert b.params[k].device.type == "cpu" and torch.equal(a.params[k], b.params[k]), k
+    assert res["psnr"] == pytest.approx(a.evaluate("test")["psnr"], abs=1e-6)
+    conv = json.loads((tmp_path / "b" / "metrics.json").read_text())["test"]["conventions"]
+    assert conv["device"] == "cpu" and conv["render_backend"] == b.backend
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine (torch.cuda.is_available() is False)")
+@pytest.mark.parametrize("name", ["deform", "scgs"])
+def test_training_on_cuda_keeps_every_tensor_there_and_resumes(tmp_path, name):
+    """device=cuda: parameters, optimizer moments, strategy state, the deformation module and
+    STDR's field live on the GPU; the CUDA rasterizer is used; a stopped run resumes on the GPU.
+    The CUDA backward accumulates with atomics, so the resumed run is compared within a tolerance."""
+    from stdr.eval.evaluate import evaluate_run
+    from stdr.train.trainer import Trainer
+
+    sched = SCHEDULE + [f"experiment=embedded_{name}_stdr", "device=cuda", "render.backend=auto"]
+    a = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "a", splits=("train", "test"))
+    assert a.backend == "cuda"
+    a.train()
+    for k, p in a.params.items():
+        assert p.device.type == "cuda", k
+        for v in a.optimizers[k].state[p].values():
+            assert not torch.is_tensor(v) or v.dim() == 0 or v.device.type == "cuda", k
+    assert all(v.device.type == "cuda" for v in a.strategy_state.values() if torch.is_tensor(v))
+    assert all(p.device.type == "cuda" for p in a.deform.parameters())
+    assert all(p.device.type == "cuda" for p in a.stdr.field.parameters())
+    assert a.scene.frames("train")[0].image.device.type == "cuda"
+    Trainer(_tiny(tmp_path, sched + ["optim.iterations=35"]), tmp_path / "b").train()
+    b = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "b", splits=("train", "test"))
+    b.train()
+    assert b.step == 60
+    ra, rb = evaluate_run(a, "test", a.cfg.eval), evaluate_run(b, "test", b.cfg.eval)
+    assert ra["conventions"]["device"].startswith("cuda") and ra["conventions"]["render_backend"] == "cuda"
+    assert abs(ra["psnr"] - rb["psnr"]) < 0.5, (ra["psnr"], rb["psnr"])
