@@ -137,6 +137,7 @@ class StdrConfig:
     freeze_fraction: float = 0.15   # the paper's 6000 / 40000
     warmup_end: Optional[int] = None
     freeze_at: Optional[int] = None
+    freeze_opacity: bool = True   # the paper: opacity frozen in the warm-up; false: it trains with the mask
     # regularizers
     lambda_temp: float = 0.1      # x L_temp = sum (or mean) over i, t of (mask_t - mask_{t+1})^2
     temporal_reduction: str = "mean"  # sum: the paper's formula; mean: divided by N(K-1)

@@ -385,6 +385,36 @@ def test_opacity_reset_during_the_warmup_caps_the_masked_opacity_not_the_frozen_
     assert not s.reset_opacity(p, 0.01, step=s.warmup_end)  # afterwards: the usual reset
 
 
+def test_freeze_opacity_false_trains_opacity_in_the_warmup_as_an_empty_warmup_does():
+    """stdr.freeze_opacity=false: opacity trains from step 0 and the opacity reset is the usual
+    one; the phases themselves (regularized until the freeze) do not move."""
+    held, free = _plugin(), _plugin(freeze_opacity=False)
+    assert (held.warmup_end, held.freeze_at) == (free.warmup_end, free.freeze_at) == (10, 20)
+    p = init_params(torch.rand(6, 3), sh_degree=1, init_opacity=0.1)
+    held.add_mask(p)
+    held.configure_step(p, 0)
+    assert not p["opacities"].requires_grad and p[MASK_KEY].requires_grad
+    free.configure_step(p, 0)
+    assert p["opacities"].requires_grad and p[MASK_KEY].requires_grad
+    assert free.phase(0) == Phase.WARMUP and set(free.regularizers(p, 0)) == {"temporal", "spatial"}
+    assert not free.reset_opacity(p, 0.01, step=0)  # opacity trains: the strategy's own reset
+    assert "opacity trains" in free.describe_phases() and "opacity frozen" in held.describe_phases()
+
+
+def test_freeze_opacity_false_trains_like_an_empty_warmup_with_the_same_freeze(tmp_path):
+    """For a baseline without stage switches, stdr.freeze_opacity=false is the run with
+    warmup_end=0 and the default freeze: the same training, bit for bit."""
+    from stdr.train.trainer import Trainer
+    sched = ["optim.iterations=30", "densify.refine_start=4", "densify.refine_every=4", "densify.reset_every=10"]
+    a = Trainer(_stdr_cfg(tmp_path, sched + ["stdr.freeze_opacity=false"]), tmp_path / "a")
+    a.train()  # (a trainer seeds the global generator when it is built: build, then train, one at a time)
+    b = Trainer(_stdr_cfg(tmp_path, sched + ["stdr.warmup_end=0", "stdr.freeze_at=12"]), tmp_path / "b")
+    b.train()
+    assert (a.stdr.warmup_end, a.stdr.freeze_at, b.stdr.freeze_at) == (6, 12, 12)
+    for k in a.params:
+        assert torch.equal(a.params[k], b.params[k]), k
+
+
 def test_white_background_reset_at_refine_start():
     st = DensifyStrategy(refine_start=50, reset_every=3000, reset_white_at_start=True)
     white, black = st.initialize_state(3, 1.0, white_background=True), st.initialize_state(3, 1.0)

@@ -30,7 +30,7 @@ MASK_KEY = "stdr_mask"
 
 
 class Phase(IntEnum):
-    WARMUP = 0       # [0, warmup_end): opacity frozen, mask trains, regularized
+    WARMUP = 0       # [0, warmup_end): opacity frozen (stdr.freeze_opacity), mask trains, regularized
     REGULARIZED = 1  # [warmup_end, freeze_at): opacity and mask train, regularized
     FROZEN = 2       # [freeze_at, end): mask frozen, separated field on
 
@@ -172,7 +172,8 @@ class STDR:
         return None
 
     def describe_phases(self) -> str:
-        return (f"[stdr] STDR phases: warm-up (opacity frozen) [0, {self.warmup_end}), regularized to "
+        held = "opacity frozen" if self.cfg.freeze_opacity else "opacity trains (stdr.freeze_opacity=false)"
+        return (f"[stdr] STDR phases: warm-up ({held}) [0, {self.warmup_end}), regularized to "
                 f"{self.freeze_at}, mask frozen and separated field on from {self.freeze_at}")
 
     def phase(self, step: int) -> Phase:
@@ -182,13 +183,17 @@ class STDR:
         return MASK_KEY in params
 
     # ----------------------------------------------------------------- per step
+    def opacity_frozen(self, step: int) -> bool:
+        """Whether opacity is held at `step`: in the warm-up, with stdr.freeze_opacity (the paper)."""
+        return self.cfg.freeze_opacity and self.phase(step) == Phase.WARMUP
+
     def configure_step(self, params, step: int) -> None:
-        """Opacity trains outside the warm-up; the mask trains until the freeze."""
+        """Opacity trains unless frozen in the warm-up; the mask trains until the freeze."""
         ph = self.phase(step)
         if self.has_mask(params):
             if ph == Phase.FROZEN and not self._cleaned:
                 self.cleanup(params)
-            params["opacities"].requires_grad_(ph != Phase.WARMUP)
+            params["opacities"].requires_grad_(not self.opacity_frozen(step))
             params[MASK_KEY].requires_grad_(ph != Phase.FROZEN)
 
     @torch.no_grad()
@@ -215,8 +220,8 @@ class STDR:
         """The densification's opacity reset during the warm-up, where opacity is frozen: cap the
         masked opacity sigmoid(o) * sigmoid(m) at `value` through the mask instead (clamping the
         frozen opacity would hold every Gaussian under `value` until the warm-up ends). Returns
-        False outside the warm-up: the strategy then resets the opacities as usual."""
-        if not self.has_mask(params) or self.phase(step) != Phase.WARMUP:
+        False while opacity trains: the strategy then resets the opacities as usual."""
+        if not self.has_mask(params) or not self.opacity_frozen(step):
             return False
         m = params[MASK_KEY]
         o = torch.sigmoid(params["opacities"])[:, None]
