@@ -211,10 +211,10 @@ def _stdr_cfg(tmp_path, extra=()):
 
 
 def test_phases_in_the_training_loop(tmp_path):
-    """Warm-up: opacity untouched while the mask trains. Frozen: the mask is bit-identical
-    step to step, p rows sum to 1, the field and the deformation train."""
+    """Warm-up with the paper's frozen opacity: opacity untouched while the mask trains. Frozen:
+    the mask is bit-identical step to step, p rows sum to 1, the field and the deformation train."""
     from stdr.train.trainer import Trainer
-    t = Trainer(_stdr_cfg(tmp_path, ["densify.refine_start=1000"]), tmp_path / "run")
+    t = Trainer(_stdr_cfg(tmp_path, ["densify.refine_start=1000", "stdr.freeze_opacity=true"]), tmp_path / "run")
     assert t.stdr.warmup_end == 6 and t.stdr.freeze_at == 12 and MASK_KEY in t.params
     assert t.params[MASK_KEY].shape == (t.params["means"].shape[0], t.stdr.K)
     assert t.stdr.K == len(t.scene.frames("train"))
@@ -284,7 +284,10 @@ def test_configs_and_table_labels():
 @pytest.mark.slow
 def test_ghosting_scene_masks_separate_the_two_places_and_stdr_beats_the_baseline(tmp_path):
     """An object that jumps between two places (scripts/ghosting.py): deform alone leaves
-    ghosts; with STDR the Gaussians at A are on at A's times and off at B's, and test PSNR is higher."""
+    ghosts; with STDR test PSNR is higher, with the default and with the paper's frozen-opacity
+    warm-up. With the frozen warm-up the mask alone must do the time-gating, and the Gaussians at
+    A are on at A's times and off at B's. (With opacity training too, the mask separates the two
+    places less sharply, measured: on 0.94, off 0.64 at A.)"""
     import importlib.util
     from stdr.train.trainer import Trainer
     from conftest import ROOT
@@ -292,13 +295,15 @@ def test_ghosting_scene_masks_separate_the_two_places_and_stdr_beats_the_baselin
     ghosting = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(ghosting)
     psnr = {}
-    for exp in ("embedded_deform", "embedded_deform_stdr"):
-        cfg = make_cfg(ghosting.overrides(600, tmp_path / "cache") + [f"experiment={exp}"])
-        t = Trainer(cfg, tmp_path / exp, splits=("train", "test"))
+    for name, extra in (("deform", ["experiment=embedded_deform"]), ("stdr", ["experiment=embedded_deform_stdr"]),
+                        ("stdr_frozen", ["experiment=embedded_deform_stdr", "stdr.freeze_opacity=true"])):
+        cfg = make_cfg(ghosting.overrides(600, tmp_path / "cache") + extra)
+        t = Trainer(cfg, tmp_path / name, splits=("train", "test"))
         t.train()
-        psnr[exp] = t.evaluate("test")["psnr"]
-    assert psnr["embedded_deform_stdr"] > psnr["embedded_deform"] + 0.5, psnr
-    for place, m in ghosting.mask_by_place(t).items():
+        psnr[name] = t.evaluate("test")["psnr"]
+    assert psnr["stdr"] > psnr["deform"] + 0.5, psnr
+    assert psnr["stdr_frozen"] > psnr["deform"] + 0.5, psnr
+    for place, m in ghosting.mask_by_place(t).items():  # the frozen-opacity run
         assert m["gaussians_near"] >= 10, place
         on, off = m["mask_at_own_times"], m["mask_at_other_times"]
         assert on > 0.8 and off < 0.6 and on - off > 0.3, (place, m)
@@ -372,7 +377,7 @@ def test_freeze_cleanup_switches_off_faint_entries_only():
 
 
 def test_opacity_reset_during_the_warmup_caps_the_masked_opacity_not_the_frozen_opacity():
-    s = _plugin(opacity_init=0.99, mask_init=None)
+    s = _plugin(opacity_init=0.99, mask_init=None, freeze_opacity=True)
     p = init_params(torch.rand(6, 3), sh_degree=1, init_opacity=0.1)
     s.add_mask(p)
     with torch.no_grad():
@@ -388,7 +393,8 @@ def test_opacity_reset_during_the_warmup_caps_the_masked_opacity_not_the_frozen_
 def test_freeze_opacity_false_trains_opacity_in_the_warmup_as_an_empty_warmup_does():
     """stdr.freeze_opacity=false: opacity trains from step 0 and the opacity reset is the usual
     one; the phases themselves (regularized until the freeze) do not move."""
-    held, free = _plugin(), _plugin(freeze_opacity=False)
+    held, free = _plugin(freeze_opacity=True), _plugin()
+    assert not OmegaConf.structured(StdrConfig).freeze_opacity  # the measured default (docs/stdr.md §8)
     assert (held.warmup_end, held.freeze_at) == (free.warmup_end, free.freeze_at) == (10, 20)
     p = init_params(torch.rand(6, 3), sh_degree=1, init_opacity=0.1)
     held.add_mask(p)
@@ -406,9 +412,10 @@ def test_freeze_opacity_false_trains_like_an_empty_warmup_with_the_same_freeze(t
     warmup_end=0 and the default freeze: the same training, bit for bit."""
     from stdr.train.trainer import Trainer
     sched = ["optim.iterations=30", "densify.refine_start=4", "densify.refine_every=4", "densify.reset_every=10"]
-    a = Trainer(_stdr_cfg(tmp_path, sched + ["stdr.freeze_opacity=false"]), tmp_path / "a")
+    a = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / "a")  # the default, stdr.freeze_opacity=false
     a.train()  # (a trainer seeds the global generator when it is built: build, then train, one at a time)
-    b = Trainer(_stdr_cfg(tmp_path, sched + ["stdr.warmup_end=0", "stdr.freeze_at=12"]), tmp_path / "b")
+    b = Trainer(_stdr_cfg(tmp_path, sched + ["stdr.warmup_end=0", "stdr.freeze_at=12", "stdr.freeze_opacity=true"]),
+                tmp_path / "b")
     b.train()
     assert (a.stdr.warmup_end, a.stdr.freeze_at, b.stdr.freeze_at) == (6, 12, 12)
     for k in a.params:
