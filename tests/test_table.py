@@ -52,7 +52,7 @@ def test_stdr_gap_pairs_scenes_and_refuses_mixed_lengths(tmp_path):
     _gap_run(tmp_path / "s", "b", 19.0, 0.20, 3000)
     _gap_run(tmp_path / "p", "c", 25.0, 0.1, 10)  # only in the plain folder: listed, never averaged
     rows, missing = gap.point_rows("2k", tmp_path / "p", tmp_path / "s", "val")
-    assert [r["scene"] for r in rows] == ["a", "b"] and missing == ["c"]
+    assert [r["scene"] for r in rows] == ["a", "b"] and [(m["scene"], m["has"]) for m in missing] == [("c", "plain")]
     assert rows[0]["d_psnr"] == pytest.approx(1.0) and rows[0]["g_ratio"] == pytest.approx(0.5)
     m = gap.mean_row("2k", rows)
     assert m["d_psnr"] == pytest.approx(0.0) and m["d_lpips"] == pytest.approx(0.01)
