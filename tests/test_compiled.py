@@ -252,3 +252,22 @@ def test_cpu_rejects_bad_tile_size():
     leaves, p = _inputs(*random_gaussians(5, seed=7), cam)
     with pytest.raises(RuntimeError, match="render.tile_size"):
         _run("cpu", leaves, p, cam, 64)
+
+
+def test_a_lock_left_by_a_killed_build_is_cleared_not_waited_on_forever(tmp_path, capsys):
+    """torch's builder waits with no time limit while build_dir/lock exists; a build killed
+    midway leaves it behind. Old locks are removed with a warning, young ones announced and kept."""
+    import os
+    import time as _time
+
+    from stdr.render.compiled import clear_stale_lock
+    lock = tmp_path / "lock"
+    assert not clear_stale_lock(tmp_path)  # no lock: nothing to do
+    lock.touch()
+    assert not clear_stale_lock(tmp_path, max_age=600) and lock.exists()  # maybe a build running now
+    assert "waiting for another process's build" in capsys.readouterr().err
+    old = _time.time() - 3600
+    os.utime(lock, (old, old))
+    with pytest.warns(RuntimeWarning, match="did not finish"):
+        assert clear_stale_lock(tmp_path, max_age=600)
+    assert not lock.exists()

@@ -18,6 +18,7 @@ import platform
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 from typing import Optional
 
@@ -82,6 +83,30 @@ def _key(kind: str, sources: list[Path], flags: list[str]) -> str:
     return f"stdr_raster_{kind}_{h.hexdigest()[:12]}"
 
 
+STALE_LOCK_SECONDS = 900  # a build takes ~15-60 s on the CPU, a few minutes with nvcc
+
+
+def clear_stale_lock(build_dir: Path, max_age: float = STALE_LOCK_SECONDS) -> bool:
+    """torch's extension builder holds `build_dir/lock` while it compiles, and every other
+    process waits for it to disappear, with no time limit. A build killed midway (Ctrl-C during
+    the first run) leaves the file behind, and every later run would hang silently. A lock older
+    than `max_age` seconds is removed with a warning; a younger one is announced (another
+    process may be building right now). Returns True when a stale lock was removed."""
+    lock = build_dir / "lock"
+    try:
+        age = time.time() - lock.stat().st_mtime
+    except FileNotFoundError:
+        return False
+    if age > max_age:
+        warnings.warn(f"removing {lock}: left {age / 60:.0f} min ago by a build that did not finish "
+                      "(killed?); building again", RuntimeWarning, stacklevel=2)
+        lock.unlink(missing_ok=True)
+        return True
+    print(f"[stdr] waiting for another process's build of the rasterizer ({lock}, {age:.0f} s old); if no "
+          "build is running, delete that file", file=sys.stderr, flush=True)
+    return False
+
+
 def _compile(kind: str, verbose: bool = False):
     import shutil
 
@@ -106,6 +131,7 @@ def _compile(kind: str, verbose: bool = False):
         name = _key(kind, sources, cflags + extra.get("extra_cuda_cflags", []))
         build_dir = cache_root() / name
         build_dir.mkdir(parents=True, exist_ok=True)
+        clear_stale_lock(build_dir)
         cached = any(build_dir.glob(f"{name}*.so"))
         if not cached:
             print(f"[stdr] compiling the {kind.upper()} rasterizer into {build_dir} "
