@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -75,7 +76,7 @@ def rule_summary(rows, runs, ref: str, min_gain: float, max_loss: float) -> str:
     """Markdown: one line per candidate (the run folder's parent) against candidate `ref`."""
     by: dict[str, dict[str, dict]] = {}
     for r, run in zip(rows, runs):
-        by.setdefault(run.resolve().parent.name, {})[r["scene"]] = r
+        by.setdefault(Path(os.path.abspath(run)).parent.name, {})[r["scene"]] = r
     if ref not in by:
         raise SystemExit(f"--rule {ref}: no run folder under a parent named {ref!r}")
     scenes = sorted(by[ref])
@@ -119,7 +120,7 @@ def main(argv=None):
     rows = [load(r, args.split, args.config_cols, args.size, args.allow_missing) for r in args.runs]
     if args.label:
         for r, run in zip(rows, args.runs):
-            r["extra"] = {"run": run.resolve().parent.name, **r["extra"]}
+            r["extra"] = {"run": Path(os.path.abspath(run)).parent.name, **r["extra"]}
     extra = list(rows[0]["extra"])
     lines = ["| scene | method | " + " | ".join(extra + [h for _, h, _ in COLS]) + " |",
              "|---|---|" + "---|" * (len(extra) + len(COLS))]
