@@ -36,6 +36,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stdr.cameras import Camera  # noqa: E402
+from stdr.device import synchronize  # noqa: E402
 from stdr.render import render, resolve_backend  # noqa: E402
 from stdr.render.projection import project_gaussians  # noqa: E402
 
@@ -61,19 +62,14 @@ def make_scene(n: int, res: int, coverage: float, seed: int = 0, device: str = "
     return tensors, cam  # render() moves the camera's tensors to the Gaussians' device
 
 
-def _sync(device):
-    if device == "cuda":
-        torch.cuda.synchronize()
-
-
 def timed(fn, repeats: int, device: str) -> float:
     fn()  # warm-up (and JIT build)
-    _sync(device)
+    synchronize(torch.device(device))
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
-        _sync(device)
+        synchronize(torch.device(device))
         times.append(time.perf_counter() - t0)
     return statistics.median(times) * 1e3
 
