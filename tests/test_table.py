@@ -17,9 +17,25 @@ def test_table_means_and_seed_averaging():
     assert t["cells"]["deform"]["a"]["n_runs"] == 2
     assert t["means"]["deform"]["psnr"] == pytest.approx(25.5)        # mean over scenes
     assert t["means"]["deform+STDR"]["lpips"] is None                 # incomplete -> no mean
+    assert t["cells"]["deform"]["a"]["psnr_std"] == pytest.approx(2 ** 0.5)  # sample std of 30, 32
+    assert t["cells"]["deform"]["b"]["psnr_std"] is None                      # one run: no spread
+    assert t["means"]["deform"]["n_seeds"] == 1   # seed 1 has no run on scene b: its mean is undefined
+    assert t["means"]["deform"]["psnr_std"] is None
     md = markdown(t)
-    assert "| deform | 31.00 |" in md and "| deform+STDR | 31.00 |" in md
-    assert "\\multicolumn{3}{c}{mean}" in latex(t)
+    assert "| deform | 31.00 ± 1.41 |" in md and "| deform+STDR | 31.00 |" in md
+    assert "\\multicolumn{3}{c}{mean}" in latex(t) and "31.00 $\\pm$ 1.41" in latex(t)
+
+
+def test_table_mean_spread_is_over_seed_means():
+    # two seeds on two scenes: seed means 25 and 27 -> std sqrt(2); per-scene spreads are larger
+    t = collect([_row("deform", "a", 30.0), _row("deform", "b", 20.0),
+                 _row("deform", "a", 34.0, seed=1), _row("deform", "b", 20.0, seed=1)])
+    assert t["means"]["deform"]["psnr"] == pytest.approx(26.0)
+    assert t["means"]["deform"]["psnr_std"] == pytest.approx(2 ** 0.5)
+    assert t["means"]["deform"]["n_seeds"] == 2
+    assert t["cells"]["deform"]["a"]["psnr_std"] == pytest.approx(8 ** 0.5)
+    assert t["means"]["deform"]["num_gaussians_std"] == pytest.approx(0.0)
+    assert "| 26.00 ± 1.41 |" in markdown(t)
 
 
 def test_table_refuses_to_mix_different_configs():

@@ -53,11 +53,36 @@ def _flatten(d: dict, prefix: str = "") -> dict:
 SEED_KEYS = ("seed",)  # runs of one method and scene may differ only here; they are averaged
 
 
+def _std(vals: list[float]) -> float | None:
+    """Sample standard deviation (n - 1), None below two values."""
+    if len(vals) < 2:
+        return None
+    m = sum(vals) / len(vals)
+    return (sum((v - m) ** 2 for v in vals) / (len(vals) - 1)) ** 0.5
+
+
+def _seed_spread(rs: list[dict[str, Any]], scenes: list[str], k: str) -> tuple[float | None, int]:
+    """Spread over seeds of one method's mean over scenes: each seed that has a run on every
+    scene gives one scene-mean; returns (sample std of those means, how many seeds had them)."""
+    by_seed: dict[Any, dict[str, float]] = {}
+    for r in rs:
+        seed = r.get("config", {}).get("seed")
+        v = r["metrics"].get(k)
+        if seed is None or v is None:
+            continue
+        by_seed.setdefault(seed, {})[r["scene"]] = v
+    means = [sum(d[s] for s in scenes) / len(scenes) for d in by_seed.values() if all(s in d for s in scenes)]
+    return _std(means), len(means)
+
+
 def collect(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """rows: {method, scene, split, metrics, run_dir[, config]}. Returns {methods, scenes, cells, means}.
 
-    Several runs of one method on one scene (seeds) are averaged, and `n_runs` records how many.
-    If their configs differ in anything but the seed, that is an error naming the keys.
+    Several runs of one method on one scene (seeds) are averaged, and `n_runs` records how many;
+    `<metric>_std` is their sample std. A method's mean over scenes gets `<metric>_std`, the
+    spread over seeds of each seed's own mean over scenes (seeds with a run on every scene,
+    counted in `n_seeds`). If runs of one cell differ in config beyond the seed, that is an error
+    naming the keys.
     """
     methods = list(dict.fromkeys(r["method"] for r in rows))
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
@@ -79,6 +104,7 @@ def collect(rows: list[dict[str, Any]]) -> dict[str, Any]:
         for k in METRICS:
             vals = [r["metrics"].get(k) for r in rs]
             cell[k] = None if any(v is None for v in vals) else sum(vals) / len(vals)
+            cell[f"{k}_std"] = None if cell[k] is None else _std(vals)
         cell["n_runs"] = len(rs)
         cell["run_dirs"] = [r["run_dir"] for r in rs]
         cells[m][sc] = cell
@@ -89,14 +115,20 @@ def collect(rows: list[dict[str, Any]]) -> dict[str, Any]:
             vals = [cells[m][s][k] for s in scenes if s in cells[m] and cells[m][s][k] is not None]
             complete = len(vals) == len(scenes)
             means[m][k] = sum(vals) / len(vals) if vals and complete else None
+            spread, n_seeds = _seed_spread([r for r in rows if r["method"] == m], scenes, k)
+            means[m][f"{k}_std"] = spread if means[m][k] is not None else None
+            means[m]["n_seeds"] = n_seeds
     return {"methods": methods, "scenes": scenes, "cells": cells, "means": means}
 
 
-def _fmt(k, v) -> str:
-    return "–" if v is None else FORMATS[k].format(v)
+def _fmt(k, v, std=None, pm=" ± ") -> str:
+    """A value, with its seed spread when there is one (e.g. '27.54 ± 0.04')."""
+    if v is None:
+        return "–"
+    return FORMATS[k].format(v) + ("" if std is None else pm + FORMATS[k].format(std))
 
 
-def to_rows(t: dict[str, Any], metrics=METRICS) -> tuple[list[str], list[list[str]]]:
+def to_rows(t: dict[str, Any], metrics=METRICS, pm=" ± ") -> tuple[list[str], list[list[str]]]:
     cols = ["method"]
     for s in t["scenes"] + ["mean"]:
         cols += [f"{s} {HEADERS[k]}" for k in metrics]
@@ -105,8 +137,9 @@ def to_rows(t: dict[str, Any], metrics=METRICS) -> tuple[list[str], list[list[st
         row = [m]
         for s in t["scenes"]:
             c = t["cells"][m].get(s, {})
-            row += [_fmt(k, c.get(k)) for k in metrics]
-        row += [_fmt(k, t["means"][m][k]) for k in metrics]
+            row += [_fmt(k, c.get(k), c.get(f"{k}_std"), pm) for k in metrics]
+        mean = t["means"][m]
+        row += [_fmt(k, mean[k], mean.get(f"{k}_std"), pm) for k in metrics]
         body.append(row)
     return cols, body
 
@@ -126,7 +159,7 @@ def latex(t, metrics=("psnr", "ssim", "lpips")) -> str:
     out.append("Method & " + " & ".join(f"\\multicolumn{{{len(metrics)}}}{{c}}{{{s}}}" for s in scenes) + " \\\\")
     out.append(" & " + " & ".join(hdr[k] for _ in scenes for k in metrics) + " \\\\")
     out.append("\\midrule")
-    _, body = to_rows(t, metrics)
+    _, body = to_rows(t, metrics, pm=" $\\pm$ ")
     for r in body:
         out.append(" & ".join(x.replace("_", "\\_").replace("+", "+") for x in r) + " \\\\")
     out += ["\\bottomrule", "\\end{tabular}"]
