@@ -33,7 +33,7 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 
 from stdr.cli.common import CONFIG_DIR  # noqa: E402
 from stdr.config import register  # noqa: E402
-from stdr.scene.gaussians import GAUSSIAN_KEYS, num_gaussians, scene_extent  # noqa: E402
+from stdr.scene.gaussians import GAUSSIAN_KEYS  # noqa: E402
 from stdr.train.checkpoint import load_checkpoint  # noqa: E402
 from stdr.train.trainer import Trainer  # noqa: E402
 
@@ -72,15 +72,9 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(cfg, tmp, splits=("train",))
         f0 = tr.scene.frames("train")[0]
-        extent = scene_extent(tr.scene.camera_centers("train"))
+        source = ck["model"]["params"] if "model" in ck else ck["params"]  # checkpoint format 2 or 1
         for n in args.gaussians:
-            tr.params.clear()
-            for k, v in replicate(ck["params"], n, gen).items():
-                tr.params[k] = torch.nn.Parameter(v)
-            if tr.stdr is not None:
-                tr.stdr.add_mask(tr.params)
-            tr.optimizers = tr._make_optimizers()
-            tr.strategy_state = tr.strategy.initialize_state(n, extent)
+            tr.replace_gaussians(replicate(source, n, gen))
             tr.step = cfg.baseline.warmup  # deformation on
             times = []
             for i in range(args.warmup_iters + args.iters):
@@ -89,7 +83,7 @@ def main(argv=None):
                 if i >= args.warmup_iters:
                     times.append(time.perf_counter() - t0)
             s = statistics.median(times)
-            row = {"gaussians": num_gaussians(tr.params), "seconds_per_iter": s,
+            row = {"gaussians": tr.model.num_gaussians, "seconds_per_iter": s,
                    "iterations": cfg.optim.iterations, "hours_for_schedule": s * cfg.optim.iterations / 3600}
             rows.append(row)
             print(f"N={row['gaussians']:>8,}  {s:.3f} s/iter  -> {row['hours_for_schedule']:.1f} h for "

@@ -45,9 +45,10 @@ def run(out: Path) -> None:
                         splits=("train", "test"))
             t.train()
             psnr = t.evaluate("test")["psnr"]
-            res[name] = {"params": {k: v.detach().cpu().clone() for k, v in t.params.items()},
-                         "deform": {k: v.cpu().clone() for k, v in t.deform.state_dict().items()}, "psnr": psnr}
-            print(f"{name}: {t.params['means'].shape[0]} Gaussians, test PSNR {psnr!r}", flush=True)
+            m = getattr(t, "model", t)  # the model object (since checkpoint format 2), or the old trainer
+            res[name] = {"params": {k: v.detach().cpu().clone() for k, v in m.params.items()},
+                         "deform": {k: v.cpu().clone() for k, v in m.deform.state_dict().items()}, "psnr": psnr}
+            print(f"{name}: {m.params['means'].shape[0]} Gaussians, test PSNR {psnr!r}", flush=True)
     torch.save(res, out)
 
 

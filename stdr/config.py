@@ -6,9 +6,10 @@ directory (config.yaml), and that file is what stdr-eval rebuilds the run from.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, List, Optional
+from typing import Any, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
+from omegaconf import OmegaConf
 
 from .data.procedural import SceneOptions
 from .scene.strategy import DensifyStrategy
@@ -153,6 +154,11 @@ class StdrConfig:
     temporal_dim: int = 16
     dropout: float = 0.1
     field_pe_xyz: bool = False    # also feed PE(x) (baseline.xyz_freqs) to the field
+    # the field's own lr schedule: null follows the deformation network's (baseline.lr_*); a value
+    # starts at the freeze (where the field starts training) and decays log-linearly to
+    # field_lr_final (null: constant) at the end of the run
+    field_lr_init: Optional[float] = None
+    field_lr_final: Optional[float] = None
     scale_deltas_by_dynamic: bool = False  # multiply the deformation deltas by the dynamic probability
 
 
@@ -217,6 +223,10 @@ class Config:
     render: RenderConfig = field(default_factory=RenderConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    # derived, read-only: every phase boundary of the run resolved from the keys above
+    # (stdr.schedule.resolve_schedule); shown by `stdr-train --cfg job` and kept in config.yaml.
+    # Setting it changes nothing: the model recomputes it from the keys.
+    schedule: Dict[str, Any] = field(default_factory=lambda: "${stdr_schedule:}")
 
 
 @dataclass
@@ -232,7 +242,14 @@ class EvalAppConfig:
     device: Optional[str] = None  # override the runs' device (auto | cpu | cuda | cuda:<index>)
 
 
+def _schedule_resolver(*, _root_) -> dict:
+    from .schedule import resolve_schedule
+    return resolve_schedule(_root_).as_dict()
+
+
 def register() -> None:
+    if not OmegaConf.has_resolver("stdr_schedule"):
+        OmegaConf.register_new_resolver("stdr_schedule", _schedule_resolver)
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)
     cs.store(name="base_eval", node=EvalAppConfig)

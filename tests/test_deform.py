@@ -1,7 +1,7 @@
 import torch
 
 from stdr.deform import DeformMLP, Deltas, apply_post_activation, apply_pre_activation
-from stdr.deform.deform3dgs import positional_encoding
+from stdr.encoding import positional_encoding
 from stdr.scene.gaussians import init_params
 
 

@@ -69,8 +69,8 @@ def test_no_step_creates_a_tensor_on_a_hard_coded_device(tmp_path, name):
         b.train()  # resumes at 35 from the checkpoint
         res = evaluate_run(b, "test", b.cfg.eval)
     assert b.step == a.step == 60
-    for k in a.params:
-        assert b.params[k].device.type == "cpu" and torch.equal(a.params[k], b.params[k]), k
+    for k in a.model.params:
+        assert b.model.params[k].device.type == "cpu" and torch.equal(a.model.params[k], b.model.params[k]), k
     assert res["psnr"] == pytest.approx(a.evaluate("test")["psnr"], abs=1e-6)
     conv = json.loads((tmp_path / "b" / "metrics.json").read_text())["test"]["conventions"]
     assert conv["device"] == "cpu" and conv["render_backend"] == b.backend
@@ -89,13 +89,13 @@ def test_training_on_cuda_keeps_every_tensor_there_and_resumes(tmp_path, name):
     a = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "a", splits=("train", "test"))
     assert a.backend == "cuda"
     a.train()
-    for k, p in a.params.items():
+    for k, p in a.model.params.items():
         assert p.device.type == "cuda", k
         for v in a.optimizers[k].state[p].values():
             assert not torch.is_tensor(v) or v.dim() == 0 or v.device.type == "cuda", k
     assert all(v.device.type == "cuda" for v in a.strategy_state.values() if torch.is_tensor(v))
-    assert all(p.device.type == "cuda" for p in a.deform.parameters())
-    assert all(p.device.type == "cuda" for p in a.stdr.field.parameters())
+    assert all(p.device.type == "cuda" for p in a.model.deform.parameters())
+    assert all(p.device.type == "cuda" for p in a.model.plugin("stdr").field.parameters())
     assert a.scene.frames("train")[0].image.device.type == "cuda"
     Trainer(_tiny(tmp_path, sched + ["optim.iterations=35"]), tmp_path / "b").train()
     b = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "b", splits=("train", "test"))

@@ -15,6 +15,7 @@ from stdr.deform import DeformMLP
 from stdr.eval.table import method_name
 from stdr.scene.gaussians import init_params
 from stdr.scene.strategy import DensifyStrategy
+from stdr.schedule import resolve_schedule
 
 from test_train import TINY_SCENE, make_cfg
 
@@ -215,29 +216,29 @@ def test_phases_in_the_training_loop(tmp_path):
     the mask is bit-identical step to step, p rows sum to 1, the field and the deformation train."""
     from stdr.train.trainer import Trainer
     t = Trainer(_stdr_cfg(tmp_path, ["densify.refine_start=1000", "stdr.freeze_opacity=true"]), tmp_path / "run")
-    assert t.stdr.warmup_end == 6 and t.stdr.freeze_at == 12 and MASK_KEY in t.params
-    assert t.params[MASK_KEY].shape == (t.params["means"].shape[0], t.stdr.K)
-    assert t.stdr.K == len(t.scene.frames("train"))
-    o0, m0 = t.params["opacities"].detach().clone(), t.params[MASK_KEY].detach().clone()
+    assert t.model.plugin("stdr").warmup_end == 6 and t.model.plugin("stdr").freeze_at == 12 and MASK_KEY in t.model.params
+    assert t.model.params[MASK_KEY].shape == (t.model.params["means"].shape[0], t.model.plugin("stdr").K)
+    assert t.model.plugin("stdr").K == len(t.scene.frames("train"))
+    o0, m0 = t.model.params["opacities"].detach().clone(), t.model.params[MASK_KEY].detach().clone()
     for _ in range(6):
         logs = t.train_step()
-        assert logs["stdr_temporal"] >= 0 and logs["stdr_spatial"] >= 0
-    assert torch.equal(t.params["opacities"].detach(), o0)
-    assert t.optimizers["opacities"].state.get(t.params["opacities"]) is None  # never stepped
-    assert not torch.equal(t.params[MASK_KEY].detach(), m0)
+        assert logs["losses"]["stdr_temporal"] >= 0 and logs["losses"]["stdr_spatial"] >= 0
+    assert torch.equal(t.model.params["opacities"].detach(), o0)
+    assert t.optimizers["opacities"].state.get(t.model.params["opacities"]) is None  # never stepped
+    assert not torch.equal(t.model.params[MASK_KEY].detach(), m0)
     for _ in range(6):  # regularized: both train
-        o1 = t.params["opacities"].detach().clone()
+        o1 = t.model.params["opacities"].detach().clone()
         t.train_step()
-    assert not torch.equal(t.params["opacities"].detach(), o1)
-    field0 = [q.detach().clone() for q in t.stdr.field.parameters()]
-    m_frozen = t.params[MASK_KEY].detach().clone()
+    assert not torch.equal(t.model.params["opacities"].detach(), o1)
+    field0 = [q.detach().clone() for q in t.model.plugin("stdr").field.parameters()]
+    m_frozen = t.model.params[MASK_KEY].detach().clone()
     for _ in range(4):
         logs = t.train_step()
-        assert "stdr_temporal" not in logs
-        assert torch.equal(t.params[MASK_KEY].detach(), m_frozen)
-    p = t.stdr.probabilities(t.params)
+        assert "stdr_temporal" not in logs["losses"]
+        assert torch.equal(t.model.params[MASK_KEY].detach(), m_frozen)
+    p = t.model.plugin("stdr").probabilities(t.model.params)
     torch.testing.assert_close(p.sum(1), torch.ones(p.shape[0]))
-    assert any(not torch.equal(a, b.detach()) for a, b in zip(field0, t.stdr.field.parameters()))
+    assert any(not torch.equal(a, b.detach()) for a, b in zip(field0, t.model.plugin("stdr").field.parameters()))
 
 
 def test_resume_with_stdr_matches_an_uninterrupted_run(tmp_path):
@@ -245,13 +246,15 @@ def test_resume_with_stdr_matches_an_uninterrupted_run(tmp_path):
     sched = ["optim.iterations=30", "densify.refine_start=4", "densify.refine_every=5"]
     a = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / "a", splits=("train", "test"))
     a.train()
-    # what stdr-eval does: an eval-only trainer rebuilt from the checkpoint renders the same
-    e = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / "a", splits=("test",), init_gaussians=False)
-    e.load(tmp_path / "a" / "checkpoints" / "last.pt", training=False)
-    assert e.stdr.K == a.stdr.K and e.stdr.field is not None
-    assert e.evaluate("test")["psnr"] == a.evaluate("test")["psnr"]
-    st = a.stdr.stats(a.params)
-    n, K = a.params["means"].shape[0], a.stdr.K
+    # what stdr-eval does: the model alone, rebuilt from the checkpoint (no data), renders the same
+    from stdr.eval.evaluate import evaluate_model
+    from stdr.model import load_model
+    e = load_model(tmp_path / "a" / "checkpoints" / "last.pt", device="cpu")
+    assert e.plugin("stdr").K == a.model.plugin("stdr").K and e.plugin("stdr").field is not None
+    assert e.step == a.step and e.num_gaussians == a.model.num_gaussians
+    assert evaluate_model(e, a.scene.frames("test"))["psnr"] == a.evaluate("test")["psnr"]
+    st = a.model.plugin("stdr").stats(a.model.params)
+    n, K = a.model.params["means"].shape[0], a.model.plugin("stdr").K
     assert st["mask_bytes"] == 4 * n * K and st["mask_adam_bytes"] == 8 * n * K
     assert st["knn_refreshes"] >= 3 and st["knn_seconds"] > 0 and 0 <= st["fraction_time_gated"] <= 1
     assert 0 < st["dynamic_probability_mean"] < 1
@@ -259,9 +262,9 @@ def test_resume_with_stdr_matches_an_uninterrupted_run(tmp_path):
     b1.train()  # stops inside the regularized phase, with a cached neighbour sample
     b2 = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / "b")
     b2.train()
-    for k in a.params:
-        assert torch.equal(a.params[k], b2.params[k]), k
-    for (ka, va), (kb, vb) in zip(a.stdr.field.state_dict().items(), b2.stdr.field.state_dict().items()):
+    for k in a.model.params:
+        assert torch.equal(a.model.params[k], b2.model.params[k]), k
+    for (ka, va), (kb, vb) in zip(a.model.plugin("stdr").field.state_dict().items(), b2.model.plugin("stdr").field.state_dict().items()):
         assert torch.equal(va, vb), ka
     # a checkpoint with STDR cannot be loaded into a run without it
     c = Trainer(make_cfg(TINY_SCENE + [f"data.cache_dir={tmp_path / 'cache'}", "model.init_num=800"]),
@@ -330,8 +333,12 @@ def _plugin(**over):
     cfg = OmegaConf.structured(StdrConfig)
     for k, v in over.items():
         setattr(cfg, k, v)
-    return STDR(cfg, baseline_warmup=10, knots=torch.linspace(0, 1, 5, dtype=torch.float64), xyz_freqs=2,
-                seed=0, iterations=100, init_opacity=0.1)
+    from stdr.decouple import resolve_phases
+    from stdr.schedule import Schedule
+    w, f = resolve_phases(cfg, 10, 100)
+    sched = Schedule(iterations=100, static_warmup_end=10, stdr_warmup_end=w, stdr_freeze_at=f)
+    return STDR(cfg, sched, knots=torch.linspace(0, 1, 5, dtype=torch.float64), xyz_freqs=2, seed=0,
+                init_opacity=0.1)
 
 
 def test_mask_can_carry_the_opacity_during_the_warmup():
@@ -339,7 +346,7 @@ def test_mask_can_carry_the_opacity_during_the_warmup():
     mask can raise it up to opacity_init (the frozen-opacity reading caps it at 0.1)."""
     s = _plugin(opacity_init=0.99, mask_init=None)
     p = init_params(torch.rand(20, 3), sh_degree=1, init_opacity=0.1)
-    s.add_mask(p)
+    s.init_gaussians(p)
     eff = torch.sigmoid(p["opacities"])[:, None] * torch.sigmoid(p[MASK_KEY])
     torch.testing.assert_close(eff, torch.full_like(eff, 0.1))
     torch.testing.assert_close(torch.sigmoid(p["opacities"]), torch.full((20,), 0.99))
@@ -351,14 +358,14 @@ def test_mask_can_carry_the_opacity_during_the_warmup():
     s = _plugin()
     p = init_params(torch.rand(20, 3), sh_degree=1, init_opacity=0.1)
     o = p["opacities"].detach().clone()
-    s.add_mask(p)
+    s.init_gaussians(p)
     assert torch.equal(p["opacities"].detach(), o) and torch.all(p[MASK_KEY] == 2.0)
 
 
 def test_freeze_cleanup_switches_off_faint_entries_only():
     s = _plugin(freeze_cleanup=0.02)
     p = init_params(torch.rand(4, 3), sh_degree=1, init_opacity=0.5)
-    s.add_mask(p)
+    s.init_gaussians(p)
     with torch.no_grad():  # masked opacity 0.5 * sigmoid(m): faint (<0.02) where m is -5 (0.0033)
         p[MASK_KEY].copy_(torch.tensor([[-5.0, 0.0, 0.0, 0.0, 0.0]] * 2 + [[0.0, -5.0, -2.0, 3.0, 0.0]] * 2))
     before = p[MASK_KEY].detach().clone()
@@ -379,7 +386,7 @@ def test_freeze_cleanup_switches_off_faint_entries_only():
 def test_opacity_reset_during_the_warmup_caps_the_masked_opacity_not_the_frozen_opacity():
     s = _plugin(opacity_init=0.99, mask_init=None, freeze_opacity=True)
     p = init_params(torch.rand(6, 3), sh_degree=1, init_opacity=0.1)
-    s.add_mask(p)
+    s.init_gaussians(p)
     with torch.no_grad():
         p[MASK_KEY][:3] = 4.0  # masked opacity ~0.97
     o = p["opacities"].detach().clone()
@@ -397,14 +404,17 @@ def test_freeze_opacity_false_trains_opacity_in_the_warmup_as_an_empty_warmup_do
     assert not OmegaConf.structured(StdrConfig).freeze_opacity  # the measured default (docs/stdr.md §8)
     assert (held.warmup_end, held.freeze_at) == (free.warmup_end, free.freeze_at) == (10, 20)
     p = init_params(torch.rand(6, 3), sh_degree=1, init_opacity=0.1)
-    held.add_mask(p)
+    held.init_gaussians(p)
     held.configure_step(p, 0)
     assert not p["opacities"].requires_grad and p[MASK_KEY].requires_grad
     free.configure_step(p, 0)
     assert p["opacities"].requires_grad and p[MASK_KEY].requires_grad
     assert free.phase(0) == Phase.WARMUP and set(free.regularizers(p, 0)) == {"temporal", "spatial"}
     assert not free.reset_opacity(p, 0.01, step=0)  # opacity trains: the strategy's own reset
-    assert "opacity trains" in free.describe_phases() and "opacity frozen" in held.describe_phases()
+    cfg = make_cfg(["experiment=dnerf_deform_stdr", "data.path=/x"])
+    assert "(opacity trains)" in resolve_schedule(cfg).describe()
+    cfg.stdr.freeze_opacity = True
+    assert "(opacity frozen)" in resolve_schedule(cfg).describe()
 
 
 def test_freeze_opacity_false_trains_like_an_empty_warmup_with_the_same_freeze(tmp_path):
@@ -417,9 +427,9 @@ def test_freeze_opacity_false_trains_like_an_empty_warmup_with_the_same_freeze(t
     b = Trainer(_stdr_cfg(tmp_path, sched + ["stdr.warmup_end=0", "stdr.freeze_at=12", "stdr.freeze_opacity=true"]),
                 tmp_path / "b")
     b.train()
-    assert (a.stdr.warmup_end, a.stdr.freeze_at, b.stdr.freeze_at) == (6, 12, 12)
-    for k in a.params:
-        assert torch.equal(a.params[k], b.params[k]), k
+    assert (a.model.plugin("stdr").warmup_end, a.model.plugin("stdr").freeze_at, b.model.plugin("stdr").freeze_at) == (6, 12, 12)
+    for k in a.model.params:
+        assert torch.equal(a.model.params[k], b.model.params[k]), k
 
 
 def test_white_background_reset_at_refine_start():
@@ -439,16 +449,16 @@ def test_training_loop_hands_the_rendered_conditioning_to_the_deformation_hooks(
     from stdr.train.trainer import Trainer
     t = Trainer(_stdr_cfg(tmp_path, ["densify.refine_start=1000"]), tmp_path / "run")
     seen = {}
-    orig_fwd, orig_before, orig_reg = t.deform.forward, t.deform.before_step, t.deform.regularizers
-    monkeypatch.setattr(t.deform, "forward", lambda p, tt, c=None: (seen.__setitem__("fwd", c), orig_fwd(p, tt, c))[1])
-    monkeypatch.setattr(t.deform, "before_step",
+    orig_fwd, orig_before, orig_reg = t.model.deform.forward, t.model.deform.before_step, t.model.deform.regularizers
+    monkeypatch.setattr(t.model.deform, "forward", lambda p, tt, c=None: (seen.__setitem__("fwd", c), orig_fwd(p, tt, c))[1])
+    monkeypatch.setattr(t.model.deform, "before_step",
                         lambda p, s, c=None: (seen.__setitem__("before", c), orig_before(p, s, c))[1])
-    monkeypatch.setattr(t.deform, "regularizers",
+    monkeypatch.setattr(t.model.deform, "regularizers",
                         lambda p, tt, s, c=None: (seen.__setitem__("reg", c), orig_reg(p, tt, s, c))[1])
-    while t.step <= t.stdr.freeze_at:
+    while t.step <= t.model.plugin("stdr").freeze_at:
         t.train_step()
     assert seen["fwd"] is seen["before"] is seen["reg"]
-    assert seen["fwd"].shape == (t.params["means"].shape[0], t.stdr.cond_dim) and seen["fwd"].abs().sum() > 0
+    assert seen["fwd"].shape == (t.model.params["means"].shape[0], t.model.plugin("stdr").cond_dim) and seen["fwd"].abs().sum() > 0
 
 
 def test_freeze_colliding_with_a_stage_switch_is_moved_by_rule_or_rejected_when_explicit():
@@ -456,18 +466,20 @@ def test_freeze_colliding_with_a_stage_switch_is_moved_by_rule_or_rejected_when_
     The default freeze (2 x 500 = 1000) lands on it and moves to the midpoint 750; an explicit
     freeze_at inside the window is an error; one outside is kept."""
     from stdr.deform.control_nodes import ControlNodeDeformation
-    switches = ControlNodeDeformation(num_nodes=8, depth=2, width=8, skips=(), start_step=500,
-                                      node_stage_end=1000, main_warmup=100).stage_switches()
-    s = _plugin()
-    s.warmup_end, s.freeze_at = 500, 1000
-    assert "1000 -> 750" in s.avoid_stage_switches(switches) and s.freeze_at == 750
-    s = _plugin()
-    s.warmup_end, s.freeze_at = 500, 1200
-    assert s.avoid_stage_switches(switches) is None and s.freeze_at == 1200
-    s = _plugin(freeze_at=1050)
-    s.warmup_end = 500
+    from stdr.schedule import place_freeze
+    base = make_cfg(["experiment=dnerf_scgs_stdr", "budget=cpu", "data.path=/x"]).baseline
+    _, switches = ControlNodeDeformation.stages(base)
+    assert [(a, b) for _, a, b in switches] == [(1000, 1100)]
+    f, moved = place_freeze(1000, 500, switches, explicit=False)
+    assert f == 750 and "1000 -> 750" in moved
+    assert place_freeze(1200, 500, switches, explicit=False) == (1200, None)
     with pytest.raises(ValueError, match="stdr.freeze_at=1050"):
-        s.avoid_stage_switches(switches)
+        place_freeze(1050, 500, switches, explicit=True)
+    # the same through the run's schedule, which the plug-in reads
+    s = resolve_schedule(make_cfg(["experiment=dnerf_scgs_stdr", "budget=cpu", "data.path=/x"]))
+    assert (s.stdr_warmup_end, s.stdr_freeze_at) == (500, 750) and "1000 -> 750" in s.stdr_freeze_moved
+    with pytest.raises(ValueError, match="stdr.freeze_at=1050"):
+        resolve_schedule(make_cfg(["experiment=dnerf_scgs_stdr", "budget=cpu", "data.path=/x", "stdr.freeze_at=1050"]))
     cfg = make_cfg(["experiment=dnerf_scgs_stdr", "budget=cpu", "data.path=/x"])
     assert cfg.stdr.freeze_at is None  # no magic number in the baseline's budget file
 
@@ -492,3 +504,26 @@ def test_a_size_prune_that_would_remove_most_of_the_model_warns_and_names_the_ke
         w.simplefilter("error")
         strat._refine(p, opts, state, 2, g)
     assert p["means"].shape[0] == 3
+
+
+def test_separated_field_has_its_own_group_and_optional_schedule(tmp_path):
+    """stdr.field_lr_init=null: the field's group follows the deformation network's lr; a value:
+    log-linear from it at the freeze (where the field starts training) to field_lr_final."""
+    from stdr.train.trainer import Trainer
+    sched = ["optim.iterations=30", "baseline.lr_init=1e-3", "baseline.lr_final=1e-5", "baseline.lr_max_steps=30"]
+    t = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / "a")
+    names = [g["name"] for g in t.net_opt.param_groups]
+    assert names.count("stdr_field") == 1
+    for step in (0, 12, 29):
+        t._update_lrs(step)
+        lr = {g["name"]: g["lr"] for g in t.net_opt.param_groups}
+        assert lr["stdr_field"] == lr["deform"]
+    t = Trainer(_stdr_cfg(tmp_path, sched + ["stdr.field_lr_init=4e-3", "stdr.field_lr_final=4e-5"]), tmp_path / "b")
+    s = t.model.plugin("stdr")
+    assert s.freeze_at == 12
+    expect = {0: 4e-3, 12: 4e-3, 21: 4e-4, 30: 4e-5}  # halfway from the freeze (12) to the end (30)
+    for step, want in expect.items():
+        t._update_lrs(step)
+        lr = {g["name"]: g["lr"] for g in t.net_opt.param_groups}
+        assert lr["stdr_field"] == pytest.approx(want, rel=1e-9), step
+    assert lr["deform"] == pytest.approx(1e-5)

@@ -70,9 +70,9 @@ def test_resume_gives_the_same_result_as_an_uninterrupted_run(tmp_path):
     b2 = Trainer(_tiny(tmp_path, sched), tmp_path / "b")
     b2.train()  # resumes from b/checkpoints/last.pt
     assert b2.step == a.step == 60
-    for k in a.params:
-        assert torch.equal(a.params[k], b2.params[k]), k
-    for (ka, va), (kb, vb) in zip(a.deform.state_dict().items(), b2.deform.state_dict().items()):
+    for k in a.model.params:
+        assert torch.equal(a.model.params[k], b2.model.params[k]), k
+    for (ka, va), (kb, vb) in zip(a.model.deform.state_dict().items(), b2.model.deform.state_dict().items()):
         assert torch.equal(va, vb), ka
 
 

@@ -18,9 +18,7 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
                   out_dir: Path, base: str, device: str | None = None) -> dict:
     import json
 
-    from ..eval.evaluate import evaluate_run
     from ..eval.table import collect, markdown, table_row, write_tables
-    from ..train.trainer import CKPT, Trainer
 
     rows = []
     for r in runs:
@@ -36,9 +34,7 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
                 cfg.render = render_cfg
             if device is not None:  # e.g. a run trained on a GPU, re-evaluated on a CPU machine
                 cfg.device = device
-            tr = Trainer(cfg, rd, splits=(sp,), data_base=base, init_gaussians=False)
-            tr.load(rd / CKPT, training=False)
-            res = evaluate_run(tr, sp, eval_cfg)
+            res = reevaluate_run(rd, cfg, sp, eval_cfg, base)
         else:
             mp = rd / "metrics.json"
             if not mp.is_file():
@@ -52,6 +48,32 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
     print(markdown(table))
     print(f"[stdr] tables: {', '.join(str(p) for p in paths.values())}")
     return table
+
+
+def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
+    """Rebuild the run's model from its checkpoint (public API: stdr.model), render `split` and
+    merge the numbers into its metrics.json."""
+    from ..data.load import load_scene
+    from ..device import resolve_device
+    from ..eval.evaluate import evaluate_model, make_lpips, write_metrics
+    from ..model import has_model_entry, model_from_checkpoint
+    from ..train.checkpoint import load_checkpoint
+    from ..train.trainer import CKPT
+
+    ck = load_checkpoint(rd / CKPT)
+    dev = resolve_device(cfg.device)
+    # a checkpoint from before format 2 does not hold the training times: read them from the data
+    splits = (split,) if has_model_entry(ck) else tuple(dict.fromkeys(("train", split)))
+    scene = load_scene(cfg.data, splits, base=base).to(dev)
+    model = model_from_checkpoint(ck, dev, cfg, None if has_model_entry(ck) else scene.train_times(), str(rd / CKPT))
+    lp = make_lpips(eval_cfg)
+    if lp is not None:
+        lp = lp.to(dev)
+    save_dir = rd / "renders" / split if eval_cfg.save_images else None
+    res = evaluate_model(model, scene.frames(split), lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup)
+    res.update({"train_seconds": float(ck["train_seconds"]), "iterations": model.step})
+    write_metrics(rd, split, res, model, eval_cfg, lp, scene.meta)
+    return res
 
 
 @hydra.main(version_base=None, config_path=CONFIG_DIR, config_name="eval")

@@ -29,8 +29,7 @@ def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict:
           f"{trainer.scene.frames('train')[0].camera.width}x{trainer.scene.frames('train')[0].camera.height}, "
           f"device={trainer.device}, backend={trainer.backend}, run dir {run_dir}")
     print(f"[stdr] TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
-    if trainer.stdr is not None:
-        print(trainer.stdr.describe_phases())
+    print(trainer.model.schedule.describe())
     trainer.train()
     res = evaluate_run(trainer, split, cfg.eval)
     warm = [h for h in trainer.history if h["tag"] == "static_warmup"]
@@ -47,9 +46,19 @@ def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict:
 
 
 @hydra.main(version_base=None, config_path=CONFIG_DIR, config_name="train")
-def main(cfg: DictConfig) -> None:
+def _main(cfg: DictConfig) -> None:
     use_fast_allocator_hint()
     run(cfg, Path(HydraConfig.get().runtime.output_dir), data_base=hydra.utils.get_original_cwd())
+
+
+def main() -> None:
+    """stdr-train. `--cfg job` prints the config with its derived `schedule` resolved (Hydra's
+    --resolve is added), so the printed config shows every phase boundary of the run."""
+    import sys
+    if "--cfg" in sys.argv or "-c" in sys.argv:
+        if "--resolve" not in sys.argv:
+            sys.argv.append("--resolve")
+    _main()
 
 
 if __name__ == "__main__":

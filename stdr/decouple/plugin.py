@@ -1,11 +1,14 @@
-"""STDR as a plug-in of the training loop: mask, phases, regularizers, separated field.
+"""STDR as a plug-in (stdr.plugins.Plugin): mask, phases, regularizers, separated field.
 
-The trainer asks the plug-in four things per step, whatever the baseline:
+The model and the loop ask it, whatever the baseline:
+  - `init_gaussians(params)`: the mask logits [N, K] join the parameter dict (lr stdr.mask_lr);
   - `configure_step(params, step)`: which of opacity / mask train in this phase;
   - `conditioning(params, step)`: the per-Gaussian input of the deformation network (and the
     dynamic probability, when it scales the deltas);
   - `opacity_factor(params, t, step)`: the activated mask at time t, multiplied into opacity;
-  - `regularizers(params, step)`: the weighted L_temp and L_spatial.
+  - `regularizers(params, step)`: the weighted L_temp and L_spatial;
+  - `reset_opacity` / `prune_factor`: the densification's reset and pruning see the mask;
+  - `param_groups()`: the separated field, on the deformation's schedule or its own.
 Phases (steps count from 0): warm-up [0, warmup_end) - opacity frozen, mask trains;
 regularized [0, freeze_at); frozen [freeze_at, end) - mask frozen, field on.
 Everything per Gaussian lives in the parameter dict (key `stdr_mask`), so densification keeps
@@ -21,7 +24,8 @@ from typing import Any, Optional
 import torch
 from torch import Tensor
 
-from ..deform.deform3dgs import positional_encoding
+from ..encoding import positional_encoding, positional_encoding_dim
+from ..plugins import Plugin
 from .field import SeparatedField
 from .mask import (faint_fraction, knot_times, mask_at, sample_neighbours, spatial_kl, temporal_entropy,
                    temporal_loss)
@@ -93,18 +97,23 @@ def resolve_init(cfg, init_opacity: float) -> tuple[Optional[float], float]:
     return o, _logit(init_opacity / base)
 
 
-class STDR:
+class STDR(Plugin):
     """State and rules of the plug-in. `cfg` is the `stdr` config node (StdrConfig)."""
 
-    def __init__(self, cfg, baseline_warmup: int, knots: Optional[Tensor], xyz_freqs: int, seed: int,
-                 iterations: int, init_opacity: float = 0.1, device: torch.device | str = "cpu"):
+    name = "stdr"
+
+    def __init__(self, cfg, schedule, knots: Optional[Tensor], xyz_freqs: int, seed: int,
+                 init_opacity: float = 0.1, device: torch.device | str = "cpu"):
+        """schedule: the run's stdr.schedule.Schedule (STDR's phases, already kept out of the
+        baseline's switch windows)."""
         self.cfg = cfg
         self.device = torch.device(device)  # of the separated field; the knots stay on the CPU (host-side lookups)
-        self.warmup_end, self.freeze_at = resolve_phases(cfg, baseline_warmup, iterations)
+        self.iterations = int(schedule.iterations)
+        self.warmup_end, self.freeze_at = int(schedule.stdr_warmup_end), int(schedule.stdr_freeze_at)
+        self.freeze_moved: Optional[str] = schedule.stdr_freeze_moved
         self.opacity_init, self.mask_init = resolve_init(cfg, init_opacity)
         self._cleaned = False
         self.cleaned_entries: Optional[int] = None  # set at the freeze
-        self.freeze_moved: Optional[str] = None     # set when a stage switch moved the freeze
         self.xyz_freqs = xyz_freqs if cfg.field_pe_xyz else -1
         self.gen = torch.Generator().manual_seed(seed + 7919)
         self.knn_seconds = 0.0
@@ -128,7 +137,7 @@ class STDR:
     def _set_knots(self, knots: Tensor) -> None:
         self.knots = knots.double().cpu()
         if self.cfg.separated_field:
-            pe = 0 if self.xyz_freqs < 0 else 3 * (1 + 2 * self.xyz_freqs)
+            pe = 0 if self.xyz_freqs < 0 else positional_encoding_dim(3, self.xyz_freqs)
             self.field = SeparatedField(self.K + pe, self.cfg.field_width, self.cfg.temporal_dim,
                                         self.cfg.dropout).to(self.device)
 
@@ -140,7 +149,7 @@ class STDR:
     def cond_dim(self) -> int:
         return self.cfg.temporal_dim + 1 if self.cfg.separated_field else 0
 
-    def add_mask(self, params) -> None:
+    def init_gaussians(self, params) -> None:
         """Add the mask logits [N, K] to the parameter dict (no-op with stdr.mask=false), and set
         the opacities to stdr.opacity_init when it is given."""
         if self.cfg.mask:
@@ -151,30 +160,41 @@ class STDR:
                 with torch.no_grad():
                     params["opacities"].fill_(_logit(self.opacity_init))
 
-    def avoid_stage_switches(self, switches) -> Optional[str]:
-        """Keep the freeze out of the deformation's stage-switch windows [first, last] (at the
-        freeze the separated field starts feeding the network; inside such a window the network
-        is being rebuilt or detached, so the field would start from a moving target).
+    def gaussian_lr(self, key: str) -> Optional[float]:
+        return float(self.cfg.mask_lr) if key == MASK_KEY else None
 
-        Rule: a freeze that was resolved automatically moves to the midpoint between the end of
-        the warm-up and the start of the window (never before the warm-up's end); an explicit
-        stdr.freeze_at inside a window is an error. Returns a line for the log, or None."""
-        for name, first, last in switches:
-            if not first <= self.freeze_at <= last:
-                continue
-            if self.cfg.freeze_at is not None:
-                raise ValueError(f"stdr.freeze_at={self.freeze_at} falls in the {name} window [{first}, {last}]; "
-                                 f"choose a step outside it, or leave stdr.freeze_at=null to resolve it by rule")
-            old = self.freeze_at
-            self.freeze_at = max(self.warmup_end, (self.warmup_end + first) // 2)
-            self.freeze_moved = f"{old} -> {self.freeze_at}: {name} at [{first}, {last}]"
-            return f"[stdr] STDR freeze moved {self.freeze_moved}"
-        return None
+    def param_groups(self) -> list[dict]:
+        """The separated field: on the deformation network's schedule (stdr.field_lr_init=null),
+        or log-linear from stdr.field_lr_init at the freeze (where it starts training) to
+        stdr.field_lr_final at the end of the run."""
+        if self.field is None:
+            return []
+        g: dict[str, Any] = {"params": list(self.field.parameters()), "name": "stdr_field"}
+        if self.cfg.field_lr_init is not None:
+            final = self.cfg.field_lr_final
+            g.update(lr_init=float(self.cfg.field_lr_init),
+                     lr_final=float(self.cfg.field_lr_init if final is None else final),
+                     lr_max_steps=max(self.iterations - self.freeze_at, 1), lr_delay=self.freeze_at)
+        return [g]
 
-    def describe_phases(self) -> str:
-        held = "opacity frozen" if self.cfg.freeze_opacity else "opacity trains (stdr.freeze_opacity=false)"
-        return (f"[stdr] STDR phases: warm-up ({held}) [0, {self.warmup_end}), regularized to "
-                f"{self.freeze_at}, mask frozen and separated field on from {self.freeze_at}")
+    def modules(self) -> list[torch.nn.Module]:
+        return [] if self.field is None else [self.field]
+
+    def to(self, device) -> "STDR":
+        self.device = torch.device(device)
+        if self.field is not None:
+            self.field.to(self.device)
+        if self._knn is not None:
+            self._knn = tuple(x.to(self.device) for x in self._knn)
+        self._p_for = None
+        return self
+
+    def prune_factor(self, params, step: int) -> Optional[Tensor]:
+        """With stdr.prune_by_mask: the largest activated mask over time [N], so pruning looks at
+        the largest opacity a Gaussian reaches."""
+        if not self.cfg.prune_by_mask or not self.has_mask(params) or not self.mask_modulates(step):
+            return None
+        return torch.sigmoid(params[MASK_KEY].detach()).amax(1)
 
     def phase(self, step: int) -> Phase:
         return phase_at(step, self.warmup_end, self.freeze_at)
@@ -238,13 +258,6 @@ class STDR:
         if not self.has_mask(params) or not self.mask_modulates(step):
             return None
         return mask_at(params[MASK_KEY], t, self.knots)
-
-    def effective_opacity(self, params, step: int) -> Tensor:
-        """Largest opacity [N] a Gaussian reaches over time (what pruning should look at)."""
-        o = torch.sigmoid(params["opacities"].detach())
-        if self.has_mask(params) and self.mask_modulates(step):
-            o = o * torch.sigmoid(params[MASK_KEY].detach()).amax(1)
-        return o
 
     def probabilities(self, params) -> Tensor:
         """p = softmax_t(m) [N, K], computed once per mask tensor (uniform without a mask)."""

@@ -27,12 +27,17 @@ def hexplane_time_res(b, train_times: Optional[np.ndarray]) -> int:
     if b.hexplane.time_res > 0:
         return int(b.hexplane.time_res)
     if train_times is None or len(train_times) == 0:
-        return 2  # placeholder, replaced by the checkpoint's shapes on load
+        raise ValueError("baseline.hexplane.time_res=0 takes half the number of training times, but none were "
+                         "given: build the model from a scene with a train split or from a checkpoint that "
+                         "holds them (stdr.model.load_model), or set baseline.hexplane.time_res")
     return max(2, len(train_times) // 2)
 
 
-def deformation_kwargs(b, cond_dim: int = 0, train_times: Optional[np.ndarray] = None, seed: int = 0) -> dict:
-    """Constructor arguments of baseline `b.name` from the baseline config."""
+def deformation_kwargs(b, cond_dim: int = 0, train_times: Optional[np.ndarray] = None, seed: int = 0,
+                       schedule=None) -> dict:
+    """Constructor arguments of baseline `b.name` from the baseline config; the step at which the
+    module's stages start is the schedule's end of the static warm-up (b.warmup without one)."""
+    start = int(b.warmup) if schedule is None else schedule.static_warmup_end
     mlp = dict(depth=b.depth, width=b.width, skips=list(b.skips), xyz_freqs=b.xyz_freqs, t_freqs=b.t_freqs,
                cond_dim=cond_dim, head_init_std=b.head_init_std)
     if b.name == "deform":
@@ -40,13 +45,13 @@ def deformation_kwargs(b, cond_dim: int = 0, train_times: Optional[np.ndarray] =
     if b.name == "scgs":
         c = b.scgs
         return dict(mlp, time_net=b.time_net, time_out=b.time_out, num_nodes=c.num_nodes, hyper_dim=c.hyper_dim,
-                    knn_k=c.knn_k, start_step=b.warmup, node_stage_end=c.node_stage_end, main_warmup=c.main_warmup,
+                    knn_k=c.knn_k, start_step=start, node_stage_end=c.node_stage_end, main_warmup=c.main_warmup,
                     trajectory_samples=c.trajectory_samples, local_frame=c.local_frame, feature_lr=c.feature_lr,
                     arap_k=c.arap_k, arap_dt=c.arap_dt, arap_steps=list(c.arap_steps),
                     arap_weights=list(c.arap_weights), seed=seed)
     if b.name == "spgs":
         c = b.spgs
-        return dict(mlp, num_superpoints=c.num_superpoints, knn_k=c.knn_k, start_step=b.warmup,
+        return dict(mlp, num_superpoints=c.num_superpoints, knn_k=c.knn_k, start_step=start,
                     assoc_lr=c.assoc_lr, weights={"xyz": c.lambda_xyz, "rot": c.lambda_rot, "off": c.lambda_off},
                     seed=seed)
     if b.name == "4dgs":

@@ -73,9 +73,10 @@ class Deformation(nn.Module):
     uses, so a hook that evaluates the network (SC-GS's node resampling and ARAP) evaluates the
     deformation that is rendered.
     - `param_groups()`: network parameter groups with an lr multiplier each (4DGS's grid).
-    - `stage_switches()`: (name, first step, last step) of each window in which the module
-      changes its structure (SC-GS: node resampling and the detached steps after it); a
-      plug-in's own boundaries must not fall inside one (STDR's freeze).
+    - `stages(b)` (a classmethod, from the baseline config alone): the module's own events
+      [(step, config key, what happens)] and switch windows [(name, first, last)] in which it
+      changes its structure (SC-GS: node resampling and the detached steps after it); they go
+      into the run's one schedule (stdr.schedule), which keeps STDR's freeze out of a window.
     """
 
     #: width of the per-Gaussian conditioning input this module was built for (0 = none)
@@ -96,8 +97,9 @@ class Deformation(nn.Module):
     def regularizers(self, params, t: float, step: int, cond: Optional[Tensor] = None) -> dict[str, Tensor]:
         return {}
 
-    def stage_switches(self) -> list[tuple[str, int, int]]:
-        return []
+    @classmethod
+    def stages(cls, b) -> tuple[list[tuple[int, str, str]], list[tuple[str, int, int]]]:
+        return [], []
 
     def param_groups(self) -> list[dict]:
         return [{"params": list(self.parameters()), "name": "deform", "lr_mult": 1.0}]

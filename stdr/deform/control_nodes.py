@@ -105,11 +105,17 @@ class ControlNodeDeformation(Deformation):
         self.register_buffer("stage", torch.zeros((), dtype=torch.long))    # 0 static, 1 nodes, 2 skinning
         self.gen = torch.Generator().manual_seed(seed)
 
-    def stage_switches(self) -> list[tuple[str, int, int]]:
-        """The node->skinning switch: nodes resampled at node_stage_end, node deltas detached for
-        main_warmup steps after it."""
-        return [("SC-GS node->skinning switch (baseline.scgs.node_stage_end + main_warmup)",
-                 self.node_stage_end, self.node_stage_end + self.main_warmup)]
+    @classmethod
+    def stages(cls, b):
+        """The node stage from the warm-up, and the node->skinning switch: nodes resampled at
+        node_stage_end, node deltas detached for main_warmup steps after it (a switch window)."""
+        c = b.scgs
+        end, detached = int(c.node_stage_end), int(c.node_stage_end) + int(c.main_warmup)
+        events = [(int(b.warmup), "baseline.warmup", "SC-GS node stage: each Gaussian moves as a control node"),
+                  (end, "baseline.scgs.node_stage_end",
+                   "SC-GS: nodes resampled by FPS, linear blend skinning starts, node deltas detached"),
+                  (detached, "baseline.scgs.main_warmup", "SC-GS: node deltas attached")]
+        return events, [("SC-GS node->skinning switch (baseline.scgs.node_stage_end + main_warmup)", end, detached)]
 
     # -------------------------------------------------------------- per-Gaussian state
     def gaussian_params(self, n: int) -> dict[str, Tensor]:

@@ -6,19 +6,8 @@ from typing import Optional, Sequence
 import torch
 from torch import Tensor, nn
 
+from ..encoding import positional_encoding
 from .base import Deformation, Deltas, apply_post_activation
-
-
-def positional_encoding(x: Tensor, n_freqs: int) -> Tensor:
-    """NeRF encoding with the input included: [.., D] -> [.., D (1 + 2 n_freqs)].
-
-    Frequency bands 2^0 .. 2^(n_freqs-1), sin then cos per band.
-    """
-    if n_freqs == 0:
-        return x
-    freqs = 2.0 ** torch.arange(n_freqs, dtype=x.dtype, device=x.device)
-    xf = x[..., None, :] * freqs[:, None]  # [.., L, D]
-    return torch.cat([x, torch.stack([xf.sin(), xf.cos()], -2).flatten(-3)], -1)
 
 
 class DeformMLP(Deformation):

@@ -150,13 +150,3 @@ class HexPlaneDeformation(Deformation):
     def regularizers(self, params, t: float, step: int, cond: Optional[Tensor] = None) -> dict[str, Tensor]:
         return {f"hexplane_{k}": self.weights[k] * v for k, v in self.grid.regularizers().items()
                 if self.weights.get(k, 0.0) > 0}
-
-    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """Planes whose time resolution came from another scene's frame count are resized to the
-        checkpoint's shapes before loading (evaluation builds the module without train times)."""
-        for gi, planes in enumerate(self.grid.grids):
-            for pi in range(len(planes)):
-                key = f"grid.grids.{gi}.{pi}"
-                if key in state_dict and state_dict[key].shape != planes[pi].shape:
-                    planes[pi] = nn.Parameter(torch.empty_like(state_dict[key], device=planes[pi].device))
-        return super().load_state_dict(state_dict, strict=strict, assign=assign)

@@ -58,6 +58,10 @@ class SuperpointDeformation(Deformation):
     def gaussian_lr(self, key: str) -> Optional[float]:
         return self.assoc_lr if key == ASSOC_KEY else None
 
+    @classmethod
+    def stages(cls, b):
+        return [(int(b.warmup), "baseline.warmup", "SP-GS: superpoints placed by FPS over the canonical means")], []
+
     def initialize(self, params) -> None:
         """Superpoints by FPS over the canonical means; logits 0.1 + 0.9 one-hot(nearest)."""
         x = params["means"].detach()

@@ -19,7 +19,6 @@ import torch
 
 from ..device import synchronize
 from ..metrics import psnr, ssim
-from ..scene.gaussians import num_gaussians
 from .lpips import LPIPS
 
 
@@ -40,20 +39,23 @@ def make_lpips(eval_cfg) -> Optional[LPIPS]:
 
 
 @torch.no_grad()
-def evaluate_trainer(trainer, split: str, step: int, lpips_fn=None, save_dir: Optional[Path] = None,
-                     fps_warmup: int = 3) -> dict[str, Any]:
-    frames = trainer.scene.frames(split)
+def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, save_dir: Optional[Path] = None,
+                   fps_warmup: int = 3) -> dict[str, Any]:
+    """Render each frame with `model` (a stdr.model.DynamicGaussians, in eval mode) at the
+    iteration `step` (default: the model's), and measure PSNR/SSIM/LPIPS and the render FPS."""
+    model.eval()
+    step = model.step if step is None else step
     ps, ss, ls, times = [], [], [], []
     if save_dir is not None:
         save_dir.mkdir(parents=True, exist_ok=True)
     # untimed warm-up renders (allocator, caches, JIT)
     for f in frames[:fps_warmup]:
-        trainer.render_frame(f, step)
-    dev = trainer.device
+        model.render(f.camera, f.time, step)
+    dev = model.device
     for i, f in enumerate(frames):
         synchronize(dev)
         t0 = time.perf_counter()
-        out = trainer.render_frame(f, step)
+        out = model.render(f.camera, f.time, step)
         synchronize(dev)
         times.append(time.perf_counter() - t0)
         img = out.image.clamp(0, 1)
@@ -69,7 +71,7 @@ def evaluate_trainer(trainer, split: str, step: int, lpips_fn=None, save_dir: Op
         "psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)),
         "lpips": float(np.mean(ls)) if ls else None,
         "fps": float(len(times) / sum(times)),
-        "num_gaussians": num_gaussians(trainer.params),
+        "num_gaussians": model.num_gaussians,
         "num_frames": len(frames),
         "per_frame_psnr": ps,
         "width": frames[0].camera.width, "height": frames[0].camera.height,
@@ -97,16 +99,24 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
         lp = lp.to(trainer.device)
     save_dir = trainer.run_dir / "renders" / split if eval_cfg.save_images else None
     res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup)
-    res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step,
-                "conventions": metric_conventions(eval_cfg, lp, trainer.backend, trainer.device),
-                "data": trainer.scene.meta})  # how the scene was read (split, scale, intrinsics, ...)
-    if getattr(trainer, "stdr", None) is not None:  # mask memory, KNN time, mask/field statistics
-        res["stdr"] = trainer.stdr.stats(trainer.params)
-    path = trainer.run_dir / "metrics.json"
+    res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step})
+    write_metrics(trainer.run_dir, split, res, trainer.model, eval_cfg, lp, trainer.scene.meta)
+    (trainer.run_dir / "history.json").write_text(json.dumps(trainer.history, indent=1))
+    return res
+
+
+def write_metrics(run_dir: Path, split: str, res: dict[str, Any], model, eval_cfg, lpips_fn,
+                  data_meta: dict[str, Any]) -> None:
+    """Add the conventions, the data's description and each plug-in's statistics (under its
+    name: STDR's mask memory, KNN time, mask/field statistics) to `res`, and merge it into
+    run_dir/metrics.json under `split` (atomically)."""
+    res.update({"conventions": metric_conventions(eval_cfg, lpips_fn, model.backend, model.device),
+                "data": data_meta})  # how the scene was read (split, scale, intrinsics, ...)
+    for p in model.plugins:
+        res[p.name] = p.stats(model.params)
+    path = run_dir / "metrics.json"
     metrics = json.loads(path.read_text()) if path.is_file() else {}
     metrics[split] = res
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(metrics, indent=1))
     tmp.replace(path)
-    (trainer.run_dir / "history.json").write_text(json.dumps(trainer.history, indent=1))
-    return res

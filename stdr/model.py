@@ -1,0 +1,324 @@
+"""The model: Gaussians, a deformation module and plug-ins, rendered at a time t.
+
+`DynamicGaussians` is everything needed to render a trained scene and nothing about how it was
+optimized (optimizers, learning rates, densification and the loop live in `stdr.train`):
+
+    model = load_model("outputs/run/checkpoints/last.pt", device="cuda")
+    out = model.render(camera, t=0.5)             # RenderOutput, image [H, W, 3]
+
+Its checkpoint entry holds the resolved config, the training times and the background, so it
+rebuilds without the training data. What a render does depends on the iteration the model was
+trained to (`model.step`): before the baseline's static warm-up ends the Gaussians are not
+deformed, the SH degree grows with the step, and plug-ins have phases (STDR's freeze).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+from torch import Tensor
+
+from .cameras import Camera
+from .deform import build_deformation, deformation_kwargs
+from .device import resolve_device
+from .plugins import Plugin
+from .render import RenderOutput, render, resolve_backend
+from .schedule import Schedule, resolve_schedule
+from .scene.gaussians import Gaussians, activate, init_params, num_gaussians, random_cube_points
+
+CHECKPOINT_FORMAT = 2
+
+
+PluginFactory = Callable[[Any, Schedule, Optional[np.ndarray], torch.device], Optional[Plugin]]
+
+
+def _stdr(cfg, schedule: Schedule, train_times: Optional[np.ndarray], device: torch.device) -> Optional[Plugin]:
+    """STDR when stdr.enabled; its phases come from the schedule, its time knots from the
+    training times."""
+    if not cfg.stdr.enabled:
+        return None
+    from .decouple import STDR
+    knots = STDR.knots_for(cfg.stdr, train_times) if train_times is not None else None
+    return STDR(cfg.stdr, schedule, knots, xyz_freqs=cfg.baseline.xyz_freqs, seed=cfg.seed,
+                init_opacity=cfg.model.init_opacity, device=device)
+
+
+#: factories asked in order for each model: factory(cfg, schedule, train_times, device) -> a plug-in
+#: or None (off)
+PLUGIN_FACTORIES: list[PluginFactory] = [_stdr]
+
+
+def register_plugin(factory: PluginFactory) -> PluginFactory:
+    """Add a plug-in factory (after the built-in ones); returns it, so it can decorate."""
+    PLUGIN_FACTORIES.append(factory)
+    return factory
+
+
+def build_plugins(cfg, schedule: Schedule, train_times: Optional[np.ndarray], device: torch.device) -> list[Plugin]:
+    """The plug-ins the config switches on, in factory order. Names must be unique."""
+    plugins = [p for f in PLUGIN_FACTORIES if (p := f(cfg, schedule, train_times, device)) is not None]
+    names = [p.name for p in plugins]
+    if len(set(names)) != len(names):
+        raise ValueError(f"two plug-ins share a name: {names}")
+    return plugins
+
+
+def initial_points(model_cfg, scene_points: Optional[np.ndarray], scene_colors: Optional[np.ndarray],
+                   seed: int, where: str = "the scene") -> tuple[Tensor, Tensor]:
+    """(points [N, 3], colours [N, 3]) the Gaussians start from, by model.init: a random cube or
+    the scene's points (SfM / the loader's). Random draws come from a CPU generator seeded with
+    `seed`, so every device starts from the same Gaussians."""
+    gen = torch.Generator().manual_seed(seed)
+    if model_cfg.init == "random":
+        pts = random_cube_points(model_cfg.init_num, model_cfg.init_extent, gen)
+    elif model_cfg.init == "points":
+        if scene_points is None:
+            raise ValueError(f"model.init=points but {where} provides no points; use model.init=random")
+        pts = torch.from_numpy(scene_points).float()
+    else:
+        raise ValueError(f"model.init={model_cfg.init!r}: use 'random' or 'points'")
+    colors = torch.rand(pts.shape[0], 3, generator=gen)
+    if model_cfg.init == "points" and scene_colors is not None:
+        colors = torch.from_numpy(scene_colors).float()
+    return pts, colors
+
+
+class DynamicGaussians:
+    """Per-Gaussian parameters (one dict, STDR's mask included), the deformation module and the
+    plug-ins. Renders `deformed(t)` and saves / loads / moves itself."""
+
+    def __init__(self, cfg, schedule: Schedule, params: torch.nn.ParameterDict, deform, plugins: list[Plugin],
+                 train_times: Optional[np.ndarray], background: Tensor, device: torch.device):
+        self.cfg = cfg
+        self.schedule = schedule
+        self.params = params
+        self.deform = deform
+        self.plugins = plugins
+        self.train_times = None if train_times is None else np.asarray(train_times, dtype=np.float64)
+        self.device = device
+        self.background = background.to(device)  # [3]
+        self.backend = resolve_backend(cfg.render.backend, device)
+        self.step = 0  # iterations trained
+
+    # ----------------------------------------------------------------- plug-ins
+    def plugin(self, name: str) -> Optional[Plugin]:
+        """The plug-in called `name`, or None when it is off."""
+        return next((p for p in self.plugins if p.name == name), None)
+
+    @property
+    def cond_dim(self) -> int:
+        return sum(p.cond_dim for p in self.plugins)
+
+    @property
+    def warmup(self) -> int:
+        """End of the static warm-up (the deformation is off before it), from the schedule."""
+        return self.schedule.static_warmup_end
+
+    @property
+    def num_gaussians(self) -> int:
+        return num_gaussians(self.params)
+
+    # ----------------------------------------------------------------- rendering
+    def sh_degree(self, step: int) -> int:
+        m = self.cfg.model
+        return min(m.sh_degree, step // max(m.sh_interval, 1))
+
+    def conditioning(self, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
+        """(cond [N, cond_dim], delta scale [N, 1]) for the deformation network at `step`, from the
+        plug-ins (concatenated / multiplied), or (None, None) without any or in the warm-up."""
+        if step < self.warmup:
+            return None, None
+        conds, scale = [], None
+        for p in self.plugins:
+            c, s = p.conditioning(self.params, step)
+            if c is not None:
+                conds.append(c)
+            if s is not None:
+                scale = s if scale is None else scale * s
+        cond = None if not conds else conds[0] if len(conds) == 1 else torch.cat(conds, -1)
+        return cond, scale
+
+    def deformed(self, t: float, step: Optional[int] = None,
+                 cond_scale: Optional[tuple[Optional[Tensor], Optional[Tensor]]] = None) -> Gaussians:
+        """Activated Gaussians at time t: deformed after the static warm-up, opacity times the
+        plug-ins' factors. cond_scale: this step's `conditioning` (computed when None)."""
+        step = self.step if step is None else step
+        if step < self.warmup:
+            g = activate(self.params)
+        else:
+            cond, scale = self.conditioning(step) if cond_scale is None else cond_scale
+            g = self.deform.deform(self.params, t, cond, scale)
+        for p in self.plugins:
+            f = p.opacity_factor(self.params, t, step)
+            if f is not None:
+                g = g._replace(opacities=g.opacities * f)
+        return g
+
+    def render_gaussians(self, g: Gaussians, camera: Camera, step: Optional[int] = None) -> RenderOutput:
+        r = self.cfg.render
+        return render(g.means, g.quats, g.scales, g.opacities, g.sh, camera,
+                      sh_degree=self.sh_degree(self.step if step is None else step), background=self.background,
+                      backend=self.backend, near=r.near, eps2d=r.eps2d, antialiased=r.antialiased,
+                      tile_size=r.tile_size)
+
+    def render(self, camera: Camera, t: float, step: Optional[int] = None) -> RenderOutput:
+        """The model at time t seen from `camera` (at the trained iteration unless `step`)."""
+        return self.render_gaussians(self.deformed(t, step), camera, step)
+
+    def train(self, mode: bool = True) -> "DynamicGaussians":
+        """Train mode (BatchNorm batch statistics, dropout) in train steps, eval mode elsewhere."""
+        self.deform.train(mode)
+        for p in self.plugins:
+            for m in p.modules():
+                m.train(mode)
+        return self
+
+    def eval(self) -> "DynamicGaussians":
+        return self.train(False)
+
+    # ----------------------------------------------------------------- densification hooks
+    def prune_opacity_fn(self, step: int):
+        """`opacity_fn` for the strategy: sigmoid(opacity) times the plug-ins' prune factors, or
+        None when no plug-in has one (the strategy then uses sigmoid(opacity))."""
+        def fn(params):
+            fs = [f for p in self.plugins if (f := p.prune_factor(params, step)) is not None]
+            o = torch.sigmoid(params["opacities"].detach())
+            for f in fs:
+                o = o * f
+            return o
+        return fn if any(p.prune_factor(self.params, step) is not None for p in self.plugins) else None
+
+    def reset_opacity_fn(self, step: int):
+        """`reset_fn` for the strategy: the first plug-in that handles the reset, else the strategy."""
+        if not self.plugins:
+            return None
+        return lambda params, value: any(p.reset_opacity(params, value, step) for p in self.plugins)
+
+    # ----------------------------------------------------------------- state
+    def to(self, device: torch.device | str) -> "DynamicGaussians":
+        """Move parameters, networks and plug-ins to `device` (the parameter objects are replaced:
+        build optimizers after moving)."""
+        self.device = torch.device(device)
+        for k in list(self.params.keys()):
+            self.params[k] = torch.nn.Parameter(self.params[k].detach().to(self.device),
+                                                requires_grad=self.params[k].requires_grad)
+        self.deform.to(self.device)
+        for p in self.plugins:
+            p.to(self.device)
+        self.background = self.background.to(self.device)
+        self.backend = resolve_backend(self.cfg.render.backend, self.device)
+        return self
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "config": OmegaConf.to_container(self.cfg, resolve=True),
+            "step": self.step,
+            "params": {k: v.detach().clone() for k, v in self.params.items()},
+            "deform": self.deform.state_dict(),
+            "plugins": {p.name: p.state_dict() for p in self.plugins},
+            "train_times": None if self.train_times is None else torch.from_numpy(self.train_times.copy()),
+            "background": self.background.detach().cpu().clone(),
+        }
+
+    def load_state_dict(self, s: dict[str, Any], where: str = "checkpoint") -> None:
+        have, want = sorted(p.name for p in self.plugins), sorted(s.get("plugins", {}))
+        if have != want:
+            raise ValueError(f"{where}: saved with plug-ins {want or 'none'} but this model has {have or 'none'} "
+                             "(e.g. stdr.enabled differs); use the run's own config.yaml")
+        self.params.clear()
+        for k, v in s["params"].items():
+            self.params[k] = torch.nn.Parameter(v.to(self.device))
+        self.deform.load_state_dict(s["deform"])
+        for p in self.plugins:
+            p.load_state_dict(s["plugins"][p.name], self.params)
+        self.step = int(s["step"])
+
+    def save(self, path: str | Path) -> None:
+        """A checkpoint holding the model alone (no optimizer state): `load_model` reads it."""
+        from .train.checkpoint import save_checkpoint
+        save_checkpoint(path, {"model": self.state_dict()})
+
+
+def build_model(cfg, train_times: Optional[np.ndarray], background: Tensor, device: torch.device,
+                points: Optional[Tensor] = None, colors: Optional[Tensor] = None) -> DynamicGaussians:
+    """The model of a config: Gaussians at `points` (none: an empty dict for `load_state_dict`),
+    the baseline's deformation module (built for the plug-ins' conditioning width) and the
+    plug-ins, all reading their boundaries from the one schedule of the config. Random draws
+    (network initializations) come from the global generator in a fixed
+    order, so a seeded build is reproducible."""
+    if points is None:
+        params = torch.nn.ParameterDict()
+    else:
+        params = init_params(points.to(device), colors.to(device), sh_degree=cfg.model.sh_degree,
+                             init_opacity=cfg.model.init_opacity)
+    schedule = resolve_schedule(cfg)
+    plugins = build_plugins(cfg, schedule, train_times, device)
+    if points is not None:
+        for p in plugins:
+            p.init_gaussians(params)
+    b = cfg.baseline
+    deform = build_deformation(b.name, **deformation_kwargs(b, sum(p.cond_dim for p in plugins), train_times,
+                                                            seed=cfg.seed, schedule=schedule)).to(device)
+    model = DynamicGaussians(cfg, schedule, params, deform, plugins, train_times, background, device)
+    if points is not None:  # per-Gaussian state of the baseline (kept aligned by densification)
+        tt = None if train_times is None else train_times
+        deform.setup(params, tt)
+        for k, v in deform.gaussian_params(points.shape[0]).items():
+            params[k] = torch.nn.Parameter(v.to(device))
+    return model
+
+
+def model_entry(ck: dict[str, Any], where: str) -> dict[str, Any]:
+    """The model's part of a checkpoint (written by `DynamicGaussians.save` or by training)."""
+    if "model" in ck:
+        return ck["model"]
+    raise ValueError(f"{where}: a checkpoint from before format {CHECKPOINT_FORMAT} (no model entry, no training "
+                     "times): stdr-eval reads it from its run folder; load_model cannot rebuild it alone")
+
+
+def has_model_entry(ck: dict[str, Any]) -> bool:
+    """Whether a loaded checkpoint rebuilds its model alone (format 2 and later)."""
+    return "model" in ck
+
+
+def load_model(path: str | Path, device: str | torch.device = "auto", cfg=None,
+               train_times: Optional[np.ndarray] = None) -> DynamicGaussians:
+    """Rebuild a model from a checkpoint file on `device` ("auto", "cpu", "cuda", ...).
+
+    cfg: the config to build with (default: the one saved in the checkpoint; a run's own
+    config.yaml may override render settings). A checkpoint written before format 2 has no
+    config or training times: pass both (stdr-eval does, from the run folder and its data)."""
+    from .train.checkpoint import load_checkpoint
+    return model_from_checkpoint(load_checkpoint(path), device, cfg, train_times, str(path))
+
+
+def model_from_checkpoint(ck: dict[str, Any], device: str | torch.device = "auto", cfg=None,
+                          train_times: Optional[np.ndarray] = None, path: str = "checkpoint") -> DynamicGaussians:
+    """`load_model` of an already loaded checkpoint dict."""
+    from .config import Config
+    dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
+    if "model" in ck:
+        s = ck["model"]
+    elif "params" in ck and cfg is not None and train_times is not None:  # format 1: a trainer payload
+        s = {"step": ck["step"], "params": ck["params"], "deform": ck["deform"],
+             "plugins": {} if ck.get("stdr") is None else {"stdr": ck["stdr"]}, "train_times": None,
+             "background": None}
+    else:
+        s = model_entry(ck, str(path))
+    if cfg is None:
+        cfg = OmegaConf.merge(OmegaConf.structured(Config), s["config"])
+    tt = s["train_times"].numpy() if s.get("train_times") is not None else train_times
+    if tt is None:
+        raise ValueError(f"{path}: no training times in the checkpoint; pass train_times")
+    if s.get("background") is not None:
+        bg = s["background"]
+    else:
+        from .data.dnerf import parse_background
+        bg = torch.tensor(parse_background(cfg.data.background))
+    model = build_model(cfg, tt, bg.float(), dev)
+    model.load_state_dict(s, str(path))
+    return model

@@ -1,0 +1,145 @@
+"""The model object (stdr.model) and the plug-in protocol (stdr.plugins), apart from STDR."""
+import json
+
+import pytest
+import torch
+
+from test_train import _tiny
+
+from stdr.model import PLUGIN_FACTORIES, load_model, register_plugin
+from stdr.plugins import Plugin
+
+SCHED = ["optim.iterations=40", "baseline.warmup=10", "densify.refine_start=5", "densify.refine_every=5",
+         "densify.reset_every=0", "train.checkpoint_every=0", "train.eval_at_warmup_end=false",
+         "train.log_every=5"]
+
+
+class Tagger(Plugin):
+    """A toy plug-in: one per-Gaussian tag (lr 0.01), a conditioning of width 2 from a small net
+    on its own lr schedule, an opacity factor of sigmoid(tag), and a loss pulling tags to 1."""
+
+    name = "tagger"
+
+    def __init__(self, warmup: int, iterations: int):
+        self.net = torch.nn.Linear(1, 2)
+        self.warmup, self.iterations = warmup, iterations
+        self.calls: dict[str, int] = {}
+
+    def _count(self, k):
+        self.calls[k] = self.calls.get(k, 0) + 1
+
+    @property
+    def cond_dim(self):
+        return 2
+
+    def init_gaussians(self, params):
+        params["tag"] = torch.nn.Parameter(torch.zeros(params["means"].shape[0], 1))
+
+    def gaussian_lr(self, key):
+        return 0.01 if key == "tag" else None
+
+    def param_groups(self):
+        return [{"params": list(self.net.parameters()), "name": "tagger_net", "lr_init": 1e-2, "lr_final": 1e-4,
+                 "lr_max_steps": self.iterations - self.warmup, "lr_delay": self.warmup}]
+
+    def modules(self):
+        return [self.net]
+
+    def configure_step(self, params, step):
+        self._count("configure_step")
+
+    def conditioning(self, params, step):
+        self._count("conditioning")
+        return self.net(params["tag"]), None
+
+    def opacity_factor(self, params, t, step):
+        return torch.sigmoid(params["tag"][:, 0])
+
+    def regularizers(self, params, step):
+        return {"pull": ((params["tag"] - 1.0) ** 2).mean()}
+
+    def prune_factor(self, params, step):
+        self._count("prune_factor")
+        return None
+
+    def state_dict(self):
+        return {"net": self.net.state_dict()}
+
+    def load_state_dict(self, state, params):
+        self.net.load_state_dict(state["net"])
+
+    def stats(self, params):
+        return {"tag_mean": float(params["tag"].detach().mean())}
+
+
+@pytest.fixture
+def tagger():
+    """Registers Tagger for the test; state["on"] = False switches it off, state["made"] lists them."""
+    state = {"on": True, "made": []}
+
+    def factory(cfg, schedule, train_times, device):
+        if not state["on"]:
+            return None
+        p = Tagger(cfg.baseline.warmup, cfg.optim.iterations)
+        state["made"].append(p)
+        return p
+    register_plugin(factory)
+    yield state
+    PLUGIN_FACTORIES.remove(factory)
+
+
+def test_a_plugin_trains_through_the_hooks_alone(tmp_path, tagger):
+    from stdr.eval.evaluate import evaluate_run
+    from stdr.train.trainer import Trainer
+    t = Trainer(_tiny(tmp_path, SCHED + ["experiment=embedded_deform"]), tmp_path / "run", splits=("train", "test"))
+    p = t.model.plugin("tagger")
+    assert p is tagger["made"][-1] and t.model.deform.cond_dim == 2   # the network is built for its conditioning
+    n0 = t.model.num_gaussians
+    logs = None
+    for _ in range(40):
+        logs = t.train_step()
+    # per-Gaussian state stays aligned through densification, and trains at its own lr
+    assert t.model.num_gaussians != n0 and t.model.params["tag"].shape == (t.model.num_gaussians, 1)
+    assert t.optimizers["tag"].param_groups[0]["lr"] == 0.01
+    assert float(t.model.params["tag"].detach().mean()) > 0.0  # pulled towards 1
+    assert "tagger_pull" in logs["losses"]
+    assert p.calls["configure_step"] == 40 and p.calls["conditioning"] >= 30 and p.calls["prune_factor"] > 0
+    # its network group follows its own schedule from its delay, not the deformation's
+    lrs = {g["name"]: g["lr"] for g in t.net_opt.param_groups}
+    assert lrs["tagger_net"] == pytest.approx(1e-4 * (1e-2 / 1e-4) ** (1 / 30), rel=1e-6)  # step 39 of 10..40
+    assert lrs["tagger_net"] != pytest.approx(lrs["deform"])
+    t._update_lrs(10)
+    assert {g["name"]: g["lr"] for g in t.net_opt.param_groups}["tagger_net"] == pytest.approx(1e-2)
+    # statistics under its name in metrics.json
+    res = evaluate_run(t, "test", t.cfg.eval)
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]["tagger"]["tag_mean"] == \
+        res["tagger"]["tag_mean"]
+
+
+def test_the_model_reloads_alone_and_renders_what_training_rendered(tmp_path, tagger):
+    from stdr.train.trainer import Trainer
+    t = Trainer(_tiny(tmp_path, SCHED + ["experiment=embedded_4dgs", "baseline.hexplane.base_res=16"]),
+                tmp_path / "run", splits=("train", "test"))
+    t.train()
+    ck = tmp_path / "run" / "checkpoints" / "last.pt"
+    m = load_model(ck, device="cpu")   # config, training times and background from the checkpoint
+    assert m.step == 40 and m.num_gaussians == t.model.num_gaussians and m.plugin("tagger") is not None
+    f = t.scene.frames("test")[0]
+    t.model.eval()
+    a = t.model.render(f.camera, f.time).image
+    b = m.render(f.camera, f.time).image
+    assert torch.equal(a, b)
+    # the same file after DynamicGaussians.save (no optimizer state)
+    m.save(tmp_path / "model.pt")
+    assert torch.equal(load_model(tmp_path / "model.pt", device="cpu").render(f.camera, f.time).image, a)
+    # a model without the plug-in refuses the checkpoint, naming why
+    tagger["on"] = False
+    with pytest.raises(ValueError, match="plug-ins"):
+        load_model(ck, device="cpu")
+
+
+def test_model_without_training_times_is_refused_for_4dgs(tmp_path):
+    from stdr.model import build_model
+    cfg = _tiny(tmp_path, ["experiment=embedded_4dgs"])
+    with pytest.raises(ValueError, match="time_res"):
+        build_model(cfg, None, torch.ones(3), torch.device("cpu"))

@@ -1,0 +1,60 @@
+"""The one phase schedule (stdr.schedule): resolved from the config, read by every component."""
+import subprocess
+import sys
+
+import pytest
+from omegaconf import OmegaConf
+
+from test_train import _tiny, make_cfg
+
+from stdr.schedule import resolve_schedule
+
+
+@pytest.mark.parametrize("name", ["deform", "scgs", "spgs", "4dgs"])
+def test_schedule_of_each_baseline_with_and_without_stdr(name):
+    plain = resolve_schedule(make_cfg([f"experiment=dnerf_{name}", "data.path=/x"]))
+    s = resolve_schedule(make_cfg([f"experiment=dnerf_{name}_stdr", "data.path=/x"]))
+    assert plain.static_warmup_end == s.static_warmup_end == 500 and plain.stdr_freeze_at is None
+    steps = [e.step for e in s.sorted_events()]
+    assert steps == sorted(steps) and steps[0] == 0
+    keys = {e.key for e in s.events}
+    assert {"baseline.warmup", "stdr.warmup_end", "densify.refine_start"} <= keys
+    assert s.stdr_warmup_end == 500
+    # SC-GS's node->skinning switch is at 1000 = 2 x 500: the freeze moves by rule, for it alone
+    assert s.stdr_freeze_at == (750 if name == "scgs" else 1000)
+    assert ("moved" in s.describe()) == (name == "scgs")
+    if name == "scgs":
+        assert "baseline.scgs.node_stage_end" in keys and s.windows == [(s.windows[0][0], 1000, 1100)]
+    # an explicit freeze away from any window is kept as given
+    assert resolve_schedule(make_cfg([f"experiment=dnerf_{name}_stdr", "data.path=/x",
+                                      "stdr.freeze_at=1300"])).stdr_freeze_at == 1300
+
+
+def test_schedule_marks_boundaries_a_run_never_reaches():
+    s = resolve_schedule(make_cfg(["experiment=dnerf_deform_stdr", "data.path=/x", "optim.iterations=800"]))
+    line = [ln for ln in s.describe().splitlines() if "[stdr.freeze_at]" in ln][0]
+    assert line.endswith("(never reached)") and "1000" in line
+
+
+def test_components_read_their_boundaries_from_the_schedule(tmp_path):
+    from stdr.train.trainer import Trainer
+    t = Trainer(_tiny(tmp_path, ["experiment=embedded_scgs_stdr", "baseline.warmup=30",
+                                 "baseline.scgs.node_stage_end=60", "baseline.scgs.main_warmup=10",
+                                 "baseline.scgs.num_nodes=64", "optim.iterations=100"]), tmp_path / "run")
+    s, m = t.model.schedule, t.model
+    assert m.warmup == s.static_warmup_end == 30 == m.deform.start_step
+    st = m.plugin("stdr")
+    assert (st.warmup_end, st.freeze_at) == (s.stdr_warmup_end, s.stdr_freeze_at) == (30, 45)  # moved off [60, 70]
+    assert st.stats(m.params)["freeze_moved"] == s.stdr_freeze_moved
+    # the config's derived node holds the same numbers (and config.yaml keeps them)
+    node = OmegaConf.to_container(t.cfg, resolve=True)["schedule"]
+    assert (node["static_warmup_end"], node["stdr_warmup_end"], node["stdr_freeze_at"]) == (30, 30, 45)
+
+
+def test_stdr_train_cfg_job_prints_the_resolved_schedule():
+    out = subprocess.run([sys.executable, "-c", "from stdr.cli.train import main; main()",
+                          "experiment=dnerf_scgs_stdr", "data.path=/x", "--cfg", "job"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "schedule:" in out.stdout and "stdr_freeze_at: 750" in out.stdout
+    assert "${stdr_schedule" not in out.stdout
