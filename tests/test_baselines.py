@@ -320,7 +320,7 @@ def test_stdr_conditioning_starts_without_effect(name):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["scgs", "spgs", "4dgs"])
 def test_baseline_trains_on_the_embedded_scene_and_beats_its_static_warmup(tmp_path, name):
-    from test_train import _tiny
+    from stdr.testing import tiny_config as _tiny
 
     from stdr.cli.train import run
     cfg = _tiny(tmp_path, [f"experiment=embedded_{name}", "optim.iterations=900", "baseline.warmup=300",
@@ -343,11 +343,12 @@ def test_baseline_trains_on_the_embedded_scene_and_beats_its_static_warmup(tmp_p
     assert again["psnr"] == pytest.approx(res["psnr"], abs=1e-4)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["scgs", "spgs", "4dgs"])
 def test_resume_is_exact_across_the_baseline_stages(tmp_path, name):
     """Stopped after the warm-up (SP-GS superpoints placed, SC-GS in its node stage) and resumed
     past SC-GS's switch to skinning, a run ends bit-identical to an uninterrupted one."""
-    from test_train import _tiny
+    from stdr.testing import tiny_config as _tiny
 
     from stdr.train.trainer import Trainer
     sched = [f"experiment=embedded_{name}", "baseline.warmup=20", "densify.refine_start=10",

@@ -206,7 +206,7 @@ def test_training_with_either_backend_reaches_the_same_psnr(tmp_path):
     import json
 
     from stdr.cli.train import run
-    from test_train import _tiny
+    from stdr.testing import tiny_config as _tiny
 
     res = {}
     for b in ("reference", "cpu"):
@@ -220,6 +220,7 @@ def test_training_with_either_backend_reaches_the_same_psnr(tmp_path):
     assert abs(res["cpu"]["psnr"] - res["reference"]["psnr"]) <= 0.1, (res["cpu"]["psnr"], res["reference"]["psnr"])
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(NVCC is None or shutil.which("g++") is None, reason="nvcc or g++ not on PATH")
 def test_cuda_binding_compiles_against_torch_headers(tmp_path):
     """The CUDA binding is built only where torch has CUDA; check its C++ here anyway.

@@ -2,18 +2,19 @@
 device set to 'meta'), and a short run plus a resume on CUDA where a GPU exists."""
 import importlib.util
 import json
+from pathlib import Path
 
 import pytest
 import torch
 
-from conftest import ROOT
-from test_train import _tiny
 
 from stdr.device import resolve_device
+from stdr.testing import tiny_config as _tiny
 
 
 def _identity_check():
-    spec = importlib.util.spec_from_file_location("identity_check", ROOT / "scripts" / "identity_check.py")
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("identity_check", root / "scripts" / "identity_check.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
@@ -52,6 +53,7 @@ class _DefaultDevice:
         torch.set_default_device(None)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["deform", "scgs", "spgs", "4dgs"])
 def test_no_step_creates_a_tensor_on_a_hard_coded_device(tmp_path, name):
     """Training (densification, opacity reset, STDR's phases and field, the baseline's stages),

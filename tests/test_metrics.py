@@ -47,6 +47,7 @@ def _img(path):
     return torch.from_numpy(cv2.imread(str(path))[..., ::-1].copy()).float() / 255
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("net", ["vgg", "alex"])
 def test_lpips_calibration(shared_dir, net):
     root = shared_dir / "data" / "lpips_calibration"

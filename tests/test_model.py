@@ -4,7 +4,7 @@ import json
 import pytest
 import torch
 
-from test_train import _tiny
+from stdr.testing import tiny_config as _tiny
 
 from stdr.model import PLUGIN_FACTORIES, load_model, register_plugin
 from stdr.plugins import Plugin
@@ -88,6 +88,7 @@ def tagger():
     PLUGIN_FACTORIES.remove(factory)
 
 
+@pytest.mark.slow
 def test_a_plugin_trains_through_the_hooks_alone(tmp_path, tagger):
     from stdr.eval.evaluate import evaluate_run
     from stdr.train.trainer import Trainer
@@ -116,6 +117,7 @@ def test_a_plugin_trains_through_the_hooks_alone(tmp_path, tagger):
         res["tagger"]["tag_mean"]
 
 
+@pytest.mark.slow
 def test_the_model_reloads_alone_and_renders_what_training_rendered(tmp_path, tagger):
     from stdr.train.trainer import Trainer
     t = Trainer(_tiny(tmp_path, SCHED + ["experiment=embedded_4dgs", "baseline.hexplane.base_res=16"]),

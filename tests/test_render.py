@@ -50,6 +50,7 @@ def test_one_pixel_image():
     _compare(*random_gaussians(10, seed=4, dtype=torch.float64, spread=0.05, scale=(-1.5, -1.0)), cam)
 
 
+@pytest.mark.slow
 def test_render_gradcheck_float64():
     d = torch.float64
     cam = look_at_camera((2.0, 0.4, 0.5), width=6, height=5, fov_x=0.9, dtype=d)

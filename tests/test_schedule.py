@@ -5,7 +5,8 @@ import sys
 import pytest
 from omegaconf import OmegaConf
 
-from test_train import _tiny, make_cfg
+from stdr.testing import make_cfg
+from stdr.testing import tiny_config as _tiny
 
 from stdr.schedule import resolve_schedule
 

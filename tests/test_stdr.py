@@ -1,6 +1,7 @@
 """STDR: mask maths against hand computations, phases in the real training loop, the separated
 field, config/table plumbing, exact resume, and the ghosting behaviour it exists for."""
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from stdr.scene.gaussians import init_params
 from stdr.scene.strategy import DensifyStrategy
 from stdr.schedule import resolve_schedule
 
-from test_train import TINY_SCENE, make_cfg
+from stdr.testing import TINY_SCENE, make_cfg
 
 
 # ----------------------------------------------------------------------------- the mask maths
@@ -241,6 +242,7 @@ def test_phases_in_the_training_loop(tmp_path):
     assert any(not torch.equal(a, b.detach()) for a, b in zip(field0, t.model.plugin("stdr").field.parameters()))
 
 
+@pytest.mark.slow
 def test_resume_with_stdr_matches_an_uninterrupted_run(tmp_path):
     from stdr.train.trainer import Trainer
     sched = ["optim.iterations=30", "densify.refine_start=4", "densify.refine_every=5"]
@@ -293,7 +295,7 @@ def test_ghosting_scene_masks_separate_the_two_places_and_stdr_beats_the_baselin
     places less sharply, measured: on 0.94, off 0.64 at A.)"""
     import importlib.util
     from stdr.train.trainer import Trainer
-    from conftest import ROOT
+    ROOT = Path(__file__).resolve().parents[1]
     spec = importlib.util.spec_from_file_location("ghosting", ROOT / "scripts" / "ghosting.py")
     ghosting = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(ghosting)
@@ -417,6 +419,7 @@ def test_freeze_opacity_false_trains_opacity_in_the_warmup_as_an_empty_warmup_do
     assert "(opacity frozen)" in resolve_schedule(cfg).describe()
 
 
+@pytest.mark.slow
 def test_freeze_opacity_false_trains_like_an_empty_warmup_with_the_same_freeze(tmp_path):
     """For a baseline without stage switches, stdr.freeze_opacity=false is the run with
     warmup_end=0 and the default freeze: the same training, bit for bit."""

@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import pytest
 
 from stdr.eval.table import collect, latex, markdown
@@ -45,7 +47,7 @@ def test_table_refuses_to_mix_different_configs():
 
 def _gap_module():
     import importlib.util
-    from conftest import ROOT
+    ROOT = Path(__file__).resolve().parents[1]
     spec = importlib.util.spec_from_file_location("stdr_gap", ROOT / "scripts" / "stdr_gap.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

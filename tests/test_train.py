@@ -5,22 +5,10 @@ import sys
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-
-from stdr.cli.common import CONFIG_DIR
 from stdr.cli.train import run
-from stdr.config import register
 from stdr.device import resolve_device
-
-register()
-
-TINY_SCENE = ["data.procedural.resolution=64", "data.procedural.n_train=40", "data.procedural.n_val=2",
-              "data.procedural.n_test=4"]
-
-
-def make_cfg(overrides):
-    with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
-        return compose("train", overrides=overrides)
+from stdr.testing import make_cfg
+from stdr.testing import tiny_config as _tiny
 
 
 def test_configs_compose_for_every_experiment_and_budget():
@@ -52,12 +40,7 @@ def test_configs_compose_for_every_experiment_and_budget():
     assert demo.name == "embedded_deform" and demo.budget == "demo" and demo.data.format == "procedural"
 
 
-def _tiny(tmp_path, extra=()):
-    return make_cfg(TINY_SCENE + [
-        f"data.cache_dir={tmp_path / 'cache'}", "model.init_num=1500", "eval.lpips=false",
-        "train.progress=false", "eval.save_images=false", "train.image_every=0", *extra])
-
-
+@pytest.mark.slow
 def test_resume_gives_the_same_result_as_an_uninterrupted_run(tmp_path):
     sched = ["optim.iterations=60", "baseline.warmup=20", "densify.refine_start=10",
              "densify.refine_every=10", "densify.reset_every=30", "densify.prune_big_after=30",

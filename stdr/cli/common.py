@@ -12,3 +12,14 @@ def use_fast_allocator_hint() -> None:
     lib = "/usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4"
     if "tcmalloc" not in os.environ.get("LD_PRELOAD", "") and Path(lib).is_file():
         print(f"[stdr] hint: CPU training runs faster with LD_PRELOAD={lib} (scripts/run.sh sets it)")
+
+
+def compose_config(overrides=(), config_name: str = "train"):
+    """The config `stdr-train` (config_name="train") or `stdr-eval` ("eval") would run with these
+    command-line overrides, composed with Hydra's compose API: for scripts, notebooks and tests."""
+    from hydra import compose, initialize_config_dir
+
+    from ..config import register
+    register()
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
+        return compose(config_name, overrides=list(overrides))
