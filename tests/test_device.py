@@ -74,8 +74,10 @@ def test_no_step_creates_a_tensor_on_a_hard_coded_device(tmp_path, name):
     for k in a.model.params:
         assert b.model.params[k].device.type == "cpu" and torch.equal(a.model.params[k], b.model.params[k]), k
     assert res["psnr"] == pytest.approx(a.evaluate("test")["psnr"], abs=1e-6)
-    conv = json.loads((tmp_path / "b" / "metrics.json").read_text())["test"]["conventions"]
+    entry = json.loads((tmp_path / "b" / "metrics.json").read_text())["test"]
+    conv = entry["conventions"]
     assert conv["device"] == "cpu" and conv["render_backend"] == b.backend
+    assert set(entry["code"]) == {"version", "commit", "dirty"}  # which checkout wrote the numbers
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine (torch.cuda.is_available() is False)")

@@ -80,3 +80,16 @@ def test_stdr_gap_pairs_scenes_and_refuses_mixed_lengths(tmp_path):
         gap.point_rows("x", tmp_path / "p2", tmp_path / "s2", "val")
     with pytest.raises(SystemExit, match="no 'test' entry"):
         gap.read(tmp_path / "p" / "a", "test")
+
+
+def test_code_version_names_the_checkout():
+    import re
+
+    from stdr.eval.evaluate import code_version
+    v = code_version()
+    root = Path(__file__).resolve().parents[1]
+    assert v["version"]
+    if (root / ".git").exists():  # a clone: the commit is a full hash, dirty a bool
+        assert re.fullmatch(r"[0-9a-f]{40}", v["commit"]) and isinstance(v["dirty"], bool)
+    else:
+        assert v["commit"] is None

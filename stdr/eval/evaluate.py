@@ -10,6 +10,7 @@ Conventions, recorded in the output:
 from __future__ import annotations
 
 import json
+import subprocess
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -105,13 +106,34 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
     return res
 
 
+def code_version() -> dict[str, Any]:
+    """Which code wrote a number: the stdr package version, and, in a git checkout, its commit
+    and whether tracked files had uncommitted changes (None outside a checkout)."""
+    from .. import __version__
+    root = Path(__file__).resolve().parents[2]
+    out: dict[str, Any] = {"version": __version__, "commit": None, "dirty": None}
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              timeout=10)
+        if head.returncode != 0:
+            return out
+        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                                capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired):
+        return out
+    out["commit"] = head.stdout.strip()
+    out["dirty"] = bool(status.stdout.strip()) if status.returncode == 0 else None
+    return out
+
+
 def write_metrics(run_dir: Path, split: str, res: dict[str, Any], model, eval_cfg, lpips_fn,
                   data_meta: dict[str, Any]) -> None:
     """Add the conventions, the data's description and each plug-in's statistics (under its
     name: STDR's mask memory, KNN time, mask/field statistics) to `res`, and merge it into
     run_dir/metrics.json under `split` (atomically)."""
     res.update({"conventions": metric_conventions(eval_cfg, lpips_fn, model.backend, model.device),
-                "data": data_meta})  # how the scene was read (split, scale, intrinsics, ...)
+                "data": data_meta,  # how the scene was read (split, scale, intrinsics, ...)
+                "code": code_version()})  # the checkout that wrote this entry
     for p in model.plugins:
         res[p.name] = p.stats(model.params)
     path = run_dir / "metrics.json"
