@@ -181,15 +181,20 @@ class DynamicGaussians:
 
     # ----------------------------------------------------------------- densification hooks
     def prune_opacity_fn(self, step: int):
-        """`opacity_fn` for the strategy: sigmoid(opacity) times the plug-ins' prune factors, or
-        None when no plug-in has one (the strategy then uses sigmoid(opacity))."""
+        """`opacity_fn` for the strategy: sigmoid(opacity) times the plug-ins' prune factors (None
+        without plug-ins: the strategy then uses sigmoid(opacity)). The factors are computed only
+        when the strategy prunes, never on the steps in between."""
+        if not self.plugins:
+            return None
+
         def fn(params):
-            fs = [f for p in self.plugins if (f := p.prune_factor(params, step)) is not None]
             o = torch.sigmoid(params["opacities"].detach())
-            for f in fs:
-                o = o * f
+            for p in self.plugins:
+                f = p.prune_factor(params, step)
+                if f is not None:
+                    o = o * f
             return o
-        return fn if any(p.prune_factor(self.params, step) is not None for p in self.plugins) else None
+        return fn
 
     def reset_opacity_fn(self, step: int):
         """`reset_fn` for the strategy: the first plug-in that handles the reset, else the strategy."""
@@ -272,17 +277,17 @@ def build_model(cfg, train_times: Optional[np.ndarray], background: Tensor, devi
     return model
 
 
-def model_entry(ck: dict[str, Any], where: str) -> dict[str, Any]:
-    """The model's part of a checkpoint (written by `DynamicGaussians.save` or by training)."""
-    if "model" in ck:
-        return ck["model"]
-    raise ValueError(f"{where}: a checkpoint from before format {CHECKPOINT_FORMAT} (no model entry, no training "
-                     "times): stdr-eval reads it from its run folder; load_model cannot rebuild it alone")
-
-
 def has_model_entry(ck: dict[str, Any]) -> bool:
     """Whether a loaded checkpoint rebuilds its model alone (format 2 and later)."""
     return "model" in ck
+
+
+def model_entry(ck: dict[str, Any], where: str) -> dict[str, Any]:
+    """The model's part of a checkpoint (written by `DynamicGaussians.save` or by training)."""
+    if has_model_entry(ck):
+        return ck["model"]
+    raise ValueError(f"{where}: a checkpoint from before format {CHECKPOINT_FORMAT} (no model entry, no training "
+                     "times): stdr-eval reads it from its run folder; load_model cannot rebuild it alone")
 
 
 def load_model(path: str | Path, device: str | torch.device = "auto", cfg=None,
@@ -301,7 +306,7 @@ def model_from_checkpoint(ck: dict[str, Any], device: str | torch.device = "auto
     """`load_model` of an already loaded checkpoint dict."""
     from .config import Config
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
-    if "model" in ck:
+    if has_model_entry(ck):
         s = ck["model"]
     elif "params" in ck and cfg is not None and train_times is not None:  # format 1: a trainer payload
         s = {"step": ck["step"], "params": ck["params"], "deform": ck["deform"],

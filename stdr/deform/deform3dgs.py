@@ -6,7 +6,7 @@ from typing import Optional, Sequence
 import torch
 from torch import Tensor, nn
 
-from ..encoding import positional_encoding
+from ..encoding import positional_encoding, positional_encoding_dim
 from .base import Deformation, Deltas, apply_post_activation
 
 
@@ -31,8 +31,8 @@ class DeformMLP(Deformation):
         super().__init__()
         self.xyz_freqs, self.t_freqs, self.cond_dim = xyz_freqs, t_freqs, cond_dim
         self.skips = tuple(skips)
-        xyz_dim = 3 * (1 + 2 * xyz_freqs)
-        t_dim = 1 + 2 * t_freqs
+        xyz_dim = positional_encoding_dim(3, xyz_freqs)
+        t_dim = positional_encoding_dim(1, t_freqs)
         self.time_net = nn.Sequential(nn.Linear(t_dim, width), nn.ReLU(), nn.Linear(width, time_out)) \
             if time_net else None
         in_dim = xyz_dim + (time_out if time_net else t_dim) + cond_dim

@@ -111,13 +111,13 @@ def collect(rows: list[dict[str, Any]]) -> dict[str, Any]:
     means = {}
     for m in methods:
         means[m] = {}
+        runs = [r for r in rows if r["method"] == m]
         for k in METRICS:
             vals = [cells[m][s][k] for s in scenes if s in cells[m] and cells[m][s][k] is not None]
             complete = len(vals) == len(scenes)
             means[m][k] = sum(vals) / len(vals) if vals and complete else None
-            spread, n_seeds = _seed_spread([r for r in rows if r["method"] == m], scenes, k)
+            spread, means[m]["n_seeds"] = _seed_spread(runs, scenes, k)
             means[m][f"{k}_std"] = spread if means[m][k] is not None else None
-            means[m]["n_seeds"] = n_seeds
     return {"methods": methods, "scenes": scenes, "cells": cells, "means": means}
 
 
@@ -161,7 +161,7 @@ def latex(t, metrics=("psnr", "ssim", "lpips")) -> str:
     out.append("\\midrule")
     _, body = to_rows(t, metrics, pm=" $\\pm$ ")
     for r in body:
-        out.append(" & ".join(x.replace("_", "\\_").replace("+", "+") for x in r) + " \\\\")
+        out.append(" & ".join(x.replace("_", "\\_") for x in r) + " \\\\")
     out += ["\\bottomrule", "\\end{tabular}"]
     return "\n".join(out) + "\n"
 
