@@ -11,6 +11,11 @@ configuration, whether two saved files hold bit-identical tensors.
     git worktree add /tmp/old <commit> && (cd /tmp/old && PYTHONPATH=/tmp/old python <this file> run /tmp/old.pt)
     scripts/run.sh python scripts/identity_check.py run /tmp/new.pt
     scripts/run.sh python scripts/identity_check.py compare /tmp/old.pt /tmp/new.pt --labels <old> <new> --out X
+
+`configs` composes every experiment under every budget (the resolved config `stdr-train` would
+run with) into a JSON file; `compare-configs` says which composed configs differ between two such
+files. Keys a commit removed on purpose are named with --removed (dotted paths, `*` matches one
+level) and reported apart from real differences.
 """
 from __future__ import annotations
 
@@ -79,6 +84,75 @@ def compare(a_path: Path, b_path: Path, labels: list[str], out: Path | None) -> 
     return all(r["bit_identical"] for r in rows)
 
 
+BUDGETS = ("cpu", "demo", "paper")
+
+
+def experiment_names() -> list[str]:
+    """Every selectable experiment: the registered ones (derived), else the YAML files of older commits."""
+    try:
+        from stdr.config import experiment_names as names
+        return names()
+    except ImportError:
+        from stdr.cli.common import CONFIG_DIR
+        return sorted(p.stem for p in (Path(CONFIG_DIR) / "experiment").glob("*.yaml"))
+
+
+def configs(out: Path) -> None:
+    from omegaconf import OmegaConf
+
+    from stdr.cli.common import compose_config
+    res = {}
+    for name in experiment_names():
+        for budget in BUDGETS:
+            cfg = compose_config([f"experiment={name}", f"budget={budget}", "data.path=/data/scene"])
+            res[f"{name}/{budget}"] = OmegaConf.to_container(cfg, resolve=True)
+    out.write_text(json.dumps(res, indent=1, sort_keys=True) + "\n")
+    print(f"{len(res)} composed configs -> {out}")
+
+
+def _flatten(d, prefix=""):
+    if isinstance(d, dict):
+        for k, v in d.items():
+            yield from _flatten(v, f"{prefix}{k}.")
+    else:
+        yield prefix[:-1], d
+
+
+def _matches(key: str, pattern: str) -> bool:
+    k, p = key.split("."), pattern.split(".")
+    return len(k) >= len(p) and all(a == b or b == "*" for a, b in zip(k, p))
+
+
+def compare_configs(a_path: Path, b_path: Path, removed: list[str], labels: list[str], out: Path | None) -> bool:
+    a, b = json.loads(a_path.read_text()), json.loads(b_path.read_text())
+    rows = []
+    for name in sorted(set(a) | set(b)):
+        if name not in a or name not in b:
+            rows.append({"config": name, "status": f"only in {labels[0] if name in a else labels[1]}"})
+            continue
+        fa, fb = dict(_flatten(a[name])), dict(_flatten(b[name]))
+        gone = sorted(k for k in set(fa) - set(fb) if any(_matches(k, p) for p in removed))
+        diff = sorted(k for k in set(fa) | set(fb) if k not in gone and fa.get(k, "<absent>") != fb.get(k, "<absent>"))
+        rows.append({"config": name, "status": "differs" if diff else "identical", "differences": diff,
+                     "removed_keys": len(gone)})
+    same = sum(r["status"] == "identical" for r in rows)
+    common = sum(not r["status"].startswith("only") for r in rows)
+    added = [r["config"] for r in rows if r["status"] == f"only in {labels[1]}"]
+    text = (f"Composed configs, {labels[0]} vs {labels[1]}: {same} of the {common} in both identical"
+            f" (keys removed on purpose: {', '.join(removed) or 'none'}); {len(added)} new in {labels[1]}"
+            + (f" ({', '.join(sorted({a.split('/')[0] for a in added}))})" if added else "") + ".\n")
+    for r in rows:
+        if r["status"] not in ("identical", f"only in {labels[1]}"):
+            text += f"  {r['config']}: {r['status']} {r.get('differences', '')}\n"
+    print(text, end="")
+    if out is not None:
+        out.with_suffix(".md").write_text(text + "\n(scripts/identity_check.py configs / compare-configs; every "
+                                          f"experiment x budgets {', '.join(BUDGETS)}.)\n")
+        out.with_suffix(".json").write_text(json.dumps({"labels": labels, "removed": removed, "rows": rows},
+                                                       indent=1) + "\n")
+    return same == common and common + len(added) == len(rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -89,9 +163,22 @@ def main() -> None:
     c.add_argument("b", type=Path)
     c.add_argument("--labels", nargs=2, default=["a", "b"])
     c.add_argument("--out", type=Path, default=None, help="write OUT.md and OUT.json")
+    g = sub.add_parser("configs")
+    g.add_argument("out", type=Path)
+    h = sub.add_parser("compare-configs")
+    h.add_argument("a", type=Path)
+    h.add_argument("b", type=Path)
+    h.add_argument("--removed", nargs="*", default=[])
+    h.add_argument("--labels", nargs=2, default=["a", "b"])
+    h.add_argument("--out", type=Path, default=None, help="write OUT.md and OUT.json")
     args = ap.parse_args()
     if args.cmd == "run":
         run(args.out)
+    elif args.cmd == "configs":
+        configs(args.out)
+    elif args.cmd == "compare-configs":
+        if not compare_configs(args.a, args.b, args.removed, args.labels, args.out):
+            raise SystemExit(1)
     elif not compare(args.a, args.b, args.labels, args.out):
         raise SystemExit(1)
 

@@ -6,13 +6,19 @@ directory (config.yaml), and that file is what stdr-eval rebuilds the run from.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
 from .data.procedural import SceneOptions
+# every baseline's config dataclass lives beside its module (stdr.deform.registry)
+from .deform import BASELINES, BaselineConfig, DeformConfig, HexPlaneConfig, ScgsConfig, SpgsConfig  # noqa: F401
+from .deform.registry import BaselineSpec, add_listener, get_baseline
 from .scene.strategy import DensifyStrategy
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 
 
 @dataclass
@@ -46,71 +52,6 @@ class ModelConfig:
     init_opacity: float = 0.1
     sh_degree: int = 3
     sh_interval: int = 1000     # raise the active SH degree every this many iterations
-
-
-@dataclass
-class ScgsConfig:
-    """SC-GS control nodes (docs/baselines.md)."""
-
-    num_nodes: int = 512
-    hyper_dim: int = 8
-    knn_k: int = 3
-    node_stage_end: int = 10000     # nodes resampled by FPS over trajectories, skinning starts
-    main_warmup: int = 3000         # node deltas detached for this many steps after the switch
-    trajectory_samples: int = 16
-    local_frame: bool = True
-    feature_lr: float = 2.5e-3      # per-Gaussian hyper-coordinates
-    arap_k: int = 10
-    arap_dt: float = 0.05
-    arap_steps: List[int] = field(default_factory=lambda: [0, 5000, 10000, 20000, 20001])  # after node_stage_end
-    arap_weights: List[float] = field(default_factory=lambda: [1e-4, 1e-4, 1e-5, 1e-5, 0.0])
-
-
-@dataclass
-class SpgsConfig:
-    """SP-GS superpoints (docs/baselines.md)."""
-
-    num_superpoints: int = 300
-    knn_k: int = 5
-    assoc_lr: float = 1e-3          # constant, as published (its schedule never applies)
-    lambda_xyz: float = 1e-3        # property-reconstruction weights
-    lambda_rot: float = 100.0
-    lambda_off: float = 100.0
-
-
-@dataclass
-class HexPlaneConfig:
-    """4DGaussians HexPlane field and decoder (docs/baselines.md)."""
-
-    base_res: int = 64
-    multires: List[int] = field(default_factory=lambda: [1, 2])
-    channels: int = 32
-    time_res: int = 0               # 0: half the number of distinct training times (the published values)
-    grid_lr_mult: float = 10.0      # grid lr = 10 x the network lr (1.6e-3 vs 1.6e-4)
-    plane_tv: float = 1e-4
-    time_smooth: float = 1e-2
-    l1_time: float = 1e-4
-
-
-@dataclass
-class BaselineConfig:
-    name: str = "deform"            # deform | scgs | spgs | 4dgs
-    warmup: int = 3000          # static iterations before the deformation is applied
-    depth: int = 8
-    width: int = 256
-    skips: List[int] = field(default_factory=lambda: [4])
-    xyz_freqs: int = 10
-    t_freqs: int = 6
-    time_net: bool = True
-    time_out: int = 30
-    head_init_std: Optional[float] = None  # None: PyTorch default (published); 1e-5: start at identity
-    lr_init: float = 8e-4
-    lr_final: float = 1.6e-6
-    lr_max_steps: int = 40_000
-    lr_from_warmup: bool = False    # the network's lr schedule starts at the warm-up's end (4DGS restarts it)
-    scgs: ScgsConfig = field(default_factory=ScgsConfig)
-    spgs: SpgsConfig = field(default_factory=SpgsConfig)
-    hexplane: HexPlaneConfig = field(default_factory=HexPlaneConfig)
 
 
 @dataclass
@@ -216,6 +157,8 @@ class Config:
     device: str = "auto"  # auto (cuda when torch sees a GPU, else cpu) | cpu | cuda | cuda:<index>
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
+    # the common keys; the option baseline=<name> (default deform) types it as that baseline's
+    # registered dataclass (a subclass), which adds its own keys
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     densify: DensifyStrategy = field(default_factory=DensifyStrategy)  # the strategy is its own schema
@@ -247,9 +190,89 @@ def _schedule_resolver(*, _root_) -> dict:
     return resolve_schedule(_root_).as_dict()
 
 
+def data_options() -> list[str]:
+    """The options of the `data` group (configs/data/*.yaml)."""
+    return sorted(p.stem for p in (CONFIG_DIR / "data").glob("*.yaml"))
+
+
+def _experiment_files() -> set[str]:
+    return {p.stem for p in (CONFIG_DIR / "experiment").glob("*.yaml")}
+
+
+def derived_experiments(name: str) -> dict[str, dict]:
+    """The experiments baseline `name` gets: `<data>_<name>` and `<data>_<name>_stdr` for every
+    data option, each selecting data, baseline and stdr, plus what every experiment on that
+    data adds (configs/experiment_data/<data>.yaml, optional: e.g. init from the capture's
+    points). A YAML file configs/experiment/<same name>.yaml, when present, is used instead."""
+    files = _experiment_files()
+    out = {}
+    for d in data_options():
+        for suffix, stdr in (("", "off"), ("_stdr", "on")):
+            exp = f"{d}_{name}{suffix}"
+            if exp not in files:
+                out[exp] = {"defaults": [{"optional /experiment_data": d}, {"override /data": d},
+                                         {"override /baseline": name}, {"override /stdr": stdr}],
+                            "name": exp}
+    return out
+
+
+def experiment_names() -> list[str]:
+    """Every experiment `stdr-train experiment=<name>` accepts."""
+    return sorted(_experiment_files() | {e for b in BASELINES for e in derived_experiments(b)})
+
+
+def _sync_baseline(spec: BaselineSpec, added: bool) -> None:
+    """Keep Hydra's ConfigStore in step with the registry: the option baseline=<name> (the
+    registered dataclass: typed defaults) and its derived experiments."""
+    cs = ConfigStore.instance()
+    if added:
+        cs.store(group="baseline", name=spec.name, node=spec.config)
+        for exp, node in derived_experiments(spec.name).items():
+            cs.store(group="experiment", name=exp, node=node, package="_global_")
+    else:
+        cs.repo.get("baseline", {}).pop(f"{spec.name}.yaml", None)
+        for exp in derived_experiments(spec.name):
+            cs.repo.get("experiment", {}).pop(f"{exp}.yaml", None)
+
+
 def register() -> None:
+    """Register the structured configs, every baseline (and the ones registered later) and the
+    `stdr_schedule` resolver with Hydra. Idempotent; the entry points call it."""
     if not OmegaConf.has_resolver("stdr_schedule"):
         OmegaConf.register_new_resolver("stdr_schedule", _schedule_resolver)
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)
     cs.store(name="base_eval", node=EvalAppConfig)
+    for spec in BASELINES.values():
+        _sync_baseline(spec, True)
+    add_listener(_sync_baseline)
+
+
+# keys of other baselines that configs written before per-baseline config classes carried under
+# `baseline` (every run had baseline.scgs, .spgs and .hexplane); dropped when such a config is read
+_LEGACY_BASELINE_KEYS = ("scgs", "spgs", "hexplane")
+
+
+def load_config(raw: Any, where: str = "config"):
+    """A saved config (a run's config.yaml, a checkpoint's config: a dict, DictConfig or path)
+    merged onto the typed defaults of its baseline. Unknown keys are an error naming `where`."""
+    if isinstance(raw, (str, Path)):
+        where = str(raw)
+        raw = OmegaConf.load(raw)
+    raw = OmegaConf.to_container(raw) if OmegaConf.is_config(raw) else dict(raw)
+    b = dict(raw.get("baseline") or {})
+    name = b.get("name", "deform")
+    try:
+        spec = get_baseline(name)
+    except ValueError as e:
+        raise ValueError(f"{where}: {e}") from None
+    fields = set(spec.config.__dataclass_fields__)
+    for k in _LEGACY_BASELINE_KEYS:
+        if k in b and k not in fields:
+            del b[k]
+    raw["baseline"] = b
+    schema = OmegaConf.merge(OmegaConf.structured(Config), {"baseline": OmegaConf.structured(spec.config)})
+    try:
+        return OmegaConf.merge(schema, raw)
+    except Exception as e:  # omegaconf's errors name the key; say which file
+        raise ValueError(f"{where}: {e}") from None

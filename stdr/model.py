@@ -22,7 +22,7 @@ from omegaconf import OmegaConf
 from torch import Tensor
 
 from .cameras import Camera
-from .deform import build_deformation, deformation_kwargs
+from .deform import build_deformation
 from .device import resolve_device
 from .plugins import Plugin
 from .render import RenderOutput, render, resolve_backend
@@ -266,8 +266,8 @@ def build_model(cfg, train_times: Optional[np.ndarray], background: Tensor, devi
         for p in plugins:
             p.init_gaussians(params)
     b = cfg.baseline
-    deform = build_deformation(b.name, **deformation_kwargs(b, sum(p.cond_dim for p in plugins), train_times,
-                                                            seed=cfg.seed, schedule=schedule)).to(device)
+    deform = build_deformation(b, sum(p.cond_dim for p in plugins), train_times, seed=cfg.seed,
+                               schedule=schedule).to(device)
     model = DynamicGaussians(cfg, schedule, params, deform, plugins, train_times, background, device)
     if points is not None:  # per-Gaussian state of the baseline (kept aligned by densification)
         tt = None if train_times is None else train_times
@@ -304,7 +304,7 @@ def load_model(path: str | Path, device: str | torch.device = "auto", cfg=None,
 def model_from_checkpoint(ck: dict[str, Any], device: str | torch.device = "auto", cfg=None,
                           train_times: Optional[np.ndarray] = None, path: str = "checkpoint") -> DynamicGaussians:
     """`load_model` of an already loaded checkpoint dict."""
-    from .config import Config
+    from .config import load_config
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
     if has_model_entry(ck):
         s = ck["model"]
@@ -315,7 +315,7 @@ def model_from_checkpoint(ck: dict[str, Any], device: str | torch.device = "auto
     else:
         s = model_entry(ck, str(path))
     if cfg is None:
-        cfg = OmegaConf.merge(OmegaConf.structured(Config), s["config"])
+        cfg = load_config(s["config"], str(path))
     tt = s["train_times"].numpy() if s.get("train_times") is not None else train_times
     if tt is None:
         raise ValueError(f"{path}: no training times in the checkpoint; pass train_times")

@@ -80,7 +80,7 @@ def place_freeze(freeze_at: int, warmup_end: int, windows: list[tuple[str, int, 
 def resolve_schedule(cfg) -> Schedule:
     """Every boundary of a run from its config (a Config or DictConfig)."""
     from .decouple.plugin import resolve_phases
-    from .deform import REGISTRY
+    from .deform import get_baseline
 
     b = cfg.baseline
     total = int(cfg.optim.iterations)
@@ -88,9 +88,7 @@ def resolve_schedule(cfg) -> Schedule:
     s = Schedule(iterations=total, static_warmup_end=warm)
     s.events.append(Event(0, "start", "canonical Gaussians rendered without deformation"))
     s.events.append(Event(warm, "baseline.warmup", "static warm-up ends: the deformation network is on"))
-    if b.name not in REGISTRY:
-        raise ValueError(f"baseline.name={b.name!r} is not one of {sorted(REGISTRY)}")
-    events, windows = REGISTRY[b.name].stages(b)
+    events, windows = get_baseline(b.name).module.stages(b)
     s.events += [Event(*e) for e in events]
     s.windows = list(windows)
     d = cfg.densify

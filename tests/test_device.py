@@ -8,6 +8,7 @@ import pytest
 import torch
 
 
+from stdr.deform import BASELINES
 from stdr.device import resolve_device
 from stdr.testing import tiny_config as _tiny
 
@@ -54,7 +55,7 @@ class _DefaultDevice:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["deform", "scgs", "spgs", "4dgs"])
+@pytest.mark.parametrize("name", sorted(BASELINES))
 def test_no_step_creates_a_tensor_on_a_hard_coded_device(tmp_path, name):
     """Training (densification, opacity reset, STDR's phases and field, the baseline's stages),
     a checkpoint, a resume and the evaluation run with the default device set to 'meta', and end

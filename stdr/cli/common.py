@@ -4,7 +4,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-CONFIG_DIR = str(Path(__file__).resolve().parents[2] / "configs")
+from ..config import CONFIG_DIR as _CONFIG_DIR
+
+CONFIG_DIR = str(_CONFIG_DIR)
 
 
 def use_fast_allocator_hint() -> None:

@@ -8,7 +8,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from ..config import Config, register
+from ..config import load_config, register
 from .common import CONFIG_DIR
 
 register()
@@ -27,7 +27,7 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
         if not cfg_path.is_file():
             raise FileNotFoundError(f"{rd} is not a stdr run directory (no config.yaml); "
                                     "pass folders that stdr-train wrote")
-        cfg = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(cfg_path))
+        cfg = load_config(cfg_path)
         sp = split or cfg.data.eval_split
         if reevaluate:
             if render_cfg is not None:

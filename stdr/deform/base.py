@@ -12,13 +12,50 @@ The baselines differ in that rule, so it is explicit, never unified silently:
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Optional
+from dataclasses import dataclass, field
+from typing import Any, List, Optional
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
 from ..scene.gaussians import Gaussians
+
+
+@dataclass
+class BaselineConfig:
+    """Keys every baseline has (`baseline.*`). A baseline's own config subclasses this with its
+    defaults (the published values) and its own sub-config (`baseline.scgs.*`, ...); it is
+    registered with the module (stdr.deform.registry.register_baseline) and becomes the Hydra
+    option `baseline=<name>`. Budget files (configs/budget_baseline/<name>_<budget>.yaml) are
+    optional deltas on top."""
+
+    name: str = "deform"
+    warmup: int = 3000          # static iterations before the deformation is applied
+    depth: int = 8
+    width: int = 256
+    skips: List[int] = field(default_factory=lambda: [4])
+    xyz_freqs: int = 10
+    t_freqs: int = 6
+    time_net: bool = True
+    time_out: int = 30
+    head_init_std: Optional[float] = None  # None: PyTorch default (published); 1e-5: start at identity
+    lr_init: float = 8e-4
+    lr_final: float = 1.6e-6
+    lr_max_steps: int = 40_000
+    lr_from_warmup: bool = False    # the network's lr schedule starts at the warm-up's end (4DGS restarts it)
+
+
+def mlp_kwargs(b: Any, cond_dim: int) -> dict:
+    """Constructor arguments of the shared MLP trunk (DeformMLP) from the common baseline keys."""
+    return dict(depth=b.depth, width=b.width, skips=list(b.skips), xyz_freqs=b.xyz_freqs, t_freqs=b.t_freqs,
+                cond_dim=cond_dim, head_init_std=b.head_init_std)
+
+
+def stage_start(b: Any, schedule=None) -> int:
+    """The step at which a module's own stages begin: the schedule's end of the static warm-up
+    (baseline.warmup without a schedule)."""
+    return int(b.warmup) if schedule is None else int(schedule.static_warmup_end)
 
 
 @dataclass
@@ -81,6 +118,21 @@ class Deformation(nn.Module):
 
     #: width of the per-Gaussian conditioning input this module was built for (0 = none)
     cond_dim: int = 0
+
+    @classmethod
+    def config_kwargs(cls, b: Any, cond_dim: int = 0, train_times: Optional[np.ndarray] = None, seed: int = 0,
+                      schedule=None) -> dict:
+        """Constructor arguments from the baseline config `b` (the baseline's registered
+        dataclass), the plug-ins' conditioning width, the training times, the run's seed and its
+        schedule. Every registered module implements it."""
+        raise NotImplementedError(f"{cls.__name__} must implement config_kwargs(b, cond_dim, train_times, seed, "
+                                  "schedule) to be built from a config")
+
+    @classmethod
+    def from_config(cls, b: Any, cond_dim: int = 0, train_times: Optional[np.ndarray] = None, seed: int = 0,
+                    schedule=None) -> "Deformation":
+        """The module of a baseline config (see `config_kwargs`)."""
+        return cls(**cls.config_kwargs(b, cond_dim, train_times, seed, schedule))
 
     def gaussian_params(self, n: int) -> dict[str, Tensor]:
         return {}

@@ -18,18 +18,49 @@ Gaussians instead of a separate node model, which then continue as the skinned G
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence
+from dataclasses import dataclass, field
+from typing import List, Optional, Sequence
 
 import torch
 from torch import Tensor, nn
 
 from ..ops import scatter_mean, take_rows
 from ..scene.knn import knn
-from .base import Deformation, Deltas
+from .base import BaselineConfig, Deformation, Deltas, mlp_kwargs, stage_start
 from .deform3dgs import DeformMLP
+from .registry import register_baseline
 from .geometry import farthest_point_sampling, quat_to_rotmat
 
 FEATURE_KEY = "scgs_feature"
+
+
+@dataclass
+class ScgsConfig:
+    """SC-GS control nodes, `baseline.scgs.*` (docs/baselines.md)."""
+
+    num_nodes: int = 512
+    hyper_dim: int = 8
+    knn_k: int = 3
+    node_stage_end: int = 10000     # nodes resampled by FPS over trajectories, skinning starts
+    main_warmup: int = 3000         # node deltas detached for this many steps after the switch
+    trajectory_samples: int = 16
+    local_frame: bool = True
+    feature_lr: float = 2.5e-3      # per-Gaussian hyper-coordinates
+    arap_k: int = 10
+    arap_dt: float = 0.05
+    arap_steps: List[int] = field(default_factory=lambda: [0, 5000, 10000, 20000, 20001])  # after node_stage_end
+    arap_weights: List[float] = field(default_factory=lambda: [1e-4, 1e-4, 1e-5, 1e-5, 0.0])
+
+
+@dataclass
+class ScgsBaselineConfig(BaselineConfig):
+    """SC-GS (Huang et al. 2024), `baseline=scgs`: control nodes + linear blend skinning; the node
+    MLP is Deformable 3DGS's with its heads started near zero (published dscale 1e-8). Sizes and
+    stages: configs/budget_baseline/scgs_<budget>.yaml."""
+
+    name: str = "scgs"
+    head_init_std: Optional[float] = 1.0e-5
+    scgs: ScgsConfig = field(default_factory=ScgsConfig)
 
 
 def skinning_weights(d2: Tensor, radius: Tensor, node_weight: Tensor) -> Tensor:
@@ -104,6 +135,16 @@ class ControlNodeDeformation(Deformation):
         self.node_weight = nn.Parameter(torch.zeros(num_nodes))             # sigmoid -> 0.5
         self.register_buffer("stage", torch.zeros((), dtype=torch.long))    # 0 static, 1 nodes, 2 skinning
         self.gen = torch.Generator().manual_seed(seed)
+
+    @classmethod
+    def config_kwargs(cls, b, cond_dim=0, train_times=None, seed=0, schedule=None) -> dict:
+        c = b.scgs
+        return dict(mlp_kwargs(b, cond_dim), time_net=b.time_net, time_out=b.time_out, num_nodes=c.num_nodes,
+                    hyper_dim=c.hyper_dim, knn_k=c.knn_k, start_step=stage_start(b, schedule),
+                    node_stage_end=c.node_stage_end, main_warmup=c.main_warmup,
+                    trajectory_samples=c.trajectory_samples, local_frame=c.local_frame, feature_lr=c.feature_lr,
+                    arap_k=c.arap_k, arap_dt=c.arap_dt, arap_steps=list(c.arap_steps),
+                    arap_weights=list(c.arap_weights), seed=seed)
 
     @classmethod
     def stages(cls, b):
@@ -246,3 +287,6 @@ class ControlNodeDeformation(Deformation):
         p1 = p + self.node_deltas(p, t1, cond_n)[0]
         p2 = p + self.node_deltas(p, t2, cond_n)[0]
         return {"scgs_arap": lam * arap_energy(p1, p2, nbr)}
+
+
+register_baseline("scgs", ControlNodeDeformation, ScgsBaselineConfig)

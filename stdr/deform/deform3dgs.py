@@ -1,13 +1,24 @@
 """Deformable 3DGS (Yang et al. 2024): an MLP of (PE(xyz), PE(t)) giving dxyz, dq, ds."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import torch
 from torch import Tensor, nn
 
 from ..encoding import positional_encoding, positional_encoding_dim
-from .base import Deformation, Deltas, apply_post_activation
+from .base import BaselineConfig, Deformation, Deltas, apply_post_activation, mlp_kwargs
+from .registry import register_baseline
+
+
+@dataclass
+class DeformConfig(BaselineConfig):
+    """Deformable 3DGS (Yang et al. 2024), `baseline=deform`: the common keys at their published
+    values (8x256 MLP, skip after layer 4, PE 10/6, a time net for synthetic data; real data uses
+    t_freqs 10 without it). Budget sizes: configs/budget_baseline/deform_<budget>.yaml."""
+
+    name: str = "deform"
 
 
 class DeformMLP(Deformation):
@@ -24,6 +35,10 @@ class DeformMLP(Deformation):
     """
 
     apply_rule = staticmethod(apply_post_activation)
+
+    @classmethod
+    def config_kwargs(cls, b, cond_dim=0, train_times=None, seed=0, schedule=None) -> dict:
+        return dict(mlp_kwargs(b, cond_dim), time_net=b.time_net, time_out=b.time_out)
 
     def __init__(self, depth: int = 8, width: int = 256, skips: Sequence[int] = (4,),
                  xyz_freqs: int = 10, t_freqs: int = 6, time_net: bool = True, time_out: int = 30,
@@ -81,3 +96,6 @@ class DeformMLP(Deformation):
             if i in self.skips:
                 h = torch.cat([h, x0], -1)
         return h
+
+
+register_baseline("deform", DeformMLP, DeformConfig)

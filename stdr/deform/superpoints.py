@@ -13,6 +13,7 @@
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Optional
 
 import torch
@@ -20,15 +21,47 @@ from torch import Tensor, nn
 
 from ..ops import scatter_mean, take_rows
 from ..scene.knn import knn
-from .base import Deformation, Deltas, apply_post_activation
+from .base import BaselineConfig, Deformation, Deltas, apply_post_activation, mlp_kwargs, stage_start
 from .deform3dgs import DeformMLP
+from .registry import register_baseline
 from .geometry import farthest_point_sampling, quat_multiply, so3_exp, so3_exp_quat
 
 ASSOC_KEY = "spgs_assoc"
 
 
+@dataclass
+class SpgsConfig:
+    """SP-GS superpoints, `baseline.spgs.*` (docs/baselines.md)."""
+
+    num_superpoints: int = 300
+    knn_k: int = 5
+    assoc_lr: float = 1e-3          # constant, as published (its schedule never applies)
+    lambda_xyz: float = 1e-3        # property-reconstruction weights
+    lambda_rot: float = 100.0
+    lambda_off: float = 100.0
+
+
+@dataclass
+class SpgsBaselineConfig(BaselineConfig):
+    """SP-GS (Wan et al. 2024), `baseline=spgs`: superpoints moving rigidly (SO(3) + translation);
+    PE(t) with 6 frequencies and no time net, lr 1e-3. Sizes:
+    configs/budget_baseline/spgs_<budget>.yaml."""
+
+    name: str = "spgs"
+    time_net: bool = False
+    lr_init: float = 1.0e-3
+    spgs: SpgsConfig = field(default_factory=SpgsConfig)
+
+
 class SuperpointDeformation(Deformation):
     apply_rule = staticmethod(apply_post_activation)
+
+    @classmethod
+    def config_kwargs(cls, b, cond_dim=0, train_times=None, seed=0, schedule=None) -> dict:
+        c = b.spgs
+        return dict(mlp_kwargs(b, cond_dim), num_superpoints=c.num_superpoints, knn_k=c.knn_k,
+                    start_step=stage_start(b, schedule), assoc_lr=c.assoc_lr,
+                    weights={"xyz": c.lambda_xyz, "rot": c.lambda_rot, "off": c.lambda_off}, seed=seed)
 
     def __init__(self, num_superpoints: int = 300, knn_k: int = 5, start_step: int = 3000, depth: int = 8,
                  width: int = 256, skips=(4,), xyz_freqs: int = 10, t_freqs: int = 6, cond_dim: int = 0,
@@ -139,3 +172,6 @@ class SuperpointDeformation(Deformation):
                  "off": (take_rows(d, hard) - blend(d)).square().sum(-1).mean()}
         self._last = {}
         return {f"spgs_re_{k}": self.weights[k] * v for k, v in terms.items() if self.weights.get(k, 0) > 0}
+
+
+register_baseline("spgs", SuperpointDeformation, SpgsBaselineConfig)

@@ -1,0 +1,153 @@
+"""The baseline registry: one module and one config make a baseline that every entry point,
+experiment and test sees (issue 14 §5)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from torch import nn
+
+from stdr.config import data_options, experiment_names, load_config
+from stdr.deform import BASELINES, BaselineConfig, Deformation, Deltas, get_baseline, register_baseline
+from stdr.deform.registry import unregister_baseline
+from stdr.testing import applicable, make_cfg, tiny_config
+
+
+@pytest.mark.parametrize("name", sorted(BASELINES))
+def test_every_registered_baseline_is_an_option_with_derived_experiments(name):
+    spec = get_baseline(name)
+    cfg = make_cfg([f"baseline={name}"])
+    assert cfg.baseline.name == name and OmegaConf.get_type(cfg.baseline) is spec.config
+    names = set(experiment_names())
+    assert {f"{d}_{name}{s}" for d in data_options() for s in ("", "_stdr")} <= names
+    for exp, on in ((f"dnerf_{name}", False), (f"dnerf_{name}_stdr", True)):
+        c = make_cfg([f"experiment={exp}", "data.path=/x"])
+        assert (c.name, c.data.format, c.baseline.name, c.stdr.enabled) == (exp, "dnerf", name, on)
+    # what every experiment on a dataset adds comes with it (configs/experiment_data)
+    assert make_cfg([f"experiment=embedded_{name}"]).budget == "demo"
+    assert make_cfg([f"experiment=nerfds_{name}", "data.path=/x"]).model.init == "points"
+    assert make_cfg([f"experiment=dnerf_{name}", "data.path=/x"]).model.init == "random"
+
+
+def test_another_baselines_key_is_rejected_not_ignored():
+    with pytest.raises(Exception, match="scgs"):
+        make_cfg(["experiment=dnerf_deform", "data.path=/x", "baseline.scgs.num_nodes=64"])
+    assert applicable(["baseline.scgs.num_nodes=64", "baseline.depth=2"], "deform") == ["baseline.depth=2"]
+    assert applicable(["baseline.scgs.num_nodes=64"], "scgs") == ["baseline.scgs.num_nodes=64"]
+
+
+# ------------------------------------------------------------------ a baseline added in a test
+@dataclass
+class DriftOptions:
+    speed: float = 0.0
+
+
+@dataclass
+class DriftConfig(BaselineConfig):
+    """A toy baseline: every Gaussian drifts along x with a learned speed times t."""
+
+    name: str = "drift"
+    drift: DriftOptions = field(default_factory=DriftOptions)
+
+
+class Drift(Deformation):
+    def __init__(self, speed: float = 0.0, cond_dim: int = 0):
+        super().__init__()
+        self.cond_dim = cond_dim
+        self.speed = nn.Parameter(torch.tensor([speed, 0.0, 0.0]))
+        self.cond_head = nn.Linear(cond_dim, 3) if cond_dim else None
+        if self.cond_head is not None:
+            nn.init.zeros_(self.cond_head.weight)
+            nn.init.zeros_(self.cond_head.bias)
+
+    @classmethod
+    def config_kwargs(cls, b, cond_dim=0, train_times=None, seed=0, schedule=None):
+        return {"speed": b.drift.speed, "cond_dim": cond_dim}
+
+    def forward(self, params, t, cond=None):
+        dx = (self.speed * t).expand_as(params["means"])
+        if self.cond_head is not None:
+            dx = dx + self.cond_head(cond)
+        return Deltas(means=dx)
+
+
+@pytest.fixture
+def drift():
+    spec = register_baseline("drift", Drift, DriftConfig)
+    yield spec
+    unregister_baseline("drift")
+    assert "drift" not in BASELINES and not any("drift" in e for e in experiment_names())
+
+
+@pytest.mark.slow
+def test_a_baseline_is_one_module_and_one_config(tmp_path, drift):
+    from stdr.model import load_model
+    from stdr.train.trainer import Trainer
+
+    # an option, derived experiments, typed keys, no budget file needed
+    cfg = make_cfg(["experiment=dnerf_drift_stdr", "data.path=/x", "baseline.drift.speed=0.5"])
+    assert cfg.baseline.drift.speed == 0.5 and cfg.stdr.enabled and cfg.baseline.depth == 8
+    # the whole loop, with STDR's conditioning, trains it; the checkpoint rebuilds it
+    sched = ["optim.iterations=40", "baseline.warmup=10", "densify.refine_start=5", "densify.refine_every=5",
+             "train.checkpoint_every=0", "train.eval_at_warmup_end=false", "stdr.warmup_end=10",
+             "stdr.freeze_at=20", "baseline.scgs.num_nodes=64"]  # another baseline's key: skipped by the helper
+    t = Trainer(tiny_config(tmp_path, sched + ["experiment=embedded_drift_stdr"]), tmp_path / "run",
+                splits=("train", "test"))
+    assert isinstance(t.model.deform, Drift) and t.model.deform.cond_dim > 0
+    before = t.model.deform.speed.detach().clone()
+    t.train()
+    assert not torch.equal(before, t.model.deform.speed.detach())  # it learned
+    psnr = t.evaluate("test")["psnr"]
+    m = load_model(tmp_path / "run" / "checkpoints" / "last.pt", device="cpu")
+    assert isinstance(m.deform, Drift) and torch.equal(m.deform.speed, t.model.deform.speed)
+    from stdr.eval.evaluate import evaluate_model
+    assert evaluate_model(m, t.scene.frames("test"))["psnr"] == pytest.approx(psnr, abs=1e-4)
+
+
+def test_budget_files_are_optional_deltas(drift):
+    # no budget_baseline/drift_cpu.yaml: the budget's shared keys apply on the typed defaults
+    c = make_cfg(["baseline=drift", "budget=cpu"])
+    assert (c.optim.iterations, c.baseline.depth, c.baseline.warmup) == (2000, 8, 3000)
+    # a baseline's budget file, where there is one, still applies on top (deform_cpu.yaml: 6x128)
+    assert (make_cfg(["baseline=deform", "budget=cpu"]).baseline.depth,
+            make_cfg(["baseline=deform", "budget=paper"]).baseline.depth) == (6, 8)
+
+
+def test_registration_is_checked():
+    with pytest.raises(ValueError, match="name defaults to 'drift'"):
+        register_baseline("other", Drift, DriftConfig)
+    with pytest.raises(TypeError, match="Deformation subclass"):
+        register_baseline("drift", nn.Linear, DriftConfig)
+
+    @dataclass
+    class Loose:
+        name: str = "loose"
+    with pytest.raises(TypeError, match="BaselineConfig"):
+        register_baseline("loose", Drift, Loose)
+    with pytest.raises(ValueError, match="already registered"):
+        register_baseline("deform", Drift, DriftConfig.__mro__[1])
+    with pytest.raises(ValueError, match="not a registered baseline.*register_baseline"):
+        get_baseline("nope")
+
+
+def test_saved_configs_load_onto_their_baselines_typed_defaults(tmp_path):
+    cfg = OmegaConf.to_container(make_cfg(["experiment=dnerf_scgs", "data.path=/x"]), resolve=True)
+    back = load_config(cfg)
+    assert OmegaConf.get_type(back.baseline) is get_baseline("scgs").config and back.baseline.scgs.num_nodes == 512
+    # a config.yaml from before per-baseline configs carried every baseline's sub-config
+    old = OmegaConf.to_container(make_cfg(["experiment=dnerf_deform", "data.path=/x"]), resolve=True)
+    old["baseline"].update(scgs={"num_nodes": 512}, spgs={"num_superpoints": 300}, hexplane={"base_res": 64})
+    p = tmp_path / "config.yaml"
+    p.write_text(OmegaConf.to_yaml(old))
+    assert "scgs" not in load_config(p).baseline
+    # anything else unknown is an error that names the file
+    old["baseline"]["nodes"] = 3
+    p.write_text(OmegaConf.to_yaml(old))
+    with pytest.raises(ValueError, match=f"{p}.*nodes"):
+        load_config(p)
+    old["baseline"] = {"name": "nope"}
+    p.write_text(OmegaConf.to_yaml(old))
+    with pytest.raises(ValueError, match=f"{p}.*'nope'"):
+        load_config(p)
