@@ -62,9 +62,6 @@ class Camera:
         return replace(self, fx=self.fx * rx, fy=self.fy * ry, cx=self.cx * rx, cy=self.cy * ry,
                        width=w, height=h)
 
-    def to(self, device) -> "Camera":
-        return replace(self, R=self.R.to(device), t=self.t.to(device))
-
     def project(self, x_world: Tensor) -> tuple[Tensor, Tensor]:
         """Pixel coordinates [N, 2] and depths [N] of world points [N, 3]."""
         xc = x_world @ self.R.T + self.t

@@ -1,4 +1,4 @@
-"""Small configurations for tests, smoke checks and scripts/identity_check.py.
+"""Small configurations for tests, smoke checks and stdr-tool identity-check.
 
 The embedded procedural scene at test size trains in seconds on a CPU, crosses every phase
 boundary when given a short schedule, and needs no data files.

@@ -1,8 +1,6 @@
 """The `device` key: every tensor of a run follows it (checked on the CPU with torch's default
 device set to 'meta'), and a short run plus a resume on CUDA where a GPU exists."""
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 import torch
@@ -11,19 +9,11 @@ import torch
 from stdr.deform import BASELINES
 from stdr.device import resolve_device
 from stdr.testing import tiny_config as _tiny
+from stdr.tools import identity_check as _ic
 
 
-def _identity_check():
-    root = Path(__file__).resolve().parents[1]
-    spec = importlib.util.spec_from_file_location("identity_check", root / "scripts" / "identity_check.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-# the schedule of scripts/identity_check.py, which crosses every phase boundary in 60 steps: static
+# the schedule of stdr-tool identity-check, which crosses every phase boundary in 60 steps: static
 # warm-up, densification with an opacity reset, STDR's three phases, SC-GS's node -> skinning switch
-_ic = _identity_check()
 SCHEDULE = [s for s in _ic.SCHEDULE if not s.startswith("optim.iterations=")] + _ic.STDR_PHASES
 
 

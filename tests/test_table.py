@@ -45,15 +45,6 @@ def test_table_refuses_to_mix_different_configs():
         collect([_row("deform", "a", 30.0), _row("deform", "a", 31.0, seed=1, width=256)])
 
 
-def _gap_module():
-    import importlib.util
-    ROOT = Path(__file__).resolve().parents[1]
-    spec = importlib.util.spec_from_file_location("stdr_gap", ROOT / "scripts" / "stdr_gap.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def _gap_run(folder, scene, psnr, lpips, n, iterations=2000):
     import json
     d = folder / scene
@@ -63,7 +54,7 @@ def _gap_run(folder, scene, psnr, lpips, n, iterations=2000):
 
 
 def test_stdr_gap_pairs_scenes_and_refuses_mixed_lengths(tmp_path):
-    gap = _gap_module()
+    from stdr.tools import gap
     _gap_run(tmp_path / "p", "a", 30.0, 0.10, 1000)
     _gap_run(tmp_path / "p", "b", 20.0, 0.20, 3000)
     _gap_run(tmp_path / "s", "a", 31.0, 0.12, 500)
@@ -93,3 +84,57 @@ def test_code_version_names_the_checkout():
         assert re.fullmatch(r"[0-9a-f]{40}", v["commit"]) and isinstance(v["dirty"], bool)
     else:
         assert v["commit"] is None
+
+
+def _run_dir(folder, scene, psnr, seed=0, backend="cpu", stdr=None, split="test"):
+    import json
+
+    import yaml
+    d = folder / scene
+    d.mkdir(parents=True)
+    cfg = {"seed": seed, "data": {"name": scene}, "baseline": {"name": "deform"}, "render": {"backend": "auto"},
+           "stdr": {"enabled": stdr is not None}}
+    (d / "config.yaml").write_text(yaml.safe_dump(cfg))
+    m = {"psnr": psnr, "ssim": 0.9, "lpips": 0.1, "fps": 10.0, "num_gaussians": 1000, "train_seconds": 60.0,
+         "conventions": {"render_backend": backend}, **({"stdr": stdr} if stdr else {})}
+    (d / "metrics.json").write_text(json.dumps({split: m}))
+    return d
+
+
+def test_runs_tool_groups_seeds_and_applies_the_screening_rule(tmp_path, capsys):
+    import json
+
+    from stdr.cli.tool import main as tool
+    runs = [_run_dir(tmp_path / f"s{s}", "a", 30.0 + s, seed=s) for s in range(3)]
+    tool(["runs", *map(str, runs), "--group-by", "scene", "backend", "--out", str(tmp_path / "t")])
+    data = json.loads((tmp_path / "t.json").read_text())
+    (g,) = data["groups"]
+    assert g["group"] == {"scene": "a", "backend": "cpu"} and g["n_runs"] == 3
+    assert g["stats"]["psnr"]["mean"] == pytest.approx(31.0) and g["stats"]["psnr"]["std"] == pytest.approx(1.0)
+    assert "31.00 ± 1.00" in (tmp_path / "t.md").read_text()
+    assert "mask+Adam" not in (tmp_path / "t.md").read_text()  # no STDR run, no STDR columns
+    # candidates laid out as <candidate>/<scene>: the rule's verdict per candidate
+    ref = [_run_dir(tmp_path / "ref", sc, p) for sc, p in (("a", 30.0), ("b", 20.0))]
+    good = [_run_dir(tmp_path / "good", sc, p, stdr={"K": 50}) for sc, p in (("a", 30.5), ("b", 20.4))]
+    bad = [_run_dir(tmp_path / "bad", sc, p) for sc, p in (("a", 31.5), ("b", 19.0))]  # +0.25 mean, -1 on b
+    tool(["runs", *map(str, ref + good + bad), "--label", "--rule", "ref"])
+    out = capsys.readouterr().out
+    verdicts = {ln.split("|")[1].strip(): ln.split("|")[-2].strip() for ln in out.splitlines()
+                if ln.startswith("| ") and ln.split("|")[1].strip() in ("ref", "good", "bad")
+                and ln.count("|") == 8}
+    assert verdicts == {"ref": "reference", "good": "passes", "bad": "fails"}
+    assert "mask+Adam" in out  # an STDR run brings the STDR columns
+    with pytest.raises(SystemExit):
+        tool(["runs", str(ref[0]), "--rule", "ref"])  # the rule needs --label
+    with pytest.raises(KeyError, match="has no 'val' entry"):
+        tool(["runs", str(ref[0]), "--split", "val"])
+
+
+def test_tool_dispatcher_lists_every_tool_and_rejects_unknown_names(capsys):
+    from stdr.cli.tool import main as tool
+    from stdr.tools import TOOLS
+    tool([])
+    out = capsys.readouterr().out
+    assert all(name in out for name in TOOLS)
+    with pytest.raises(SystemExit, match="no tool 'nope'"):
+        tool(["nope"])

@@ -1,7 +1,10 @@
-"""Paper-style tables generated from run directories' metrics.json (never typed by hand).
+"""Every table, generated from run directories' metrics.json (never typed by hand).
 
-Rows are methods, columns are scene x metric, plus the mean over scenes. Written as Markdown,
-CSV, LaTeX and JSON.
+* The paper-style table of `stdr-eval`: rows are methods, columns are scene x metric, plus the
+  mean over scenes (`collect`, then Markdown, CSV, LaTeX and JSON: `write_tables`).
+* The per-run tables of `stdr-tool` (runs, gap, densify-trace, identity-check) share the reader
+  of a run folder (`load_run`), the cell formats, the Markdown writer (`markdown_table`) and the
+  output pair OUT.md + OUT.json (`write_outputs`).
 """
 from __future__ import annotations
 
@@ -20,6 +23,57 @@ FORMATS = {"psnr": "{:.2f}", "ssim": "{:.4f}", "lpips": "{:.4f}", "fps": "{:.1f}
 ABLATION_SWITCHES = ("mask", "temporal_reg", "spatial_reg", "separated_field")
 NON_DEFAULT_OPTIONS = {"mask_after_freeze": (False, "no mask after freeze"),
                        "scale_deltas_by_dynamic": (True, "deltas x dynamic")}
+
+
+def fmt_value(v, f: str) -> str:
+    """A cell: `f.format(v)`, or an en dash for a missing value."""
+    return "–" if v is None else f.format(v)
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    """Markdown lines of a table (no trailing newline)."""
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(out + ["| " + " | ".join(str(c) for c in r) + " |" for r in rows])
+
+
+def write_outputs(out: Path | None, md: str, data: Any) -> None:
+    """Write OUT.md (the Markdown) and OUT.json (the numbers behind it), creating the folder."""
+    if out is None:
+        return
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".md").write_text(md)
+    out.with_suffix(".json").write_text(json.dumps(data, indent=1) + "\n")
+
+
+def read_metrics(run: str | Path, split: str) -> dict[str, Any]:
+    """metrics.json[split] of a run folder; the errors name the file and the splits it has."""
+    mp = Path(run) / "metrics.json"
+    if not mp.is_file():
+        raise FileNotFoundError(f"{mp} not found: the run has not finished, or {run} is not a stdr run directory")
+    allm = json.loads(mp.read_text())
+    if split not in allm:
+        raise KeyError(f"{mp} has no {split!r} entry; it has "
+                       f"{sorted(k for k, v in allm.items() if isinstance(v, dict) and 'psnr' in v)}")
+    return allm[split]
+
+
+def load_run(run: str | Path, split: str) -> dict[str, Any]:
+    """One run folder's numbers for a split: {run_dir, config (config.yaml as a dict), metrics
+    (metrics.json[split]), method, scene, seed, backend (resolved; '<configured>*' for runs
+    that predate recording it), profile (train_profile.json or None)}. Errors name the file."""
+    import yaml
+    run = Path(run)
+    cp = run / "config.yaml"
+    if not cp.is_file():
+        raise FileNotFoundError(f"{cp} not found: {run} is not a stdr run directory")
+    m = read_metrics(run, split)
+    cfg = yaml.safe_load(cp.read_text())
+    prof = run / "train_profile.json"
+    return {"run_dir": str(run), "config": cfg, "metrics": m, "method": method_name(cfg),
+            "scene": cfg["data"]["name"], "seed": cfg.get("seed"),
+            "backend": m.get("conventions", {}).get("render_backend", cfg["render"]["backend"] + "*"),
+            "profile": json.loads(prof.read_text()) if prof.is_file() else None}
 
 
 def method_name(cfg) -> str:

@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Seconds per training iteration of a config at Gaussian counts a short run cannot reach.
 
 Estimates what a full schedule (e.g. budget=paper) costs on this machine without running it:
@@ -12,7 +11,7 @@ The estimate is then iterations x seconds per iteration at the count the schedul
 It assumes that count is known (pass it). Densification, evaluation and checkpointing are not
 included.
 
-    scripts/run.sh python scripts/cost_probe.py outputs/toy/deform_2x --gaussians 50000 150000 \\
+    stdr-tool cost-probe outputs/toy/deform_2x --gaussians 50000 150000 \\
         --iters 10 --out docs/measurements/x.json -- experiment=nerfds_deform budget=paper data.path=...
 """
 from __future__ import annotations
@@ -28,14 +27,13 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from hydra import compose, initialize_config_dir  # noqa: E402
+from hydra import compose, initialize_config_dir
 
-from stdr.cli.common import CONFIG_DIR  # noqa: E402
-from stdr.config import register  # noqa: E402
-from stdr.scene.gaussians import GAUSSIAN_KEYS  # noqa: E402
-from stdr.train.checkpoint import load_checkpoint  # noqa: E402
-from stdr.train.trainer import Trainer  # noqa: E402
+from stdr.cli.common import CONFIG_DIR
+from stdr.config import register
+from stdr.scene.gaussians import GAUSSIAN_KEYS
+from stdr.train.checkpoint import load_checkpoint
+from stdr.train.trainer import Trainer
 
 
 def replicate(params: dict, n: int, gen: torch.Generator) -> dict:
@@ -51,7 +49,8 @@ def replicate(params: dict, n: int, gen: torch.Generator) -> dict:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+    ap = argparse.ArgumentParser(prog="stdr-tool cost-probe", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog="the target config's Hydra overrides follow --")
     ap.add_argument("run", type=Path, help="a finished run whose checkpoint supplies the Gaussians")
     ap.add_argument("--gaussians", type=int, nargs="+", required=True)

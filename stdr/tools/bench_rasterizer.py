@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Rasterizer benchmark: forward and forward+backward time per backend, size and resolution.
 
 Scenes are random Gaussians in a cube in front of the camera, sized so that their 3-sigma
@@ -15,7 +14,7 @@ the forward time, and as a fraction of the machine's fp32 peak (`--peak-gflops`,
 process, so `peak_mb` is the growth of peak resident memory (CUDA: peak allocated) over the
 scene's inputs during the rasterizer calls.
 
-    scripts/run.sh python scripts/bench_rasterizer.py --backends cpu reference --n 10000 100000 \
+    stdr-tool bench-rasterizer --backends cpu reference --n 10000 100000 \
         --res 256 400 800 --json outputs/bench/rasterizer.json
 """
 from __future__ import annotations
@@ -33,12 +32,11 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stdr.cameras import Camera  # noqa: E402
-from stdr.device import synchronize  # noqa: E402
-from stdr.render import render, resolve_backend  # noqa: E402
-from stdr.render.projection import project_gaussians  # noqa: E402
+from stdr.cameras import Camera
+from stdr.device import synchronize
+from stdr.render import render, resolve_backend
+from stdr.render.projection import project_gaussians
 
 
 def make_scene(n: int, res: int, coverage: float, seed: int = 0, device: str = "cpu"):
@@ -137,7 +135,8 @@ def measure_row(backend: str, n: int, res: int, coverage: float, repeats: int, t
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(prog="stdr-tool bench-rasterizer", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--backends", nargs="+", default=["cpu", "reference"])
     ap.add_argument("--n", nargs="+", type=int, default=[10_000, 100_000, 1_000_000])
     ap.add_argument("--res", nargs="+", type=int, default=[256, 400, 800])
@@ -169,7 +168,7 @@ def main(argv=None):
                 # one process per row: a clean peak-memory reading, no allocator carry-over
                 spec = dict(backend=b, n=n, res=res, coverage=args.coverage, repeats=args.repeats,
                             tile=args.tile)
-                proc = subprocess.run([sys.executable, __file__, "--one", json.dumps(spec)],
+                proc = subprocess.run([sys.executable, "-m", "stdr.tools.bench_rasterizer", "--one", json.dumps(spec)],
                                       capture_output=True, text=True)
                 if proc.returncode != 0:
                     print(proc.stderr[-2000:], file=sys.stderr)

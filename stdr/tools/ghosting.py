@@ -1,17 +1,15 @@
-#!/usr/bin/env python
 """The ghosting case: an object jumps between two places (procedural motion=jump).
 
 Trains the baseline and the baseline + STDR on the same tiny scene, then prints test PSNR per run
 and, for STDR, the mean activated mask of the Gaussians near each place at that place's times
 and at the other place's times. JSON goes to --out. About a minute on 2 CPU cores.
 
-    scripts/run.sh python scripts/ghosting.py --out outputs/ghosting.json [--iterations 600]
+    stdr-tool ghosting --out outputs/ghosting.json [--iterations 600]
 """
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 from pathlib import Path
 
@@ -19,12 +17,11 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from stdr.cli.common import CONFIG_DIR  # noqa: E402
-from stdr.config import register  # noqa: E402
-from stdr.data.procedural import JUMP_A, JUMP_B, SceneOptions, jump_at_a  # noqa: E402
-from stdr.decouple import MASK_KEY  # noqa: E402
-from stdr.train.trainer import Trainer  # noqa: E402
+from stdr.cli.common import CONFIG_DIR
+from stdr.config import register
+from stdr.data.procedural import JUMP_A, JUMP_B, SceneOptions, jump_at_a
+from stdr.decouple import MASK_KEY
+from stdr.train.trainer import Trainer
 
 
 def overrides(iterations: int, cache: Path) -> list[str]:
@@ -49,7 +46,8 @@ def mask_by_place(t: Trainer) -> dict:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(prog="stdr-tool ghosting", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--iterations", type=int, default=600)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=None)

@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Bit-identity of training between two commits: every baseline with and without STDR.
 
 `run` trains each of the eight configurations for 60 steps on the tiny embedded scene of the
@@ -7,10 +6,10 @@ opacity reset, STDR's warm-up / regularized / frozen phases, SC-GS's node -> ski
 and saves the final parameters, deformation state and test PSNR. `compare` says, for each
 configuration, whether two saved files hold bit-identical tensors.
 
-    # the code of another commit: a worktree on PYTHONPATH, run from inside it
+    # the code of another commit: a worktree on PYTHONPATH, this file run by its path from inside it
     git worktree add /tmp/old <commit> && (cd /tmp/old && PYTHONPATH=/tmp/old python <this file> run /tmp/old.pt)
-    scripts/run.sh python scripts/identity_check.py run /tmp/new.pt
-    scripts/run.sh python scripts/identity_check.py compare /tmp/old.pt /tmp/new.pt --labels <old> <new> --out X
+    stdr-tool identity-check run /tmp/new.pt
+    stdr-tool identity-check compare /tmp/old.pt /tmp/new.pt --labels <old> <new> --out X
 
 `configs` composes every experiment under every budget (the resolved config `stdr-train` would
 run with) into a JSON file; `compare-configs` says which composed configs differ between two such
@@ -71,7 +70,7 @@ def compare(a_path: Path, b_path: Path, labels: list[str], out: Path | None) -> 
         rows.append({"config": name, "bit_identical": same, "psnr": [x["psnr"], y["psnr"]],
                      "gaussians": [int(x["params"]["means"].shape[0]), int(y["params"]["means"].shape[0])]})
     md = [f"Training bit-identity, {labels[0]} vs {labels[1]} (60 steps, every phase boundary; "
-          "scripts/identity_check.py).", "",
+          "stdr-tool identity-check).", "",
           f"| config | bit-identical | test PSNR {labels[0]} | test PSNR {labels[1]} | #G |", "|---|---|---|---|---|"]
     for r in rows:
         md.append(f"| {r['config']} | {'yes' if r['bit_identical'] else 'NO'} | {r['psnr'][0]!r} | {r['psnr'][1]!r} | "
@@ -146,15 +145,15 @@ def compare_configs(a_path: Path, b_path: Path, removed: list[str], labels: list
             text += f"  {r['config']}: {r['status']} {r.get('differences', '')}\n"
     print(text, end="")
     if out is not None:
-        out.with_suffix(".md").write_text(text + "\n(scripts/identity_check.py configs / compare-configs; every "
+        out.with_suffix(".md").write_text(text + "\n(stdr-tool identity-check configs / compare-configs; every "
                                           f"experiment x budgets {', '.join(BUDGETS)}.)\n")
         out.with_suffix(".json").write_text(json.dumps({"labels": labels, "removed": removed, "rows": rows},
                                                        indent=1) + "\n")
     return same == common and common + len(added) == len(rows)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(prog="stdr-tool identity-check", description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
     r.add_argument("out", type=Path)
@@ -171,7 +170,7 @@ def main() -> None:
     h.add_argument("--removed", nargs="*", default=[])
     h.add_argument("--labels", nargs=2, default=["a", "b"])
     h.add_argument("--out", type=Path, default=None, help="write OUT.md and OUT.json")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.cmd == "run":
         run(args.out)
     elif args.cmd == "configs":

@@ -1,0 +1,28 @@
+"""stdr-tool NAME [ARGS]: the measurement and reporting tools (stdr.tools)."""
+from __future__ import annotations
+
+import importlib
+import sys
+
+from ..tools import TOOLS
+
+
+def usage() -> str:
+    return ("usage: stdr-tool NAME [ARGS]  (stdr-tool NAME --help for its options)\n\ntools:\n"
+            + "\n".join(f"  {name:<18}{(importlib.import_module(f'stdr.tools.{mod}').__doc__ or '').strip().splitlines()[0]}"
+                        for name, mod in TOOLS.items()))
+
+
+def main(argv=None) -> None:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(usage())
+        return
+    name, rest = argv[0], argv[1:]
+    if name not in TOOLS:
+        raise SystemExit(f"stdr-tool: no tool {name!r}; one of {', '.join(TOOLS)}\n\n{usage()}")
+    importlib.import_module(f"stdr.tools.{TOOLS[name]}").main(rest)
+
+
+if __name__ == "__main__":
+    main()
