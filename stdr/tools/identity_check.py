@@ -35,7 +35,30 @@ STDR_PHASES = ["stdr.warmup_end=20", "stdr.freeze_at=30"]
 NAMES = [f"{b}{s}" for b in ("deform", "scgs", "spgs", "4dgs") for s in ("", "_stdr")]
 
 
-def run(out: Path) -> None:
+def _dnerf_config(scene: Path, overrides: list[str]):
+    """budget=cpu on a D-NeRF scene (1500 initial points, 100 px wide, no LPIPS) with the short
+    schedule, composed by the checked-out code's own Hydra configs (any commit)."""
+    import stdr
+    from hydra import compose, initialize_config_dir
+
+    from stdr.config import register
+    try:  # per-baseline configs reject other baselines' keys
+        from stdr.testing import applicable
+    except ImportError:
+        def applicable(o, name):
+            return o
+    register()
+    base = [f"data.path={scene}", f"data.name={scene.name}", "budget=cpu", "data.max_width=100",
+            "model.init_num=1500", "eval.lpips=false", "train.progress=false", "eval.save_images=false",
+            "train.image_every=0", *overrides]
+    name = next(o.split("=", 1)[1] for o in overrides if o.startswith("experiment=")).split("_")[1]
+    with initialize_config_dir(config_dir=str(Path(stdr.__file__).resolve().parents[1] / "configs"),
+                               version_base=None):
+        return compose("train", overrides=applicable(base, name))
+
+
+def run(out: Path, scene: Path | None = None) -> None:
+    """scene: a D-NeRF scene folder (experiments dnerf_*), else the tiny embedded scene."""
     try:  # the tiny scene of the checked-out code: stdr.testing, or the tests of commits before it
         from stdr.testing import tiny_config as _tiny
     except ImportError:
@@ -48,8 +71,9 @@ def run(out: Path) -> None:
         for name in NAMES:
             extra = STDR_PHASES if name.endswith("_stdr") else []
             d = Path(tmp) / name
-            t = Trainer(_tiny(d, SCHEDULE + extra + [f"experiment=embedded_{name}"]), d / "run",
-                        splits=("train", "test"))
+            cfg = (_tiny(d, SCHEDULE + extra + [f"experiment=embedded_{name}"]) if scene is None
+                   else _dnerf_config(scene.resolve(), SCHEDULE + extra + [f"experiment=dnerf_{name}"]))
+            t = Trainer(cfg, d / "run", splits=("train", "test"))
             t.train()
             psnr = t.evaluate("test")["psnr"]
             m = getattr(t, "model", t)  # the model object (since checkpoint format 2), or the old trainer
@@ -59,7 +83,8 @@ def run(out: Path) -> None:
     torch.save(res, out)
 
 
-def compare(a_path: Path, b_path: Path, labels: list[str], out: Path | None) -> bool:
+def compare(a_path: Path, b_path: Path, labels: list[str], out: Path | None,
+            scene: str = "tiny embedded scene") -> bool:
     a, b = torch.load(a_path, weights_only=True), torch.load(b_path, weights_only=True)
     rows = []
     for name in NAMES:
@@ -69,7 +94,7 @@ def compare(a_path: Path, b_path: Path, labels: list[str], out: Path | None) -> 
                 and all(torch.equal(x["deform"][k], y["deform"][k]) for k in x["deform"]))
         rows.append({"config": name, "bit_identical": same, "psnr": [x["psnr"], y["psnr"]],
                      "gaussians": [int(x["params"]["means"].shape[0]), int(y["params"]["means"].shape[0])]})
-    md = [f"Training bit-identity, {labels[0]} vs {labels[1]} (60 steps, every phase boundary; "
+    md = [f"Training bit-identity, {labels[0]} vs {labels[1]} ({scene}; 60 steps, every phase boundary; "
           "stdr-tool identity-check).", "",
           f"| config | bit-identical | test PSNR {labels[0]} | test PSNR {labels[1]} | #G |", "|---|---|---|---|---|"]
     for r in rows:
@@ -157,11 +182,14 @@ def main(argv=None) -> None:
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
     r.add_argument("out", type=Path)
+    r.add_argument("--dnerf", type=Path, default=None, metavar="SCENE",
+                   help="train on this D-NeRF scene folder (budget=cpu, 100 px) instead of the tiny embedded scene")
     c = sub.add_parser("compare")
     c.add_argument("a", type=Path)
     c.add_argument("b", type=Path)
     c.add_argument("--labels", nargs=2, default=["a", "b"])
     c.add_argument("--out", type=Path, default=None, help="write OUT.md and OUT.json")
+    c.add_argument("--scene", default="tiny embedded scene", help="what the runs trained on, for the report")
     g = sub.add_parser("configs")
     g.add_argument("out", type=Path)
     h = sub.add_parser("compare-configs")
@@ -172,13 +200,13 @@ def main(argv=None) -> None:
     h.add_argument("--out", type=Path, default=None, help="write OUT.md and OUT.json")
     args = ap.parse_args(argv)
     if args.cmd == "run":
-        run(args.out)
+        run(args.out, args.dnerf)
     elif args.cmd == "configs":
         configs(args.out)
     elif args.cmd == "compare-configs":
         if not compare_configs(args.a, args.b, args.removed, args.labels, args.out):
             raise SystemExit(1)
-    elif not compare(args.a, args.b, args.labels, args.out):
+    elif not compare(args.a, args.b, args.labels, args.out, args.scene):
         raise SystemExit(1)
 
 
