@@ -129,7 +129,9 @@ class RenderConfig:
 
 @dataclass
 class TrainConfig:
-    eval_every: int = 0         # periodic evaluation (0 = only at the end and end of warm-up)
+    eval_every: int = 0         # periodic evaluation (0 = only at the end and end of warm-up) -> metrics.json curve
+    eval_frames: int = 0        # frames of each periodic / warm-up evaluation: 0 = all, N = a fixed subset (seeded)
+    eval_lpips: bool = False    # LPIPS in periodic evaluations too (the final one follows eval.lpips)
     eval_at_warmup_end: bool = True
     checkpoint_every: int = 5000
     log_every: int = 50

@@ -44,11 +44,19 @@ def test_resume_gives_the_same_result_as_an_uninterrupted_run(tmp_path):
     from stdr.train.trainer import Trainer
     a = Trainer(_tiny(tmp_path, sched), tmp_path / "a")
     a.train()
-    b1 = Trainer(_tiny(tmp_path, sched[1:] + ["optim.iterations=35"]), tmp_path / "b")
+    # the interrupted run also evaluates every 10 steps (a learning curve): evaluation must not
+    # change training either
+    curve = ["train.eval_every=10", "train.eval_frames=2"]
+    b1 = Trainer(_tiny(tmp_path, sched[1:] + curve + ["optim.iterations=35"]), tmp_path / "b")
     b1.train()  # stops at 35 (after densification, warm-up end and an opacity reset)
-    b2 = Trainer(_tiny(tmp_path, sched), tmp_path / "b")
+    b2 = Trainer(_tiny(tmp_path, sched + curve), tmp_path / "b")
     b2.train()  # resumes from b/checkpoints/last.pt
     assert b2.step == a.step == 60
+    # the curve survives the resume: steps 10..50 from both halves, training seconds increasing
+    pts = [h for h in b2.history if h["tag"] == "periodic"]
+    assert [h["iteration"] for h in pts] == [10, 20, 30, 40, 50] and all(h["frames"] == 2 for h in pts)
+    secs = [h["train_seconds"] for h in pts]
+    assert secs == sorted(secs) and secs[-1] < b2.train_seconds
     for k in a.model.params:
         assert torch.equal(a.model.params[k], b2.model.params[k]), k
     for (ka, va), (kb, vb) in zip(a.model.deform.state_dict().items(), b2.model.deform.state_dict().items()):
@@ -58,7 +66,8 @@ def test_resume_gives_the_same_result_as_an_uninterrupted_run(tmp_path):
 @pytest.mark.slow
 def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
     cfg = _tiny(tmp_path, ["optim.iterations=900", "baseline.warmup=300", "densify.refine_stop=700",
-                           "densify.grow_grad2d=1e-4", "baseline.head_init_std=1e-5"])
+                           "densify.grow_grad2d=1e-4", "baseline.head_init_std=1e-5", "train.eval_every=300",
+                           "train.eval_frames=2"])
     run_dir = tmp_path / "run"
     res = run(cfg, run_dir)
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -73,6 +82,18 @@ def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
     assert list((run_dir / "tb").glob("events.out.tfevents.*"))
 
     assert test["conventions"]["device"] == str(resolve_device("auto"))
+    assert test["conventions"]["machine"] and test["model_mb"] > 0
+    # the model's size: every float32 tensor of the model (Gaussians, network, plug-ins), at least
+    # the Gaussians' own 59 floats each
+    assert test["model_mb"] * 2 ** 20 >= test["num_gaussians"] * 59 * 4
+    # the learning curve: the warm-up's and the periodic evaluations on a fixed 2-frame subset,
+    # then the final metrics (all 4 test frames) as its last point
+    curve = test["curve"]
+    assert [(p["step"], p["tag"], p["frames"]) for p in curve] == \
+        [(300, "static_warmup", 2), (600, "periodic", 2), (900, "final", 4)]
+    assert [curve[-1][k] for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds")] == \
+        [test[k] for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds")]
+    assert curve[0]["train_seconds"] < curve[1]["train_seconds"] < curve[2]["train_seconds"]
 
     # stdr-eval re-renders from the checkpoint (on the device it is told) and reproduces the numbers
     out = tmp_path / "tables"
@@ -80,7 +101,11 @@ def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
                            "eval.lpips=false", "device=cpu"],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert json.loads((run_dir / "metrics.json").read_text())["test"]["conventions"]["device"] == "cpu"
+    again = json.loads((run_dir / "metrics.json").read_text())["test"]
+    assert again["conventions"]["device"] == "cpu"
+    # re-evaluation keeps the training's curve and ends it with its own (equal) final point
+    assert [p["step"] for p in again["curve"]] == [300, 600, 900] and again["curve"][:2] == curve[:2]
+    assert again["curve"][-1]["psnr"] == again["psnr"] == pytest.approx(test["psnr"], abs=1e-4)
     table = json.loads((out / "table.json").read_text())
     cell = table["cells"]["deform"]["embedded"]
     assert cell["psnr"] == pytest.approx(test["psnr"], abs=1e-4)

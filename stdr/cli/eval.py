@@ -55,7 +55,7 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     merge the numbers into its metrics.json."""
     from ..data.load import load_scene
     from ..device import resolve_device
-    from ..eval.evaluate import evaluate_model, make_lpips, write_metrics
+    from ..eval.evaluate import evaluate_model, learning_curve, make_lpips, write_metrics
     from ..model import has_model_entry, model_from_checkpoint
     from ..train.checkpoint import load_checkpoint
     from ..train.trainer import CKPT
@@ -72,6 +72,10 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     save_dir = rd / "renders" / split if eval_cfg.save_images else None
     res = evaluate_model(model, scene.frames(split), lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup)
     res.update({"train_seconds": float(ck["train_seconds"]), "iterations": model.step})
+    # the learning curve: the training's own evaluations (kept in the checkpoint), then this one
+    final = {"tag": "final", "iteration": model.step, "split": split, "train_seconds": res["train_seconds"],
+             "frames": res["num_frames"], **{k: res[k] for k in ("psnr", "ssim", "lpips", "num_gaussians")}}
+    res["curve"] = learning_curve(list(ck.get("history", [])) + [final], split)
     write_metrics(rd, split, res, model, eval_cfg, lp, scene.meta)
     return res
 

@@ -10,6 +10,7 @@ Conventions, recorded in the output:
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import time
 from pathlib import Path
@@ -79,6 +80,34 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
     }
 
 
+def machine_name() -> str:
+    """The CPU model (Linux /proc/cpuinfo, else platform), and the GPU when CUDA is in use."""
+    import platform
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} logical CPUs"
+
+
+def model_bytes(model) -> int:
+    """Bytes of the model's tensors (Gaussians, deformation module, plug-in state): the size a
+    saved model takes without optimizer state."""
+    def walk(x):
+        if isinstance(x, torch.Tensor):
+            return x.numel() * x.element_size()
+        if isinstance(x, dict):
+            return sum(walk(v) for v in x.values())
+        if isinstance(x, (list, tuple)):
+            return sum(walk(v) for v in x)
+        return 0
+    return int(walk(model.state_dict()))
+
+
 def metric_conventions(eval_cfg, lpips_fn, backend: str, device: torch.device) -> dict[str, Any]:
     """How the numbers were measured, including the device and rasterizer backend the run used."""
     return {
@@ -88,6 +117,7 @@ def metric_conventions(eval_cfg, lpips_fn, backend: str, device: torch.device) -
         "fps": "deformation + projection + rasterization, perf_counter, after warm-up, no I/O",
         "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        "machine": machine_name(),
         "torch_threads": torch.get_num_threads(),
         "render_backend": backend,
     }
@@ -100,10 +130,30 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
         lp = lp.to(trainer.device)
     save_dir = trainer.run_dir / "renders" / split if eval_cfg.save_images else None
     res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup)
-    res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step})
+    res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step,
+                "curve": learning_curve(trainer.history, split)})
     write_metrics(trainer.run_dir, split, res, trainer.model, eval_cfg, lp, trainer.scene.meta)
     (trainer.run_dir / "history.json").write_text(json.dumps(trainer.history, indent=1))
     return res
+
+
+CURVE_KEYS = ("step", "train_seconds", "psnr", "ssim", "lpips", "num_gaussians", "frames", "tag")
+
+
+def learning_curve(history: list[dict[str, Any]], split: str) -> list[dict[str, Any]]:
+    """The run's accuracy against training: its evaluations of `split` in step order (the static
+    warm-up's, the periodic ones of train.eval_every, and the final one last), each
+    {step, train_seconds (evaluation excluded), psnr, ssim, lpips (None unless computed),
+    num_gaussians, frames (how many were rendered), tag}. A point from before a resume that
+    lies past the final step (a run continued with fewer iterations) is left out."""
+    final = [h for h in history if h["split"] == split and h["tag"] == "final"]
+    last = final[-1]["iteration"] if final else None
+    pts = [h for h in history if h["split"] == split and h["tag"] in ("static_warmup", "periodic")
+           and (last is None or h["iteration"] < last)]
+    pts = list({h["iteration"]: h for h in pts}.values())  # a resumed run may repeat a step: keep the latest
+    pts.sort(key=lambda h: h["iteration"])
+    out = [{"step": h["iteration"], **{k: h.get(k) for k in CURVE_KEYS if k != "step"}} for h in pts + final[-1:]]
+    return out
 
 
 def code_version() -> dict[str, Any]:
@@ -134,6 +184,7 @@ def write_metrics(run_dir: Path, split: str, res: dict[str, Any], model, eval_cf
     res.update({"conventions": metric_conventions(eval_cfg, lpips_fn, model.backend, model.device),
                 "data": data_meta,  # how the scene was read (split, scale, intrinsics, ...)
                 "code": code_version()})  # the checkout that wrote this entry
+    res["model_mb"] = model_bytes(model) / 2 ** 20
     for p in model.plugins:
         res[p.name] = p.stats(model.params)
     path = run_dir / "metrics.json"

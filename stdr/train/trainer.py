@@ -300,9 +300,11 @@ class Trainer:
                 bar.set_postfix(loss=f"{logs['loss']:.4f}", psnr=f"{logs['psnr']:.2f}",
                                 N=self.model.num_gaussians)
             if cfg.train.eval_at_warmup_end and it == warmup and warmup < total:
-                self.evaluate(cfg.data.eval_split, tag="static_warmup", step=warmup - 1)
+                self.evaluate(cfg.data.eval_split, tag="static_warmup", step=warmup - 1,
+                              frames=self.curve_frames(cfg.data.eval_split), lpips_fn=self._curve_lpips())
             elif cfg.train.eval_every and it % cfg.train.eval_every == 0 and it < total:
-                self.evaluate(cfg.data.eval_split, tag="periodic")
+                self.evaluate(cfg.data.eval_split, tag="periodic", frames=self.curve_frames(cfg.data.eval_split),
+                              lpips_fn=self._curve_lpips())
             if cfg.train.checkpoint_every and it % cfg.train.checkpoint_every == 0 and it < total:
                 self.save()
         if bar is not None:
@@ -338,18 +340,48 @@ class Trainer:
         tb.add_image(tag, grid, it, dataformats="HWC")
 
     # ----------------------------------------------------------------- evaluation
+    def curve_frames(self, split: str) -> Optional[list[int]]:
+        """Indices of the frames a periodic (learning-curve) evaluation renders: all (None) with
+        train.eval_frames=0, else a fixed subset of that many, drawn once from a generator seeded
+        with the run's seed (the training RNG is not touched)."""
+        n, total = int(self.cfg.train.eval_frames), len(self.scene.frames(split))
+        if n <= 0 or n >= total:
+            return None
+        g = torch.Generator().manual_seed(int(self.cfg.seed))
+        return sorted(torch.randperm(total, generator=g)[:n].tolist())
+
+    def _curve_lpips(self):
+        """The LPIPS network for periodic evaluations (train.eval_lpips), built once."""
+        if not self.cfg.train.eval_lpips:
+            return None
+        if getattr(self, "_lpips", None) is None:
+            from ..eval.evaluate import make_lpips
+            lp = make_lpips(self.cfg.eval)
+            if lp is None:
+                raise ValueError("train.eval_lpips=true but no LPIPS weights were found (eval.lpips, "
+                                 "eval.lpips_weights or STDR_LPIPS_WEIGHTS)")
+            self._lpips = lp.to(self.device)
+        return self._lpips
+
     @torch.no_grad()
     def evaluate(self, split: str, tag: str = "final", step: Optional[int] = None,
-                 lpips_fn=None, save_dir: Optional[Path] = None, fps_warmup: int = 3) -> dict[str, Any]:
-        """Render `split` at the model's state and compute metrics (see stdr.eval.evaluate)."""
+                 lpips_fn=None, save_dir: Optional[Path] = None, fps_warmup: int = 3,
+                 frames: Optional[list[int]] = None) -> dict[str, Any]:
+        """Render `split` (or the frames at indices `frames` of it) at the model's state and
+        compute metrics (see stdr.eval.evaluate). Each evaluation is a point of the run's
+        learning curve (`history`), with the training seconds so far (evaluation excluded)."""
         from ..eval.evaluate import evaluate_model
-        res = evaluate_model(self.model, self.scene.frames(split), step=self.step if step is None else step,
+        fr = self.scene.frames(split)
+        if frames is not None:
+            fr = [fr[i] for i in frames]
+        res = evaluate_model(self.model, fr, step=self.step if step is None else step,
                              lpips_fn=lpips_fn, save_dir=save_dir, fps_warmup=fps_warmup)
-        rec = {"tag": tag, "iteration": self.step, "split": split,
-               **{k: res[k] for k in ("psnr", "ssim", "lpips", "num_gaussians")}}
+        rec = {"tag": tag, "iteration": self.step, "split": split, "train_seconds": self.train_seconds,
+               "frames": len(fr), **{k: res[k] for k in ("psnr", "ssim", "lpips", "num_gaussians")}}
         self.history.append(rec)
         if self.writer is not None:
-            for k in ("psnr", "ssim", "lpips"):
-                if res[k] is not None:
-                    self.writer.add_scalar(f"eval_{split}/{k}", res[k], self.step)
+            for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds"):
+                v = rec[k]
+                if v is not None:
+                    self.writer.add_scalar(f"eval_{split}/{k}", v, self.step)
         return res
