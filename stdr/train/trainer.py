@@ -77,6 +77,8 @@ class Trainer:
         self.device = resolve_device(cfg.device)
         torch.manual_seed(cfg.seed)  # also seeds every CUDA device
         np.random.seed(cfg.seed)
+        if cfg.train.eval_every > 0 or cfg.train.eval_at_warmup_end:  # evaluations during training need it
+            splits = tuple(dict.fromkeys((*splits, cfg.data.eval_split)))
         self.scene = load_scene(cfg.data, splits, base=data_base).to(self.device)  # images moved once
         has_train = "train" in self.scene.splits
         train_times = self.scene.train_times() if has_train else None
