@@ -26,6 +26,7 @@ class DataConfig:
     format: str = "procedural"  # procedural | dnerf | nerfies
     name: Optional[str] = "embedded"  # scene label in tables (null: the folder name)
     path: Optional[str] = None  # scene folder (dnerf, nerfies); procedural: the generated cache folder
+    root: Optional[str] = None  # a dataset folder; the sweeps (configs/sweep) set path = root/<name>
     cache_dir: str = "data/embedded"  # where the procedural scene is generated (repo-relative)
     background: Any = "white"   # white | black | [r, g, b]
     resolution_scale: float = 1.0
@@ -137,6 +138,7 @@ class TrainConfig:
     log_every: int = 50
     image_every: int = 1000
     resume: bool = True         # resume from run_dir/checkpoints/last.pt when present
+    skip_finished: bool = True  # in a sweep (-m): a run whose metrics.json exists is skipped, not retrained
     threads: int = 0            # torch threads (0 = torch default)
     progress: bool = True
 
@@ -237,11 +239,25 @@ def _sync_baseline(spec: BaselineSpec, added: bool) -> None:
             cs.repo.get("experiment", {}).pop(f"{exp}.yaml", None)
 
 
+def _experiments_resolver(data: str, *which: str) -> str:
+    """`${stdr_experiments:dnerf}`: every experiment on data option `data` (each registered
+    baseline, plain and +STDR) as a comma-separated sweep list; `${stdr_experiments:dnerf,stdr}`
+    (or `plain`) only those."""
+    names = [e for b in sorted(BASELINES) for e in (f"{data}_{b}", f"{data}_{b}_stdr")]
+    if "stdr" in which:
+        names = [n for n in names if n.endswith("_stdr")]
+    elif "plain" in which:
+        names = [n for n in names if not n.endswith("_stdr")]
+    return ",".join(names)
+
+
 def register() -> None:
     """Register the structured configs, every baseline (and the ones registered later) and the
-    `stdr_schedule` resolver with Hydra. Idempotent; the entry points call it."""
+    `stdr_schedule` / `stdr_experiments` resolvers with Hydra. Idempotent; the entry points call it."""
     if not OmegaConf.has_resolver("stdr_schedule"):
         OmegaConf.register_new_resolver("stdr_schedule", _schedule_resolver)
+    if not OmegaConf.has_resolver("stdr_experiments"):
+        OmegaConf.register_new_resolver("stdr_experiments", _experiments_resolver)
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)
     cs.store(name="base_eval", node=EvalAppConfig)

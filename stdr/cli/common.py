@@ -16,12 +16,13 @@ def use_fast_allocator_hint() -> None:
         print(f"[stdr] hint: CPU training runs faster with LD_PRELOAD={lib} (scripts/run.sh sets it)")
 
 
-def compose_config(overrides=(), config_name: str = "train"):
+def compose_config(overrides=(), config_name: str = "train", return_hydra_config: bool = False):
     """The config `stdr-train` (config_name="train") or `stdr-eval` ("eval") would run with these
-    command-line overrides, composed with Hydra's compose API: for scripts, notebooks and tests."""
+    command-line overrides, composed with Hydra's compose API: for scripts, notebooks and tests
+    (return_hydra_config: with the `hydra` node, e.g. a launcher's or a sweep's settings)."""
     from hydra import compose, initialize_config_dir
 
     from ..config import register
     register()
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
-        return compose(config_name, overrides=list(overrides))
+        return compose(config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)

@@ -18,15 +18,12 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
                   out_dir: Path, base: str, device: str | None = None) -> dict:
     import json
 
-    from ..eval.table import collect, markdown, table_row, write_tables
+    from ..eval.table import collect, find_run_dirs, markdown, table_row, write_tables
 
     rows = []
-    for r in runs:
-        rd = Path(r) if Path(r).is_absolute() else Path(base) / r
+    # a folder of runs (a sweep's multirun folder) stands for the finished runs under it
+    for rd in find_run_dirs([Path(r) if Path(r).is_absolute() else Path(base) / r for r in runs]):
         cfg_path = rd / "config.yaml"
-        if not cfg_path.is_file():
-            raise FileNotFoundError(f"{rd} is not a stdr run directory (no config.yaml); "
-                                    "pass folders that stdr-train wrote")
         cfg = load_config(cfg_path)
         sp = split or cfg.data.eval_split
         if reevaluate:

@@ -45,10 +45,43 @@ def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict:
     return res
 
 
+FAILURES = "failures.jsonl"  # in a sweep folder: one line per failed job
+
+
+def sweep_job(cfg: DictConfig, run_dir: Path, data_base: str) -> dict | None:
+    """One job of a sweep (stdr-train -m): skipped when finished (train.skip_finished and
+    metrics.json present); a failure is recorded in <sweep dir>/failures.jsonl with the job's
+    overrides and log, printed, and does not stop the other jobs (SweepReport sums them up)."""
+    import json
+    import traceback
+
+    hc = HydraConfig.get()
+    if cfg.train.skip_finished and (run_dir / "metrics.json").is_file():
+        print(f"[stdr] skipping finished run {run_dir} (metrics.json present; train.skip_finished=false reruns it)")
+        return None
+    try:
+        return run(cfg, run_dir, data_base=data_base)
+    except Exception as e:  # noqa: BLE001 - reported, the sweep goes on
+        log = run_dir / f"{hc.job.name}.log"
+        rec = {"overrides": list(hc.overrides.task), "run_dir": str(run_dir), "log": str(log),
+               "error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc()}
+        sweep_dir = Path(hc.sweep.dir)
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        with open(sweep_dir / FAILURES, "a") as f:
+            f.write(json.dumps(rec) + "\n")
+        print(f"[stdr] FAILED {' '.join(rec['overrides'])}: {rec['error']} (log: {log})", flush=True)
+        return None
+
+
 @hydra.main(version_base=None, config_path=CONFIG_DIR, config_name="train")
 def _main(cfg: DictConfig) -> None:
+    from hydra.types import RunMode
     use_fast_allocator_hint()
-    run(cfg, Path(HydraConfig.get().runtime.output_dir), data_base=hydra.utils.get_original_cwd())
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    if HydraConfig.get().mode == RunMode.MULTIRUN:
+        sweep_job(cfg, run_dir, hydra.utils.get_original_cwd())
+    else:
+        run(cfg, run_dir, data_base=hydra.utils.get_original_cwd())
 
 
 def main() -> None:

@@ -208,13 +208,24 @@ def generate_scene(out_dir: str | Path, opt: SceneOptions | None = None) -> Path
 
 def embedded_scene(cache_dir: str | Path, opt: SceneOptions | None = None) -> Path:
     """The scene for `opt`, generated into cache_dir/<options hash> on first use."""
+    import os
+    import shutil
+    import tempfile
+
     opt = opt or SceneOptions()
     path = Path(cache_dir) / f"procedural-{opt.key()}"
     if not (path / "generator.json").is_file():
-        tmp = path.with_name(path.name + ".tmp")
+        # parallel jobs (a sweep) may generate the same scene at once: each writes its own
+        # folder and renames it into place; the first complete one wins, the others are dropped
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=path.name + ".tmp-", dir=path.parent))
         generate_scene(tmp, opt)
-        if path.exists():
-            import shutil
-            shutil.rmtree(path)
-        tmp.replace(path)
+        if path.exists() and not (path / "generator.json").is_file():
+            shutil.rmtree(path, ignore_errors=True)  # an incomplete folder from an interrupted run
+        try:
+            os.rename(tmp, path)  # atomic; fails if another job's complete folder is there
+        except OSError:
+            if not (path / "generator.json").is_file():
+                raise
+        shutil.rmtree(tmp, ignore_errors=True)
     return path

@@ -58,6 +58,35 @@ def read_metrics(run: str | Path, split: str) -> dict[str, Any]:
     return allm[split]
 
 
+def find_run_dirs(paths: list[str | Path]) -> list[Path]:
+    """Run folders from the arguments: a run folder itself (config.yaml), a folder holding runs at
+    any depth (a Hydra multirun folder, a sweep), or a stdr-eval table.json (its runs)."""
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_file() and p.suffix == ".json":
+            t = json.loads(p.read_text())
+            if "cells" not in t:
+                raise ValueError(f"{p}: not a stdr-eval table.json (no 'cells')")
+            out += [Path(d) for m in t["cells"].values() for c in m.values() for d in c["run_dirs"]]
+        elif (p / "config.yaml").is_file():
+            out.append(p)
+        elif p.is_dir():
+            found = sorted(c.parent for c in p.rglob("config.yaml") if not c.parent.name.startswith("."))
+            done = [d for d in found if (d / "metrics.json").is_file()]
+            if not done:
+                raise ValueError(f"{p}: no finished run directories (folders with config.yaml and metrics.json) "
+                                 f"under it{f' ({len(found)} unfinished)' if found else ''}")
+            if len(done) < len(found):  # a sweep still running: chart what has finished, say what not
+                print(f"[stdr] {p}: skipping {len(found) - len(done)} unfinished runs (no metrics.json): "
+                      + ", ".join(str(d) for d in found if d not in done))
+            out += done
+        else:
+            raise FileNotFoundError(f"{p}: neither a run directory, a folder of runs nor a table.json")
+    if not out:
+        raise ValueError("no runs given")
+    return list(dict.fromkeys(out))
+
+
 def load_run(run: str | Path, split: str) -> dict[str, Any]:
     """One run folder's numbers for a split: {run_dir, config (config.yaml as a dict), metrics
     (metrics.json[split]), method, scene, seed, backend (resolved; '<configured>*' for runs

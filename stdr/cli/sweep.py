@@ -1,0 +1,34 @@
+"""Hydra callback for sweeps (configs/train.yaml: hydra.callbacks.sweep_report)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig
+
+
+class SweepReport(Callback):
+    """At the start of a sweep, clear the previous failure list (its jobs run again unless they
+    have finished since); at the end, list this sweep's failed jobs with their overrides and logs
+    and say how to rerun them. Failed jobs do not stop the others (stdr.cli.train.sweep_job)."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        from .train import FAILURES
+        f = Path(config.hydra.sweep.dir) / FAILURES
+        if f.is_file():
+            f.rename(f.with_suffix(".previous.jsonl"))
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        from .train import FAILURES
+        sweep = Path(config.hydra.sweep.dir)
+        f = sweep / FAILURES
+        fails = [json.loads(line) for line in f.read_text().splitlines() if line.strip()] if f.is_file() else []
+        if not fails:
+            print(f"[stdr] sweep finished, no failed jobs: {sweep}  (stdr-eval {sweep} / stdr-chart {sweep})")
+            return
+        print(f"[stdr] sweep finished with {len(fails)} failed job(s) (details: {f}):")
+        for r in fails:
+            print(f"  {' '.join(r['overrides'])}\n    {r['error']}\n    log: {r['log']}")
+        print("[stdr] rerun the same command: finished runs are skipped, the failed ones run again")
