@@ -15,7 +15,6 @@ method and scene are averaged over seeds, and runs whose configs differ otherwis
 from __future__ import annotations
 
 import csv
-import json
 import math
 from pathlib import Path
 from typing import Any
