@@ -92,7 +92,15 @@ def test_bad_input_gets_an_error_naming_the_run(tmp_path):
     _run(tmp_path / "mix", "deform", "a", 31.0, 40.0, 1000, seed=1, width=64)
     with pytest.raises(SystemExit, match="differ in"):
         stdr_chart([str(tmp_path / "mix"), "--out", str(tmp_path / "o")])
-    # a learning-curve chart asked for by name needs curves
+    # a learning-curve chart asked for by name needs curves (points without training seconds,
+    # from runs before they were recorded, do not count)
+    old = _run(tmp_path / "old", "deform", "a", 30.0, 40.0, 1000)
+    m = json.loads((old / "metrics.json").read_text())
+    for p in m["test"]["curve"]:
+        p["train_seconds"] = None
+    (old / "metrics.json").write_text(json.dumps(m))
+    with pytest.raises(SystemExit, match="train.eval_every"):
+        stdr_chart([str(old), "--out", str(tmp_path / "o"), "--charts", "learning_curves"])
     _run(tmp_path / "nocurve", "deform", "a", 30.0, 40.0, 1000, curve=False)
     with pytest.raises(SystemExit, match="train.eval_every"):
         stdr_chart([str(tmp_path / "nocurve"), "--out", str(tmp_path / "o"), "--charts", "learning_curves"])

@@ -92,7 +92,7 @@ def curve_points(rows: list[dict[str, Any]], metric: str) -> list[dict[str, Any]
     by: dict[tuple[str, int], list[dict]] = {}
     for r in rows:
         for p in r["metrics"].get("curve") or []:
-            if p.get(metric) is not None:
+            if p.get(metric) is not None and p.get("train_seconds") is not None:  # older runs lack seconds
                 by.setdefault((r["method"], p["step"]), []).append({**p, "scene": r["scene"]})
     pts = []
     for (m, step), ps in sorted(by.items(), key=lambda kv: (kv[0][0], kv[0][1])):
