@@ -251,6 +251,17 @@ def _experiments_resolver(data: str, *which: str) -> str:
     return ",".join(names)
 
 
+def _scene_path_resolver(root, name) -> str:
+    """`${stdr_scene_path:${data.root},${data.name}}` (the sweeps): root/name, or an error that
+    names the missing key (a null root must not become a path 'None/<scene>')."""
+    if root is None or root == "":
+        raise ValueError("data.root is not set: a sweep over scenes needs the dataset folder, e.g. "
+                         "data.root=/data/dnerf")
+    if name is None or name == "":
+        raise ValueError("data.name is not set: the scene folder under data.root")
+    return f"{root}/{name}"
+
+
 def register() -> None:
     """Register the structured configs, every baseline (and the ones registered later) and the
     `stdr_schedule` / `stdr_experiments` resolvers with Hydra. Idempotent; the entry points call it."""
@@ -258,6 +269,8 @@ def register() -> None:
         OmegaConf.register_new_resolver("stdr_schedule", _schedule_resolver)
     if not OmegaConf.has_resolver("stdr_experiments"):
         OmegaConf.register_new_resolver("stdr_experiments", _experiments_resolver)
+    if not OmegaConf.has_resolver("stdr_scene_path"):
+        OmegaConf.register_new_resolver("stdr_scene_path", _scene_path_resolver)
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)
     cs.store(name="base_eval", node=EvalAppConfig)

@@ -19,7 +19,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from .table import collect, find_run_dirs as find_runs, load_run
+from .table import collect, find_run_dirs as find_runs, load_run, table_row
 
 METRIC_LABELS = {"psnr": "PSNR (dB) ↑", "ssim": "SSIM ↑", "lpips": "LPIPS ↓"}
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False}
@@ -38,9 +38,8 @@ def read_runs(runs: list[Path], split: str, metric: str) -> list[dict[str, Any]]
                 raise ValueError(f"{r}/metrics.json [{split}] has no {k!r}"
                                  + (" (LPIPS weights were not found when it was evaluated)" if k == "lpips" else ""))
         cfg = x["config"]
-        rows.append({"method": x["method"], "scene": x["scene"], "split": split, "run_dir": str(r),
-                     "metrics": m, "config": {k: v for k, v in cfg.items() if k not in ("eval", "train")},
-                     "baseline": cfg["baseline"]["name"], "stdr": bool((cfg.get("stdr") or {}).get("enabled"))})
+        rows.append({**table_row(cfg, split, m, str(r)), "baseline": cfg["baseline"]["name"],
+                     "stdr": bool((cfg.get("stdr") or {}).get("enabled"))})
     return rows
 
 
@@ -59,17 +58,15 @@ def caption(rows: list[dict[str, Any]]) -> str:
 
 
 # ------------------------------------------------------------------ data behind each chart
-def _baseline_of(rows, method):
-    return next(r["baseline"] for r in rows if r["method"] == method)
-
-
-def _stdr_of(rows, method):
-    return next(r["stdr"] for r in rows if r["method"] == method)
+def _kinds(rows) -> dict[str, dict[str, Any]]:
+    """method -> {baseline, stdr} (one config per method: collect refuses mixed ones)."""
+    return {r["method"]: {"baseline": r["baseline"], "stdr": r["stdr"]} for r in rows}
 
 
 def speed_points(rows: list[dict[str, Any]], metric: str) -> list[dict[str, Any]]:
     """(method, scene | 'mean', fps, metric, gaussians, model MB) per method and panel."""
     t = collect(rows)
+    kinds = _kinds(rows)
     pts = []
     for m in t["methods"]:
         panels = [("mean", t["means"][m])] + [(s, t["cells"][m][s]) for s in t["scenes"] if s in t["cells"][m]]
@@ -77,7 +74,7 @@ def speed_points(rows: list[dict[str, Any]], metric: str) -> list[dict[str, Any]
             if c.get(metric) is None or c.get("fps") is None:
                 continue  # a method without every scene has no mean
             mb = [r["metrics"].get("model_mb") for r in rows if r["method"] == m and (scene == "mean" or r["scene"] == scene)]
-            pts.append({"method": m, "baseline": _baseline_of(rows, m), "stdr": _stdr_of(rows, m), "scene": scene,
+            pts.append({"method": m, **kinds[m], "scene": scene,
                         "fps": c["fps"], metric: c[metric], f"{metric}_std": c.get(f"{metric}_std"),
                         "num_gaussians": c["num_gaussians"],
                         "model_mb": sum(mb) / len(mb) if mb and None not in mb else None,
@@ -94,9 +91,9 @@ def curve_points(rows: list[dict[str, Any]], metric: str) -> list[dict[str, Any]
         for p in r["metrics"].get("curve") or []:
             if p.get(metric) is not None and p.get("train_seconds") is not None:  # older runs lack seconds
                 by.setdefault((r["method"], p["step"]), []).append({**p, "scene": r["scene"]})
-    pts = []
+    kinds, pts = _kinds(rows), []
     for (m, step), ps in sorted(by.items(), key=lambda kv: (kv[0][0], kv[0][1])):
-        pts.append({"method": m, "baseline": _baseline_of(rows, m), "stdr": _stdr_of(rows, m), "step": step,
+        pts.append({"method": m, **kinds[m], "step": step,
                     "train_seconds": sum(p["train_seconds"] for p in ps) / len(ps),
                     metric: sum(p[metric] for p in ps) / len(ps), "n_runs": len(ps),
                     "scenes": len({p["scene"] for p in ps}), "frames": min(p.get("frames") or 0 for p in ps)})

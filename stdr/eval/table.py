@@ -125,11 +125,12 @@ def table_row(cfg: dict[str, Any], split: str, metrics: dict[str, Any], run_dir:
             "run_dir": run_dir, "config": {k: v for k, v in cfg.items() if k not in ("eval", "train")}}
 
 
-def _flatten(d: dict, prefix: str = "") -> dict:
+def flatten(d: dict, prefix: str = "") -> dict:
+    """{"a": {"b": 1}} -> {"a.b": 1} (lists are values)."""
     out = {}
     for k, v in d.items():
         key = f"{prefix}{k}"
-        out.update(_flatten(v, key + ".") if isinstance(v, dict) else {key: v})
+        out.update(flatten(v, key + ".") if isinstance(v, dict) else {key: v})
     return out
 
 
@@ -175,9 +176,9 @@ def collect(rows: list[dict[str, Any]]) -> dict[str, Any]:
     cells: dict[str, dict[str, dict[str, Any]]] = {m: {} for m in methods}
     for (m, sc), rs in groups.items():
         if len(rs) > 1 and all("config" in r for r in rs):
-            base = _flatten(rs[0]["config"])
+            base = flatten(rs[0]["config"])
             for r in rs[1:]:
-                other = _flatten(r["config"])
+                other = flatten(r["config"])
                 diff = sorted(k for k in base.keys() | other.keys()
                               if base.get(k) != other.get(k) and k not in SEED_KEYS)
                 if diff:
@@ -208,7 +209,7 @@ def _fmt(k, v, std=None, pm=" ± ") -> str:
     """A value, with its seed spread when there is one (e.g. '27.54 ± 0.04')."""
     if v is None:
         return "–"
-    return FORMATS[k].format(v) + ("" if std is None else pm + FORMATS[k].format(std))
+    return fmt_value(v, FORMATS[k]) + ("" if std is None else pm + fmt_value(std, FORMATS[k]))
 
 
 def to_rows(t: dict[str, Any], metrics=METRICS, pm=" ± ") -> tuple[list[str], list[list[str]]]:
@@ -229,9 +230,7 @@ def to_rows(t: dict[str, Any], metrics=METRICS, pm=" ± ") -> tuple[list[str], l
 
 def markdown(t) -> str:
     cols, body = to_rows(t)
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    lines += ["| " + " | ".join(r) + " |" for r in body]
-    return "\n".join(lines) + "\n"
+    return markdown_table(cols, body) + "\n"
 
 
 def latex(t, metrics=("psnr", "ssim", "lpips")) -> str:

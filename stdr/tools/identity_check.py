@@ -134,27 +134,20 @@ def configs(out: Path) -> None:
     print(f"{len(res)} composed configs -> {out}")
 
 
-def _flatten(d, prefix=""):
-    if isinstance(d, dict):
-        for k, v in d.items():
-            yield from _flatten(v, f"{prefix}{k}.")
-    else:
-        yield prefix[:-1], d
-
-
 def _matches(key: str, pattern: str) -> bool:
     k, p = key.split("."), pattern.split(".")
     return len(k) >= len(p) and all(a == b or b == "*" for a, b in zip(k, p))
 
 
 def compare_configs(a_path: Path, b_path: Path, removed: list[str], labels: list[str], out: Path | None) -> bool:
+    from stdr.eval.table import flatten
     a, b = json.loads(a_path.read_text()), json.loads(b_path.read_text())
     rows = []
     for name in sorted(set(a) | set(b)):
         if name not in a or name not in b:
             rows.append({"config": name, "status": f"only in {labels[0] if name in a else labels[1]}"})
             continue
-        fa, fb = dict(_flatten(a[name])), dict(_flatten(b[name]))
+        fa, fb = flatten(a[name]), flatten(b[name])
         gone = sorted(k for k in set(fa) - set(fb) if any(_matches(k, p) for p in removed))
         diff = sorted(k for k in set(fa) | set(fb) if k not in gone and fa.get(k, "<absent>") != fb.get(k, "<absent>"))
         rows.append({"config": name, "status": "differs" if diff else "identical", "differences": diff,
