@@ -32,9 +32,10 @@ def applicable(overrides, baseline: str) -> list[str]:
 
 def tiny_config(folder: str | Path, extra=()):
     """The tiny embedded scene (generated into folder/cache), 1500 initial Gaussians, no LPIPS,
-    no images or progress bar; `extra` overrides follow (those of other baselines' sub-configs
-    are skipped: `applicable`)."""
-    base = TINY_SCENE + [f"data.cache_dir={Path(folder) / 'cache'}", "model.init_num=1500", "eval.lpips=false",
+    no images or progress bar, on the CPU (so that the suite's bit-exact comparisons mean the
+    same on a machine with a GPU; the CUDA tests say device=cuda); `extra` overrides follow
+    (those of other baselines' sub-configs are skipped: `applicable`)."""
+    base = TINY_SCENE + [f"data.cache_dir={Path(folder) / 'cache'}", "device=cpu", "model.init_num=1500", "eval.lpips=false",
                          "train.progress=false", "eval.save_images=false", "train.image_every=0", *extra]
     name = make_cfg([o for o in base if not _NESTED.match(o)]).baseline.name
     return make_cfg(applicable(base, name))

@@ -135,6 +135,46 @@ def test_render_gradients_match_reference_end_to_end(backend):
         assert ((a - b).abs().max() / b.abs().max()).item() <= 1e-4
 
 
+@pytest.mark.skipif("cuda" not in BACKENDS, reason="no CUDA device on this machine (torch.cuda.is_available() is False)")
+@pytest.mark.parametrize("n,res", [(20_000, 256), (200_000, 800)])
+def test_cuda_matches_the_cpu_backend_at_training_scale(n, res):
+    """The small parity tests above cover the edge cases; this one runs the CUDA kernels at the
+    sizes training uses (hundreds of tiles, long per-tile lists, many blocks writing the same
+    Gaussian's gradient with atomics) against the CPU backend, which runs the same math header
+    in a fixed order. Fresh random scenes (the benchmark's generator); errors are relative to the
+    norm of the CPU result, so an unwritten pixel or a lost atomic add shows."""
+    from stdr.tools.bench_rasterizer import make_scene
+
+    (means, quats, scales, opac, _), cam = make_scene(n, res, coverage=5.0, seed=n)
+    g = torch.Generator().manual_seed(res)
+    colors = torch.rand(n, 3, generator=g)
+    leaves, p = _inputs(means, quats, scales, opac, colors, cam)
+    cpu_acc, cpu_T, cpu_g = _run("cpu", leaves, p, cam, 16)
+    acc, T, grads = _run("cuda", leaves, p, cam, 16)
+    assert torch.isfinite(acc).all() and torch.isfinite(T).all()
+    rel = lambda a, b: ((a - b).norm() / b.norm().clamp_min(1e-30)).item()  # noqa: E731
+    assert rel(acc, cpu_acc) <= 1e-5 and rel(T, cpu_T) <= 1e-5, (rel(acc, cpu_acc), rel(T, cpu_T))
+    assert (cpu_T < 0.5).float().mean() > 0.2  # the scene covers the image: real compositing
+    for name, a, b in zip(("means2d", "conics", "opacities", "features"), grads, cpu_g):
+        assert torch.isfinite(a).all(), name
+        assert rel(a, b) <= 1e-4, (name, rel(a, b))
+
+
+@pytest.mark.parametrize("backend", BACKENDS + ["reference"])
+def test_benchmark_row_runs_each_backend_on_its_device(backend):
+    """`stdr-tool bench-rasterizer` times every backend on the device it renders on (a CUDA row
+    once failed before timing anything because the scene was resolved for the CPU)."""
+    from stdr.tools.bench_rasterizer import label, measure_row
+
+    row = measure_row(backend, n=300, res=32, coverage=2.0, repeats=1, tile=0)
+    assert row["device"] == ("cuda" if backend == "cuda" else "cpu") and row["backend"] == backend
+    assert row["fwd_ms"] > 0 and row["fwd_bwd_ms"] > 0 and row["pair_evals"] > 0
+    assert label(row) == backend
+    if torch.cuda.is_available() and backend == "reference":
+        row = measure_row(backend, n=300, res=32, coverage=2.0, repeats=1, tile=0, reference_device="cuda")
+        assert row["device"] == "cuda" and label(row) == "reference (cuda)"
+
+
 def test_cpu_backward_is_deterministic():
     cam = look_at_camera((2.5, 0.3, 0.8), width=50, height=50)
     leaves, p = _inputs(*random_gaussians(500, seed=6), cam)
@@ -166,12 +206,76 @@ def test_auto_prefers_compiled_and_falls_back_with_one_warning(monkeypatch):
         resolve_backend("cpu")  # asked for by name: an error, never a silent fallback
 
 
-def test_cpu_rejects_bad_inputs():
+@pytest.mark.parametrize("kind", ["cpu", "cuda"])
+def test_bad_inputs_are_rejected_in_python_with_the_values(kind):
+    """Every input the compiled backends cannot take is a ValueError raised before any C++ runs
+    (also for kind='cuda' on a machine without a GPU), naming the tensor and what it got."""
     z = torch.zeros
-    with pytest.raises(RuntimeError, match="feature channels"):
-        compiled.rasterize_compiled(z(2, 2), z(2, 3), z(2), z(2, 9), z(2), torch.ones(2), 8, 8)
+    ok = dict(means2d=z(2, 2), conics=z(2, 3), opacities=z(2), features=z(2, 3), depths=z(2),
+              radii=torch.ones(2), width=8, height=8, tile_size=16)
+    bad = [({"features": z(2, 9)}, r"1\.\.8 feature channels \(got 9\); use render.backend=reference"),
+           ({"features": z(2, 0)}, "got 0"),
+           ({"conics": z(3, 3)}, r"conics must be \[2, 3\] for N=2 Gaussians, got \[3, 3\]"),
+           ({"opacities": z(2, 1)}, r"opacities must be \[2\]"),
+           ({"radii": torch.ones(3)}, "radii must be"),
+           ({"depths": z(2, dtype=torch.float64)}, "share one dtype .*depths"),
+           ({"features": z(3, 3)}, r"features must be \[N, F\] with N=2"),
+           ({"width": 0}, "empty image"),
+           ({"tile_size": 64}, "render.tile_size must be")]
+    for change, msg in bad:
+        with pytest.raises(ValueError, match=msg):
+            compiled.rasterize_compiled(**{**ok, **change}, kind=kind)
+    if kind == "cuda":  # CPU tensors given to the CUDA backend, and tiles it has no kernel for
+        for change, msg in [({}, "means2d is on cpu; every input must be on the CUDA"),
+                            ({"tile_size": 32}, "must be 8 or 16 .got 32."),
+                            ]:
+            with pytest.raises(ValueError, match=msg):
+                compiled.check_inputs(**{**ok, **change}, kind="cuda")
+        f64 = {k: v.double() if v.is_floating_point() else v for k, v in ok.items() if torch.is_tensor(v)}
+        with pytest.raises(ValueError, match="float inputs must be float32, got torch.float64"):
+            compiled.check_inputs(**{**ok, **f64}, kind="cuda")
+    else:
+        compiled.check_inputs(**ok, kind="cpu")  # the valid set passes
+
+
+def test_extension_checks_raise_with_literal_messages():
+    """The C++ checks behind the Python ones still raise (called directly), and every TORCH_CHECK
+    in csrc passes one string literal: formatted messages crashed one CUDA toolchain instead of
+    raising (compiled.check_inputs)."""
+    import re
+
+    z = torch.zeros
+    ext = compiled.load_extension("cpu")
+    with pytest.raises(RuntimeError, match="more feature channels than stdr::MAX_CHANNELS"):
+        ext.forward(z(2, 2), z(2, 3), z(2), z(2, 9), z(2), torch.ones(2, dtype=torch.int32), 8, 8, 16)
     with pytest.raises(RuntimeError, match="conics must be"):
-        compiled.rasterize_compiled(z(2, 2), z(3, 3), z(2), z(2, 3), z(2), torch.ones(2), 8, 8)
+        ext.forward(z(2, 2), z(3, 3), z(2), z(2, 3), z(2), torch.ones(2, dtype=torch.int32), 8, 8, 16)
+    with pytest.raises(RuntimeError, match="render.tile_size must be in"):
+        ext.forward(z(2, 2), z(2, 3), z(2), z(2, 3), z(2), torch.ones(2, dtype=torch.int32), 8, 8, 64)
+    sources = [p for p in compiled.CSRC.rglob("*") if p.suffix in (".cpp", ".cu", ".h")]
+    calls = 0
+    for src in sources:
+        text = src.read_text()
+        for m in re.finditer(r"TORCH_CHECK\(", text):
+            depth, i = 1, m.end()
+            while depth:  # the macro's argument list, parentheses balanced
+                depth += {"(": 1, ")": -1}.get(text[i], 0)
+                i += 1
+            args = text[m.end():i - 1]
+            # the message: everything after the condition's top-level comma is one literal
+            level, cut = 0, None
+            for j, ch in enumerate(args):
+                level += {"(": 1, ")": -1}.get(ch, 0)
+                if ch == "," and level == 0:
+                    cut = j
+                    break
+            assert cut is not None, f"{src.name}: TORCH_CHECK without a message: {args[:80]}"
+            msg = args[cut + 1:].strip()
+            assert re.fullmatch(r'("([^"\\]|\\.)*"\s*)+', msg), f"{src.name}: formatted TORCH_CHECK message {msg!r}"
+            calls += 1
+    assert calls >= 15
+    header = (compiled.CSRC / "raster_math.h").read_text()
+    assert f"constexpr int MAX_CHANNELS = {compiled.MAX_CHANNELS};" in header
 
 
 NVCC = shutil.which("nvcc")
@@ -251,7 +355,7 @@ def test_cuda_binding_compiles_against_torch_headers(tmp_path):
 def test_cpu_rejects_bad_tile_size():
     cam = look_at_camera((2.5, 0.3, 0.8), width=8, height=8)
     leaves, p = _inputs(*random_gaussians(5, seed=7), cam)
-    with pytest.raises(RuntimeError, match="render.tile_size"):
+    with pytest.raises(ValueError, match="render.tile_size must be in .1, 32. .got 64."):
         _run("cpu", leaves, p, cam, 64)
 
 

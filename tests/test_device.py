@@ -36,11 +36,19 @@ class _DefaultDevice:
 
     def __init__(self, device):
         self.device = device
+        self.hooks = []
 
     def __enter__(self):
         torch.set_default_device(self.device)
+        # torch's optimizers are torch's code: before 2.13, Adam created a new parameter's step
+        # counter on the default device (2.13 says device="cpu"), so their steps run with none
+        from torch.optim.optimizer import register_optimizer_step_post_hook, register_optimizer_step_pre_hook
+        self.hooks = [register_optimizer_step_pre_hook(lambda *a: torch.set_default_device(None)),
+                      register_optimizer_step_post_hook(lambda *a: torch.set_default_device(self.device))]
 
     def __exit__(self, *exc):
+        for h in self.hooks:
+            h.remove()
         torch.set_default_device(None)
 
 

@@ -210,6 +210,57 @@ class _Rasterize(torch.autograd.Function):
         return g_m, g_c, g_o, g_f, None, None, None, None, None, None
 
 
+MAX_CHANNELS = 8  # stdr::MAX_CHANNELS in csrc/raster_math.h (a test keeps the two equal)
+TILE_SIZES = {"cpu": tuple(range(1, 33)), "cuda": (8, 16)}  # CUDA: whole warps, shared memory
+
+
+def check_inputs(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
+                 depths: Tensor, radii: Tensor, width: int, height: int, tile_size: int,
+                 kind: str) -> None:
+    """The compiled backends' input contract, checked in Python before any C++ runs.
+
+    The extensions check again, with literal messages only: on one CUDA image (torch
+    2.11.0+cu130, g++ 13.3) any torch extension that throws a TORCH_CHECK with formatted
+    arguments crashed the process instead of raising (docs/rasterizer.md, "GPU check"). The CUDA
+    kernels also read every row by index, so a short tensor here would be an out-of-bounds read
+    on the GPU rather than an error.
+    """
+    if kind not in TILE_SIZES:
+        raise ValueError(f"unknown compiled backend {kind!r}")
+    n = means2d.shape[0] if means2d.dim() >= 1 else -1
+    shapes = {"means2d": (means2d, (n, 2)), "conics": (conics, (n, 3)), "opacities": (opacities, (n,)),
+              "depths": (depths, (n,)), "radii": (radii, (n,))}
+    for name, (t, want) in shapes.items():
+        if tuple(t.shape) != want:
+            raise ValueError(f"stdr rasterizer: {name} must be {list(want)} for N={n} Gaussians, got "
+                             f"{list(t.shape)}")
+    if features.dim() != 2 or features.shape[0] != n:
+        raise ValueError(f"stdr rasterizer: features must be [N, F] with N={n}, got {list(features.shape)}")
+    if not 1 <= features.shape[1] <= MAX_CHANNELS:
+        raise ValueError(f"stdr rasterizer: the compiled backends take 1..{MAX_CHANNELS} feature channels "
+                         f"(got {features.shape[1]}); use render.backend=reference")
+    floats = {"conics": conics, "opacities": opacities, "features": features, "depths": depths}
+    for name, t in floats.items():
+        if t.dtype != means2d.dtype:
+            raise ValueError(f"stdr rasterizer: all float inputs must share one dtype ({name} is {t.dtype}, "
+                             f"means2d {means2d.dtype})")
+    if means2d.dtype not in ((torch.float32,) if kind == "cuda" else (torch.float32, torch.float64)):
+        raise ValueError(f"stdr {kind} rasterizer: float inputs must be "
+                         f"{'float32' if kind == 'cuda' else 'float32 or float64'}, got {means2d.dtype}")
+    if width <= 0 or height <= 0:
+        raise ValueError(f"stdr rasterizer: empty image ({width}x{height})")
+    if tile_size not in TILE_SIZES[kind]:
+        allowed = "8 or 16" if kind == "cuda" else "in [1, 32]"
+        raise ValueError(f"stdr {kind} rasterizer: render.tile_size must be {allowed} (got {tile_size})")
+    want_dev = "cuda" if kind == "cuda" else "cpu"
+    for name, t in {"means2d": means2d, **floats, "radii": radii}.items():
+        if t.device.type != want_dev:
+            raise ValueError(f"stdr {kind} rasterizer: {name} is on {t.device}; every input must be on "
+                             f"the {want_dev.upper()} (render.backend={kind} renders {want_dev} tensors)")
+    if len({t.device for t in (means2d, conics, opacities, features, depths, radii)}) > 1:
+        raise ValueError("stdr rasterizer: inputs are on different devices")
+
+
 def rasterize_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
                        depths: Tensor, radii: Tensor, width: int, height: int,
                        tile_size: int = 16, kind: str = "cpu") -> tuple[Tensor, Tensor]:
@@ -218,6 +269,8 @@ def rasterize_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, featu
     means2d [N, 2], conics [N, 3], opacities [N], features [N, F], depths [N], radii [N].
     Returns (feature image [H, W, F] without background, transmittance [H, W]).
     """
+    check_inputs(means2d, conics, opacities, features, depths, radii, int(width), int(height),
+                 int(tile_size), kind)
     ext = load_extension(kind)
     return _Rasterize.apply(means2d, conics, opacities, features, depths,
                             radii.to(torch.int32).contiguous(), int(width), int(height),

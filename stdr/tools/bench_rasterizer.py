@@ -90,10 +90,12 @@ def pair_work(p, width, height, tile: int = 16) -> tuple[int, int]:
     return int(per_tile.sum()) * tile * tile, int(ids.numel())
 
 
-def measure_row(backend: str, n: int, res: int, coverage: float, repeats: int, tile: int) -> dict:
+def measure_row(backend: str, n: int, res: int, coverage: float, repeats: int, tile: int,
+                reference_device: str = "cpu") -> dict:
     from stdr.render import DEFAULT_TILE, rasterize
-    backend = resolve_backend(backend)
-    device = "cuda" if backend == "cuda" else "cpu"
+    # the compiled backends run on their own device; the pure-torch reference on either
+    device = {"cuda": "cuda", "cpu": "cpu"}.get(backend, reference_device)
+    backend = resolve_backend(backend, device)
     tile = tile or DEFAULT_TILE[backend]
     (means, quats, scales, opac, sh), cam = make_scene(n, res, coverage, device=device)
     p = project_gaussians(means, quats, scales, opac, cam)
@@ -129,7 +131,7 @@ def measure_row(backend: str, n: int, res: int, coverage: float, repeats: int, t
     else:  # growth of the process's peak resident set over the scene's inputs
         peak = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
     t_r = timed(render_fb, max(1, repeats // 2), device)
-    return dict(backend=backend, n=n, width=res, height=res, tile=tile, coverage=coverage,
+    return dict(backend=backend, device=device, n=n, width=res, height=res, tile=tile, coverage=coverage,
                 fwd_ms=t_f, fwd_bwd_ms=t_fb, render_fwd_bwd_ms=t_r, peak_mb=peak, pairs=n_pairs,
                 pair_evals=evals, threads=torch.get_num_threads(), repeats=repeats)
 
@@ -147,6 +149,8 @@ def main(argv=None):
     ap.add_argument("--flop-per-pair", type=float, default=40.0)
     ap.add_argument("--max-ref-n", type=int, default=100_000,
                     help="skip the reference backend above this many Gaussians (time, memory)")
+    ap.add_argument("--reference-device", default="cpu", choices=["cpu", "cuda"],
+                    help="where the pure-torch reference runs (the compiled backends run on their own)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--markdown", type=Path, default=None, help="also write the table as Markdown")
     ap.add_argument("--one", default=None, help=argparse.SUPPRESS)  # internal: one row as JSON
@@ -167,7 +171,7 @@ def main(argv=None):
                     continue
                 # one process per row: a clean peak-memory reading, no allocator carry-over
                 spec = dict(backend=b, n=n, res=res, coverage=args.coverage, repeats=args.repeats,
-                            tile=args.tile)
+                            tile=args.tile, reference_device=args.reference_device)
                 proc = subprocess.run([sys.executable, "-m", "stdr.tools.bench_rasterizer", "--one", json.dumps(spec)],
                                       capture_output=True, text=True)
                 if proc.returncode != 0:
@@ -178,7 +182,7 @@ def main(argv=None):
                 row.update(pair_evals_per_s=rate,
                            peak_fraction=rate * args.flop_per_pair / (args.peak_gflops * 1e9))
                 rows.append(row)
-                print(f"{row['backend']:>9} {n:>8} {res:>5} {row['fwd_ms']:>9.1f} "
+                print(f"{label(row):>9} {n:>8} {res:>5} {row['fwd_ms']:>9.1f} "
                       f"{row['fwd_bwd_ms']:>11.1f} {row['render_fwd_bwd_ms']:>11.1f} "
                       f"{rate:>9.2e} {100 * row['peak_fraction']:>5.1f}% {row['peak_mb']:>8.0f}",
                       flush=True)
@@ -202,13 +206,19 @@ def main(argv=None):
         print(f"wrote {args.markdown}")
 
 
+def label(row: dict) -> str:
+    """'cpu', 'cuda', or 'reference (cuda)' for the pure-torch reference on a GPU."""
+    dev = row.get("device", "cpu")
+    return row["backend"] if row["backend"] != "reference" or dev == "cpu" else f"reference ({dev})"
+
+
 def markdown_table(rows, peak_gflops) -> str:
     out = ["| backend | N | image | fwd ms | fwd+bwd ms | render() fwd+bwd ms | pair evals/s "
            f"| % of {peak_gflops:.0f} GFLOP/s | peak MB | vs reference (fwd+bwd) |",
            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         sp = r.get("speedup_fwd_bwd_vs_reference")
-        out.append(f"| {r['backend']} | {r['n']:,} | {r['width']}x{r['height']} | {r['fwd_ms']:.1f} "
+        out.append(f"| {label(r)} | {r['n']:,} | {r['width']}x{r['height']} | {r['fwd_ms']:.1f} "
                    f"| {r['fwd_bwd_ms']:.1f} | {r['render_fwd_bwd_ms']:.1f} "
                    f"| {r['pair_evals_per_s']:.2e} | {100 * r['peak_fraction']:.1f} "
                    f"| {r['peak_mb']:.0f} | {'' if sp is None else f'{sp:.0f}x'} |")

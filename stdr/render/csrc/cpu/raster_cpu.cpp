@@ -236,17 +236,15 @@ void check_inputs(const at::Tensor& means2d, const at::Tensor& conics, const at:
   TORCH_CHECK(depths.dim() == 1 && depths.size(0) == N, "stdr rasterizer: depths must be [N]");
   TORCH_CHECK(feats.dim() == 2 && feats.size(0) == N && feats.size(1) >= 1,
               "stdr rasterizer: features must be [N, F]");
-  TORCH_CHECK(feats.size(1) <= stdr::MAX_CHANNELS, "stdr rasterizer: at most ",
-              stdr::MAX_CHANNELS, " feature channels (got ", feats.size(1),
-              "); use render.backend=reference");
+  TORCH_CHECK(feats.size(1) <= stdr::MAX_CHANNELS,
+              "stdr rasterizer: more feature channels than stdr::MAX_CHANNELS; use render.backend=reference");
   TORCH_CHECK(radii.dim() == 1 && radii.size(0) == N && radii.scalar_type() == at::kInt,
               "stdr rasterizer: radii must be int32 [N]");
   for (const at::Tensor* t : {&conics, &opac, &feats, &depths})
     TORCH_CHECK(t->scalar_type() == means2d.scalar_type(),
                 "stdr rasterizer: all float inputs must share one dtype");
   TORCH_CHECK(width > 0 && height > 0, "stdr rasterizer: empty image");
-  TORCH_CHECK(tile >= 1 && tile <= 32,
-              "stdr CPU rasterizer: render.tile_size must be in [1, 32] (got ", tile, ")");
+  TORCH_CHECK(tile >= 1 && tile <= 32, "stdr CPU rasterizer: render.tile_size must be in [1, 32]");
 }
 
 template <typename Fn> void dispatch_channels(int64_t F, Fn fn) {
@@ -256,7 +254,7 @@ template <typename Fn> void dispatch_channels(int64_t F, Fn fn) {
     STDR_CASE(1) STDR_CASE(2) STDR_CASE(3) STDR_CASE(4)
     STDR_CASE(5) STDR_CASE(6) STDR_CASE(7) STDR_CASE(8)
 #undef STDR_CASE
-    default: TORCH_CHECK(false, "stdr rasterizer: unsupported channel count ", F);
+    default: TORCH_CHECK(false, "stdr rasterizer: unsupported channel count");
   }
 }
 

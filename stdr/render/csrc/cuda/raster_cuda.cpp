@@ -11,22 +11,23 @@
 
 namespace {
 
-void check(const at::Tensor& t, const char* name) {
-  TORCH_CHECK(t.is_cuda(), "stdr CUDA rasterizer: ", name, " must be a CUDA tensor");
-}
 
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
                                 at::Tensor feats, at::Tensor depths, at::Tensor radii,
                                 int64_t width, int64_t height, int64_t tile) {
-  for (auto* p : {&means2d, &conics, &opac, &feats, &depths, &radii}) check(*p, "input");
-  TORCH_CHECK(means2d.scalar_type() == at::kFloat,
-              "stdr CUDA rasterizer: float32 inputs only (got ", means2d.scalar_type(), ")");
+  // compiled.check_inputs checks the whole contract first, with the values in its messages;
+  // these checks keep literal messages (see there: formatted ones crashed one toolchain)
+  const int64_t N = means2d.size(0);
+  for (auto* p : {&means2d, &conics, &opac, &feats, &depths, &radii})
+    TORCH_CHECK(p->is_cuda(), "stdr CUDA rasterizer: every input must be a CUDA tensor");
+  TORCH_CHECK(conics.size(0) == N && opac.size(0) == N && feats.size(0) == N && depths.size(0) == N &&
+              radii.size(0) == N, "stdr CUDA rasterizer: every input must have one row per Gaussian");
+  TORCH_CHECK(means2d.scalar_type() == at::kFloat, "stdr CUDA rasterizer: float32 inputs only");
   // whole warps per block (the backward's warp sums) and shared memory under the 48 KB default
-  TORCH_CHECK(tile == 8 || tile == 16,
-              "stdr CUDA rasterizer: render.tile_size must be 8 or 16 (got ", tile, ")");
+  TORCH_CHECK(tile == 8 || tile == 16, "stdr CUDA rasterizer: render.tile_size must be 8 or 16");
   const int64_t F = feats.size(1);
-  TORCH_CHECK(F >= 1 && F <= stdr::MAX_CHANNELS, "stdr CUDA rasterizer: 1..",
-              stdr::MAX_CHANNELS, " feature channels (got ", F, ")");
+  TORCH_CHECK(F >= 1 && F <= stdr::MAX_CHANNELS,
+              "stdr CUDA rasterizer: 1..stdr::MAX_CHANNELS feature channels only");
   const at::cuda::CUDAGuard guard(means2d.device());
   auto stream = c10::cuda::getCurrentCUDAStream().stream();
   means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
@@ -78,7 +79,8 @@ std::vector<at::Tensor> backward(at::Tensor packed, at::Tensor order, int64_t N,
                                  at::Tensor pair_ids, at::Tensor tile_offsets, at::Tensor T_img,
                                  at::Tensor last, at::Tensor g_acc, at::Tensor g_T,
                                  int64_t width, int64_t height, int64_t tile) {
-  check(packed, "packed");
+  for (auto* p : {&packed, &order, &pair_ids, &tile_offsets, &T_img, &last, &g_acc, &g_T})
+    TORCH_CHECK(p->is_cuda(), "stdr CUDA rasterizer backward: every input must be a CUDA tensor");
   const at::cuda::CUDAGuard guard(packed.device());
   auto stream = c10::cuda::getCurrentCUDAStream().stream();
   g_acc = g_acc.contiguous().to(at::kFloat);
