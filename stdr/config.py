@@ -187,6 +187,9 @@ class EvalAppConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
     render: Optional[RenderConfig] = None  # override the runs' render settings (e.g. backend)
     device: Optional[str] = None  # override the runs' device (auto | cpu | cuda | cuda:<index>)
+    # fps: re-time the render FPS alone (e.g. on an idle machine) and update only `fps` in each
+    # run's metrics.json, keeping the earlier values under `fps_history`; quality is not touched
+    remeasure: Optional[str] = None
 
 
 def _schedule_resolver(*, _root_) -> dict:

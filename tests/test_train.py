@@ -111,3 +111,24 @@ def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
     assert cell["psnr"] == pytest.approx(test["psnr"], abs=1e-4)
     assert "| deform |" in (out / "table.md").read_text()
     assert (out / "table.tex").read_text().startswith("\\begin{tabular}")
+
+    # remeasure=fps re-times the renders only: fps changes, the old value goes to fps_history,
+    # every quality number and the curve stay as they were, and the table shows the new fps
+    before = json.loads((run_dir / "metrics.json").read_text())["test"]
+    proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=fps",
+                           "device=cpu"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    after = json.loads((run_dir / "metrics.json").read_text())["test"]
+    assert after["fps_history"] == [{"fps": before["fps"], "machine": before["conventions"]["machine"],
+                                     "torch_threads": before["conventions"]["torch_threads"],
+                                     "render_backend": before["conventions"]["render_backend"],
+                                     "device": before["conventions"]["device"]}]
+    assert after["fps"] > 0 and after["conventions"]["fps_remeasured"] is True
+    assert {k: v for k, v in after.items() if k not in ("fps", "fps_history", "conventions")} == \
+        {k: v for k, v in before.items() if k not in ("fps", "conventions")}
+    assert {k: v for k, v in after["conventions"].items() if not k.startswith("fps_")} == before["conventions"]
+    assert json.loads((out / "table.json").read_text())["cells"]["deform"]["embedded"]["fps"] == \
+        pytest.approx(after["fps"])
+    proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=psnr"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode != 0 and "remeasure='psnr'" in proc.stderr

@@ -1,10 +1,14 @@
-"""stdr-eval RUN_DIR [RUN_DIR ...] [overrides]: re-evaluate runs and print/write the table."""
+"""stdr-eval RUN_DIR [RUN_DIR ...] [overrides]: re-evaluate runs and print/write the table.
+
+reevaluate=false tabulates the runs' metrics.json as they are; remeasure=fps re-times only the
+render FPS (quality numbers untouched, the old value kept in `fps_history`)."""
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
 import hydra
+import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
@@ -15,11 +19,15 @@ register()
 
 
 def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reevaluate: bool,
-                  out_dir: Path, base: str, device: str | None = None) -> dict:
+                  out_dir: Path, base: str, device: str | None = None, remeasure: str | None = None) -> dict:
     import json
 
     from ..eval.table import collect, find_run_dirs, markdown, table_row, write_tables
 
+    if remeasure not in (None, "fps"):
+        raise ValueError(f"remeasure={remeasure!r}: the only measurement that can be redone alone is 'fps'")
+    if remeasure and reevaluate:
+        reevaluate = False  # remeasure=fps re-times the renders and keeps every quality number
     rows = []
     # a folder of runs (a sweep's multirun folder) stands for the finished runs under it
     for rd in find_run_dirs([Path(r) if Path(r).is_absolute() else Path(base) / r for r in runs]):
@@ -32,6 +40,12 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
             if device is not None:  # e.g. a run trained on a GPU, re-evaluated on a CPU machine
                 cfg.device = device
             res = reevaluate_run(rd, cfg, sp, eval_cfg, base)
+        elif remeasure == "fps":
+            if render_cfg is not None:
+                cfg.render = render_cfg
+            if device is not None:
+                cfg.device = device
+            res = remeasure_fps(rd, cfg, sp, eval_cfg, base)
         else:
             mp = rd / "metrics.json"
             if not mp.is_file():
@@ -50,19 +64,10 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
 def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     """Rebuild the run's model from its checkpoint (public API: stdr.model), render `split` and
     merge the numbers into its metrics.json."""
-    from ..data.load import load_scene
-    from ..device import resolve_device
     from ..eval.evaluate import evaluate_model, learning_curve, make_lpips, write_metrics
-    from ..model import has_model_entry, model_from_checkpoint
-    from ..train.checkpoint import load_checkpoint
-    from ..train.trainer import CKPT
 
-    ck = load_checkpoint(rd / CKPT)
-    dev = resolve_device(cfg.device)
-    # a checkpoint from before format 2 does not hold the training times: read them from the data
-    splits = (split,) if has_model_entry(ck) else tuple(dict.fromkeys(("train", split)))
-    scene = load_scene(cfg.data, splits, base=base).to(dev)
-    model = model_from_checkpoint(ck, dev, cfg, None if has_model_entry(ck) else scene.train_times(), str(rd / CKPT))
+    ck, model, scene = _load_for_eval(rd, cfg, split, base)
+    dev = model.device
     lp = make_lpips(eval_cfg)
     if lp is not None:
         lp = lp.to(dev)
@@ -77,13 +82,62 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     return res
 
 
+def _load_for_eval(rd: Path, cfg, split: str, base: str):
+    """(model, scene) of a run folder for rendering `split`: the model from its checkpoint."""
+    from ..data.load import load_scene
+    from ..device import resolve_device
+    from ..model import has_model_entry, model_from_checkpoint
+    from ..train.checkpoint import load_checkpoint
+    from ..train.trainer import CKPT
+
+    ck = load_checkpoint(rd / CKPT)
+    dev = resolve_device(cfg.device)
+    # a checkpoint from before format 2 does not hold the training times: read them from the data
+    splits = (split,) if has_model_entry(ck) else tuple(dict.fromkeys(("train", split)))
+    scene = load_scene(cfg.data, splits, base=base).to(dev)
+    model = model_from_checkpoint(ck, dev, cfg, None if has_model_entry(ck) else scene.train_times(), str(rd / CKPT))
+    return ck, model, scene
+
+
+def remeasure_fps(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
+    """Re-time the render FPS of a run's `split` and update metrics.json[split]: `fps` becomes
+    the new value, the entry it replaces is appended to `fps_history` with where it was
+    measured; every other number stays as it was. Returns the updated entry."""
+    import json
+
+    from ..eval.evaluate import machine_name, measure_fps
+
+    mp = rd / "metrics.json"
+    if not mp.is_file():
+        raise FileNotFoundError(f"{mp} not found: remeasure=fps updates an evaluated run; evaluate it first")
+    metrics = json.loads(mp.read_text())
+    if split not in metrics:
+        raise KeyError(f"{mp} has no split {split!r} (it has {sorted(metrics)}): evaluate that split first")
+    _, model, scene = _load_for_eval(rd, cfg, split, base)
+    fps = measure_fps(model, scene.frames(split), fps_warmup=eval_cfg.fps_warmup)
+    entry = metrics[split]
+    conv = entry.get("conventions", {})
+    entry.setdefault("fps_history", []).append(
+        {"fps": entry.get("fps"), "machine": conv.get("machine"), "torch_threads": conv.get("torch_threads"),
+         "render_backend": conv.get("render_backend"), "device": conv.get("device")})
+    entry["fps"] = fps
+    entry.setdefault("conventions", {}).update(
+        {"fps_remeasured": True, "fps_machine": machine_name(), "fps_torch_threads": torch.get_num_threads(),
+         "fps_render_backend": model.backend, "fps_device": str(model.device)})
+    tmp = mp.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(metrics, indent=1))
+    tmp.replace(mp)
+    print(f"[stdr] {rd}: FPS {entry['fps_history'][-1]['fps']} -> {fps:.2f}")
+    return entry
+
+
 @hydra.main(version_base=None, config_path=CONFIG_DIR, config_name="eval")
 def _main(cfg: DictConfig) -> None:
     if not cfg.runs:
         raise SystemExit("usage: stdr-eval RUN_DIR [RUN_DIR ...] [key=value ...]")
     out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
     evaluate_dirs(list(cfg.runs), cfg.split, cfg.eval, cfg.render, cfg.reevaluate, out,
-                  hydra.utils.get_original_cwd(), cfg.device)
+                  hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure)
 
 
 def main() -> None:

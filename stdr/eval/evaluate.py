@@ -40,6 +40,33 @@ def make_lpips(eval_cfg) -> Optional[LPIPS]:
 
 
 
+def timed_render(model, frame, step: int):
+    """(render output, seconds): one frame's deformation + projection + rasterization, the FPS
+    convention's unit (device synchronized before and after on a GPU)."""
+    synchronize(model.device)
+    t0 = time.perf_counter()
+    out = model.render(frame.camera, frame.time, step)
+    synchronize(model.device)
+    return out, time.perf_counter() - t0
+
+
+def warm_up(model, frames, step: int, n: int) -> None:
+    """Untimed renders before timing (allocator, caches, JIT)."""
+    for f in frames[:n]:
+        model.render(f.camera, f.time, step)
+
+
+@torch.no_grad()
+def measure_fps(model, frames, step: Optional[int] = None, fps_warmup: int = 3) -> float:
+    """Render FPS alone, by the same convention as `evaluate_model` (for re-timing a trained
+    run on an idle machine: `stdr-eval RUN remeasure=fps`)."""
+    model.eval()
+    step = model.step if step is None else step
+    warm_up(model, frames, step, fps_warmup)
+    times = [timed_render(model, f, step)[1] for f in frames]
+    return float(len(times) / sum(times))
+
+
 @torch.no_grad()
 def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, save_dir: Optional[Path] = None,
                    fps_warmup: int = 3) -> dict[str, Any]:
@@ -50,16 +77,10 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
     ps, ss, ls, times = [], [], [], []
     if save_dir is not None:
         save_dir.mkdir(parents=True, exist_ok=True)
-    # untimed warm-up renders (allocator, caches, JIT)
-    for f in frames[:fps_warmup]:
-        model.render(f.camera, f.time, step)
-    dev = model.device
+    warm_up(model, frames, step, fps_warmup)
     for i, f in enumerate(frames):
-        synchronize(dev)
-        t0 = time.perf_counter()
-        out = model.render(f.camera, f.time, step)
-        synchronize(dev)
-        times.append(time.perf_counter() - t0)
+        out, sec = timed_render(model, f, step)
+        times.append(sec)
         img = out.image.clamp(0, 1)
         ps.append(float(psnr(img, f.image)))
         ss.append(float(ssim(img, f.image)))
