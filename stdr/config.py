@@ -126,6 +126,11 @@ class RenderConfig:
     antialiased: bool = False
     eps2d: float = 0.3
     near: float = 0.01
+    # temporal culling (docs/stdr.md §6): rows whose opacity at time t (sigmoid(o) x STDR's mask)
+    # is below 1/255 skip the deformation, projection and rasterizer; the image is unchanged.
+    # off | eval (evaluation, FPS and every render outside training) | train (training too;
+    # needs densify.count_invisible=false, since a culled row is not seen by densification)
+    cull: str = "eval"
 
 
 @dataclass

@@ -25,11 +25,20 @@ from .cameras import Camera
 from .deform import build_deformation
 from .device import resolve_device
 from .plugins import Plugin
+from .ops import RowView, rows_of
 from .render import RenderOutput, render, resolve_backend
+from .render.reference import ALPHA_MIN
 from .schedule import Schedule, resolve_schedule
 from .scene.gaussians import Gaussians, activate, init_params, num_gaussians, random_cube_points
 
 CHECKPOINT_FORMAT = 2
+CULL_MODES = ("off", "eval", "train")
+
+
+def active_rows(opacities: Tensor) -> Tensor:
+    """Rows [M] (ascending) whose opacity [N] reaches the rasterizer's cut-off 1/255, compared
+    in the opacities' dtype as the rasterizer compares: the others change no pixel anywhere."""
+    return torch.nonzero(opacities >= ALPHA_MIN).squeeze(1)
 
 
 PluginFactory = Callable[[Any, Schedule, Optional[np.ndarray], torch.device], Optional[Plugin]]
@@ -102,6 +111,7 @@ class DynamicGaussians:
         self.background = background.to(device)  # [3]
         self.backend = resolve_backend(cfg.render.backend, device)
         self.step = 0  # iterations trained
+        self.last_active: Optional[int] = None  # Gaussians rendered by the last `render` (after culling)
 
     # ----------------------------------------------------------------- plug-ins
     def plugin(self, name: str) -> Optional[Plugin]:
@@ -145,17 +155,51 @@ class DynamicGaussians:
                  cond_scale: Optional[tuple[Optional[Tensor], Optional[Tensor]]] = None) -> Gaussians:
         """Activated Gaussians at time t: deformed after the static warm-up, opacity times the
         plug-ins' factors. cond_scale: this step's `conditioning` (computed when None)."""
+        return self.deformed_rows(t, step, cond_scale, cull=False)[0]
+
+    def can_cull(self, step: int) -> bool:
+        """Whether a Gaussian's opacity at time t is known before the deformation runs (the
+        module has no opacity deltas, or the static warm-up leaves the Gaussians as they are)."""
+        return step < self.warmup or self.deform.canonical_opacity
+
+    def deformed_rows(self, t: float, step: Optional[int] = None,
+                      cond_scale: Optional[tuple[Optional[Tensor], Optional[Tensor]]] = None,
+                      cull: bool = False) -> tuple[Gaussians, Optional[Tensor]]:
+        """(Gaussians at time t, rows [M] they are of the model, or None for all).
+
+        cull: temporal culling. Rows whose opacity at t, sigmoid(o) times the plug-ins' factors
+        (STDR's mask), is below 1/255 cannot change a pixel or get a gradient from the render
+        (the rasterizer's cut-off), so they skip the deformation network, the projection and
+        the rasterizer. The image equals the unculled one; the culled rows get zero gradient,
+        as they do without culling. Parts a baseline shares between Gaussians (SC-GS's node
+        conditioning, SP-GS's superpoints) are still computed from every row
+        (`Deformation.forward_rows`)."""
         step = self.step if step is None else step
+        factors = [f for p in self.plugins if (f := p.opacity_factor(self.params, t, step)) is not None]
+        rows = None
+        if cull and self.can_cull(step):
+            eff = torch.sigmoid(self.params["opacities"])  # the value `apply` gives, times the factors
+            for f in factors:
+                eff = eff * f
+            keep = active_rows(eff)
+            rows = None if keep.shape[0] == eff.shape[0] else keep
         if step < self.warmup:
-            g = activate(self.params)
+            g = activate(self.params if rows is None else RowView(self.params, rows))
         else:
             cond, scale = self.conditioning(step) if cond_scale is None else cond_scale
-            g = self.deform.deform(self.params, t, cond, scale)
-        for p in self.plugins:
-            f = p.opacity_factor(self.params, t, step)
-            if f is not None:
-                g = g._replace(opacities=g.opacities * f)
-        return g
+            g = self.deform.deform_rows(self.params, t, cond, scale, rows)
+        for f in factors:
+            g = g._replace(opacities=g.opacities * rows_of(f, rows))
+        return g, rows
+
+    def cull_mode(self) -> str:
+        """render.cull: 'off', 'eval' (evaluation and rendering cull; training renders every
+        row) or 'train' (training culls too: densification then counts a culled row as not seen,
+        which needs densify.count_invisible=false)."""
+        mode = str(self.cfg.render.get("cull", "off"))
+        if mode not in CULL_MODES:
+            raise ValueError(f"render.cull={mode!r}: use one of {CULL_MODES}")
+        return mode
 
     def render_gaussians(self, g: Gaussians, camera: Camera, step: Optional[int] = None) -> RenderOutput:
         r = self.cfg.render
@@ -164,9 +208,15 @@ class DynamicGaussians:
                       backend=self.backend, near=r.near, eps2d=r.eps2d, antialiased=r.antialiased,
                       tile_size=r.tile_size)
 
-    def render(self, camera: Camera, t: float, step: Optional[int] = None) -> RenderOutput:
-        """The model at time t seen from `camera` (at the trained iteration unless `step`)."""
-        return self.render_gaussians(self.deformed(t, step), camera, step)
+    def render(self, camera: Camera, t: float, step: Optional[int] = None,
+               cull: Optional[bool] = None) -> RenderOutput:
+        """The model at time t seen from `camera` (at the trained iteration unless `step`).
+        cull: temporal culling (`deformed_rows`); None follows render.cull (on unless 'off').
+        The number of rows rendered is kept in `last_active`."""
+        cull = self.cull_mode() != "off" if cull is None else cull
+        g, rows = self.deformed_rows(t, step, cull=cull)
+        self.last_active = g.means.shape[0]
+        return self.render_gaussians(g, camera, step)
 
     def train(self, mode: bool = True) -> "DynamicGaussians":
         """Train mode (BatchNorm batch statistics, dropout) in train steps, eval mode elsewhere."""

@@ -164,6 +164,35 @@ class Deformation(nn.Module):
 
     apply_rule = staticmethod(apply_post_activation)
 
+    #: whether `apply` leaves the activated opacity at sigmoid(params["opacities"]) (no opacity
+    #: deltas): then a Gaussian's opacity at time t is known before the network runs, and
+    #: temporal culling (render.cull) may skip rows that cannot reach 1/255. A module with
+    #: opacity deltas sets it False, and culling is off for it.
+    canonical_opacity: bool = True
+
+    def forward_rows(self, params, t: float, cond: Optional[Tensor], rows: Tensor) -> Deltas:
+        """Deltas [M] of the Gaussians `rows` [M] alone (temporal culling). The default runs
+        `forward` on those rows, right for modules whose deltas are per Gaussian (deform, 4dgs);
+        modules with a part shared by all Gaussians (SC-GS's node conditioning, SP-GS's
+        superpoints) compute that part from every row, so the kept rows' deltas are those of
+        the full call."""
+        from ..ops import RowView, rows_of
+        return self.forward(RowView(params, rows), t, rows_of(cond, rows))
+
+    def deform_rows(self, params, t: float, cond: Optional[Tensor] = None,
+                    delta_scale: Optional[Tensor] = None, rows: Optional[Tensor] = None) -> Gaussians:
+        """`deform` for the Gaussians `rows` [M] only (all when None): Gaussians [M], equal to
+        rows of the full call (up to float rounding of batched kernels); gradients reach only
+        those rows."""
+        if rows is None:
+            return self.deform(params, t, cond, delta_scale)
+        from ..ops import RowView, rows_of
+        n = params["means"].shape[0]
+        if cond is not None and cond.shape != (n, self.cond_dim):
+            raise ValueError(f"conditioning must be [N, {self.cond_dim}], got {tuple(cond.shape)}")
+        d = self.forward_rows(params, t, cond, rows)
+        return self.apply(RowView(params, rows), _scaled(d, rows_of(delta_scale, rows), rows.shape[0]))
+
     def deform(self, params, t: float, cond: Optional[Tensor] = None,
                delta_scale: Optional[Tensor] = None) -> Gaussians:
         """Deformed, activated Gaussians at time t.
@@ -176,9 +205,14 @@ class Deformation(nn.Module):
         if cond is not None and cond.shape != (n, self.cond_dim):
             raise ValueError(f"conditioning must be [N, {self.cond_dim}], got {tuple(cond.shape)}")
         d = self.forward(params, t, cond)
-        if delta_scale is not None:
-            if delta_scale.shape != (n, 1):
-                raise ValueError(f"delta_scale must be [N, 1], got {tuple(delta_scale.shape)}")
-            d = Deltas(**{k: None if v is None else v * (delta_scale if v.dim() == 2 else delta_scale[:, 0])
-                          for k, v in vars(d).items()})
-        return self.apply(params, d)
+        return self.apply(params, _scaled(d, delta_scale, n))
+
+
+def _scaled(d: Deltas, delta_scale: Optional[Tensor], n: int) -> Deltas:
+    """Every delta times delta_scale [n, 1] (STDR's dynamic probability), or d unchanged."""
+    if delta_scale is None:
+        return d
+    if delta_scale.shape != (n, 1):
+        raise ValueError(f"delta_scale must be [N, 1], got {tuple(delta_scale.shape)}")
+    return Deltas(**{k: None if v is None else v * (delta_scale if v.dim() == 2 else delta_scale[:, 0])
+                     for k, v in vars(d).items()})

@@ -24,7 +24,7 @@ from typing import List, Optional, Sequence
 import torch
 from torch import Tensor, nn
 
-from ..ops import scatter_mean, take_rows
+from ..ops import RowView, rows_of, scatter_mean, take_rows
 from ..scene.knn import knn
 from .base import BaselineConfig, Deformation, Deltas, mlp_kwargs, stage_start
 from .deform3dgs import DeformMLP
@@ -232,13 +232,22 @@ class ControlNodeDeformation(Deformation):
         return cond_n
 
     def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:
+        return self.forward_rows(params, t, cond, None)
+
+    def forward_rows(self, params, t: float, cond: Optional[Tensor], rows: Optional[Tensor]) -> Deltas:
+        """Deltas of the Gaussians `rows` [M] (all when None). The node conditioning blends every
+        Gaussian's cond, so with a conditioning all rows are skinned and only the blend is
+        restricted; without one, only the kept rows are skinned."""
         if self.cond_dim and cond is None:
             raise ValueError("this deformation was built with cond_dim > 0 and needs cond")
         if int(self.stage) == 1:  # node stage: the Gaussians are the nodes, moved directly
-            dx, _, _ = self.node_deltas(params["means"].detach(), t, cond)
+            dx, _, _ = self.node_deltas(rows_of(params["means"], rows).detach(), t, rows_of(cond, rows))
             return Deltas(means=dx)
-        idx, w = self.skinning(params)
+        skinned = params if rows is None or self.cond_dim else RowView(params, rows)
+        idx, w = self.skinning(skinned)
         cond_n = self.node_conditioning(cond, idx, w)
+        if rows is not None and skinned is params:
+            idx, w = take_rows(idx, rows), take_rows(w, rows)
         p = self.nodes[:, :3]
         if getattr(self, "_detach", False):
             with torch.no_grad():
@@ -247,7 +256,7 @@ class ControlNodeDeformation(Deformation):
             T, dq, ds = self.node_deltas(p.detach(), t, cond_n)
         ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dq.dtype, device=dq.device)
         R = quat_to_rotmat(ident + dq)  # [M, 3, 3]
-        x = params["means"]
+        x = rows_of(params["means"], rows)
         x_t = blend_translation(x, take_rows(p, idx), take_rows(R, idx), take_rows(T, idx), w, self.local_frame)
         wq = (w[..., None] * take_rows(dq, idx)).sum(1)
         wsc = (w[..., None] * take_rows(ds, idx)).sum(1)

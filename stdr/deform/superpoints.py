@@ -19,7 +19,7 @@ from typing import Optional
 import torch
 from torch import Tensor, nn
 
-from ..ops import scatter_mean, take_rows
+from ..ops import rows_of, scatter_mean, take_rows
 from ..scene.knn import knn
 from .base import BaselineConfig, Deformation, Deltas, apply_post_activation, mlp_kwargs, stage_start
 from .deform3dgs import DeformMLP
@@ -139,6 +139,12 @@ class SuperpointDeformation(Deformation):
         return self.head_t(h), self.head_w(h)
 
     def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:
+        return self.forward_rows(params, t, cond, None)
+
+    def forward_rows(self, params, t: float, cond: Optional[Tensor], rows: Optional[Tensor]) -> Deltas:
+        """Deltas of the Gaussians `rows` [M] (all when None). The assignment runs on every row:
+        the superpoints' conditioning and the property-reconstruction regularizer use all of
+        them; only the per-Gaussian transform is restricted."""
         if not bool(self.ready):
             raise RuntimeError("SP-GS superpoints are not initialized (the training loop does this at "
                                "the end of the static warm-up)")
@@ -150,10 +156,11 @@ class SuperpointDeformation(Deformation):
             cond_sp, _ = scatter_mean(cond[:, None, :].expand(-1, idx.shape[1], -1), idx, G.detach(), self.m)
         d, w = self.superpoint_motion(t, cond_sp)
         self._last = {"idx": idx, "G": G, "hard": hard, "d": d, "w": w}
-        x = params["means"]
+        hard = rows_of(hard, rows)
+        x = rows_of(params["means"], rows)
         R = take_rows(so3_exp(w), hard)  # [N, 3, 3]
         x_t = (R @ x[..., None])[..., 0] + take_rows(d, hard)
-        q = params["quats"]
+        q = rows_of(params["quats"], rows)
         qn = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         q_t = quat_multiply(take_rows(so3_exp_quat(w), hard), qn)
         # expressed as post-activation deltas so that every baseline shares the apply rule

@@ -78,9 +78,11 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
     if save_dir is not None:
         save_dir.mkdir(parents=True, exist_ok=True)
     warm_up(model, frames, step, fps_warmup)
+    active = []
     for i, f in enumerate(frames):
         out, sec = timed_render(model, f, step)
         times.append(sec)
+        active.append(model.last_active)
         img = out.image.clamp(0, 1)
         ps.append(float(psnr(img, f.image)))
         ss.append(float(ssim(img, f.image)))
@@ -95,6 +97,9 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
         "lpips": float(np.mean(ls)) if ls else None,
         "fps": float(len(times) / sum(times)),
         "num_gaussians": model.num_gaussians,
+        # Gaussians rendered per frame after temporal culling (render.cull; all rows when off)
+        "active_gaussians_mean": float(np.mean(active)), "active_gaussians_max": int(max(active)),
+        "render_cull": model.cull_mode(),
         "num_frames": len(frames),
         "per_frame_psnr": ps,
         "width": frames[0].camera.width, "height": frames[0].camera.height,

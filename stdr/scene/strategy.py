@@ -17,6 +17,7 @@ from torch import Tensor, nn
 
 from .gaussians import inverse_sigmoid
 from ..render.projection import quat_to_rotmat
+from ..render.reference import ALPHA_MIN
 
 
 def _edit_rows(params: nn.ParameterDict, optimizers: dict[str, torch.optim.Optimizer],
@@ -133,6 +134,10 @@ class DensifyStrategy:
     reset_value: float = 0.01
     reset_white_at_start: bool = False  # also reset at refine_start on a white background (3DGS)
     max_gaussians: int = 0  # 0 = no cap
+    # true (3DGS and the peers): a Gaussian whose footprint is on screen counts as seen in the
+    # gradient average, even when its opacity is below 1/255 and it changes no pixel; false: it
+    # does not (what temporal culling in training, render.cull=train, implies for culled rows)
+    count_invisible: bool = True
 
     def initialize_state(self, n: int, scene_extent: float, white_background: bool = False,
                          device: torch.device | str | None = None) -> dict[str, Any]:
@@ -150,10 +155,14 @@ class DensifyStrategy:
                            radii: Tensor, width: int, height: int,
                            generator: torch.Generator | None = None,
                            opacity_fn: Callable[[Any], Tensor] | None = None,
-                           reset_fn: Callable[[Any, float], bool] | None = None) -> dict[str, int]:
+                           reset_fn: Callable[[Any, float], bool] | None = None,
+                           rows: Tensor | None = None, opacities: Tensor | None = None) -> dict[str, int]:
         """Accumulate statistics from this step's render and refine when due.
 
         `step` counts from 1 (the number of completed optimizer steps after this one).
+        means2d [M, 2] (with .grad), radii [M] and opacities [M] (what the rasterizer got; needed
+        with count_invisible=false) are of the rendered rows `rows` [M] of the N Gaussians (all
+        when None: temporal culling renders a subset).
         `opacity_fn(params) -> [N]`: the opacity pruning compares with prune_opa (default
         sigmoid of the opacity logits; STDR passes the largest masked opacity over time).
         `reset_fn(params, value) -> bool`: a plug-in's own reset; when it returns True the
@@ -164,13 +173,22 @@ class DensifyStrategy:
             return {}
         with torch.no_grad():
             vis = radii > 0
+            if not self.count_invisible:
+                if opacities is None:
+                    raise ValueError("densify.count_invisible=false needs the rendered opacities")
+                vis &= opacities.detach() >= ALPHA_MIN  # the rasterizer's cut-off
+            ids = torch.nonzero(vis).squeeze(1)
+            if rows is not None:
+                ids_model = rows[ids]
+            else:
+                ids_model = ids
             if means2d.grad is not None:
-                g = means2d.grad.detach().clone()
+                g = means2d.grad.detach()[ids].clone()
                 g[:, 0] *= 0.5 * width  # pixels -> 3DGS NDC units
                 g[:, 1] *= 0.5 * height
-                state["grad2d"][vis] += g[vis].norm(dim=-1)
-                state["count"][vis] += 1
-            state["max_radii"][vis] = torch.maximum(state["max_radii"][vis], radii[vis].float())
+                state["grad2d"][ids_model] += g.norm(dim=-1)
+                state["count"][ids_model] += 1
+            state["max_radii"][ids_model] = torch.maximum(state["max_radii"][ids_model], radii[ids].float())
         out: dict[str, int] = {}
         if step > self.refine_start and step % self.refine_every == 0:
             out = self._refine(params, optimizers, state, step, generator, opacity_fn)

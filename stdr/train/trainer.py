@@ -91,6 +91,11 @@ class Trainer:
         self.net_opt = torch.optim.Adam([{k: v for k, v in g.items() if k == "params" or k == "name"}
                                          for g in self.net_groups], lr=cfg.baseline.lr_init, eps=1e-15)
         self.strategy = DensifyStrategy(**OmegaConf.to_container(cfg.densify))
+        self.cull_train = self.model.cull_mode() == "train"
+        if self.cull_train and self.strategy.count_invisible:
+            raise ValueError("render.cull=train renders only the rows that can reach opacity 1/255, so "
+                             "densification cannot count the others as seen: set densify.count_invisible=false "
+                             "as well, or render.cull=eval to cull outside training only")
         extent = scene_extent(self.scene.camera_centers("train")) if has_train else 1.0
         white = all(float(c) >= 1.0 for c in self.scene.background)
         self.strategy_state = self.strategy.initialize_state(len(pts), extent, white_background=white,
@@ -233,7 +238,7 @@ class Trainer:
             cs = model.conditioning(it)
         model.deform.before_step(params, it, cs[0])
         with prof("deform"):
-            g = model.deformed(frame.time, it, cs)
+            g, rows = model.deformed_rows(frame.time, it, cs, cull=self.cull_train)
         with prof("render_fwd"):
             out = model.render_gaussians(g, frame.camera, it)
         with prof("loss"):
@@ -265,9 +270,9 @@ class Trainer:
             info = self.strategy.step_post_backward(
                 params, self.optimizers, self.strategy_state, it + 1, out.means2d, out.radii,
                 frame.camera.width, frame.camera.height, opacity_fn=model.prune_opacity_fn(it),
-                reset_fn=model.reset_opacity_fn(it))
+                reset_fn=model.reset_opacity_fn(it), rows=rows, opacities=out.projection.opacities)
         self.step = it + 1
-        return {"loss": loss.item(), "l1": loss_l1.item(), "dssim": loss_dssim.item(),
+        return {"loss": loss.item(), "l1": loss_l1.item(), "dssim": loss_dssim.item(), "active": g.means.shape[0],
                 "psnr": float(psnr(out.image.detach(), frame.image)), "densify": info,
                 "losses": {k: v.item() for k, v in terms.items()}, "out": out, "frame": frame}
 
@@ -326,6 +331,7 @@ class Trainer:
             tb.add_scalar(f"loss/{k}", logs[k], it)
         tb.add_scalar("train/psnr", logs["psnr"], it)
         tb.add_scalar("gaussians/count", self.model.num_gaussians, it)
+        tb.add_scalar("gaussians/rendered", logs["active"], it)  # after temporal culling (render.cull=train)
         tb.add_scalar("time/seconds_per_iteration", dt, it)
         for k, o in self.optimizers.items():
             tb.add_scalar(f"lr/{k}", o.param_groups[0]["lr"], it)
