@@ -102,6 +102,10 @@ class StdrConfig:
     field_lr_init: Optional[float] = None
     field_lr_final: Optional[float] = None
     scale_deltas_by_dynamic: bool = False  # multiply the deformation deltas by the dynamic probability
+    # static skipping (docs/stdr.md §6): in renders outside training, Gaussians whose dynamic
+    # probability is below this take the deltas of one reference time (cached per model state)
+    # instead of running the deformation network at each t. 0 = off (exact)
+    static_skip: float = 0.0
 
 
 @dataclass

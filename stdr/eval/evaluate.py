@@ -78,11 +78,12 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
     if save_dir is not None:
         save_dir.mkdir(parents=True, exist_ok=True)
     warm_up(model, frames, step, fps_warmup)
-    active = []
+    active, static = [], []
     for i, f in enumerate(frames):
         out, sec = timed_render(model, f, step)
         times.append(sec)
         active.append(model.last_active)
+        static.append(model.last_static)
         img = out.image.clamp(0, 1)
         ps.append(float(psnr(img, f.image)))
         ss.append(float(ssim(img, f.image)))
@@ -100,6 +101,8 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
         # Gaussians rendered per frame after temporal culling (render.cull; all rows when off)
         "active_gaussians_mean": float(np.mean(active)), "active_gaussians_max": int(max(active)),
         "render_cull": model.cull_mode(),
+        # of those, rendered with cached static deltas (stdr.static_skip; 0 when off)
+        "static_skipped_mean": float(np.mean(static)),
         "num_frames": len(frames),
         "per_frame_psnr": ps,
         "width": frames[0].camera.width, "height": frames[0].camera.height,
