@@ -197,7 +197,8 @@ class EvalAppConfig:
     render: Optional[RenderConfig] = None  # override the runs' render settings (e.g. backend)
     device: Optional[str] = None  # override the runs' device (auto | cpu | cuda | cuda:<index>)
     # fps: re-time the render FPS alone (e.g. on an idle machine) and update only `fps` in each
-    # run's metrics.json, keeping the earlier values under `fps_history`; quality is not touched
+    # run's metrics.json, keeping the earlier values under `fps_history`; quality is not touched.
+    # size: add model_mb to runs evaluated before it was recorded. fps+size: both
     remeasure: Optional[str] = None
 
 

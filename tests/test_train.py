@@ -129,6 +129,14 @@ def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
     assert {k: v for k, v in after["conventions"].items() if not k.startswith("fps_")} == before["conventions"]
     assert json.loads((out / "table.json").read_text())["cells"]["deform"]["embedded"]["fps"] == \
         pytest.approx(after["fps"])
+    # remeasure=size fills model_mb for runs evaluated before it was recorded, nothing else
+    m = json.loads((run_dir / "metrics.json").read_text())
+    del m["test"]["model_mb"]
+    (run_dir / "metrics.json").write_text(json.dumps(m))
+    proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=size",
+                           "device=cpu"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((run_dir / "metrics.json").read_text())["test"] == after
     proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=psnr"],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode != 0 and "remeasure='psnr'" in proc.stderr

@@ -1,7 +1,8 @@
 """stdr-eval RUN_DIR [RUN_DIR ...] [overrides]: re-evaluate runs and print/write the table.
 
 reevaluate=false tabulates the runs' metrics.json as they are; remeasure=fps re-times only the
-render FPS (quality numbers untouched, the old value kept in `fps_history`)."""
+render FPS (quality numbers untouched, the old value kept in `fps_history`); remeasure=size adds
+model_mb to runs evaluated before it was recorded."""
 from __future__ import annotations
 
 import sys
@@ -24,8 +25,9 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
 
     from ..eval.table import collect, find_run_dirs, markdown, table_row, write_tables
 
-    if remeasure not in (None, "fps"):
-        raise ValueError(f"remeasure={remeasure!r}: the only measurement that can be redone alone is 'fps'")
+    if remeasure not in (None, "fps", "size", "fps+size"):
+        raise ValueError(f"remeasure={remeasure!r}: what can be redone alone is 'fps' (re-time the renders), "
+                         "'size' (model_mb from the checkpoint, for runs from before it was recorded) or 'fps+size'")
     if remeasure and reevaluate:
         reevaluate = False  # remeasure=fps re-times the renders and keeps every quality number
     rows = []
@@ -40,12 +42,12 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
             if device is not None:  # e.g. a run trained on a GPU, re-evaluated on a CPU machine
                 cfg.device = device
             res = reevaluate_run(rd, cfg, sp, eval_cfg, base)
-        elif remeasure == "fps":
+        elif remeasure:
             if render_cfg is not None:
                 cfg.render = render_cfg
             if device is not None:
                 cfg.device = device
-            res = remeasure_fps(rd, cfg, sp, eval_cfg, base)
+            res = remeasure_run(rd, cfg, sp, eval_cfg, base, remeasure.split("+"))
         else:
             mp = rd / "metrics.json"
             if not mp.is_file():
@@ -99,23 +101,38 @@ def _load_for_eval(rd: Path, cfg, split: str, base: str):
     return ck, model, scene
 
 
-def remeasure_fps(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
-    """Re-time the render FPS of a run's `split` and update metrics.json[split]: `fps` becomes
-    the new value, the entry it replaces is appended to `fps_history` with where it was
-    measured; every other number stays as it was. Returns the updated entry."""
+def remeasure_run(rd: Path, cfg, split: str, eval_cfg, base: str, what: list[str]) -> dict:
+    """Redo some measurements of a run's `split` and update metrics.json[split]; every other
+    number stays as it was. Returns the updated entry.
+
+    fps: re-time the renders; `fps` becomes the new value and the entry it replaces is appended
+    to `fps_history` with where it was measured. size: `model_mb` from the checkpoint's model
+    (the tensors a saved model holds), for runs evaluated before it was recorded."""
     import json
 
-    from ..eval.evaluate import machine_name, measure_fps
+    from ..eval.evaluate import measure_fps, model_bytes
 
     mp = rd / "metrics.json"
     if not mp.is_file():
-        raise FileNotFoundError(f"{mp} not found: remeasure=fps updates an evaluated run; evaluate it first")
+        raise FileNotFoundError(f"{mp} not found: remeasure updates an evaluated run; evaluate it first")
     metrics = json.loads(mp.read_text())
     if split not in metrics:
         raise KeyError(f"{mp} has no split {split!r} (it has {sorted(metrics)}): evaluate that split first")
     _, model, scene = _load_for_eval(rd, cfg, split, base)
-    fps = measure_fps(model, scene.frames(split), fps_warmup=eval_cfg.fps_warmup)
     entry = metrics[split]
+    if "size" in what:
+        entry["model_mb"] = model_bytes(model) / 2 ** 20
+    if "fps" in what:
+        _refresh_fps(entry, measure_fps(model, scene.frames(split), fps_warmup=eval_cfg.fps_warmup), model, rd)
+    tmp = mp.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(metrics, indent=1))
+    tmp.replace(mp)
+    return entry
+
+
+def _refresh_fps(entry: dict, fps: float, model, rd: Path) -> None:
+    from ..eval.evaluate import machine_name
+
     conv = entry.get("conventions", {})
     entry.setdefault("fps_history", []).append(
         {"fps": entry.get("fps"), "machine": conv.get("machine"), "torch_threads": conv.get("torch_threads"),
@@ -123,12 +140,9 @@ def remeasure_fps(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     entry["fps"] = fps
     entry.setdefault("conventions", {}).update(
         {"fps_remeasured": True, "fps_machine": machine_name(), "fps_torch_threads": torch.get_num_threads(),
-         "fps_render_backend": model.backend, "fps_device": str(model.device)})
-    tmp = mp.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(metrics, indent=1))
-    tmp.replace(mp)
+         "fps_render_backend": model.backend, "fps_device": str(model.device),
+         "fps_render_cull": model.cull_mode()})
     print(f"[stdr] {rd}: FPS {entry['fps_history'][-1]['fps']} -> {fps:.2f}")
-    return entry
 
 
 @hydra.main(version_base=None, config_path=CONFIG_DIR, config_name="eval")
