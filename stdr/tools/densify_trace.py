@@ -3,8 +3,9 @@
 For each run: the Gaussian count and what densification did (cloned / split / pruned, summed
 over the refinements inside each window of steps), read from the run's TensorBoard scalars;
 then, from its final checkpoint, quantiles of the peak opacity a Gaussian reaches
-(sigmoid(o) x the largest activated STDR mask value, or sigmoid(o) without STDR) and the share
-of Gaussians whose peak opacity stays below 0.02.
+(sigmoid(o) x the largest activated STDR mask value, or sigmoid(o) without STDR), the share
+of Gaussians whose peak opacity stays below 0.02, and how many never reach 1/255 (the
+rasterizer's cut-off: they change no render at any training time).
 
     stdr-tool densify-trace RUN_DIR... --windows 0,500,1000,1500 --out docs/measurements/x
 """
@@ -16,6 +17,7 @@ from pathlib import Path
 import torch
 
 from ..eval.table import write_outputs
+from ..render.reference import ALPHA_MIN
 
 QUANTILES = (0.1, 0.5, 0.9)
 FAINT = 0.02
@@ -53,13 +55,17 @@ def peak_opacity(run: Path) -> dict:
     ck = run / "checkpoints" / "last.pt"
     if not ck.is_file():
         raise SystemExit(f"{ck}: no final checkpoint")
-    p = torch.load(ck, map_location="cpu", weights_only=True)["params"]
+    payload = torch.load(ck, map_location="cpu", weights_only=True)
+    # the model's entry (checkpoint format 2), or the parameters at the top (format 1)
+    p = payload["model"]["params"] if "model" in payload else payload["params"]
     peak = torch.sigmoid(p["opacities"].float())
     if "stdr_mask" in p:
         peak = peak * torch.sigmoid(p["stdr_mask"].float()).amax(1)
     q = torch.quantile(peak, torch.tensor(QUANTILES))
     return {"n": int(peak.numel()), "quantiles": {str(k): float(v) for k, v in zip(QUANTILES, q)},
-            "fraction_below": float((peak < FAINT).float().mean())}
+            "fraction_below": float((peak < FAINT).float().mean()),
+            # under the rasterizer's cut-off at every training time: they change no render at all
+            "invisible": int((peak < ALPHA_MIN).sum())}
 
 
 def main(argv=None) -> None:
@@ -82,11 +88,13 @@ def main(argv=None) -> None:
                  else "–" for w in r["windows"]]
         md.append("| " + " | ".join([label] + cells) + " |")
     md += ["", "Final peak opacity (sigmoid(o) x max_t mask) per Gaussian:", "",
-           "| run | N | p10 | median | p90 | share < " + str(FAINT) + " |", "|---|---|---|---|---|---|"]
+           "| run | N | p10 | median | p90 | share < " + str(FAINT) + " | never ≥ 1/255 |",
+           "|---|---|---|---|---|---|---|"]
     for label, r in res.items():
         po = r["peak_opacity"]
         qs = [f"{po['quantiles'][str(k)]:.4f}" for k in QUANTILES]
-        md.append(f"| {label} | {po['n']:,} | " + " | ".join(qs) + f" | {po['fraction_below']:.2f} |")
+        md.append(f"| {label} | {po['n']:,} | " + " | ".join(qs) + f" | {po['fraction_below']:.2f} "
+                  f"| {po['invisible']:,} |")
     text = "\n".join(md) + "\n"
     print(text, end="")
     write_outputs(a.out, text, {"windows": windows, "runs": res})
