@@ -185,6 +185,21 @@ class Config:
     schedule: Dict[str, Any] = field(default_factory=lambda: "${stdr_schedule:}")
 
 
+def _overrides_of(cls, name: str, doc: str):
+    """A dataclass with the fields of `cls`, each Optional and None by default: the keys a
+    command changes in a saved config, the others keeping the config's own values."""
+    import dataclasses
+    import typing
+    hints = typing.get_type_hints(cls)
+    out = dataclasses.make_dataclass(name, [(f.name, Optional[hints[f.name]], None) for f in dataclasses.fields(cls)])
+    out.__doc__ = doc
+    return out
+
+
+RenderOverrides = _overrides_of(RenderConfig, "RenderOverrides",
+                                "stdr-eval: render keys to change in each run's config (null = the run's own).")
+
+
 @dataclass
 class EvalAppConfig:
     """stdr-eval: (re)evaluate run directories and write the comparison table."""
@@ -194,7 +209,9 @@ class EvalAppConfig:
     out: Optional[str] = None    # table folder (default: outputs/tables/<timestamp>)
     reevaluate: bool = True      # False: only tabulate the metrics.json already in the runs
     eval: EvalConfig = field(default_factory=EvalConfig)
-    render: Optional[RenderConfig] = None  # override the runs' render settings (e.g. backend)
+    # render settings to change in each run's own (e.g. render.backend=reference, render.cull=off);
+    # the keys left null keep the run's value
+    render: RenderOverrides = field(default_factory=lambda: RenderOverrides())
     device: Optional[str] = None  # override the runs' device (auto | cpu | cuda | cuda:<index>)
     # fps: re-time the render FPS alone (e.g. on an idle machine) and update only `fps` in each
     # run's metrics.json, keeping the earlier values under `fps_history`; quality is not touched.

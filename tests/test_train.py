@@ -129,6 +129,13 @@ def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
     assert {k: v for k, v in after["conventions"].items() if not k.startswith("fps_")} == before["conventions"]
     assert json.loads((out / "table.json").read_text())["cells"]["deform"]["embedded"]["fps"] == \
         pytest.approx(after["fps"])
+    # a render key given to stdr-eval changes that key only (here: FPS without temporal culling)
+    proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=fps",
+                           "render.cull=off", "device=cpu"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    after = json.loads((run_dir / "metrics.json").read_text())["test"]
+    assert after["conventions"]["fps_render_cull"] == "off" and len(after["fps_history"]) == 2
+
     # remeasure=size fills model_mb for runs evaluated before it was recorded, nothing else
     m = json.loads((run_dir / "metrics.json").read_text())
     del m["test"]["model_mb"]
@@ -140,3 +147,20 @@ def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=psnr"],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode != 0 and "remeasure='psnr'" in proc.stderr
+
+
+def test_stdr_eval_render_keys_change_only_themselves():
+    """`stdr-eval RUN render.X=...` sets X in the run's own render config; the run's other render
+    keys (here antialiasing) are kept, never reset to the defaults."""
+    from omegaconf import OmegaConf
+
+    from stdr.cli.eval import apply_render_overrides
+    from stdr.config import EvalAppConfig, load_config
+    from stdr.testing import tiny_config as _t
+    cfg = load_config(OmegaConf.to_container(_t("/tmp/unused", ["render.antialiased=true", "render.eps2d=0.1"])))
+    app = OmegaConf.merge(OmegaConf.structured(EvalAppConfig), {"render": {"cull": "off"}})
+    assert app.render.backend is None and app.render.cull == "off"
+    apply_render_overrides(cfg, app.render)
+    assert cfg.render.cull == "off" and cfg.render.antialiased is True and cfg.render.eps2d == 0.1
+    with pytest.raises(Exception, match="tile_sizes"):
+        OmegaConf.merge(OmegaConf.structured(EvalAppConfig), {"render": {"tile_sizes": 8}})

@@ -37,14 +37,12 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
         cfg = load_config(cfg_path)
         sp = split or cfg.data.eval_split
         if reevaluate:
-            if render_cfg is not None:
-                cfg.render = render_cfg
+            apply_render_overrides(cfg, render_cfg)
             if device is not None:  # e.g. a run trained on a GPU, re-evaluated on a CPU machine
                 cfg.device = device
             res = reevaluate_run(rd, cfg, sp, eval_cfg, base)
         elif remeasure:
-            if render_cfg is not None:
-                cfg.render = render_cfg
+            apply_render_overrides(cfg, render_cfg)
             if device is not None:
                 cfg.device = device
             res = remeasure_run(rd, cfg, sp, eval_cfg, base, remeasure.split("+"))
@@ -82,6 +80,17 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     res["curve"] = learning_curve(list(ck.get("history", [])) + [final], split)
     write_metrics(rd, split, res, model, eval_cfg, lp, scene.meta)
     return res
+
+
+def apply_render_overrides(cfg, overrides) -> None:
+    """Set the render keys given on the command line (non-null) in a run's config; the run keeps
+    its own value of every other key (e.g. render.antialiased)."""
+    if overrides is None:
+        return
+    items = overrides.items() if isinstance(overrides, dict) else OmegaConf.to_container(overrides).items()
+    for k, v in items:
+        if v is not None:
+            cfg.render[k] = v
 
 
 def _load_for_eval(rd: Path, cfg, split: str, base: str):
