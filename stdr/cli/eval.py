@@ -119,7 +119,7 @@ def remeasure_run(rd: Path, cfg, split: str, eval_cfg, base: str, what: list[str
     (the tensors a saved model holds), for runs evaluated before it was recorded."""
     import json
 
-    from ..eval.evaluate import measure_fps, model_bytes
+    from ..eval.evaluate import measure_fps, model_bytes, save_metrics
 
     mp = rd / "metrics.json"
     if not mp.is_file():
@@ -133,9 +133,7 @@ def remeasure_run(rd: Path, cfg, split: str, eval_cfg, base: str, what: list[str
         entry["model_mb"] = model_bytes(model) / 2 ** 20
     if "fps" in what:
         _refresh_fps(entry, measure_fps(model, scene.frames(split), fps_warmup=eval_cfg.fps_warmup), model, rd)
-    tmp = mp.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(metrics, indent=1))
-    tmp.replace(mp)
+    save_metrics(mp, metrics)
     return entry
 
 

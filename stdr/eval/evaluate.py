@@ -219,6 +219,11 @@ def write_metrics(run_dir: Path, split: str, res: dict[str, Any], model, eval_cf
     path = run_dir / "metrics.json"
     metrics = json.loads(path.read_text()) if path.is_file() else {}
     metrics[split] = res
+    save_metrics(path, metrics)
+
+
+def save_metrics(path: Path, metrics: dict[str, Any]) -> None:
+    """Write a run's metrics.json atomically (a reader never sees half a file)."""
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(metrics, indent=1))
     tmp.replace(path)
