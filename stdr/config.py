@@ -159,6 +159,9 @@ class EvalConfig:
     lpips_weights: Optional[str] = None  # folder with <net>16_features.pth + lpips_v0.1_<net>_lin.pth
     lpips_input: str = "[-1,1]"  # official convention; "[0,1]" reproduces the peers' usage
     fps_warmup: int = 3
+    # timed passes over the split (the quality pass is the first); fps is the median pass, all
+    # passes are kept in metrics.json -> fps_passes. Single passes on a busy CPU vary by ~35 %
+    fps_repeats: int = 3
     save_images: bool = True
 
 
@@ -201,6 +204,12 @@ RenderOverrides = _overrides_of(RenderConfig, "RenderOverrides",
 
 
 @dataclass
+class StdrEvalOverrides:
+    """stdr-eval: the STDR keys that act only at render time, to change in each run's config."""
+    static_skip: Optional[float] = None  # stdr.static_skip (null = the run's own)
+
+
+@dataclass
 class EvalAppConfig:
     """stdr-eval: (re)evaluate run directories and write the comparison table."""
 
@@ -212,6 +221,8 @@ class EvalAppConfig:
     # render settings to change in each run's own (e.g. render.backend=reference, render.cull=off);
     # the keys left null keep the run's value
     render: RenderOverrides = field(default_factory=lambda: RenderOverrides())
+    # stdr.static_skip=θ: evaluate trained STDR runs with static skipping at θ (a render-time key)
+    stdr: StdrEvalOverrides = field(default_factory=StdrEvalOverrides)
     device: Optional[str] = None  # override the runs' device (auto | cpu | cuda | cuda:<index>)
     # fps: re-time the render FPS alone (e.g. on an idle machine) and update only `fps` in each
     # run's metrics.json, keeping the earlier values under `fps_history`; quality is not touched.

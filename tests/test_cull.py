@@ -159,6 +159,11 @@ def test_evaluation_reports_the_gaussians_rendered_per_frame(tmp_path):
     assert ref["active_gaussians_mean"] == ref["active_gaussians_max"] == n
     assert res["active_gaussians_mean"] <= res["active_gaussians_max"] < n
     assert res["psnr"] == pytest.approx(ref["psnr"], abs=1e-4)
+    assert res["static_skip"] == 0.0 and res["static_skipped_mean"] == 0.0
+    # with static skipping the threshold is recorded, and every rendered row under it is counted
+    tr.model.cfg.stdr.static_skip = 1.01  # above every dynamic probability: all rows static
+    skip = evaluate_model(tr.model, tr.scene.frames("test"))
+    assert skip["static_skip"] == 1.01 and skip["static_skipped_mean"] == skip["active_gaussians_mean"] == n
 
 
 @pytest.mark.slow

@@ -1,3 +1,4 @@
+import pytest
 import torch
 from torch import nn
 
@@ -119,6 +120,39 @@ def test_strategy_refine_grows_prunes_and_caps():
     assert info["cloned"] + info["split"] == 10
     assert p["means"].shape[0] == 60
     assert info["split"] == 10  # the largest gradients are the large Gaussians
+
+
+def test_strategy_target_count_grows_on_its_schedule():
+    # lean densification: no gradient threshold, the count follows n0 + (target - n0) * p exactly
+    torch.manual_seed(0)
+    p = _params(40)
+    opts = _optimizers(p)
+    _step(p, opts)
+    strat = DensifyStrategy(grow_grad2d=1.0, refine_start=0, refine_stop=401, refine_every=100,
+                            reset_every=0, prune_opa=0.0, target_gaussians=100)
+    state = strat.initialize_state(40, scene_extent=1.0)
+    assert [strat.target_at(s, 40) for s in (100, 200, 300, 400)] == [55, 70, 85, 100]
+    counts = []
+    for step in (100, 200, 300, 400, 500):
+        n = p["means"].shape[0]
+        means2d = torch.zeros(n, 2, requires_grad=True)
+        means2d.grad = torch.rand(n, 2) * 1e-6  # far below grow_grad2d: only the schedule grows it
+        radii = torch.full((n,), 3, dtype=torch.int32)
+        radii[:5] = 0  # never seen: never chosen
+        strat.step_post_backward(p, opts, state, step, means2d, radii, width=10, height=10)
+        _check_aligned(p, opts, state)
+        counts.append(p["means"].shape[0])
+    assert counts == [55, 70, 85, 100, 100]  # step 500 is past refine_stop
+    # a model above its schedule does not grow, and pruning is left as it was
+    strat2 = DensifyStrategy(refine_start=0, refine_stop=401, refine_every=100, reset_every=0, prune_opa=0.0,
+                             target_gaussians=30)
+    st2 = strat2.initialize_state(100, scene_extent=1.0)
+    means2d = torch.zeros(100, 2, requires_grad=True)
+    means2d.grad = torch.ones(100, 2)
+    info = strat2.step_post_backward(p, opts, st2, 100, means2d, torch.full((100,), 3, dtype=torch.int32), 10, 10)
+    assert info["cloned"] + info["split"] == 0 and p["means"].shape[0] == 100
+    with pytest.raises(ValueError, match="densify.target_gaussians=50 is above densify.max_gaussians=40"):
+        DensifyStrategy(target_gaussians=50, max_gaussians=40)
 
 
 def test_knn_matches_brute_force():

@@ -112,29 +112,42 @@ def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
     assert "| deform |" in (out / "table.md").read_text()
     assert (out / "table.tex").read_text().startswith("\\begin{tabular}")
 
-    # remeasure=fps re-times the renders only: fps changes, the old value goes to fps_history,
-    # every quality number and the curve stay as they were, and the table shows the new fps
+    # the FPS is the median of eval.fps_repeats (default 3) timed passes, all of them kept
+    assert len(test["fps_passes"]) == 3 and test["fps"] == sorted(test["fps_passes"])[1]
+
+    # remeasure=fps re-times the renders only: fps and its passes change, the old values go to
+    # fps_history, every quality number and the curve stay as they were, the table shows the new fps
     before = json.loads((run_dir / "metrics.json").read_text())["test"]
     proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=fps",
-                           "device=cpu"], capture_output=True, text=True, timeout=600)
+                           "eval.fps_repeats=5", "device=cpu"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     after = json.loads((run_dir / "metrics.json").read_text())["test"]
-    assert after["fps_history"] == [{"fps": before["fps"], "machine": before["conventions"]["machine"],
+    assert after["fps_history"] == [{"fps": before["fps"], "fps_passes": before["fps_passes"],
+                                     "machine": before["conventions"]["machine"],
                                      "torch_threads": before["conventions"]["torch_threads"],
                                      "render_backend": before["conventions"]["render_backend"],
-                                     "device": before["conventions"]["device"]}]
+                                     "device": before["conventions"]["device"], "render_cull": "eval",
+                                     "active_gaussians_mean": before["active_gaussians_mean"]}]
     assert after["fps"] > 0 and after["conventions"]["fps_remeasured"] is True
-    assert {k: v for k, v in after.items() if k not in ("fps", "fps_history", "conventions")} == \
-        {k: v for k, v in before.items() if k not in ("fps", "conventions")}
+    assert len(after["fps_passes"]) == 5 and after["fps"] == sorted(after["fps_passes"])[2]
+    timing = ("fps", "fps_passes", "fps_history", "conventions")
+    assert {k: v for k, v in after.items() if k not in timing} == \
+        {k: v for k, v in before.items() if k not in timing}
     assert {k: v for k, v in after["conventions"].items() if not k.startswith("fps_")} == before["conventions"]
     assert json.loads((out / "table.json").read_text())["cells"]["deform"]["embedded"]["fps"] == \
         pytest.approx(after["fps"])
-    # a render key given to stdr-eval changes that key only (here: FPS without temporal culling)
+    # a render key given to stdr-eval changes that key only (here: FPS without temporal culling),
+    # and the rows counted are those that setting renders: all of them
     proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=fps",
                            "render.cull=off", "device=cpu"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     after = json.loads((run_dir / "metrics.json").read_text())["test"]
     assert after["conventions"]["fps_render_cull"] == "off" and len(after["fps_history"]) == 2
+    assert after["render_cull"] == "off" and after["active_gaussians_mean"] == after["num_gaussians"]
+    assert after["fps_history"][-1]["render_cull"] == "eval"
+    proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=fps",
+                           "eval.fps_repeats=0", "device=cpu"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode != 0 and "eval.fps_repeats=0" in proc.stderr
 
     # remeasure=size fills model_mb for runs evaluated before it was recorded, nothing else
     m = json.loads((run_dir / "metrics.json").read_text())
@@ -154,13 +167,20 @@ def test_stdr_eval_render_keys_change_only_themselves():
     keys (here antialiasing) are kept, never reset to the defaults."""
     from omegaconf import OmegaConf
 
-    from stdr.cli.eval import apply_render_overrides
+    from stdr.cli.eval import apply_overrides
     from stdr.config import EvalAppConfig, load_config
     from stdr.testing import tiny_config as _t
-    cfg = load_config(OmegaConf.to_container(_t("/tmp/unused", ["render.antialiased=true", "render.eps2d=0.1"])))
+    cfg = load_config(OmegaConf.to_container(_t("/tmp/unused", ["render.antialiased=true", "render.eps2d=0.1",
+                                                               "stdr.lambda_temp=0.5"])))
     app = OmegaConf.merge(OmegaConf.structured(EvalAppConfig), {"render": {"cull": "off"}})
     assert app.render.backend is None and app.render.cull == "off"
-    apply_render_overrides(cfg, app.render)
+    apply_overrides(cfg, "render", app.render)
     assert cfg.render.cull == "off" and cfg.render.antialiased is True and cfg.render.eps2d == 0.1
+    # stdr.static_skip (a render-time STDR key) likewise, the run's other STDR keys kept
+    app = OmegaConf.merge(OmegaConf.structured(EvalAppConfig), {"stdr": {"static_skip": 0.1}})
+    apply_overrides(cfg, "stdr", app.stdr)
+    assert cfg.stdr.static_skip == 0.1 and cfg.stdr.lambda_temp == 0.5 and cfg.render.cull == "off"
+    with pytest.raises(Exception, match="lambda_temp"):  # training keys cannot be changed at evaluation
+        OmegaConf.merge(OmegaConf.structured(EvalAppConfig), {"stdr": {"lambda_temp": 0.1}})
     with pytest.raises(Exception, match="tile_sizes"):
         OmegaConf.merge(OmegaConf.structured(EvalAppConfig), {"render": {"tile_sizes": 8}})

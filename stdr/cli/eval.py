@@ -20,7 +20,8 @@ register()
 
 
 def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reevaluate: bool,
-                  out_dir: Path, base: str, device: str | None = None, remeasure: str | None = None) -> dict:
+                  out_dir: Path, base: str, device: str | None = None, remeasure: str | None = None,
+                  stdr_cfg=None) -> dict:
     import json
 
     from ..eval.table import collect, find_run_dirs, markdown, table_row, write_tables
@@ -36,15 +37,14 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
         cfg_path = rd / "config.yaml"
         cfg = load_config(cfg_path)
         sp = split or cfg.data.eval_split
-        if reevaluate:
-            apply_render_overrides(cfg, render_cfg)
+        if reevaluate or remeasure:
+            apply_overrides(cfg, "render", render_cfg)
+            apply_overrides(cfg, "stdr", stdr_cfg)
             if device is not None:  # e.g. a run trained on a GPU, re-evaluated on a CPU machine
                 cfg.device = device
+        if reevaluate:
             res = reevaluate_run(rd, cfg, sp, eval_cfg, base)
         elif remeasure:
-            apply_render_overrides(cfg, render_cfg)
-            if device is not None:
-                cfg.device = device
             res = remeasure_run(rd, cfg, sp, eval_cfg, base, remeasure.split("+"))
         else:
             mp = rd / "metrics.json"
@@ -72,7 +72,8 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     if lp is not None:
         lp = lp.to(dev)
     save_dir = rd / "renders" / split if eval_cfg.save_images else None
-    res = evaluate_model(model, scene.frames(split), lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup)
+    res = evaluate_model(model, scene.frames(split), lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup,
+                         fps_repeats=eval_cfg.fps_repeats)
     res.update({"train_seconds": float(ck["train_seconds"]), "iterations": model.step})
     # the learning curve: the training's own evaluations (kept in the checkpoint), then this one
     final = {"tag": "final", "iteration": model.step, "split": split, "train_seconds": res["train_seconds"],
@@ -82,15 +83,15 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     return res
 
 
-def apply_render_overrides(cfg, overrides) -> None:
-    """Set the render keys given on the command line (non-null) in a run's config; the run keeps
-    its own value of every other key (e.g. render.antialiased)."""
+def apply_overrides(cfg, section: str, overrides) -> None:
+    """Set the keys of `section` (render, stdr) given on the command line (non-null) in a run's
+    config; the run keeps its own value of every other key (e.g. render.antialiased)."""
     if overrides is None:
         return
     items = overrides.items() if isinstance(overrides, dict) else OmegaConf.to_container(overrides).items()
     for k, v in items:
         if v is not None:
-            cfg.render[k] = v
+            cfg[section][k] = v
 
 
 def _load_for_eval(rd: Path, cfg, split: str, base: str):
@@ -132,23 +133,31 @@ def remeasure_run(rd: Path, cfg, split: str, eval_cfg, base: str, what: list[str
     if "size" in what:
         entry["model_mb"] = model_bytes(model) / 2 ** 20
     if "fps" in what:
-        _refresh_fps(entry, measure_fps(model, scene.frames(split), fps_warmup=eval_cfg.fps_warmup), model, rd)
+        timing = measure_fps(model, scene.frames(split), fps_warmup=eval_cfg.fps_warmup,
+                             fps_repeats=eval_cfg.fps_repeats)
+        _refresh_fps(entry, timing, model, rd)
     save_metrics(mp, metrics)
     return entry
 
 
-def _refresh_fps(entry: dict, fps: float, model, rd: Path) -> None:
+def _refresh_fps(entry: dict, timing: dict, model, rd: Path) -> None:
+    """Put a new timing (measure_fps) in `entry`: fps, its passes, and the rows rendered per frame
+    under the render settings it ran with (render.cull may differ from the run's); the replaced
+    values go to fps_history."""
     from ..eval.evaluate import machine_name
 
     conv = entry.get("conventions", {})
     entry.setdefault("fps_history", []).append(
-        {"fps": entry.get("fps"), "machine": conv.get("machine"), "torch_threads": conv.get("torch_threads"),
-         "render_backend": conv.get("render_backend"), "device": conv.get("device")})
-    entry["fps"] = fps
+        {"fps": entry.get("fps"), "fps_passes": entry.get("fps_passes"), "machine": conv.get("machine"),
+         "torch_threads": conv.get("torch_threads"), "render_backend": conv.get("render_backend"),
+         "device": conv.get("device"), "render_cull": conv.get("fps_render_cull", entry.get("render_cull")),
+         "active_gaussians_mean": entry.get("active_gaussians_mean")})
+    entry.update(timing)
+    fps = timing["fps"]
     entry.setdefault("conventions", {}).update(
         {"fps_remeasured": True, "fps_machine": machine_name(), "fps_torch_threads": torch.get_num_threads(),
          "fps_render_backend": model.backend, "fps_device": str(model.device),
-         "fps_render_cull": model.cull_mode()})
+         "fps_render_cull": model.cull_mode(), "fps_static_skip": timing["static_skip"]})
     print(f"[stdr] {rd}: FPS {entry['fps_history'][-1]['fps']} -> {fps:.2f}")
 
 
@@ -158,7 +167,7 @@ def _main(cfg: DictConfig) -> None:
         raise SystemExit("usage: stdr-eval RUN_DIR [RUN_DIR ...] [key=value ...]")
     out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
     evaluate_dirs(list(cfg.runs), cfg.split, cfg.eval, cfg.render, cfg.reevaluate, out,
-                  hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure)
+                  hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure, cfg.stdr)
 
 
 def main() -> None:

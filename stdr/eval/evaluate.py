@@ -5,7 +5,9 @@ Conventions, recorded in the output:
   including the background; SSIM as 3DGS (11x11 Gaussian, sigma 1.5, data range 1).
 - LPIPS-VGG v0.1 with inputs mapped to [-1, 1] (official) unless eval.lpips_input="[0,1]".
 - FPS: deformation + projection + rasterization per frame, after `fps_warmup` untimed frames,
-  excluding image I/O and metrics (time.perf_counter; CUDA synchronized when on a GPU).
+  excluding image I/O and metrics (time.perf_counter; CUDA synchronized when on a GPU). The split
+  is timed `fps_repeats` times (the quality pass is the first); `fps` is the median pass's frames
+  per second and every pass is kept in `fps_passes`, so a reader sees the spread.
 """
 from __future__ import annotations
 
@@ -56,22 +58,61 @@ def warm_up(model, frames, step: int, n: int) -> None:
         model.render(f.camera, f.time, step)
 
 
+def timed_pass(model, frames, step: int) -> dict[str, Any]:
+    """One timed pass over `frames`: frames per second and the rows rendered per frame."""
+    times, active, static = [], [], []
+    for f in frames:
+        times.append(timed_render(model, f, step)[1])
+        active.append(model.last_active)
+        static.append(model.last_static)
+    return {"fps": float(len(times) / sum(times)), "active": active, "static": static}
+
+
+def fps_summary(passes: list[float]) -> dict[str, Any]:
+    """`fps` (the median pass, robust to one disturbed pass) and every pass's value."""
+    return {"fps": float(np.median(passes)), "fps_passes": [float(p) for p in passes]}
+
+
+def size_summary(model, active: list[int], static: list[int]) -> dict[str, Any]:
+    """Gaussians in the model and rendered per frame (after temporal culling; all rows when off)."""
+    return {"num_gaussians": model.num_gaussians,
+            "active_gaussians_mean": float(np.mean(active)), "active_gaussians_max": int(max(active)),
+            "render_cull": model.cull_mode(),
+            # of those, rendered with cached static deltas (stdr.static_skip; 0 when off)
+            "static_skipped_mean": float(np.mean(static)), "static_skip": static_skip_of(model)}
+
+
+def static_skip_of(model) -> float:
+    """The stdr.static_skip threshold the model renders with (0: off, or no STDR)."""
+    return float(model.cfg.get("stdr", {}).get("static_skip", 0.0) or 0.0)
+
+
 @torch.no_grad()
-def measure_fps(model, frames, step: Optional[int] = None, fps_warmup: int = 3) -> float:
-    """Render FPS alone, by the same convention as `evaluate_model` (for re-timing a trained
-    run on an idle machine: `stdr-eval RUN remeasure=fps`)."""
+def measure_fps(model, frames, step: Optional[int] = None, fps_warmup: int = 3,
+                fps_repeats: int = 1) -> dict[str, Any]:
+    """Render FPS alone, by the same convention as `evaluate_model`, with the active-row counts
+    of the render settings it ran under (for re-timing a trained run on an idle machine, or
+    under another `render.cull`: `stdr-eval RUN remeasure=fps`)."""
+    _check_repeats(fps_repeats)
     model.eval()
     step = model.step if step is None else step
     warm_up(model, frames, step, fps_warmup)
-    times = [timed_render(model, f, step)[1] for f in frames]
-    return float(len(times) / sum(times))
+    passes = [timed_pass(model, frames, step) for _ in range(fps_repeats)]
+    return {**fps_summary([p["fps"] for p in passes]), **size_summary(model, passes[0]["active"], passes[0]["static"])}
+
+
+def _check_repeats(fps_repeats: int) -> None:
+    if int(fps_repeats) < 1:
+        raise ValueError(f"eval.fps_repeats={fps_repeats}: the split is timed at least once; use 1 or more")
 
 
 @torch.no_grad()
 def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, save_dir: Optional[Path] = None,
-                   fps_warmup: int = 3) -> dict[str, Any]:
+                   fps_warmup: int = 3, fps_repeats: int = 1) -> dict[str, Any]:
     """Render each frame with `model` (a stdr.model.DynamicGaussians, in eval mode) at the
-    iteration `step` (default: the model's), and measure PSNR/SSIM/LPIPS and the render FPS."""
+    iteration `step` (default: the model's), and measure PSNR/SSIM/LPIPS and the render FPS
+    (the quality pass and `fps_repeats` - 1 timing-only passes; see the module docstring)."""
+    _check_repeats(fps_repeats)
     model.eval()
     step = model.step if step is None else step
     ps, ss, ls, times = [], [], [], []
@@ -93,16 +134,12 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
             import cv2
             both = torch.cat([img, f.image], 1).cpu().numpy()
             cv2.imwrite(str(save_dir / f"{i:03d}.png"), (both[..., ::-1] * 255 + 0.5).astype(np.uint8))
+    passes = [float(len(times) / sum(times))]
+    passes += [timed_pass(model, frames, step)["fps"] for _ in range(int(fps_repeats) - 1)]
     return {
         "psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)),
         "lpips": float(np.mean(ls)) if ls else None,
-        "fps": float(len(times) / sum(times)),
-        "num_gaussians": model.num_gaussians,
-        # Gaussians rendered per frame after temporal culling (render.cull; all rows when off)
-        "active_gaussians_mean": float(np.mean(active)), "active_gaussians_max": int(max(active)),
-        "render_cull": model.cull_mode(),
-        # of those, rendered with cached static deltas (stdr.static_skip; 0 when off)
-        "static_skipped_mean": float(np.mean(static)),
+        **fps_summary(passes), **size_summary(model, active, static),
         "num_frames": len(frames),
         "per_frame_psnr": ps,
         "width": frames[0].camera.width, "height": frames[0].camera.height,
@@ -143,7 +180,8 @@ def metric_conventions(eval_cfg, lpips_fn, backend: str, device: torch.device) -
         "psnr": "float render clamped to [0,1], data range 1, full image",
         "ssim": "3DGS: 11x11 Gaussian window sigma 1.5, zero padding, data range 1",
         "lpips": None if lpips_fn is None else f"LPIPS-{lpips_fn.net} v0.1, inputs {lpips_fn.input_range}",
-        "fps": "deformation + projection + rasterization, perf_counter, after warm-up, no I/O",
+        "fps": "deformation + projection + rasterization, perf_counter, after warm-up, no I/O; "
+               "median of fps_passes (the split timed eval.fps_repeats times)",
         "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "machine": machine_name(),
@@ -158,7 +196,8 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
     if lp is not None:
         lp = lp.to(trainer.device)
     save_dir = trainer.run_dir / "renders" / split if eval_cfg.save_images else None
-    res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup)
+    res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup,
+                           fps_repeats=eval_cfg.fps_repeats)
     res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step,
                 "curve": learning_curve(trainer.history, split)})
     write_metrics(trainer.run_dir, split, res, trainer.model, eval_cfg, lp, trainer.scene.meta)

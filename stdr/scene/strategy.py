@@ -119,6 +119,13 @@ class DensifyStrategy:
     extent in the world or prune_scale2d px on screen. Opacity is reset every `reset_every`.
     With `reset_white_at_start` and a white background it is also reset once at refine_start
     (3DGS and the peers built on it: Deformable 3DGS, SC-GS, SP-GS, 4DGaussians). `max_gaussians` caps growth: when exceeded, the candidates with the largest gradients win.
+
+    `target_gaussians` (lean densification, a budget as in Taming 3DGS) replaces the gradient
+    threshold by a count schedule: at each refinement the model grows to
+    n0 + (target - n0) * p Gaussians, n0 the initial count and p the fraction of the refinement
+    steps done (1 at the last one), by densifying the seen Gaussians with the largest average
+    gradients; pruning is unchanged, so the count ends at or just below the target. A model
+    already above the schedule does not grow (the target is never met by pruning).
     """
 
     grow_grad2d: float = 2e-4
@@ -138,12 +145,27 @@ class DensifyStrategy:
     # gradient average, even when its opacity is below 1/255 and it changes no pixel; false: it
     # does not (what temporal culling in training, render.cull=train, implies for culled rows)
     count_invisible: bool = True
+    target_gaussians: int = 0  # 0 = off; else grow towards this count on the schedule above
+
+    def __post_init__(self) -> None:
+        if self.target_gaussians < 0:
+            raise ValueError(f"densify.target_gaussians={self.target_gaussians}: use 0 (off) or a count")
+        if self.target_gaussians and self.max_gaussians and self.target_gaussians > self.max_gaussians:
+            raise ValueError(f"densify.target_gaussians={self.target_gaussians} is above densify.max_gaussians="
+                             f"{self.max_gaussians}: raise the cap or lower the target")
 
     def initialize_state(self, n: int, scene_extent: float, white_background: bool = False,
                          device: torch.device | str | None = None) -> dict[str, Any]:
         return {"grad2d": torch.zeros(n, device=device), "count": torch.zeros(n, device=device),
                 "max_radii": torch.zeros(n, device=device), "scene_extent": float(scene_extent),
-                "white_background": bool(white_background)}
+                "white_background": bool(white_background), "initial_count": int(n)}
+
+    def target_at(self, step: int, initial_count: int) -> int:
+        """The count the model grows to at refinement step `step` (target_gaussians set)."""
+        last = ((self.refine_stop - 1) // self.refine_every) * self.refine_every  # the last refinement
+        p = 1.0 if last <= self.refine_start else min(max((step - self.refine_start) / (last - self.refine_start),
+                                                          0.0), 1.0)
+        return int(round(initial_count + (self.target_gaussians - initial_count) * p))
 
     def reset_due(self, step: int, state: dict[str, Any]) -> bool:
         """Whether the opacity reset fires after completed step `step` (counted from 1)."""
@@ -202,13 +224,17 @@ class DensifyStrategy:
     def _refine(self, params, optimizers, state, step, generator, opacity_fn=None) -> dict[str, int]:
         extent = state["scene_extent"]
         avg = state["grad2d"] / state["count"].clamp_min(1)
-        cand = avg > self.grow_grad2d
-        if self.max_gaussians > 0:
-            room = max(self.max_gaussians - params["means"].shape[0], 0)
-            if int(cand.sum()) > room:  # keep the `room` largest gradients
-                top = torch.topk(torch.where(cand, avg, torch.full_like(avg, -1.0)), room).indices
-                cand = torch.zeros_like(cand)
-                cand[top] = True
+        n = params["means"].shape[0]
+        if self.target_gaussians > 0:  # the schedule sets how many grow: the seen rows, largest gradients first
+            cand = state["count"] > 0
+            room = max(self.target_at(step, state.get("initial_count", n)) - n, 0)
+        else:
+            cand = avg > self.grow_grad2d
+            room = max(self.max_gaussians - n, 0) if self.max_gaussians > 0 else n
+        if int(cand.sum()) > room:  # keep the `room` largest gradients (each clone or split adds one)
+            top = torch.topk(torch.where(cand, avg, torch.full_like(avg, -1.0)), room).indices
+            cand = torch.zeros_like(cand)
+            cand[top] = True
         is_small = torch.exp(params["scales"]).amax(-1) <= self.grow_scale3d * extent
         dup, spl = cand & is_small, cand & ~is_small
         n_dup, n_split = int(dup.sum()), int(spl.sum())

@@ -374,7 +374,7 @@ class Trainer:
     @torch.no_grad()
     def evaluate(self, split: str, tag: str = "final", step: Optional[int] = None,
                  lpips_fn=None, save_dir: Optional[Path] = None, fps_warmup: int = 3,
-                 frames: Optional[list[int]] = None) -> dict[str, Any]:
+                 frames: Optional[list[int]] = None, fps_repeats: int = 1) -> dict[str, Any]:
         """Render `split` (or the frames at indices `frames` of it) at the model's state and
         compute metrics (see stdr.eval.evaluate). Each evaluation is a point of the run's
         learning curve (`history`), with the training seconds so far (evaluation excluded)."""
@@ -383,7 +383,8 @@ class Trainer:
         if frames is not None:
             fr = [fr[i] for i in frames]
         res = evaluate_model(self.model, fr, step=self.step if step is None else step,
-                             lpips_fn=lpips_fn, save_dir=save_dir, fps_warmup=fps_warmup)
+                             lpips_fn=lpips_fn, save_dir=save_dir, fps_warmup=fps_warmup,
+                             fps_repeats=fps_repeats)
         rec = {"tag": tag, "iteration": self.step, "split": split, "train_seconds": self.train_seconds,
                "frames": len(fr), **{k: res[k] for k in ("psnr", "ssim", "lpips", "num_gaussians")}}
         self.history.append(rec)

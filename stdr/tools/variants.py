@@ -1,0 +1,136 @@
+"""Variants of one method side by side (e.g. plain, +STDR, +culling, +static skipping), from each run's metrics.json.
+
+Each `--table NAME LABEL=FOLDER ...` is one table: its rows are the variants, each a folder laid
+out as <folder>/<scene>/metrics.json. The numbers are means over the scenes that every variant of
+the table has (the others are named, never averaged): PSNR, SSIM, LPIPS, render FPS (with the
+render settings it was timed under), Gaussians in the model, Gaussians rendered per frame after
+temporal culling, the model's megabytes and training seconds, and for FPS, Gaussians and training
+seconds the ratio to the table's first variant (and the PSNR difference to it). A per-scene table follows.
+
+    stdr-tool variants --split test --out docs/measurements/compactness/tables \\
+        --table deform plain=outputs/tab/deform_s0 +STDR=outputs/tab_fps/off/deform_stdr_s0 \\
+                       "+STDR cull=outputs/tab_fps/eval/deform_stdr_s0"
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from statistics import mean
+
+from ..eval.table import fmt_value as fmt
+from ..eval.table import markdown_table, read_metrics, write_outputs
+
+KEYS = ("psnr", "ssim", "lpips", "fps", "num_gaussians", "active_gaussians_mean", "model_mb", "train_seconds")
+RATIOS = ("fps", "num_gaussians", "train_seconds")
+
+
+def read(run: Path, split: str) -> dict:
+    try:
+        m = read_metrics(run, split)
+    except (FileNotFoundError, KeyError) as e:
+        raise SystemExit(f"{e} (pick the split with --split)")
+    conv = m.get("conventions", {})
+    out = {k: m.get(k) for k in KEYS}
+    out.update({"run": str(run), "iterations": m.get("iterations"),
+                "render_cull": conv.get("fps_render_cull", m.get("render_cull")),
+                "static_skip": conv.get("fps_static_skip", m.get("static_skip", 0.0)),
+                "fps_passes": len(m.get("fps_passes") or [1]), "fps_remeasured": bool(conv.get("fps_remeasured"))})
+    return out
+
+
+def parse_variant(spec: str) -> tuple[str, Path]:
+    if "=" not in spec:
+        raise SystemExit(f"variant {spec!r}: write it as LABEL=FOLDER (a folder of <scene>/metrics.json)")
+    label, folder = spec.split("=", 1)
+    if not Path(folder).is_dir():
+        raise SystemExit(f"variant {label!r}: {folder} is not a folder")
+    return label, Path(folder)
+
+
+def build_table(name: str, variants: list[tuple[str, Path]], split: str) -> dict:
+    if len({lb for lb, _ in variants}) != len(variants):
+        raise SystemExit(f"table {name!r}: two variants share a label")
+    found = {lb: {p.parent.name for p in f.glob("*/metrics.json")} for lb, f in variants}
+    common = set.intersection(*found.values())
+    if not common:
+        raise SystemExit(f"table {name!r}: no scene has a metrics.json in every variant "
+                         f"({', '.join(f'{lb}: {sorted(s)}' for lb, s in found.items())})")
+    scenes = sorted(common)
+    per_scene = {lb: {sc: read(f / sc, split) for sc in scenes} for lb, f in variants}
+    rows = []
+    for lb, _ in variants:
+        runs = list(per_scene[lb].values())
+        row = {"variant": lb, **{k: _mean([r[k] for r in runs]) for k in KEYS}}
+        row["active_share"] = None if row["active_gaussians_mean"] is None or not row["num_gaussians"] \
+            else row["active_gaussians_mean"] / row["num_gaussians"]
+        for k in ("render_cull", "static_skip", "fps_passes", "iterations"):
+            vals = sorted({str(r[k]) for r in runs})
+            row[k] = vals[0] if len(vals) == 1 else "/".join(vals)
+        rows.append(row)
+    first = rows[0]
+    for r in rows:
+        r["d_psnr"] = None if r["psnr"] is None or first["psnr"] is None else r["psnr"] - first["psnr"]
+        for k in RATIOS:
+            r[f"{k}_ratio"] = None if r[k] is None or not first[k] else r[k] / first[k]
+    missing = {lb: sorted(s - common) for lb, s in found.items() if s - common}
+    return {"name": name, "split": split, "scenes": scenes, "rows": rows, "per_scene": per_scene,
+            "missing": missing}
+
+
+def _mean(v):
+    return None if any(x is None for x in v) else mean(v)
+
+
+HEAD = ["variant", "PSNR↑", "Δ PSNR", "SSIM↑", "LPIPS↓", "FPS↑", "FPS ×", "Gaussians", "G ×", "active/frame", "active share",
+        "model MB", "train s", "train ×", "cull", "static θ"]
+
+
+def row_cells(r: dict) -> list[str]:
+    return [r["variant"], fmt(r["psnr"], "{:.2f}"), fmt(r["d_psnr"], "{:+.2f}"), fmt(r["ssim"], "{:.4f}"), fmt(r["lpips"], "{:.4f}"),
+            fmt(r["fps"], "{:.1f}"), fmt(r["fps_ratio"], "{:.2f}"), fmt(r["num_gaussians"], "{:,.0f}"),
+            fmt(r["num_gaussians_ratio"], "{:.2f}"), fmt(r["active_gaussians_mean"], "{:,.0f}"),
+            fmt(r["active_share"], "{:.0%}"), fmt(r["model_mb"], "{:.2f}"), fmt(r["train_seconds"], "{:.0f}"),
+            fmt(r["train_seconds_ratio"], "{:.2f}"), str(r["render_cull"]), str(r["static_skip"])]
+
+
+def markdown(tables: list[dict]) -> str:
+    out = []
+    for t in tables:
+        out += [f"## {t['name']}", "",
+                f"Split: {t['split']}; mean over {len(t['scenes'])} scenes ({', '.join(t['scenes'])}). "
+                "Δ and × are against the first row. cull: the render.cull the FPS was timed under. "
+                "Generated by stdr-tool variants.", "",
+                markdown_table(HEAD, [row_cells(r) for r in t["rows"]]), ""]
+        body = []
+        for sc in t["scenes"]:
+            for lb, runs in t["per_scene"].items():
+                r = runs[sc]
+                body.append([sc, lb, fmt(r["psnr"], "{:.2f}"), fmt(r["lpips"], "{:.4f}"), fmt(r["fps"], "{:.1f}"),
+                             fmt(r["num_gaussians"], "{:,}"), fmt(r["active_gaussians_mean"], "{:,.0f}"),
+                             fmt(r["train_seconds"], "{:.0f}")])
+        out += ["Per scene:", "", markdown_table(["scene", "variant", "PSNR", "LPIPS", "FPS", "Gaussians",
+                                                  "active/frame", "train s"], body), ""]
+        for lb, sc in t["missing"].items():
+            out.append(f"Not in the means: {lb} also has {', '.join(sc)} (not every variant has it).\n")
+    return "\n".join(out)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(prog="stdr-tool variants", description=__doc__.split("\n")[0])
+    ap.add_argument("--table", nargs="+", action="append", required=True, metavar="NAME LABEL=FOLDER",
+                    help="a table's name, then its variants as LABEL=FOLDER (the first is the reference)")
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--out", type=Path, default=None, help="write OUT.md and OUT.json")
+    a = ap.parse_args(argv)
+    tables = []
+    for spec in a.table:
+        if len(spec) < 2:
+            raise SystemExit(f"--table {' '.join(spec)}: give a name and at least one LABEL=FOLDER")
+        tables.append(build_table(spec[0], [parse_variant(v) for v in spec[1:]], a.split))
+    md = markdown(tables)
+    print(md, end="")
+    write_outputs(a.out, md, {"split": a.split, "tables": tables})
+
+
+if __name__ == "__main__":
+    main()
