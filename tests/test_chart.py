@@ -104,3 +104,20 @@ def test_bad_input_gets_an_error_naming_the_run(tmp_path):
     _run(tmp_path / "nocurve", "deform", "a", 30.0, 40.0, 1000, curve=False)
     with pytest.raises(SystemExit, match="train.eval_every"):
         stdr_chart([str(tmp_path / "nocurve"), "--out", str(tmp_path / "o"), "--charts", "learning_curves"])
+
+
+def test_labelled_folders_chart_differing_configs_as_separate_methods(tmp_path):
+    # two lengths of one baseline differ in config: unlabelled they are refused, labelled they
+    # become two methods (e.g. a budget ladder's learning curves)
+    _run(tmp_path / "short", "deform", "a", 30.0, 40.0, 1000)
+    _run(tmp_path / "long", "deform", "a", 33.0, 40.0, 1000, width=64)
+    with pytest.raises(SystemExit, match="differ in"):
+        stdr_chart([str(tmp_path / "short"), str(tmp_path / "long"), "--out", str(tmp_path / "o")])
+    out = tmp_path / "o"
+    stdr_chart([f"2k={tmp_path / 'short'}", f"10k={tmp_path / 'long'}", "--out", str(out),
+                "--charts", "learning_curves"])
+    curves = _csv(out / "learning_curves_psnr.csv")
+    assert {r["method"] for r in curves} == {"2k", "10k"}
+    assert [float(r["psnr"]) for r in curves if r["method"] == "10k"] == [28.0, 33.0]
+    with pytest.raises(SystemExit, match="LABEL=PATH"):
+        stdr_chart([f"x={tmp_path / 'missing'}", "--out", str(out)])

@@ -27,10 +27,30 @@ CHARTS = ("speed_accuracy", "learning_curves", "size_accuracy")
 
 
 # ------------------------------------------------------------------ reading runs
-def read_runs(runs: list[Path], split: str, metric: str) -> list[dict[str, Any]]:
-    """One row per run (stdr.eval.table.load_run), checked for what the charts need."""
+def labelled(paths: list[str | Path]) -> list[tuple[str | None, Path]]:
+    """(label, run) for every run under `paths`. An argument LABEL=PATH (PATH existing, the whole
+    string not) names the method of every run under PATH (e.g. 2k=outputs/budget/deform_2k), so
+    runs that differ in config, such as lengths, are charted as separate methods."""
+    out = []
+    for p in paths:
+        label, path = None, Path(p)
+        if not path.exists() and "=" in str(p):
+            lb, rest = str(p).split("=", 1)
+            if not Path(rest).exists():
+                raise FileNotFoundError(f"{p}: neither a path nor LABEL=PATH with an existing PATH ({rest})")
+            if not lb:
+                raise ValueError(f"{p}: empty label before '='")
+            label, path = lb, Path(rest)
+        out += [(label, r) for r in find_runs([path])]
+    return out
+
+
+def read_runs(runs: list, split: str, metric: str) -> list[dict[str, Any]]:
+    """One row per run (stdr.eval.table.load_run), checked for what the charts need. `runs`:
+    run folders, or (label, folder) pairs whose label replaces the method name."""
     rows = []
-    for r in runs:
+    for item in runs:
+        label, r = item if isinstance(item, tuple) else (None, item)
         x = load_run(r, split)
         m = x["metrics"]
         for k in (metric, "fps", "num_gaussians"):
@@ -38,8 +58,11 @@ def read_runs(runs: list[Path], split: str, metric: str) -> list[dict[str, Any]]
                 raise ValueError(f"{r}/metrics.json [{split}] has no {k!r}"
                                  + (" (LPIPS weights were not found when it was evaluated)" if k == "lpips" else ""))
         cfg = x["config"]
-        rows.append({**table_row(cfg, split, m, str(r)), "baseline": cfg["baseline"]["name"],
-                     "stdr": bool((cfg.get("stdr") or {}).get("enabled"))})
+        row = {**table_row(cfg, split, m, str(r)), "baseline": cfg["baseline"]["name"],
+               "stdr": bool((cfg.get("stdr") or {}).get("enabled"))}
+        if label is not None:
+            row["method"] = label
+        rows.append(row)
     return rows
 
 
@@ -236,13 +259,19 @@ def _neg_formatter():
 
 
 def draw_learning_curves(pts, metric, cap, out: Path) -> dict[str, Path]:
+    import matplotlib
     import matplotlib.pyplot as plt
     colors = _style([p["baseline"] for p in pts])
+    methods = list(dict.fromkeys(p["method"] for p in pts))
+    kinds = {(p["baseline"], p["stdr"]) for p in pts}
+    # labelled runs of one baseline (e.g. training lengths) get a colour each, not the baseline's
+    own = len(methods) > len(kinds)
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    for m in dict.fromkeys(p["method"] for p in pts):
+    for i, m in enumerate(methods):
         ps = [p for p in pts if p["method"] == m]
+        col = matplotlib.colormaps["tab10"](i % 10) if own else colors[ps[0]["baseline"]]
         ax.plot([p["train_seconds"] for p in ps], [p[metric] for p in ps], marker="o", ms=3,
-                color=colors[ps[0]["baseline"]], ls="-" if ps[0]["stdr"] else "--", label=m)
+                color=col, ls="-" if ps[0]["stdr"] else "--", label=m)
     ax.set_xlabel("training time (s, evaluation excluded)")
     ax.set_ylabel(METRIC_LABELS[metric])
     ax.grid(True, alpha=0.3)
@@ -266,7 +295,7 @@ def chart(paths: list[str | Path], out: str | Path, metric: str = "psnr", split:
     unknown = set(charts) - set(CHARTS)
     if unknown:
         raise ValueError(f"unknown charts {sorted(unknown)}: choose from {list(CHARTS)}")
-    rows = read_runs(find_runs(paths), split, metric)
+    rows = read_runs(labelled(paths), split, metric)
     cap = caption(rows)
     out = Path(out)
     files = {}
