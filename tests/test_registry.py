@@ -151,3 +151,19 @@ def test_saved_configs_load_onto_their_baselines_typed_defaults(tmp_path):
     p.write_text(OmegaConf.to_yaml(old))
     with pytest.raises(ValueError, match=f"{p}.*'nope'"):
         load_config(p)
+
+
+@pytest.mark.parametrize("name", sorted(BASELINES))
+@pytest.mark.parametrize("stdr", ["", "_stdr"])
+def test_longer_cpu_preset_is_the_cpu_preset_run_longer(name, stdr):
+    """budget=cpu_long keeps every budget=cpu value (networks, warm-ups, densification, cap) and
+    only lengthens the run and its lr decays by the same number of iterations (docs/budgets.md)."""
+    from stdr.eval.table import flatten
+    exp = [f"experiment=dnerf_{name}{stdr}", "data.path=/x"]
+    short = flatten(OmegaConf.to_container(make_cfg(exp + ["budget=cpu"]), resolve=True))
+    long = flatten(OmegaConf.to_container(make_cfg(exp + ["budget=cpu_long"]), resolve=True))
+    changed = {k for k in short.keys() | long.keys() if short.get(k) != long.get(k) and not k.startswith("schedule.")}
+    assert changed == {"budget", "optim.iterations", "optim.means_lr_max_steps", "baseline.lr_max_steps"}
+    extra = long["optim.iterations"] - short["optim.iterations"]
+    assert extra > 0 and long["optim.means_lr_max_steps"] - short["optim.means_lr_max_steps"] == extra
+    assert long["baseline.lr_max_steps"] - short["baseline.lr_max_steps"] == extra
