@@ -230,8 +230,8 @@ class DensifyStrategy:
             room = max(self.target_at(step, state.get("initial_count", n)) - n, 0)
         else:
             cand = avg > self.grow_grad2d
-            room = max(self.max_gaussians - n, 0) if self.max_gaussians > 0 else n
-        if int(cand.sum()) > room:  # keep the `room` largest gradients (each clone or split adds one)
+            room = max(self.max_gaussians - n, 0) if self.max_gaussians > 0 else None  # None: no cap
+        if room is not None and int(cand.sum()) > room:  # keep the `room` largest gradients (each adds one)
             top = torch.topk(torch.where(cand, avg, torch.full_like(avg, -1.0)), room).indices
             cand = torch.zeros_like(cand)
             cand[top] = True
