@@ -13,10 +13,12 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
 from .data.procedural import SceneOptions
+from .data.stress import StressConfig
 # every baseline's config dataclass lives beside its module (stdr.deform.registry)
 from .deform import BASELINES, BaselineConfig, DeformConfig, HexPlaneConfig, ScgsConfig, SpgsConfig  # noqa: F401
 from .deform.registry import BaselineSpec, add_listener, get_baseline
 from .scene.strategy import DensifyStrategy
+from .train.guard import GuardConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 
@@ -43,6 +45,9 @@ class DataConfig:
     points_source: str = "auto"  # auto (points.npy, else COLMAP) | points_npy | colmap | none
     undistort_cache: Optional[str] = "data/cache/undistorted"  # repo-relative; null: no cache
     scenes: List[str] = field(default_factory=list)  # the benchmark's scene folders (scripts iterate them)
+    # a stressed training set (dropped or sparse times, fewer frames, pose and time noise), seeded;
+    # the evaluation splits are untouched (stdr.data.stress, docs/stability.md)
+    stress: StressConfig = field(default_factory=StressConfig)
 
 
 @dataclass
@@ -150,6 +155,9 @@ class TrainConfig:
     skip_finished: bool = True  # in a sweep (-m): a run whose metrics.json exists is skipped, not retrained
     threads: int = 0            # torch threads (0 = torch default)
     progress: bool = True
+    # non-finite loss / gradients / parameters and divergence: restore, lower the lrs, go on
+    # (docs/stability.md)
+    guard: GuardConfig = field(default_factory=GuardConfig)
 
 
 @dataclass

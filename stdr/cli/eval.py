@@ -64,7 +64,8 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
 def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     """Rebuild the run's model from its checkpoint (public API: stdr.model), render `split` and
     merge the numbers into its metrics.json."""
-    from ..eval.evaluate import evaluate_model, learning_curve, make_lpips, write_metrics
+    from ..eval.evaluate import best_and_last, evaluate_model, learning_curve, make_lpips, write_metrics
+    from ..train.guard import GuardState
 
     ck, model, scene = _load_for_eval(rd, cfg, split, base)
     dev = model.device
@@ -79,6 +80,11 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     final = {"tag": "final", "iteration": model.step, "split": split, "train_seconds": res["train_seconds"],
              "frames": res["num_frames"], **{k: res[k] for k in ("psnr", "ssim", "lpips", "num_gaussians")}}
     res["curve"] = learning_curve(list(ck.get("history", [])) + [final], split)
+    res.update(best_and_last(res["curve"]))
+    if "guard" in ck:  # the training's recoveries (checkpoints from before the guard have none)
+        g = GuardState()
+        g.load_state_dict(ck["guard"])
+        res["guard"] = g.summary(int(cfg.densify.max_gaussians) or None)
     write_metrics(rd, split, res, model, eval_cfg, lp, scene.meta)
     return res
 
@@ -106,7 +112,7 @@ def _load_for_eval(rd: Path, cfg, split: str, base: str):
     dev = resolve_device(cfg.device)
     # a checkpoint from before format 2 does not hold the training times: read them from the data
     splits = (split,) if has_model_entry(ck) else tuple(dict.fromkeys(("train", split)))
-    scene = load_scene(cfg.data, splits, base=base).to(dev)
+    scene = load_scene(cfg.data, splits, base=base, seed=cfg.seed).to(dev)
     model = model_from_checkpoint(ck, dev, cfg, None if has_model_entry(ck) else scene.train_times(), str(rd / CKPT))
     return ck, model, scene
 

@@ -7,6 +7,7 @@ from typing import Iterable
 from .dnerf import load_dnerf, parse_background
 from .nerfies import load_nerfies
 from .procedural import SceneOptions, embedded_scene
+from .stress import apply_stress, check_stress
 from .types import SceneData
 
 FORMATS = ("procedural", "dnerf", "nerfies")
@@ -43,7 +44,10 @@ def scene_folder(cfg, base: str | Path | None = None) -> Path:
     raise ValueError(f"data.format={cfg.format!r} is not one of {FORMATS}")
 
 
-def load_scene(cfg, splits: Iterable[str], base: str | Path | None = None) -> SceneData:
+def load_scene(cfg, splits: Iterable[str], base: str | Path | None = None, seed: int = 0) -> SceneData:
+    """The scene `cfg` (the data config) points at, with `splits` loaded; data.stress (seeded
+    with `seed` unless it names its own) then transforms the training split."""
+    check_stress(cfg.stress)  # before any image is read
     folder = scene_folder(cfg, base)
     if cfg.format == "nerfies":
         scene = load_nerfies(folder, splits, split_mode=cfg.split_mode, image_scale=cfg.image_scale,
@@ -56,4 +60,5 @@ def load_scene(cfg, splits: Iterable[str], base: str | Path | None = None) -> Sc
         scene = load_dnerf(folder, splits, background=cfg.background,
                            resolution_scale=cfg.resolution_scale, max_width=cfg.max_width)
     scene.meta["name"] = cfg.name
+    apply_stress(scene, cfg.stress, seed)
     return scene

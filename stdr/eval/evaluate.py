@@ -198,8 +198,10 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
     save_dir = trainer.run_dir / "renders" / split if eval_cfg.save_images else None
     res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup,
                            fps_repeats=eval_cfg.fps_repeats)
-    res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step,
-                "curve": learning_curve(trainer.history, split)})
+    curve = learning_curve(trainer.history, split)
+    res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step, "curve": curve,
+                **best_and_last(curve),
+                "guard": trainer.guard.summary(int(trainer.strategy.max_gaussians) or None)})
     write_metrics(trainer.run_dir, split, res, trainer.model, eval_cfg, lp, trainer.scene.meta)
     (trainer.run_dir / "history.json").write_text(json.dumps(trainer.history, indent=1))
     return res
@@ -222,6 +224,17 @@ def learning_curve(history: list[dict[str, Any]], split: str) -> list[dict[str, 
     pts.sort(key=lambda h: h["iteration"])
     out = [{"step": h["iteration"], **{k: h.get(k) for k in CURVE_KEYS if k != "step"}} for h in pts + final[-1:]]
     return out
+
+
+def best_and_last(curve: list[dict[str, Any]]) -> dict[str, Any]:
+    """metrics.json -> best (the curve's point of highest PSNR) and last (its final point), each
+    {step, psnr, ssim, lpips, tag}: a run that collapsed and recovered, or ended below its best,
+    shows both. Non-finite PSNRs are never the best."""
+    keys = ("step", "psnr", "ssim", "lpips", "tag")
+    pts = [p for p in curve if p.get("psnr") is not None and np.isfinite(p["psnr"])]
+    best = max(pts, key=lambda p: p["psnr"]) if pts else None
+    return {"best": None if best is None else {k: best.get(k) for k in keys},
+            "last": {k: curve[-1].get(k) for k in keys} if curve else None}
 
 
 def code_version() -> dict[str, Any]:

@@ -18,6 +18,7 @@ import torch
 
 from ..eval.table import write_outputs
 from ..render.reference import ALPHA_MIN
+from ..train.checkpoint import load_checkpoint
 
 QUANTILES = (0.1, 0.5, 0.9)
 FAINT = 0.02
@@ -55,7 +56,7 @@ def peak_opacity(run: Path) -> dict:
     ck = run / "checkpoints" / "last.pt"
     if not ck.is_file():
         raise SystemExit(f"{ck}: no final checkpoint")
-    payload = torch.load(ck, map_location="cpu", weights_only=True)
+    payload = load_checkpoint(ck)  # verifies the checksum of current checkpoints
     # the model's entry (checkpoint format 2), or the parameters at the top (format 1)
     p = payload["model"]["params"] if "model" in payload else payload["params"]
     peak = torch.sigmoid(p["opacities"].float())

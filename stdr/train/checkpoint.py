@@ -1,6 +1,8 @@
 """Atomic checkpoints that resume exactly."""
 from __future__ import annotations
 
+import hashlib
+import io
 import os
 import random
 import warnings
@@ -39,20 +41,78 @@ def set_rng_state(s: dict[str, Any]) -> None:
     random.setstate((version, tuple(internal), gauss_next))
 
 
-def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
-    """Write to a temporary file in the same folder, fsync, then rename over `path`."""
+ENVELOPE = "stdr-checkpoint-v2"  # {"envelope", "sha256", "data": uint8 bytes of the torch.save'd payload}
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint that cannot be used: unreadable, truncated, corrupted or missing entries."""
+
+
+def previous_path(path: str | Path) -> Path:
+    """Where save_checkpoint(..., keep_previous=True) keeps the checkpoint it replaces."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.previous{path.suffix}")
+
+
+def save_checkpoint(path: str | Path, payload: dict[str, Any], keep_previous: bool = False) -> None:
+    """Write `payload` with a SHA-256 of its bytes (torch's own format does not notice a flipped
+    byte: it loads wrong values) to a temporary file in the same folder, fsync, then rename over
+    `path`. keep_previous: the file being replaced is kept as `previous_path(path)` first, so at
+    every moment one complete checkpoint exists and a damaged last one leaves the one before."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    raw = buf.getbuffer()
+    envelope = {"envelope": ENVELOPE, "sha256": hashlib.sha256(raw).hexdigest(),
+                "data": torch.frombuffer(bytearray(raw), dtype=torch.uint8)}
     tmp = path.with_name(f".{path.name}.tmp")
     with open(tmp, "wb") as f:
-        torch.save(payload, f)
+        torch.save(envelope, f)
         f.flush()
         os.fsync(f.fileno())
+    if keep_previous and path.is_file():
+        os.replace(path, previous_path(path))
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: str | Path) -> dict[str, Any]:
+def _damaged(path: Path, why: str) -> CheckpointError:
+    prev = previous_path(path)
+    hint = ""
+    if prev.is_file() and prev != path:
+        try:
+            step = load_checkpoint(prev).get("model", {}).get("step")
+            hint = (f" The previous checkpoint {prev} is intact (iteration {step}): move it to {path} to resume "
+                    "from it, or set train.resume=false to start over.")
+        except CheckpointError:
+            hint = f" The previous checkpoint {prev} is damaged too: set train.resume=false to start over."
+    return CheckpointError(f"checkpoint {path} is damaged: {why} (a write cut short, a full disk or a bad copy)."
+                           + hint)
+
+
+def load_checkpoint(path: str | Path, require: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The payload saved by save_checkpoint (also files written before the checksum: plain
+    payloads, not verified). `require`: top-level entries that must be present. Never runs code
+    from the file (weights_only). Errors name the file and, when damaged, the previous one."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
-    return torch.load(path, map_location="cpu", weights_only=True)  # no code from a file
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)  # no code from a file
+    except Exception as e:  # noqa: BLE001 - truncated zip, bad pickle, ...: all mean a damaged file
+        raise _damaged(path, f"it cannot be read ({type(e).__name__}: {str(e).splitlines()[0][:200]})") from None
+    if isinstance(ck, dict) and ck.get("envelope") == ENVELOPE:
+        data = ck.get("data")
+        if not torch.is_tensor(data) or data.dtype != torch.uint8:
+            raise _damaged(path, "its envelope has no payload")
+        raw = data.numpy().tobytes()
+        if hashlib.sha256(raw).hexdigest() != ck.get("sha256"):
+            raise _damaged(path, "its SHA-256 does not match the one written with it")
+        ck = torch.load(io.BytesIO(raw), map_location="cpu", weights_only=True)
+    if not isinstance(ck, dict):
+        raise CheckpointError(f"checkpoint {path} holds a {type(ck).__name__}, not a stdr checkpoint")
+    missing = [k for k in require if k not in ck]
+    if missing:
+        raise CheckpointError(f"checkpoint {path} has no {', '.join(missing)}: it is not a training checkpoint "
+                              "of stdr-train (a model-only file from DynamicGaussians.save cannot resume training)")
+    return ck

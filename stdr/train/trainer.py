@@ -24,9 +24,11 @@ from ..scene.gaussians import scene_extent
 from ..scene.ply import save_ply
 from ..scene.strategy import DensifyStrategy
 from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from .guard import GuardState, TrainingDiverged, all_finite, check_guard_config, clone_tree, first_nonfinite
 from .schedule import exp_lr
 
 CKPT = "checkpoints/last.pt"
+PAYLOAD_KEYS = ("model", "optimizers", "net_opt", "strategy_state", "sampler", "rng", "train_seconds")
 
 
 class Profiler:
@@ -79,7 +81,7 @@ class Trainer:
         np.random.seed(cfg.seed)
         if cfg.train.eval_every > 0 or cfg.train.eval_at_warmup_end:  # evaluations during training need it
             splits = tuple(dict.fromkeys((*splits, cfg.data.eval_split)))
-        self.scene = load_scene(cfg.data, splits, base=data_base).to(self.device)  # images moved once
+        self.scene = load_scene(cfg.data, splits, base=data_base, seed=cfg.seed).to(self.device)  # images moved once
         has_train = "train" in self.scene.splits
         train_times = self.scene.train_times() if has_train else None
         pts, colors = initial_points(cfg.model, self.scene.init_points, self.scene.init_colors, cfg.seed,
@@ -105,6 +107,8 @@ class Trainer:
         self.profile = Profiler()
         self.history: list[dict[str, Any]] = []
         self.writer = None
+        check_guard_config(cfg.train.guard)
+        self.guard = GuardState(peak_gaussians=len(pts))
 
     @property
     def step(self) -> int:
@@ -176,11 +180,12 @@ class Trainer:
         return exp_lr(s, b.lr_init, b.lr_final, b.lr_max_steps) * g.get("lr_mult", 1.0)
 
     def _update_lrs(self, step: int) -> None:
+        scale = self.guard.lr_scale  # 1 until a recovery lowers it (train.guard.lr_factor)
         for k, opt in self.optimizers.items():
             for g in opt.param_groups:
-                g["lr"] = self._lr(k, step)
+                g["lr"] = self._lr(k, step) * scale
         for spec, g in zip(self.net_groups, self.net_opt.param_groups):
-            g["lr"] = self._net_lr(spec, step)
+            g["lr"] = self._net_lr(spec, step) * scale
 
     # ----------------------------------------------------------------- checkpoints
     def checkpoint_payload(self) -> dict[str, Any]:
@@ -195,15 +200,22 @@ class Trainer:
             "rng": rng_state(),
             "train_seconds": self.train_seconds,
             "history": self.history,
+            "guard": self.guard.state_dict(),
         }
 
     def save(self) -> None:
-        save_checkpoint(self.run_dir / CKPT, self.checkpoint_payload())
+        """checkpoints/last.pt (atomic, checksummed; the one it replaces is kept as last.previous.pt)."""
+        save_checkpoint(self.run_dir / CKPT, self.checkpoint_payload(), keep_previous=True)
 
     def load(self, path: str | Path) -> None:
-        """Resume: the model, the optimizers, the strategy, the sampler and every RNG."""
-        ck = load_checkpoint(path)
-        self.model.load_state_dict(model_entry(ck, str(path)), str(path))
+        """Resume: the model, the optimizers, the strategy, the sampler, every RNG and the guard."""
+        ck = load_checkpoint(path, require=PAYLOAD_KEYS)
+        self.load_payload(ck, str(path))
+        self.guard.load_state_dict(ck.get("guard", {}))
+
+    def load_payload(self, ck: dict[str, Any], where: str) -> None:
+        """The optimization state of a checkpoint payload (a file's, or a guard snapshot's)."""
+        self.model.load_state_dict(model_entry(ck, where), where)
         self.train_seconds = float(ck["train_seconds"])
         self.history = list(ck.get("history", []))
         self.optimizers = self._make_optimizers()
@@ -259,6 +271,13 @@ class Trainer:
                     loss = loss + v
         with prof("backward"):
             loss.backward()
+        if cfg.train.guard.enabled:
+            with prof("guard"):
+                bad = self._nonfinite_step(loss, it + 1)
+            if bad is not None:  # nothing is applied: the caller restores the last good state
+                self._zero_grads()
+                self.step = it + 1
+                return {"rejected": bad, "loss": float(loss.detach())}
         with prof("optimizer"):
             for o in self.optimizers.values():
                 o.step()
@@ -276,12 +295,97 @@ class Trainer:
                 "psnr": float(psnr(out.image.detach(), frame.image)), "densify": info,
                 "losses": {k: v.item() for k, v in terms.items()}, "out": out, "frame": frame}
 
+    # ----------------------------------------------------------------- the guard (stdr.train.guard)
+    def _net_params(self) -> list[tuple[str, Tensor]]:
+        return [(g.get("name", "network"), p) for g in self.net_opt.param_groups for p in g["params"]]
+
+    def _nonfinite_step(self, loss: Tensor, step: int) -> Optional[str]:
+        """After the backward of step `step`: what is non-finite (the loss, or the gradient of a
+        named parameter), or None. train.guard.inject_nan_grad_at puts a NaN there first."""
+        params = self.model.params
+        if step in self.cfg.train.guard.inject_nan_grad_at and ("nan", step) not in self.guard.fired:
+            self.guard.fired.add(("nan", step))
+            if params["means"].grad is not None:
+                params["means"].grad[0, 0] = float("nan")
+        grads = [("loss", loss)] + [(f"grad of {k}", p.grad) for k, p in params.items()] + \
+            [(f"grad of {k}", p.grad) for k, p in self._net_params()]
+        if all_finite(t for _, t in grads):
+            return None
+        return f"non-finite {first_nonfinite(grads)}"
+
+    def _zero_grads(self) -> None:
+        for o in self.optimizers.values():
+            o.zero_grad(set_to_none=True)
+        self.net_opt.zero_grad(set_to_none=True)
+
+    def _nonfinite_params(self) -> Optional[str]:
+        named = [(f"parameter {k}", p) for k, p in self.model.params.items()] + \
+            [(f"parameter of {k}", p) for k, p in self._net_params()]
+        return None if all_finite(t for _, t in named) else f"non-finite {first_nonfinite(named)}"
+
+    def _snapshot(self) -> None:
+        """Keep the current state as the last good one (after checking the parameters)."""
+        bad = self._nonfinite_params()
+        if bad is not None:
+            self._recover(bad)
+        else:
+            self.guard.snapshot = clone_tree(self.checkpoint_payload())
+
+    def _after_evaluation(self, psnr: float) -> None:
+        """The divergence detector: a new best is kept (with its state); a drop of more than
+        train.guard.divergence_db below the best restores the best one's state."""
+        g, gc = self.guard, self.cfg.train.guard
+        if not np.isfinite(psnr):
+            self._recover(f"non-finite evaluation PSNR ({psnr})")
+        elif g.best is None or psnr > g.best["psnr"]:
+            g.best = {"step": self.step, "psnr": float(psnr)}
+            g.best_snapshot = clone_tree(self.checkpoint_payload())
+        elif gc.divergence_db > 0 and psnr < g.best["psnr"] - gc.divergence_db:
+            self._recover(f"divergence: evaluation PSNR {psnr:.2f} dB is more than {gc.divergence_db:g} dB below "
+                          f"the best, {g.best['psnr']:.2f} dB at step {g.best['step']}", best=True)
+
+    def _recover(self, reason: str, best: bool = False) -> None:
+        """Restore the last good state (the best evaluation's with best=True), lower every lr
+        by train.guard.lr_factor and log it; past train.guard.max_recoveries, save the last good
+        state as the checkpoint and stop (TrainingDiverged)."""
+        g, gc = self.guard, self.cfg.train.guard
+        detected = self.step
+        snap = g.best_snapshot if best and g.best_snapshot is not None else g.snapshot
+        if snap is None:
+            raise TrainingDiverged(f"{reason} at step {detected}, before any good state was kept")
+        seconds, history = self.train_seconds, self.history  # time spent and evaluations made stay
+        self.load_payload(clone_tree(snap), "guard snapshot")
+        self.train_seconds, self.history = seconds, history
+        if best:
+            g.snapshot = clone_tree(snap)  # later states are not good ones
+        stop = len(g.recoveries) >= gc.max_recoveries
+        if not stop:
+            g.lr_scale *= gc.lr_factor
+        rec = {"step": detected, "restored_to": self.step, "reason": reason, "lr_scale": g.lr_scale,
+               "train_seconds": self.train_seconds, "stopped": stop}
+        g.recoveries.append(rec)
+        tb = self._tb()
+        tb.add_scalar("guard/recoveries", len(g.recoveries), detected)
+        tb.add_scalar("guard/lr_scale", g.lr_scale, detected)
+        if stop:
+            self.save()
+            raise TrainingDiverged(
+                f"training stopped at step {detected}: {reason}, after {len(g.recoveries) - 1} recoveries "
+                f"(train.guard.max_recoveries={gc.max_recoveries}). The last good state (iteration {self.step}) is "
+                f"saved in {self.run_dir / CKPT}; lower the learning rates (optim.*, baseline.lr_init) or raise "
+                "train.guard.max_recoveries, then run again to resume from it")
+        print(f"[stdr] guard: {reason} at step {detected}; restored iteration {self.step}, learning rates x "
+              f"{g.lr_scale:g} (recovery {len(g.recoveries)} of at most {gc.max_recoveries})", flush=True)
+
     def train(self) -> None:
         cfg = self.cfg
         ckpt = self.run_dir / CKPT
         if cfg.train.resume and ckpt.is_file():
             self.load(ckpt)
             print(f"[stdr] resumed from {ckpt} at iteration {self.step}")
+        guard = cfg.train.guard
+        if guard.enabled:
+            self._snapshot()
         total = cfg.optim.iterations
         tb = self._tb()
         bar = None
@@ -294,7 +398,14 @@ class Trainer:
             logs = self.train_step()
             dt = time.perf_counter() - t0
             self.train_seconds += dt
+            if "rejected" in logs:
+                self._recover(logs["rejected"])
+                if bar is not None:
+                    bar.n = self.step
+                    bar.refresh()
+                continue
             it = self.step
+            self.guard.peak_gaussians = max(self.guard.peak_gaussians, self.model.num_gaussians)
             if it % cfg.train.log_every == 0 or it == total:
                 self._log_scalars(tb, it, logs, dt)
                 img_due = bool(cfg.train.image_every) and (it % cfg.train.image_every == 0 or it == total)
@@ -306,14 +417,24 @@ class Trainer:
                 bar.update(1)
                 bar.set_postfix(loss=f"{logs['loss']:.4f}", psnr=f"{logs['psnr']:.2f}",
                                 N=self.model.num_gaussians)
+            res = None
             if cfg.train.eval_at_warmup_end and it == warmup and warmup < total:
-                self.evaluate(cfg.data.eval_split, tag="static_warmup", step=warmup - 1,
-                              frames=self.curve_frames(cfg.data.eval_split), lpips_fn=self._curve_lpips())
+                res = self.evaluate(cfg.data.eval_split, tag="static_warmup", step=warmup - 1,
+                                    frames=self.curve_frames(cfg.data.eval_split), lpips_fn=self._curve_lpips())
             elif cfg.train.eval_every and it % cfg.train.eval_every == 0 and it < total:
-                self.evaluate(cfg.data.eval_split, tag="periodic", frames=self.curve_frames(cfg.data.eval_split),
-                              lpips_fn=self._curve_lpips())
+                res = self.evaluate(cfg.data.eval_split, tag="periodic", frames=self.curve_frames(cfg.data.eval_split),
+                                    lpips_fn=self._curve_lpips())
+            if res is not None and guard.enabled:
+                self._after_evaluation(float(res["psnr"]))
+                if self.step != it:  # recovered: go on from the restored step
+                    if bar is not None:
+                        bar.n = self.step
+                        bar.refresh()
+                    continue
             if cfg.train.checkpoint_every and it % cfg.train.checkpoint_every == 0 and it < total:
                 self.save()
+            if guard.enabled and it % guard.snapshot_every == 0 and it < total:
+                self._snapshot()
         if bar is not None:
             bar.close()
         self.save()

@@ -1,0 +1,228 @@
+"""The degradation study's table and chart: accuracy per method under each stress and level.
+
+Reads the runs of `stdr-train -m +sweep=stability` (and of its seed runs: `stress=none
+seed=0,1,2`) from their folders: config.yaml gives method, scene, seed and the stress preset
+(data.stress.label / level), metrics.json[split] the numbers and the guard's record, and the
+sweep's failures.jsonl the crashes. Writes OUT/table.md and table.json, and
+OUT/degradation_<metric>.{png,svg,csv}:
+
+* per method x stress x level (seed 0; means over the scenes that have the unstressed run too):
+  PSNR / SSIM / LPIPS, the PSNR drop against the same method's unstressed run on the same scene,
+  runs, crashes, recoveries, non-finite metrics, final Gaussians, and whether the cap held;
+* the seed spread of the unstressed runs: per method, mean ± sample std over seeds of the
+  scene-mean PSNR;
+* the chart: PSNR drop against level, one line per method (colour per baseline, dashed plain,
+  solid +STDR), one panel per stress.
+
+    stdr-tool stability multirun/stability_cpu --split val --out docs/measurements/stability
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+from statistics import mean, stdev
+from typing import Any
+
+import yaml
+
+from ..eval.table import fmt_value as fmt
+from ..eval.table import markdown_table, method_name, write_outputs
+
+REFERENCE = ("none", 0)
+
+
+def _stress(cfg: dict) -> tuple[str, int]:
+    st = (cfg.get("data") or {}).get("stress") or {}
+    return str(st.get("label", "none")), int(st.get("level", 0))
+
+
+def _finite(v) -> bool:
+    return v is not None and isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, Any]], list[str]]:
+    """Every run folder (config.yaml) under `paths`: finished ones with their numbers, crashed
+    ones (recorded in a failures.jsonl of the sweep) with the error; unfinished ones named."""
+    failures: dict[str, str] = {}
+    folders: list[Path] = []
+    for p in map(Path, paths):
+        if not p.exists():
+            raise SystemExit(f"stdr-tool stability: {p} does not exist")
+        if (p / "config.yaml").is_file():
+            folders.append(p)
+            continue
+        folders += sorted(c.parent for c in p.rglob("config.yaml") if not c.parent.name.startswith("."))
+        for f in p.rglob("failures.jsonl"):
+            for line in f.read_text().splitlines():
+                if line.strip():
+                    rec = json.loads(line)
+                    failures[str(Path(rec["run_dir"]).resolve())] = rec.get("error", "?")
+    if not folders:
+        raise SystemExit(f"stdr-tool stability: no run folders (config.yaml) under {', '.join(map(str, paths))}")
+    runs, unfinished = [], []
+    for d in dict.fromkeys(folders):
+        cfg = yaml.safe_load((d / "config.yaml").read_text())
+        label, level = _stress(cfg)
+        row = {"run": str(d), "method": method_name(cfg), "baseline": cfg["baseline"]["name"],
+               "stdr": bool((cfg.get("stdr") or {}).get("enabled")), "scene": cfg["data"]["name"],
+               "seed": cfg.get("seed", 0), "stress": label, "level": level, "crashed": False, "error": None}
+        mp = d / "metrics.json"
+        m = json.loads(mp.read_text()).get(split) if mp.is_file() else None
+        if m is None:
+            err = failures.get(str(d.resolve()))
+            if err is None:
+                unfinished.append(str(d))
+                continue
+            row.update(crashed=True, error=err)
+        else:
+            g = m.get("guard") or {}
+            cap = g.get("max_gaussians")
+            row.update({k: m.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians")})
+            row.update(recoveries=g.get("n_recoveries", 0), peak=g.get("peak_gaussians"), cap=cap,
+                       nonfinite=not all(_finite(m.get(k)) for k in ("psnr", "ssim")),
+                       cap_held=None if not cap or g.get("peak_gaussians") is None else g["peak_gaussians"] <= cap)
+        runs.append(row)
+    if not runs:
+        raise SystemExit(f"stdr-tool stability: no finished or crashed run with a {split!r} entry "
+                         f"({len(unfinished)} unfinished)")
+    return runs, unfinished
+
+
+def degradation(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per method x stress x level at seed 0, averaged over the scenes where the method's
+    unstressed seed-0 run exists (the others are listed in `scenes_without_reference`)."""
+    ref = {(r["method"], r["scene"]): r for r in runs
+           if (r["stress"], r["level"]) == REFERENCE and r["seed"] == 0 and not r["crashed"]}
+    groups: dict[tuple, list] = defaultdict(list)
+    for r in runs:
+        if r["seed"] == 0:
+            groups[(r["method"], r["stress"], r["level"])].append(r)
+    rows = []
+    for (method, stress, level), rs in sorted(groups.items(), key=lambda kv: (kv[0][1] != "none", kv[0][1],
+                                                                             kv[0][0], kv[0][2])):
+        ok = [r for r in rs if not r["crashed"] and (method, r["scene"]) in ref]
+        good = [r for r in ok if not r["nonfinite"]]
+        drops = [ref[(method, r["scene"])]["psnr"] - r["psnr"] for r in good]
+        avg = lambda k: mean(r[k] for r in good) if good and all(_finite(r[k]) for r in good) else None  # noqa: E731
+        rows.append({"method": method, "baseline": rs[0]["baseline"], "stdr": rs[0]["stdr"], "stress": stress,
+                     "level": level, "scenes": sorted(r["scene"] for r in good),
+                     "scenes_without_reference": sorted(r["scene"] for r in rs if not r["crashed"]
+                                                        and (method, r["scene"]) not in ref),
+                     "runs": len(rs), "crashes": sum(r["crashed"] for r in rs),
+                     "nonfinite": sum(bool(r.get("nonfinite")) for r in rs if not r["crashed"]),
+                     "recoveries": sum(r.get("recoveries") or 0 for r in rs if not r["crashed"]),
+                     "psnr": avg("psnr"), "ssim": avg("ssim"), "lpips": avg("lpips"),
+                     "psnr_drop": mean(drops) if drops else None,
+                     "gaussians": avg("num_gaussians"),
+                     "cap_held": None if not ok or any(r["cap_held"] is None for r in ok)
+                     else all(r["cap_held"] for r in ok)})
+    return rows
+
+
+def seed_spread(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Unstressed runs: per method, the scene-mean PSNR of each seed (scenes every seed has),
+    then their mean and sample std."""
+    by: dict[str, dict[int, dict[str, float]]] = defaultdict(lambda: defaultdict(dict))
+    for r in runs:
+        if (r["stress"], r["level"]) == REFERENCE and not r["crashed"] and _finite(r.get("psnr")):
+            by[r["method"]][r["seed"]][r["scene"]] = r["psnr"]
+    out = []
+    for method, seeds in sorted(by.items()):
+        common = set.intersection(*(set(s) for s in seeds.values()))
+        if not common:
+            continue
+        per_seed = {s: mean(v[sc] for sc in common) for s, v in sorted(seeds.items())}
+        vals = list(per_seed.values())
+        out.append({"method": method, "seeds": sorted(per_seed), "scenes": sorted(common),
+                    "psnr_mean": mean(vals), "psnr_std": stdev(vals) if len(vals) > 1 else None,
+                    "per_seed": per_seed})
+    return out
+
+
+def markdown(rows, spread, unfinished, split) -> str:
+    head = ["method", "stress", "level", "PSNR↑", "drop (dB)", "SSIM↑", "LPIPS↓", "runs", "crashes",
+            "non-finite", "recoveries", "Gaussians", "cap held", "scenes"]
+    body = [[r["method"], r["stress"], str(r["level"]), fmt(r["psnr"], "{:.2f}"), fmt(r["psnr_drop"], "{:+.2f}"),
+             fmt(r["ssim"], "{:.4f}"), fmt(r["lpips"], "{:.4f}"), str(r["runs"]), str(r["crashes"]), str(r["nonfinite"]),
+             str(r["recoveries"]), fmt(r["gaussians"], "{:,.0f}"),
+             {True: "yes", False: "**no**", None: "–"}[r["cap_held"]], ", ".join(r["scenes"]) or "–"]
+            for r in rows]
+    md = [f"Degradation under stress ({split} split, seed 0; drop = unstressed PSNR − stressed PSNR, "
+          "mean over the scenes listed)", "", markdown_table(head, body)]
+    if spread:
+        md += ["", "Seed spread of the unstressed runs (scene-mean PSNR per seed)", "",
+               markdown_table(["method", "seeds", "PSNR mean ± std", "scenes"],
+                              [[s["method"], ", ".join(map(str, s["seeds"])),
+                                fmt(s["psnr_mean"], "{:.2f}") + (f" ± {s['psnr_std']:.2f}" if s["psnr_std"] is not None
+                                                              else ""), ", ".join(s["scenes"])] for s in spread])]
+    missing = sorted({sc for r in rows for sc in r["scenes_without_reference"]})
+    if missing:
+        md += ["", f"Runs without an unstressed reference (left out of the means): scenes {', '.join(missing)}"]
+    if unfinished:
+        md += ["", f"Unfinished (no metrics.json, no recorded failure): {len(unfinished)} runs"]
+    return "\n".join(md) + "\n"
+
+
+def draw(rows, out: Path, split: str) -> dict[str, Path]:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import MaxNLocator
+
+    from ..eval.chart import _save, _style
+    stresses = sorted({r["stress"] for r in rows if r["stress"] != "none"})
+    if not stresses:
+        raise SystemExit("stdr-tool stability: no stressed runs to chart")
+    colors = _style(sorted({r["baseline"] for r in rows}))
+    fig, axes = plt.subplots(1, len(stresses), figsize=(3.2 * len(stresses), 3.2), squeeze=False, sharey=True)
+    data = []
+    for ax, st in zip(axes[0], stresses):
+        for method in sorted({r["method"] for r in rows}):
+            pts = sorted((r["level"], r["psnr_drop"]) for r in rows
+                         if r["method"] == method and r["stress"] == st and r["psnr_drop"] is not None)
+            ref = [r for r in rows if r["method"] == method and (r["stress"], r["level"]) == REFERENCE]
+            if not pts or not ref:
+                continue
+            pts = [(0, 0.0)] + pts
+            r0 = ref[0]
+            ax.plot(*zip(*pts), marker="o", ms=4, color=colors[r0["baseline"]], ls="-" if r0["stdr"] else "--",
+                    lw=1.4)
+            data += [[st, method, lv, f"{d:.4f}"] for lv, d in pts]
+        ax.set_title(st, fontsize=9)
+        ax.set_xlabel("severity level")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.grid(True, alpha=0.3)
+    axes[0][0].set_ylabel(f"PSNR drop (dB, {split}) ↓")
+    handles = [Line2D([], [], color=c, label=b) for b, c in colors.items()]
+    handles += [Line2D([], [], color="k", ls="--", label="plain"), Line2D([], [], color="k", label="+STDR")]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False, fontsize=8,
+               bbox_to_anchor=(0.5, -0.08))
+    fig.tight_layout()
+    return _save(fig, out, "degradation_psnr", ["stress", "method", "level", "psnr_drop_db"], data)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(prog="stdr-tool stability", description=__doc__.splitlines()[0])
+    ap.add_argument("runs", nargs="+", help="sweep folders or run folders")
+    ap.add_argument("--split", default="val")
+    ap.add_argument("--out", type=Path, required=True, help="folder for table.md/.json and the chart")
+    ap.add_argument("--no-chart", action="store_true")
+    a = ap.parse_args(argv)
+    runs, unfinished = collect_runs(a.runs, a.split)
+    rows = degradation(runs)
+    spread = seed_spread(runs)
+    md = markdown(rows, spread, unfinished, a.split)
+    write_outputs(a.out / "table", md, {"split": a.split, "rows": rows, "seed_spread": spread, "runs": runs,
+                                        "unfinished": unfinished})
+    print(md)
+    if not a.no_chart:
+        paths = draw(rows, a.out, a.split)
+        print(f"[stdr] chart: {paths['png']}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,254 @@
+"""Fault tolerance (issue 17 §2): the non-finite guard, recoveries, the divergence detector,
+checkpoints that survive a kill, truncation and corruption."""
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from stdr.testing import tiny_config
+from stdr.train.checkpoint import CheckpointError, load_checkpoint, previous_path, save_checkpoint
+from stdr.train.guard import TrainingDiverged, all_finite, first_nonfinite
+
+# a short schedule that crosses densification, the warm-up end and an opacity reset
+SCHED = ["optim.iterations=60", "baseline.warmup=20", "densify.refine_start=10", "densify.refine_every=10",
+         "densify.reset_every=30", "densify.prune_big_after=30", "train.checkpoint_every=0",
+         "train.eval_at_warmup_end=false", "train.guard.snapshot_every=10"]
+
+
+def _trainer(tmp_path, name, extra=()):
+    from stdr.train.trainer import Trainer
+    return Trainer(tiny_config(tmp_path, SCHED + list(extra)), tmp_path / name)
+
+
+def _same_params(a, b):
+    assert a.model.params.keys() == b.model.params.keys()
+    for k in a.model.params:
+        assert torch.equal(a.model.params[k], b.model.params[k]), k
+    for (ka, va), (kb, vb) in zip(a.model.deform.state_dict().items(), b.model.deform.state_dict().items()):
+        assert ka == kb and torch.equal(va, vb), ka
+
+
+def test_all_finite_is_exact():
+    big = torch.full((1000,), 3e38)  # finite elements whose sum overflows to inf
+    assert all_finite([big, None, torch.zeros(3)])
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        t = torch.ones(10)
+        t[7] = bad
+        assert not all_finite([torch.ones(2), t])
+        assert first_nonfinite([("a", torch.ones(2)), ("b", t)]) == "b"
+    inf_pair = torch.tensor([float("inf"), -float("inf")])  # sums to NaN
+    assert not all_finite([inf_pair])
+    assert all_finite([torch.arange(5)])  # integer tensors are not checked
+
+
+@pytest.mark.slow
+def test_guard_changes_nothing_without_a_fault(tmp_path):
+    on = _trainer(tmp_path, "on")
+    on.train()
+    off = _trainer(tmp_path, "off", ["train.guard.enabled=false"])
+    off.train()
+    assert on.step == off.step == 60 and on.guard.recoveries == []
+    _same_params(on, off)
+
+
+@pytest.mark.slow
+def test_nan_gradient_is_recovered_and_logged(tmp_path):
+    from stdr.cli.train import run
+    cfg = tiny_config(tmp_path, SCHED + ["train.guard.inject_nan_grad_at=[15]", "eval.fps_repeats=1"])
+    res = run(cfg, tmp_path / "nan")
+    m = json.loads((tmp_path / "nan" / "metrics.json").read_text())["test"]
+    for k in ("psnr", "ssim"):
+        assert math.isfinite(m[k]) and math.isfinite(res[k])
+    g = m["guard"]
+    assert g["n_recoveries"] == 1 and len(g["recoveries"]) == 1
+    rec = g["recoveries"][0]
+    # detected at step 15, back to the snapshot of step 10, every lr halved
+    assert rec["step"] == 15 and rec["restored_to"] == 10 and rec["reason"] == "non-finite grad of means"
+    assert rec["lr_scale"] == g["lr_scale"] == 0.5 and not rec["stopped"]
+    assert m["iterations"] == 60 and m["last"]["step"] == 60 and m["best"]["psnr"] >= m["last"]["psnr"]
+    ck = load_checkpoint(tmp_path / "nan" / "checkpoints" / "last.pt")
+    assert ck["guard"]["lr_scale"] == 0.5
+    assert all(torch.isfinite(v).all() for v in ck["model"]["params"].values())
+    tb = list((tmp_path / "nan" / "tb").glob("events.*"))
+    assert tb and any(b"guard/recoveries" in p.read_bytes() for p in tb)
+
+
+@pytest.mark.slow
+def test_recovery_restores_the_snapshot_exactly_and_lowers_every_lr(tmp_path):
+    ref = _trainer(tmp_path, "ref", ["optim.iterations=10"])
+    ref.train()  # the state after 10 steps
+    tr = _trainer(tmp_path, "tr", ["optim.iterations=25"])
+    tr.train()  # snapshots at 0, 10, 20
+    assert tr.guard.snapshot["model"]["step"] == 20
+    tr.guard.snapshot = tr.guard.best_snapshot = None
+    tr2 = _trainer(tmp_path, "tr2", ["optim.iterations=17"])
+    tr2.train()  # last snapshot: step 10
+    tr2._recover("a test")
+    assert tr2.step == 10 and tr2.guard.lr_scale == 0.5
+    _same_params(ref, tr2)
+    tr2._update_lrs(tr2.step)
+    for k, o in tr2.optimizers.items():
+        assert o.param_groups[0]["lr"] == pytest.approx(0.5 * tr2._lr(k, 10), rel=1e-12), k
+    for spec, g in zip(tr2.net_groups, tr2.net_opt.param_groups):
+        assert g["lr"] == pytest.approx(0.5 * tr2._net_lr(spec, 10), rel=1e-12)
+
+
+@pytest.mark.slow
+def test_too_many_recoveries_stop_with_a_clear_error_and_a_good_checkpoint(tmp_path):
+    tr = _trainer(tmp_path, "stop", ["train.guard.max_recoveries=2", "train.guard.inject_nan_grad_at=[12,13,14]"])
+    with pytest.raises(TrainingDiverged, match=r"max_recoveries=2.*last good state \(iteration 10\)"):
+        tr.train()
+    recs = tr.guard.recoveries
+    assert [r["step"] for r in recs] == [12, 13, 14] and [r["stopped"] for r in recs] == [False, False, True]
+    ck = load_checkpoint(tmp_path / "stop" / "checkpoints" / "last.pt")
+    assert ck["model"]["step"] == 10 and len(ck["guard"]["recoveries"]) == 3
+    assert all(torch.isfinite(v).all() for v in ck["model"]["params"].values())
+
+
+@pytest.mark.slow
+def test_divergence_restores_the_best_evaluation(tmp_path):
+    tr = _trainer(tmp_path, "div", ["optim.iterations=20", "train.guard.divergence_db=5"])
+    tr.train()
+    tr._after_evaluation(20.0)  # the best so far, at step 20
+    best_params = {k: v.detach().clone() for k, v in tr.model.params.items()}
+    tr.cfg.optim.iterations = 30
+    tr.train()  # resumes from its own checkpoint (step 20) and goes on to 30
+    assert tr.step == 30
+    tr._after_evaluation(16.0)  # 4 dB down: within the tolerance
+    assert tr.step == 30 and tr.guard.recoveries == []
+    tr._after_evaluation(14.0)  # 6 dB down: diverged
+    assert tr.step == 20 and len(tr.guard.recoveries) == 1
+    assert tr.guard.recoveries[0]["reason"].startswith("divergence") and tr.guard.lr_scale == 0.5
+    for k, v in best_params.items():
+        assert torch.equal(tr.model.params[k], v), k
+    tr._after_evaluation(float("nan"))  # a non-finite evaluation is a recovery too
+    assert "non-finite evaluation" in tr.guard.recoveries[-1]["reason"]
+
+
+@pytest.mark.slow
+def test_a_run_with_a_recovery_resumes_exactly(tmp_path):
+    nan = ["train.guard.inject_nan_grad_at=[15]"]
+    a = _trainer(tmp_path, "a", nan)
+    a.train()
+    b1 = _trainer(tmp_path, "b", nan + ["train.checkpoint_every=10", "optim.iterations=35"])
+    b1.train()  # recovers at 15, stops at 35 (checkpoints at 10, 20, 30 and 35)
+    b2 = _trainer(tmp_path, "b", nan + ["train.checkpoint_every=10"])
+    b2.train()
+    assert a.guard.lr_scale == b2.guard.lr_scale == 0.5 and len(b2.guard.recoveries) == 1
+    _same_params(a, b2)
+
+
+CHILD = r"""
+import sys, time
+from pathlib import Path
+from stdr.testing import tiny_config
+from stdr.train.trainer import Trainer
+folder, marker = Path(sys.argv[1]), Path(sys.argv[2])
+tr = Trainer(tiny_config(folder, sys.argv[3:]), folder / "run")
+step = tr.train_step
+def paused_step():
+    out = step()
+    if tr.step == 25:  # between two checkpoints: steps 21-25 are lost with the kill
+        marker.write_text("25")
+        time.sleep(120)
+    return out
+tr.train_step = paused_step
+tr.train()
+"""
+
+
+@pytest.mark.slow
+def test_a_run_killed_with_sigkill_resumes_to_the_same_result(tmp_path):
+    sched = SCHED + ["train.checkpoint_every=10"]
+    marker = tmp_path / "paused"
+    # results are bit-identical for a given thread count: the child uses this process's
+    # (conftest pins it; the environment's OMP_NUM_THREADS may differ)
+    threads = f"train.threads={torch.get_num_threads()}"
+    child = subprocess.Popen([sys.executable, "-c", CHILD, str(tmp_path), str(marker), *sched, threads],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        t0 = time.time()
+        while not marker.exists():
+            if child.poll() is not None:
+                pytest.fail(f"the training process ended early: {child.stderr.read().decode()[-2000:]}")
+            if time.time() - t0 > 300:
+                pytest.fail("the training process did not reach step 25 in 300 s")
+            time.sleep(0.05)
+        os.kill(child.pid, signal.SIGKILL)
+        child.wait(timeout=30)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert child.returncode == -signal.SIGKILL
+    ckpts = tmp_path / "run" / "checkpoints"
+    assert load_checkpoint(ckpts / "last.pt")["model"]["step"] == 20
+    resumed = _trainer(tmp_path, "run", ["train.checkpoint_every=10"])
+    resumed.train()
+    whole = _trainer(tmp_path, "whole", ["train.checkpoint_every=10"])
+    whole.train()
+    assert resumed.step == whole.step == 60
+    _same_params(resumed, whole)
+
+
+def test_checkpoints_keep_the_previous_one_and_detect_damage(tmp_path):
+    p = tmp_path / "ck" / "last.pt"
+    save_checkpoint(p, {"model": {"step": 10}, "x": torch.arange(1000.0)}, keep_previous=True)
+    save_checkpoint(p, {"model": {"step": 20}, "x": torch.arange(1000.0) * 2}, keep_previous=True)
+    assert load_checkpoint(p)["model"]["step"] == 20
+    assert load_checkpoint(previous_path(p))["model"]["step"] == 10
+    raw = p.read_bytes()
+    # a flipped byte inside the stored tensor data: torch alone would load wrong values
+    flipped = bytearray(raw)
+    flipped[len(raw) // 2] ^= 0xFF
+    p.write_bytes(bytes(flipped))
+    with pytest.raises(CheckpointError, match=r"last.pt is damaged: its SHA-256 does not match.*"
+                                              r"last.previous.pt is intact \(iteration 10\)"):
+        load_checkpoint(p)
+    p.write_bytes(raw[: len(raw) // 3])  # truncated
+    with pytest.raises(CheckpointError, match=r"last.pt is damaged: it cannot be read.*last.previous.pt is intact"):
+        load_checkpoint(p)
+    assert load_checkpoint(previous_path(p))["model"]["step"] == 10  # untouched
+    # files written before the checksum (a plain torch.save payload) still load
+    legacy = tmp_path / "legacy.pt"
+    torch.save({"model": {"step": 5}}, legacy)
+    assert load_checkpoint(legacy)["model"]["step"] == 5
+    with pytest.raises(CheckpointError, match="has no optimizers.*cannot resume training"):
+        load_checkpoint(legacy, require=("model", "optimizers"))
+
+
+@pytest.mark.slow
+def test_resuming_from_a_truncated_checkpoint_is_a_clear_error(tmp_path):
+    tr = _trainer(tmp_path, "r", ["optim.iterations=30", "train.checkpoint_every=10"])
+    tr.train()  # checkpoints at 10, 20 and the final one at 30
+    last = tmp_path / "r" / "checkpoints" / "last.pt"
+    last.write_bytes(last.read_bytes()[:1000])
+    again = _trainer(tmp_path, "r", ["optim.iterations=40", "train.checkpoint_every=10"])
+    with pytest.raises(CheckpointError, match=r"last.pt is damaged.*last.previous.pt is intact \(iteration 20\)"):
+        again.train()
+    assert load_checkpoint(previous_path(last))["model"]["step"] == 20
+
+
+@pytest.mark.parametrize("key,value,match", [
+    ("train.guard.lr_factor", "0", "lr_factor"), ("train.guard.lr_factor", "1.5", "lr_factor"),
+    ("train.guard.snapshot_every", "0", "snapshot_every"), ("train.guard.max_recoveries", "-1", "max_recoveries"),
+    ("train.guard.divergence_db", "-2", "divergence_db")])
+def test_bad_guard_keys_are_named(tmp_path, key, value, match):
+    from stdr.train.trainer import Trainer
+    with pytest.raises(ValueError, match=match):
+        Trainer(tiny_config(tmp_path, SCHED + [f"{key}={value}"]), tmp_path / "bad")
+
+
+def test_best_and_last_of_a_curve():
+    from stdr.eval.evaluate import best_and_last
+    curve = [{"step": 10, "psnr": 20.0, "tag": "periodic"}, {"step": 20, "psnr": float("nan"), "tag": "periodic"},
+             {"step": 30, "psnr": 25.0, "tag": "periodic"}, {"step": 40, "psnr": 22.0, "tag": "final"}]
+    out = best_and_last(curve)
+    assert out["best"]["step"] == 30 and out["best"]["psnr"] == 25.0
+    assert out["last"]["step"] == 40 and out["last"]["tag"] == "final"
+    assert best_and_last([]) == {"best": None, "last": None}

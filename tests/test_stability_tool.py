@@ -1,0 +1,104 @@
+"""stdr-tool stability: the degradation table and chart from fixture runs (config.yaml +
+metrics.json, a failures.jsonl), and the sweep that produces such runs composes."""
+import csv
+import json
+import math
+
+import pytest
+import yaml
+from stdr.tools.stability import main as stability
+
+
+def _run(root, method, scene, stress, level, seed=0, psnr=30.0, peak=900, cap=1000, metrics=True, recoveries=0):
+    base, stdr = method.split("+")[0], method.endswith("+STDR")
+    d = root / method / scene / f"{stress}_{level}" / f"s{seed}"
+    d.mkdir(parents=True)
+    cfg = {"seed": seed, "data": {"name": scene, "stress": {"label": stress, "level": level}},
+           "baseline": {"name": base}, "render": {"backend": "cpu"}, "stdr": {"enabled": stdr}}
+    (d / "config.yaml").write_text(yaml.safe_dump(cfg))
+    if metrics:
+        m = {"psnr": psnr, "ssim": 0.9, "lpips": 0.1, "num_gaussians": peak - 10,
+             "guard": {"n_recoveries": recoveries, "peak_gaussians": peak, "max_gaussians": cap}}
+        (d / "metrics.json").write_text(json.dumps({"val": m}))
+    return d
+
+
+def _fixture(root):
+    for scene, ref in (("a", 30.0), ("b", 26.0)):
+        _run(root, "deform", scene, "none", 0, psnr=ref)
+        _run(root, "deform+STDR", scene, "none", 0, psnr=ref + 0.5)
+        for seed, off in ((1, 0.4), (2, -0.2)):
+            _run(root, "deform", scene, "none", 0, seed=seed, psnr=ref + off)
+        _run(root, "deform", scene, "window", 1, psnr=ref - 1.0)
+        _run(root, "deform", scene, "window", 2, psnr=ref - 3.0, recoveries=1)
+        _run(root, "deform+STDR", scene, "window", 1, psnr=ref + 0.5 - 0.5)
+    # deform+STDR at window 2: one scene crashed (recorded), one run over the cap, one NaN
+    crashed = _run(root, "deform+STDR", "a", "window", 2, metrics=False)
+    _run(root, "deform+STDR", "b", "window", 2, psnr=float("nan"), peak=1200)
+    _run(root, "deform", "c", "window", 1, psnr=20.0)  # no unstressed reference on scene c
+    _run(root, "deform", "a", "pose", 1, metrics=False)  # unfinished, no failure recorded
+    (root / "failures.jsonl").write_text(json.dumps({"overrides": ["experiment=dnerf_deform_stdr"],
+                                                     "run_dir": str(crashed), "log": "x.log",
+                                                     "error": "TrainingDiverged: too many"}) + "\n")
+
+
+def test_degradation_table_and_chart(tmp_path, capsys):
+    _fixture(tmp_path / "runs")
+    stability([str(tmp_path / "runs"), "--out", str(tmp_path / "out")])
+    t = json.loads((tmp_path / "out" / "table.json").read_text())
+    rows = {(r["method"], r["stress"], r["level"]): r for r in t["rows"]}
+    w1 = rows[("deform", "window", 1)]
+    assert w1["psnr_drop"] == pytest.approx(1.0) and w1["scenes"] == ["a", "b"]
+    assert w1["scenes_without_reference"] == ["c"] and w1["psnr"] == pytest.approx((29.0 + 25.0) / 2)
+    w2 = rows[("deform", "window", 2)]
+    assert w2["psnr_drop"] == pytest.approx(3.0) and w2["recoveries"] == 2 and w2["cap_held"] is True
+    s2 = rows[("deform+STDR", "window", 2)]
+    assert s2["crashes"] == 1 and s2["nonfinite"] == 1 and s2["psnr_drop"] is None and s2["cap_held"] is False
+    assert rows[("deform+STDR", "window", 1)]["psnr_drop"] == pytest.approx(0.5)
+    assert t["unfinished"] and t["unfinished"][0].endswith("pose_1/s0")
+    crashed = [r for r in t["runs"] if r["crashed"]]
+    assert len(crashed) == 1 and crashed[0]["error"].startswith("TrainingDiverged")
+    spread = {s["method"]: s for s in t["seed_spread"]}
+    per_seed = [28.0, 28.4, 27.8]  # scene means of seeds 0, 1, 2
+    assert spread["deform"]["seeds"] == [0, 1, 2]
+    assert spread["deform"]["psnr_mean"] == pytest.approx(sum(per_seed) / 3)
+    m = sum(per_seed) / 3
+    assert spread["deform"]["psnr_std"] == pytest.approx(math.sqrt(sum((x - m) ** 2 for x in per_seed) / 2))
+    assert spread["deform+STDR"]["psnr_std"] is None  # one seed
+    md = (tmp_path / "out" / "table.md").read_text()
+    assert "| deform | window | 2 | 25.00 | +3.00 |" in md and "**no**" in md
+    for ext in ("png", "svg", "csv"):
+        assert (tmp_path / "out" / f"degradation_psnr.{ext}").stat().st_size > 0
+    with open(tmp_path / "out" / "degradation_psnr.csv") as f:
+        data = list(csv.DictReader(f))
+    deform_w = [(int(r["level"]), float(r["psnr_drop_db"])) for r in data
+                if r["stress"] == "window" and r["method"] == "deform"]
+    assert deform_w == [(0, 0.0), (1, 1.0), (2, 3.0)]
+
+
+def test_bad_input_is_named(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit, match="no run folders"):
+        stability([str(tmp_path / "empty"), "--out", str(tmp_path / "o")])
+    with pytest.raises(SystemExit, match="does not exist"):
+        stability([str(tmp_path / "nope"), "--out", str(tmp_path / "o")])
+    _run(tmp_path / "r", "deform", "a", "none", 0)
+    with pytest.raises(SystemExit, match="no stressed runs"):
+        stability([str(tmp_path / "r"), "--out", str(tmp_path / "o")])
+
+
+def test_the_stability_sweep_composes_every_preset():
+    from stdr.testing import make_cfg
+    from stdr.config import CONFIG_DIR
+    sweep = yaml.safe_load((CONFIG_DIR / "sweep" / "stability.yaml").read_text())
+    presets = sweep["hydra"]["sweeper"]["params"]["stress"].split(",")
+    assert sorted(presets) == sorted(p.stem for p in (CONFIG_DIR / "stress").glob("*.yaml"))
+    seen = set()
+    for p in presets:
+        c = make_cfg(["+sweep=stability", "data.root=/d", "data.name=standup", "experiment=dnerf_deform_stdr",
+                      f"stress={p}"])
+        st = c.data.stress
+        assert c.data.eval_split == "val" and c.data.path == "/d/standup"
+        assert (st.label, st.level) == (("none", 0) if p == "none" else (p.split("_")[0], int(p.split("_")[1])))
+        seen.add((st.label, st.level))
+    assert len(seen) == len(presets)
