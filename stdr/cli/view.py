@@ -1,0 +1,68 @@
+"""stdr-view RUN_DIR: a web viewer of a trained run (time slider, free camera, RGB / depth / alpha,
+STDR's mask and static/dynamic split), served on localhost; stdr-render RUN_DIR: videos."""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from ..view.core import VIEWS
+
+
+def view_main(argv=None) -> None:
+    ap = argparse.ArgumentParser(prog="stdr-view", description="A web viewer of a trained stdr run (viser).")
+    ap.add_argument("run", type=Path, help="a run directory (config.yaml + checkpoints/last.pt)")
+    ap.add_argument("--port", type=int, default=8080)
+    ap.add_argument("--host", default="127.0.0.1", help="127.0.0.1 (default: this machine only) or 0.0.0.0")
+    ap.add_argument("--device", default=None, help="cpu | cuda | auto (default: the run's own)")
+    ap.add_argument("--max-width", type=int, default=None, help="initial image width (default: the run's)")
+    a = ap.parse_args(argv)
+    from ..view.core import open_run
+    from ..view.server import Viewer, check_port
+    try:
+        check_port(a.host, a.port)  # before loading the model: fail fast
+        run = open_run(a.run, device=a.device)
+        viewer = Viewer(run, host=a.host, port=a.port, max_width=a.max_width)
+    except (FileNotFoundError, RuntimeError, ValueError) as e:
+        raise SystemExit(f"stdr-view: {e}") from None
+    if run.data_note:
+        print(f"[stdr] {run.data_note}")
+    print(f"[stdr] viewing {a.run} ({run.model.num_gaussians:,} Gaussians, backend {run.model.backend} on "
+          f"{run.model.device}) at {viewer.url}  (Ctrl+C stops)", flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.stop()
+        if viewer.frame_ms:
+            import numpy as np
+            print(f"[stdr] median frame time {np.median(viewer.frame_ms):.0f} ms over {len(viewer.frame_ms)} frames")
+
+
+def render_main(argv=None) -> None:
+    from ..view.video import KINDS
+    ap = argparse.ArgumentParser(prog="stdr-render", description="Videos of a trained stdr run.")
+    ap.add_argument("run", type=Path, help="a run directory (config.yaml + checkpoints/last.pt)")
+    ap.add_argument("--out", type=Path, default=None, help="folder for the videos (default: RUN/videos)")
+    ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated: {', '.join(KINDS)}")
+    ap.add_argument("--view", default="rgb", choices=VIEWS)
+    ap.add_argument("--width", type=int, default=None, help="image width (default: the run's)")
+    ap.add_argument("--frames", type=int, default=60, help="frames of the time sweep and the orbit")
+    ap.add_argument("--fps", type=float, default=15.0)
+    ap.add_argument("--split", default="test", help="the split the comparison walks through")
+    ap.add_argument("--format", default="auto", choices=("auto", "mp4", "gif"))
+    ap.add_argument("--device", default=None)
+    a = ap.parse_args(argv)
+    from ..view.core import open_run
+    from ..view.video import render_videos
+    try:
+        run = open_run(a.run, device=a.device)
+        paths = render_videos(run, a.out or a.run / "videos", [k for k in a.kinds.split(",") if k], a.width,
+                              a.frames, a.fps, a.view, a.split, a.format)
+    except (FileNotFoundError, RuntimeError, ValueError) as e:
+        raise SystemExit(f"stdr-render: {e}") from None
+    how = "MP4 (imageio-ffmpeg)" if any(p.suffix == ".mp4" for p in paths.values()) else \
+        "GIF (no ffmpeg writer: pip install imageio-ffmpeg for MP4)"
+    print(f"[stdr] wrote {how}: " + ", ".join(str(p) for p in paths.values()))

@@ -1,0 +1,231 @@
+"""stdr-view: a web viewer of a trained run on viser (https://viser.studio), on localhost.
+
+The browser shows the scene; every camera move, time change or view change is rendered here with
+`stdr.view.core.render_view` (the stdr-eval render path) and sent back as the background image.
+Each connected browser has one render thread that always renders the newest request (older
+ones are dropped), and one lock serializes access to the model.
+"""
+from __future__ import annotations
+
+import errno
+import socket
+import threading
+import time
+from typing import Optional
+
+import numpy as np
+
+from .core import ViewRun, available_views, camera_from_viser, camera_to_viser, render_view
+
+MAX_FRUSTA = 200
+
+
+def check_port(host: str, port: int) -> None:
+    """A clear error when `port` on `host` cannot be served (viser would silently move to the
+    next free port, and the URL printed would be wrong)."""
+    if not 0 < port < 65536:
+        raise ValueError(f"--port {port}: must be in 1..65535")
+    fam = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(fam, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host, port))
+        except OSError as e:
+            if e.errno == errno.EADDRINUSE:
+                raise RuntimeError(f"port {port} on {host} is taken (another stdr-view, or another program): "
+                                   "pick a free one with --port") from None
+            raise RuntimeError(f"cannot serve on {host}:{port}: {e.strerror} (check --host)") from None
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+class _ClientRenderer:
+    """One browser: a thread that renders its newest request."""
+
+    def __init__(self, viewer: "Viewer", client):
+        self.viewer, self.client = viewer, client
+        self.wake = threading.Event()
+        self.alive = True
+        self.thread = threading.Thread(target=self._loop, name=f"stdr-view-{client.client_id}", daemon=True)
+        self.thread.start()
+
+    def request(self) -> None:
+        self.wake.set()
+
+    def _loop(self) -> None:
+        while self.alive and not self.viewer.stopped.is_set():
+            if not self.wake.wait(timeout=0.5):
+                continue
+            self.wake.clear()
+            try:
+                img = self.viewer.render_client(self.client)
+            except Exception as e:  # noqa: BLE001 - shown in the page, the viewer goes on
+                self.viewer.set_status(f"render failed: {type(e).__name__}: {e}")
+                continue
+            if img is not None:
+                self.client.scene.set_background_image(img, format="jpeg", jpeg_quality=92)
+
+
+class Viewer:
+    """A viser server showing `run`: free camera starting at a test camera, time slider and
+    play/pause, the views of `available_views`, dataset camera frusta and a dropdown to jump to
+    any train/val/test camera."""
+
+    def __init__(self, run: ViewRun, host: str = "127.0.0.1", port: int = 8080, max_width: Optional[int] = None,
+                 verbose: bool = False):
+        import viser
+
+        check_port(host, port)
+        self.run = run
+        self.lock = threading.Lock()
+        self.stopped = threading.Event()
+        self.frame_ms: list[float] = []
+        self.renderers: dict[int, _ClientRenderer] = {}
+        cam0, t0 = run.default_camera()
+        self.base_width = cam0.width
+        self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        if self.server.get_port() != port:  # taken between the check and the start
+            self.server.stop()
+            raise RuntimeError(f"port {port} on {host} was taken while starting: pick another with --port")
+        self.host, self.port = host, port
+        gui = self.server.gui
+        self.views = available_views(run)
+        self.gui_view = gui.add_dropdown("view", tuple(self.views), initial_value="rgb")
+        self.gui_time = gui.add_slider("time", min=0.0, max=1.0, step=0.001, initial_value=float(t0))
+        self.gui_play = gui.add_checkbox("play", False)
+        self.gui_period = gui.add_slider("seconds per sweep", min=1.0, max=30.0, step=0.5, initial_value=5.0)
+        self.gui_width = gui.add_slider("image width", min=64, max=max(1600, 2 * cam0.width), step=8,
+                                        initial_value=int(max_width or cam0.width))
+        labels = [lb for lb, _ in run.cameras()]
+        self.gui_camera = gui.add_dropdown("camera", tuple(labels) if labels else ("(no dataset cameras)",),
+                                           initial_value=labels[0] if labels else "(no dataset cameras)")
+        self.gui_frusta = gui.add_checkbox("training cameras", True)
+        self.gui_info = gui.add_markdown(self._info())
+        self.gui_status = gui.add_markdown(run.data_note or "")
+        for h in (self.gui_view, self.gui_time, self.gui_width):
+            h.on_update(lambda _: self.request_all())
+        self.gui_camera.on_update(lambda _: self.jump_all())
+        self.gui_frusta.on_update(lambda _: self._show_frusta(self.gui_frusta.value))
+        self._add_frusta()
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
+        self.player = threading.Thread(target=self._play, name="stdr-view-play", daemon=True)
+        self.player.start()
+
+    # ------------------------------------------------------------------ state
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+    def _info(self) -> str:
+        m = self.run.model
+        ft = f"{np.median(self.frame_ms[-20:]):.0f} ms" if self.frame_ms else "–"
+        return (f"**{self.run.cfg.name}** · {m.num_gaussians:,} Gaussians · backend {m.backend} on {m.device} · "
+                f"image width {int(self.gui_width.value)} px · frame time {ft}")
+
+    def set_status(self, text: str) -> None:
+        self.gui_status.content = text
+
+    def _add_frusta(self) -> None:
+        self.frusta = []
+        frames = self.run.frames.get("train", [])
+        step = max(1, len(frames) // MAX_FRUSTA)
+        for i, f in enumerate(frames[::step]):
+            wxyz, pos, fov = camera_to_viser(f.camera)
+            self.frusta.append(self.server.scene.add_camera_frustum(
+                f"/cameras/train_{i * step}", fov=fov, aspect=f.camera.width / f.camera.height, scale=0.08,
+                wxyz=wxyz, position=pos, color=(90, 90, 200)))
+
+    def _show_frusta(self, on: bool) -> None:
+        for h in self.frusta:
+            h.visible = on
+
+    # ------------------------------------------------------------------ clients
+    def _connect(self, client) -> None:
+        self._jump(client)
+        r = _ClientRenderer(self, client)
+        self.renderers[client.client_id] = r
+        client.camera.on_update(lambda _: r.request())
+        r.request()
+
+    def _disconnect(self, client) -> None:
+        r = self.renderers.pop(client.client_id, None)
+        if r is not None:
+            r.alive = False
+            r.wake.set()
+
+    def _selected(self):
+        for lb, f in self.run.cameras():
+            if lb == self.gui_camera.value:
+                return f
+        return None
+
+    def _jump(self, client) -> None:
+        """Put the client's camera at the selected dataset camera (and its time)."""
+        f = self._selected()
+        cam = f.camera if f is not None else self.run.default_camera()[0]
+        wxyz, pos, fov = camera_to_viser(cam)
+        R_wc = cam.R.detach().double().cpu().numpy().T
+        centroid = self.run.model.params["means"].detach().double().mean(0).cpu().numpy()
+        dist = max(float((centroid - pos) @ R_wc[:, 2]), 1e-3)
+        with client.atomic():
+            client.camera.fov = fov
+            client.camera.up_direction = -R_wc[:, 1]
+            client.camera.position = pos
+            client.camera.look_at = pos + dist * R_wc[:, 2]
+        if f is not None:
+            self.gui_time.value = float(f.time)
+
+    def jump_all(self) -> None:
+        for c in self.server.get_clients().values():
+            self._jump(c)
+        self.request_all()
+
+    def request_all(self) -> None:
+        self.gui_info.content = self._info()
+        for r in list(self.renderers.values()):
+            r.request()
+
+    # ------------------------------------------------------------------ rendering
+    def camera_for(self, wxyz, position, fov: float, canvas_w: int, canvas_h: int):
+        """Our camera for a viser view, at the chosen image width and the canvas' aspect."""
+        w = int(self.gui_width.value)
+        h = max(1, int(round(w * canvas_h / max(canvas_w, 1))))
+        return camera_from_viser(wxyz, position, fov, w, h)
+
+    def render(self, camera, t: float, view: str) -> np.ndarray:
+        """One frame (uint8 [H, W, 3]), timed; the model is used by one render at a time."""
+        with self.lock:
+            t0 = time.perf_counter()
+            img = render_view(self.run.model, camera.to(self.run.model.device), float(t), view)
+            self.frame_ms.append(1000.0 * (time.perf_counter() - t0))
+        return img
+
+    def render_client(self, client) -> Optional[np.ndarray]:
+        c = client.camera
+        if c.image_width <= 0 or c.image_height <= 0:
+            return None
+        cam = self.camera_for(c.wxyz, c.position, c.fov, c.image_width, c.image_height)
+        img = self.render(cam, float(self.gui_time.value), str(self.gui_view.value))
+        self.gui_info.content = self._info()
+        return img
+
+    def _play(self) -> None:
+        last = time.perf_counter()
+        while not self.stopped.wait(0.05):
+            now = time.perf_counter()
+            if self.gui_play.value:
+                dt = (now - last) / float(self.gui_period.value)
+                self.gui_time.value = float((self.gui_time.value + dt) % 1.0)
+            last = now
+
+    def stop(self) -> None:
+        self.stopped.set()
+        for r in self.renderers.values():
+            r.alive = False
+            r.wake.set()
+        self.server.stop()
+

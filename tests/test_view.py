@@ -1,0 +1,182 @@
+"""stdr-view and stdr-render (issue 19): camera conversions, views, the viser server on a free
+port (page served, renders equal to render(), clean shutdown, clear errors), a real browser when
+Chromium is installed, and videos with the expected frame count and size."""
+import os
+import shutil
+import socket
+import subprocess
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from stdr.view.core import (_matrix_to_quat, _quat_to_matrix, available_views, camera_from_viser, camera_to_viser,
+                            open_run, render_view, to_uint8)
+
+SCHED = ["optim.iterations=60", "baseline.warmup=20", "densify.refine_start=10", "densify.refine_every=10",
+         "train.checkpoint_every=0", "train.eval_at_warmup_end=false", "eval.fps_repeats=1"]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """A tiny STDR run (past its freeze: every view exists) and a tiny plain run."""
+    from stdr.cli.train import run
+    from stdr.testing import tiny_config
+    root = tmp_path_factory.mktemp("view")
+    run(tiny_config(root, SCHED + ["stdr=on", "stdr.warmup_end=25", "stdr.freeze_at=40"]), root / "stdr")
+    run(tiny_config(root, SCHED), root / "plain")
+    return root
+
+
+def test_quaternions_round_trip():
+    g = torch.Generator().manual_seed(0)
+    for _ in range(50):
+        q = torch.randn(4, generator=g).double().numpy()
+        q /= np.linalg.norm(q)
+        R = _quat_to_matrix(q)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
+        assert np.allclose(_quat_to_matrix(_matrix_to_quat(R)), R, atol=1e-12)
+    for R in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])):  # trace -1
+        assert np.allclose(_quat_to_matrix(_matrix_to_quat(R)), R, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_dataset_cameras_survive_the_viser_convention(runs):
+    r = open_run(runs / "stdr", device="cpu")
+    for f in r.frames["train"][:10] + r.frames["test"]:
+        c = f.camera
+        wxyz, pos, fov = camera_to_viser(c)
+        back = camera_from_viser(wxyz, pos, fov, c.width, c.height)
+        assert torch.allclose(back.R, c.R, atol=1e-6) and torch.allclose(back.t, c.t, atol=1e-5)
+        assert (back.fx, back.fy, back.cx, back.cy) == pytest.approx((c.fx, c.fy, c.cx, c.cy), rel=1e-9)
+        assert np.allclose(pos, c.center.double().numpy(), atol=1e-6)
+
+
+@pytest.mark.slow
+def test_views(runs):
+    r = open_run(runs / "stdr", device="cpu")
+    assert available_views(r) == ["rgb", "depth", "alpha", "mask", "dynamic"]
+    f = r.frames["test"][0]
+    rgb = render_view(r.model, f.camera, f.time, "rgb")
+    assert np.array_equal(rgb, to_uint8(r.model.render(f.camera, f.time).image))  # the stdr-eval render
+    assert rgb.shape == (f.camera.height, f.camera.width, 3) and rgb.dtype == np.uint8
+    a = render_view(r.model, f.camera, f.time, "alpha")
+    assert np.array_equal(a[..., 0], to_uint8(r.model.render(f.camera, f.time).alpha[..., None])[..., 0])
+    for v in ("depth", "mask", "dynamic"):
+        img = render_view(r.model, f.camera, f.time, v)
+        assert img.shape == rgb.shape and img.std() > 0, v
+    assert not np.array_equal(render_view(r.model, f.camera, 0.0, "rgb"), render_view(r.model, f.camera, 1.0, "rgb"))
+    plain = open_run(runs / "plain", device="cpu")
+    assert available_views(plain) == ["rgb", "depth", "alpha"]
+    with pytest.raises(ValueError, match="stdr.enabled"):
+        render_view(plain.model, f.camera, f.time, "mask")
+    with pytest.raises(ValueError, match="not one of"):
+        render_view(plain.model, f.camera, f.time, "normals")
+
+
+class _Cam:  # what the viewer reads of a viser client's camera
+    def __init__(self, wxyz, position, fov, w, h):
+        self.wxyz, self.position, self.fov, self.image_width, self.image_height = wxyz, position, fov, w, h
+
+
+class _Client:
+    def __init__(self, cam):
+        self.camera = cam
+
+
+@pytest.mark.slow
+def test_viewer_serves_renders_and_stops(runs):
+    from stdr.view.server import Viewer, check_port, free_port
+    r = open_run(runs / "stdr", device="cpu")
+    port = free_port()
+    v = Viewer(r, port=port)
+    try:
+        page = urllib.request.urlopen(f"{v.url}/", timeout=30).read().decode()
+        assert page.lower().startswith("<!doctype html>")
+        with pytest.raises(RuntimeError, match=f"port {port} on 127.0.0.1 is taken"):
+            check_port("127.0.0.1", port)
+        # a browser's camera: the first test camera in viser's terms, on a 2:1 canvas
+        f = r.frames["test"][0]
+        wxyz, pos, fov = camera_to_viser(f.camera)
+        client = _Client(_Cam(wxyz, pos, fov, 640, 320))
+        img = v.render_client(client)
+        cam = v.camera_for(wxyz, pos, fov, 640, 320)
+        assert img.shape == (cam.height, cam.width, 3) and cam.width == int(v.gui_width.value)
+        assert cam.width == 2 * cam.height
+        assert np.array_equal(img, to_uint8(r.model.render(cam, float(v.gui_time.value)).image))
+        # the start: the first test camera at its own time, so the image equals stdr-eval's render
+        assert v.gui_time.value == pytest.approx(f.time, abs=1e-3)
+        same = v.render_client(_Client(_Cam(wxyz, pos, fov, f.camera.width, f.camera.height)))
+        diff = np.abs(same.astype(int) - to_uint8(r.model.render(f.camera, f.time).image).astype(int))
+        assert diff.max() <= 2 and diff.mean() < 0.05  # float32 round trip of the pose
+        v.gui_view.value = "mask"
+        assert not np.array_equal(v.render_client(client), img)
+        assert v.frame_ms and "frame time" in v._info()
+    finally:
+        v.stop()
+    time.sleep(0.5)
+    check_port("127.0.0.1", port)  # free again after stop
+
+
+def test_bad_run_directories_are_named(tmp_path):
+    from stdr.cli.view import render_main, view_main
+    from stdr.view.server import free_port
+    with pytest.raises(SystemExit, match="no such folder"):
+        view_main([str(tmp_path / "nope"), "--port", str(free_port())])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit, match="not a trained run: config.yaml, checkpoints/last.pt missing"):
+        render_main([str(tmp_path / "empty")])
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        with pytest.raises(SystemExit, match="is taken"):
+            view_main([str(tmp_path / "empty"), "--port", str(s.getsockname()[1])])
+
+
+@pytest.mark.slow
+def test_stdr_render_writes_videos_of_the_expected_size(runs, tmp_path):
+    import imageio.v3 as iio
+    from stdr.cli.view import render_main
+    render_main([str(runs / "stdr"), "--out", str(tmp_path / "v"), "--frames", "5", "--fps", "5",
+                 "--format", "gif", "--view", "rgb"])
+    r = open_run(runs / "stdr", device="cpu")
+    cam = r.frames["test"][0].camera
+    n_test = len(r.frames["test"])
+    for kind, n, w in (("time", 5, cam.width), ("orbit", 5, cam.width), ("compare", n_test, 3 * cam.width)):
+        frames = iio.imread(tmp_path / "v" / f"{kind}_rgb.gif", index=None)
+        assert frames.shape[0] == n and frames.shape[1:3] == (cam.height, w), kind
+    # the time sweep moves and the orbit turns: consecutive frames differ
+    sweep = iio.imread(tmp_path / "v" / "time_rgb.gif", index=None)
+    assert not np.array_equal(sweep[0], sweep[-1])
+    with pytest.raises(SystemExit, match="--kinds spin"):
+        render_main([str(runs / "stdr"), "--kinds", "spin", "--out", str(tmp_path / "w")])
+
+
+def _chromium():
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        if shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(_chromium() is None, reason="no Chromium: `apt-get install -y chromium` runs this test")
+def test_a_real_browser_shows_a_render(runs, tmp_path):
+    from PIL import Image
+    from stdr.view.server import Viewer, free_port
+    r = open_run(runs / "stdr", device="cpu")
+    v = Viewer(r, port=free_port())
+    shot = tmp_path / "shot.png"
+    try:
+        proc = subprocess.run([_chromium(), "--headless=new", "--no-sandbox", "--disable-gpu",
+                               "--use-gl=swiftshader", "--window-size=800,600", "--virtual-time-budget=15000",
+                               f"--screenshot={shot}", v.url], capture_output=True, timeout=120,
+                              env={**os.environ, "HOME": str(tmp_path)})
+        assert shot.is_file(), proc.stderr.decode()[-2000:]
+        assert v.frame_ms, "the browser connected but no frame was rendered for it"
+    finally:
+        v.stop()
+    img = np.asarray(Image.open(shot).convert("RGB")).astype(float)
+    assert img.std() > 5  # not a blank page
