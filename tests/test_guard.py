@@ -7,7 +7,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 import torch
@@ -146,7 +145,6 @@ def test_a_run_with_a_recovery_resumes_exactly(tmp_path):
 
 CHILD = r"""
 import sys, time
-from pathlib import Path
 from stdr.testing import tiny_config
 from stdr.train.trainer import Trainer
 folder, marker = Path(sys.argv[1]), Path(sys.argv[2])

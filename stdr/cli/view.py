@@ -16,6 +16,9 @@ def view_main(argv=None) -> None:
     ap.add_argument("--host", default="127.0.0.1", help="127.0.0.1 (default: this machine only) or 0.0.0.0")
     ap.add_argument("--device", default=None, help="cpu | cuda | auto (default: the run's own)")
     ap.add_argument("--max-width", type=int, default=None, help="initial image width (default: the run's)")
+    ap.add_argument("--view", default="rgb", choices=VIEWS, help="the view to start with")
+    ap.add_argument("--screenshot", type=Path, default=None,
+                    help="open the page in headless Chromium, save a PNG once it shows a render, and exit")
     a = ap.parse_args(argv)
     from ..view.core import open_run
     from ..view.server import Viewer, check_port
@@ -25,8 +28,25 @@ def view_main(argv=None) -> None:
         viewer = Viewer(run, host=a.host, port=a.port, max_width=a.max_width)
     except (FileNotFoundError, RuntimeError, ValueError) as e:
         raise SystemExit(f"stdr-view: {e}") from None
+    if a.view not in viewer.views:
+        viewer.stop()
+        raise SystemExit(f"stdr-view: --view {a.view} is not available for this run ({', '.join(viewer.views)})")
+    viewer.gui_view.value = a.view
     if run.data_note:
         print(f"[stdr] {run.data_note}")
+    if a.screenshot is not None:
+        from ..view.browser import screenshot
+        try:
+            n0 = 0
+            path = screenshot(viewer.url, a.screenshot, ready=lambda: len(viewer.frame_ms) > n0)
+        except (RuntimeError, TimeoutError) as e:
+            raise SystemExit(f"stdr-view --screenshot: {e}") from None
+        finally:
+            viewer.stop()
+        import numpy as np
+        print(f"[stdr] screenshot {path}; frame time {np.median(viewer.frame_ms):.0f} ms (median of "
+              f"{len(viewer.frame_ms)} frames)")
+        return
     print(f"[stdr] viewing {a.run} ({run.model.num_gaussians:,} Gaussians, backend {run.model.backend} on "
           f"{run.model.device}) at {viewer.url}  (Ctrl+C stops)", flush=True)
     try:
