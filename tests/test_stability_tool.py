@@ -102,3 +102,39 @@ def test_the_stability_sweep_composes_every_preset():
         assert (st.label, st.level) == (("none", 0) if p == "none" else (p.split("_")[0], int(p.split("_")[1])))
         seen.add((st.label, st.level))
     assert len(seen) == len(presets)
+
+
+def _theta_runs(root, name, values):
+    """<root>/<name>/<scene>/metrics.json with (psnr, fps) per scene."""
+    for scene, (psnr, fps) in values.items():
+        d = root / name / scene
+        d.mkdir(parents=True)
+        (d / "metrics.json").write_text(json.dumps({"val": {"psnr": psnr, "fps": fps, "fps_passes": [fps] * 5,
+                                                            "static_skipped_mean": 50, "active_gaussians_mean": 100}}))
+    return str(root / name)
+
+
+def test_static_rule_picks_the_largest_qualifying_theta(tmp_path):
+    from stdr.tools.static_rule import main as rule
+    ref = {"a": (30.0, 10.0), "b": (20.0, 20.0)}
+    # deform: θ=0.1 costs 0.04 dB and gains +10 %; θ=0.3 costs 0.2 dB
+    d = {0: ref, 0.1: {"a": (29.96, 11.0), "b": (19.96, 22.0)}, 0.3: {"a": (29.8, 12.0), "b": (19.8, 24.0)}}
+    # 4dgs: θ=0.1 costs 0.01 dB, gains +2 % (mean of per-scene ratios: 1.0 and 1.04)
+    f = {0: ref, 0.1: {"a": (29.99, 10.0), "b": (19.99, 20.8)}, 0.3: {"a": (29.99, 10.0), "b": (19.99, 20.8)}}
+    args = ["--split", "val", "--out", str(tmp_path / "out")]
+    for name, vals in (("deform", d), ("4dgs", f)):
+        args += ["--baseline", name] + [f"{t}={_theta_runs(tmp_path, f'{name}_{t}', v)}" for t, v in vals.items()]
+    rule(args)
+    res = json.loads((tmp_path / "out.json").read_text())
+    rows = {(r["baseline"], r["theta"]): r for r in res["rows"]}
+    assert rows[("deform", 0.1)]["psnr_cost"] == pytest.approx(0.04)
+    assert rows[("deform", 0.1)]["fps_gain"] == pytest.approx(0.10)
+    assert rows[("4dgs", 0.1)]["fps_gain"] == pytest.approx(0.02) and rows[("4dgs", 0.1)]["skipped_share"] == 0.5
+    assert res["qualifying"] == [0.1] and res["default"] == 0.1  # 0.3 costs deform 0.2 dB
+    assert "**θ = 0.1**" in (tmp_path / "out.md").read_text()
+    # with a stricter cost no θ qualifies: static skipping stays off
+    rule(args[:3] + [str(tmp_path / "strict")] + args[4:] + ["--max-cost", "0.03"])
+    strict = json.loads((tmp_path / "strict.json").read_text())
+    assert strict["qualifying"] == [] and strict["default"] == 0.0
+    with pytest.raises(SystemExit, match="0=FOLDER"):
+        rule(["--baseline", "x", f"0.1={tmp_path}", f"0.3={tmp_path}"])
