@@ -17,7 +17,7 @@ from stdr.train.guard import TrainingDiverged, all_finite, first_nonfinite
 # a short schedule that crosses densification, the warm-up end and an opacity reset
 SCHED = ["optim.iterations=60", "baseline.warmup=20", "densify.refine_start=10", "densify.refine_every=10",
          "densify.reset_every=30", "densify.prune_big_after=30", "train.checkpoint_every=0",
-         "train.eval_at_warmup_end=false", "train.guard.snapshot_every=10"]
+         "train.eval_at_warmup_end=false", "train.guard.enabled=true", "train.guard.snapshot_every=10"]
 
 
 def _trainer(tmp_path, name, extra=()):
@@ -145,6 +145,7 @@ def test_a_run_with_a_recovery_resumes_exactly(tmp_path):
 
 CHILD = r"""
 import sys, time
+from pathlib import Path
 from stdr.testing import tiny_config
 from stdr.train.trainer import Trainer
 folder, marker = Path(sys.argv[1]), Path(sys.argv[2])

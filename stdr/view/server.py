@@ -27,6 +27,9 @@ def check_port(host: str, port: int) -> None:
         raise ValueError(f"--port {port}: must be in 1..65535")
     fam = socket.AF_INET6 if ":" in host else socket.AF_INET
     with socket.socket(fam, socket.SOCK_STREAM) as s:
+        # as servers bind: connections of a closed server (TIME_WAIT) do not hold the port, a live
+        # listener does (Linux refuses the bind then, SO_REUSEADDR or not)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind((host, port))
         except OSError as e:
