@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 from stdr.view.browser import find_chromium
-from stdr.view.core import (_matrix_to_quat, _quat_to_matrix, available_views, camera_from_viser, camera_to_viser,
+from stdr.data.colmap import qvec_to_rotmat as _quat_to_matrix
+from stdr.view.core import (_matrix_to_quat, available_views, camera_from_viser, camera_to_viser,
                             open_run, render_view, to_uint8)
 
 SCHED = ["optim.iterations=60", "baseline.warmup=20", "densify.refine_start=10", "densify.refine_every=10",

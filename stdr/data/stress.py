@@ -23,6 +23,7 @@ from typing import Any, List, Optional
 import numpy as np
 import torch
 
+from ..deform.geometry import so3_exp
 from .types import Frame, SceneData
 
 
@@ -69,12 +70,6 @@ def check_stress(cfg) -> None:
     for k in ("pose_rot_deg", "pose_trans", "time_jitter"):
         if getattr(cfg, k) < 0:
             raise ValueError(f"data.stress.{k}={getattr(cfg, k)}: must be 0 or more")
-
-
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """[3, 3] rotation by `angle` (radians) about unit `axis` (Rodrigues)."""
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
 
 
 def scene_radius(frames: list[Frame]) -> float:
@@ -126,7 +121,7 @@ def apply_stress(scene: SceneData, cfg, seed: int) -> dict[str, Any]:
             ang = np.deg2rad(rng.normal(0.0, cfg.pose_rot_deg)) if cfg.pose_rot_deg else 0.0
             d = rng.normal(0.0, cfg.pose_trans * radius / np.sqrt(3.0), size=3) if cfg.pose_trans else np.zeros(3)
             # the camera turns about its own centre: world-to-camera R' = R @ dR^T
-            R2 = R @ _rotation(axis, ang).T
+            R2 = R @ so3_exp(torch.tensor(axis * ang, dtype=torch.float64)).numpy().T
             c2 = c + d
             t2 = -R2 @ c2
             noisy.append(replace(f, camera=replace(cam, R=torch.as_tensor(R2, dtype=cam.R.dtype).to(cam.R.device),

@@ -307,10 +307,11 @@ class Trainer:
             self.guard.fired.add(("nan", step))
             if params["means"].grad is not None:
                 params["means"].grad[0, 0] = float("nan")
+        nets = self._net_params()
+        if all_finite([loss, *(p.grad for p in params.values()), *(p.grad for _, p in nets)]):
+            return None  # the names below are built only on a failure
         grads = [("loss", loss)] + [(f"grad of {k}", p.grad) for k, p in params.items()] + \
-            [(f"grad of {k}", p.grad) for k, p in self._net_params()]
-        if all_finite(t for _, t in grads):
-            return None
+            [(f"grad of {k}", p.grad) for k, p in nets]
         return f"non-finite {first_nonfinite(grads)}"
 
     def _zero_grads(self) -> None:

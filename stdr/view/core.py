@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from ..cameras import Camera
+from ..data.colmap import qvec_to_rotmat
 from ..data.types import Frame
 
 VIEWS = ("rgb", "depth", "alpha", "mask", "dynamic")
@@ -96,13 +97,6 @@ def open_run(run_dir: str | Path, device: Optional[str] = None, base: Optional[s
 
 
 # ------------------------------------------------------------------ cameras
-def _quat_to_matrix(wxyz: np.ndarray) -> np.ndarray:
-    w, x, y, z = np.asarray(wxyz, dtype=np.float64) / np.linalg.norm(wxyz)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
 def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """wxyz of a rotation matrix (Shepperd's method, w >= 0)."""
     R = np.asarray(R, dtype=np.float64)
@@ -127,7 +121,7 @@ def camera_from_viser(wxyz, position, fov_y: float, width: int, height: int) -> 
     """Our world-to-camera pinhole from viser's camera: orientation wxyz = R_world_camera,
     position = the camera centre, vertical field of view (radians), OpenCV axes in both; the
     principal point at the image centre, square pixels."""
-    Rwc = _quat_to_matrix(np.asarray(wxyz))
+    Rwc = qvec_to_rotmat(np.asarray(wxyz))
     R = Rwc.T
     t = -R @ np.asarray(position, dtype=np.float64)
     f = 0.5 * height / np.tan(0.5 * fov_y)
@@ -140,6 +134,14 @@ def camera_to_viser(cam: Camera) -> tuple[np.ndarray, np.ndarray, float]:
     camera_from_viser for a centred principal point and square pixels)."""
     R = cam.R.detach().double().cpu().numpy()
     return _matrix_to_quat(R.T), cam.center.detach().double().cpu().numpy(), float(2 * np.arctan(0.5 * cam.height / cam.fy))
+
+
+def look_at_point(run: ViewRun, cam: Camera) -> np.ndarray:
+    """The point `cam` looks at, at the depth of the Gaussians' centroid along its axis [3]."""
+    R_wc = cam.R.detach().double().cpu().numpy().T
+    c = cam.center.detach().double().cpu().numpy()
+    centroid = run.model.params["means"].detach().double().mean(0).cpu().numpy()
+    return c + max(float((centroid - c) @ R_wc[:, 2]), 1e-3) * R_wc[:, 2]
 
 
 def scale_to_width(cam: Camera, width: int) -> Camera:

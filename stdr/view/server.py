@@ -15,7 +15,7 @@ from typing import Optional
 
 import numpy as np
 
-from .core import ViewRun, available_views, camera_from_viser, camera_to_viser, render_view
+from .core import ViewRun, available_views, camera_from_viser, camera_to_viser, look_at_point, render_view
 
 MAX_FRUSTA = 200
 
@@ -171,14 +171,11 @@ class Viewer:
         f = self._selected()
         cam = f.camera if f is not None else self.run.default_camera()[0]
         wxyz, pos, fov = camera_to_viser(cam)
-        R_wc = cam.R.detach().double().cpu().numpy().T
-        centroid = self.run.model.params["means"].detach().double().mean(0).cpu().numpy()
-        dist = max(float((centroid - pos) @ R_wc[:, 2]), 1e-3)
         with client.atomic():
             client.camera.fov = fov
-            client.camera.up_direction = -R_wc[:, 1]
+            client.camera.up_direction = -cam.R.detach().double().cpu().numpy()[1]
             client.camera.position = pos
-            client.camera.look_at = pos + dist * R_wc[:, 2]
+            client.camera.look_at = look_at_point(self.run, cam)
         if f is not None:
             self.gui_time.value = float(f.time)
 

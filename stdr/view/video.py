@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .core import ViewRun, render_view, scale_to_width, to_uint8
+from .core import ViewRun, look_at_point, render_view, scale_to_width, to_uint8
 
 KINDS = ("time", "orbit", "compare")
 
@@ -60,18 +60,10 @@ def write_video(frames: list[np.ndarray], stem: Path, fps: float, fmt: str = "au
     return path
 
 
-def _pivot(run: ViewRun, cam) -> np.ndarray:
-    """The point `cam` looks at, at the depth of the Gaussians' centroid along its axis."""
-    R_wc = cam.R.detach().double().cpu().numpy().T
-    c = cam.center.detach().double().cpu().numpy()
-    centroid = run.model.params["means"].detach().double().mean(0).cpu().numpy()
-    return c + max(float((centroid - c) @ R_wc[:, 2]), 1e-3) * R_wc[:, 2]
-
-
 def _rotate_about(cam, pivot: np.ndarray, axis: np.ndarray, angle: float):
     """The camera turned by `angle` about the line through `pivot` along `axis` (world frame)."""
-    from ..data.stress import _rotation
-    D = _rotation(axis / np.linalg.norm(axis), angle)  # world rotation
+    from ..deform.geometry import so3_exp
+    D = so3_exp(torch.tensor(axis / np.linalg.norm(axis) * angle, dtype=torch.float64)).numpy()  # world rotation
     R = cam.R.detach().double().cpu().numpy()
     c = cam.center.detach().double().cpu().numpy()
     c2 = pivot + D @ (c - pivot)
@@ -89,7 +81,7 @@ def time_sweep(run: ViewRun, frames: int, width: int, view: str = "rgb") -> list
 def orbit(run: ViewRun, frames: int, width: int, view: str = "rgb", turns: float = 1.0) -> list[np.ndarray]:
     cam, _ = run.default_camera()
     cam = scale_to_width(cam, width)
-    pivot = _pivot(run, cam)
+    pivot = look_at_point(run, cam)
     up = -cam.R.detach().double().cpu().numpy().T[:, 1]
     out = []
     for k, t in enumerate(np.linspace(0.0, 1.0, frames)):
