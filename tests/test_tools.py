@@ -45,7 +45,7 @@ def test_densify_trace_reads_both_checkpoint_formats_and_counts_invisible_gaussi
 def _metrics_run(folder, psnr, fps, n, active, train_s, cull="eval", scene_split="test"):
     folder.mkdir(parents=True)
     entry = {"psnr": psnr, "ssim": 0.9, "lpips": 0.1, "fps": fps, "fps_passes": [fps] * 3, "num_gaussians": n,
-             "active_gaussians_mean": active, "model_mb": n * 59 * 4 / 2 ** 20, "train_seconds": train_s,
+             "active_gaussians_mean": active, "active_gaussians_max": active + 10, "model_mb": n * 59 * 4 / 2 ** 20, "train_seconds": train_s,
              "iterations": 100, "render_cull": cull, "static_skip": 0.0, "conventions": {}}
     (folder / "metrics.json").write_text(json.dumps({scene_split: entry}))
 
@@ -58,6 +58,8 @@ def test_variants_table_means_common_scenes_and_ratios(tmp_path, capsys):
         _metrics_run(tmp_path / "plain" / sc, pa, 10.0, 1000, 1000, 100.0, cull="off")
         _metrics_run(tmp_path / "stdr" / sc, pb, 25.0, 800, 300, 150.0)
     _metrics_run(tmp_path / "stdr" / "extra", 99.0, 1.0, 1, 1, 1.0)  # only one variant has it
+    for sc, sec in {"a": {"deform": 10.0, "backward": 30.0}, "b": {"deform": 20.0, "backward": 50.0}}.items():
+        (tmp_path / "stdr" / sc / "train_profile.json").write_text(json.dumps({"seconds": sec}))
     out = tmp_path / "t" / "deform"
     variants.main(["--table", "deform", f"plain={tmp_path / 'plain'}", f"+STDR={tmp_path / 'stdr'}",
                    "--out", str(out)])
@@ -68,9 +70,21 @@ def test_variants_table_means_common_scenes_and_ratios(tmp_path, capsys):
     assert stdr["fps_ratio"] == pytest.approx(2.5) and stdr["num_gaussians_ratio"] == pytest.approx(0.8)
     assert stdr["train_seconds_ratio"] == pytest.approx(1.5) and stdr["active_share"] == pytest.approx(0.375)
     assert plain["render_cull"] == "off" and stdr["render_cull"] == "eval"
+    assert stdr["active_gaussians_max"] == pytest.approx(310)  # the mean over the scenes of each run's max
     md = out.with_suffix(".md").read_text()
     assert stdr["d_psnr"] == pytest.approx(0.75) and plain["d_psnr"] == 0
     assert "| +STDR | 25.75 | +0.75 |" in md and "extra" in md
+    # the training's sections, averaged over the scenes, for the variants whose runs kept them
+    assert stdr["profile"] == {"deform": 15.0, "backward": 40.0} and plain["profile"] is None
+    assert "| +STDR | 15.0 | 40.0 | 55.0 |" in md
+    # the smallest model a scene needs: a: +STDR is 1 dB better, so plain is not within 0.5 dB;
+    # b: plain (30.0) is within 0.5 dB of +STDR's 30.5 and comes first
+    variants.main(["--table", "deform", f"plain={tmp_path / 'plain'}", f"+STDR={tmp_path / 'stdr'}",
+                   "--smallest-within", "0.5", "--out", str(out)])
+    small = {r["scene"]: r for r in json.loads(out.with_suffix(".json").read_text())["tables"][0]["smallest"]}
+    assert (small["a"]["best"], small["a"]["smallest"]) == ("+STDR", "+STDR")
+    assert (small["b"]["best"], small["b"]["smallest"], small["b"]["gaussians"]) == ("+STDR", "plain", 1000)
+    assert "smallest within 0.5 dB" in out.with_suffix(".md").read_text()
     # bad input names what is wrong
     with pytest.raises(SystemExit, match="LABEL=FOLDER"):
         variants.main(["--table", "deform", str(tmp_path / "plain")])
@@ -78,3 +92,47 @@ def test_variants_table_means_common_scenes_and_ratios(tmp_path, capsys):
         variants.main(["--table", "deform", f"plain={tmp_path / 'plain'}", "--split", "val"])
     with pytest.raises(SystemExit, match="no scene has a metrics.json in every variant"):
         variants.main(["--table", "x", f"p={tmp_path / 'plain'}", f"q={tmp_path / 't'}"])
+
+
+def test_bench_train_times_the_step_by_section_at_fixed_counts(tmp_path):
+    import pytest
+
+    from stdr.testing import TINY_SCENE
+    from stdr.tools import bench_train
+    out = tmp_path / "bench"
+    common = [*TINY_SCENE, f"data.cache_dir={tmp_path / 'cache'}", "device=cpu", "model.init_num=300",
+              "train.threads=2"]
+    bench_train.main(["--experiments", "embedded_deform", "embedded_deform_stdr", "--gaussians", "400", "900",
+                      "--res", "64", "--iters", "2", "--warmup-iters", "1", "--out", str(out), "--", *common])
+    data = json.loads(out.with_suffix(".json").read_text())
+    rows = data["rows"]
+    assert [(r["experiment"], r["gaussians"], r["stdr"]) for r in rows] == [
+        ("embedded_deform", 400, False), ("embedded_deform", 900, False),
+        ("embedded_deform_stdr", 400, True), ("embedded_deform_stdr", 900, True)]
+    for r in rows:
+        sec, parts = r["sections_ms"], r["backward_parts_ms"]
+        assert {"deform", "render_fwd", "loss", "backward", "optimizer", "densify"} <= set(sec)
+        assert ("stdr_reg" in sec) == r["stdr"]
+        # the backward is split at the projection's outputs and the deformed Gaussians, nothing lost
+        assert set(parts) == set(bench_train.PARTS) and all(v >= 0 for v in parts.values())
+        assert sum(parts.values()) == pytest.approx(sec["backward"], rel=1e-6)
+        assert r["ms"] > 0 and (r["width"], r["height"]) == (64, 64) and r["iters"] == 2
+        assert r["step"] >= 0 and r["active_mean"] <= r["gaussians"]
+    assert data["mm_ms_before"] > 0 and data["mm_ms_after"] > 0 and data["threads"] == 2
+    md = out.with_suffix(".md").read_text()
+    assert "÷ mm" in md and "bwd: projection+sh" in md and "embedded_deform_stdr" in md
+    with pytest.raises(SystemExit, match="no checkpoints/last.pt"):
+        bench_train.main(["--experiments", "embedded_deform", "--run", str(tmp_path), "--", *common])
+
+
+def test_profiler_adds_no_hooks_in_training():
+    import torch
+
+    from stdr.train.trainer import Profiler
+    p = Profiler()  # training's profiler: watch() must not touch the graph
+    x = torch.ones(3, requires_grad=True)
+    y = x * 2
+    p.watch("part", (y,))
+    assert not y._backward_hooks
+    p.backward(y.sum())
+    assert dict(p.backward_parts) == {} and p.seconds["backward"] > 0 and torch.equal(x.grad, torch.full((3,), 2.0))

@@ -9,6 +9,7 @@ TOOLS = {
     "ghosting": "ghosting",                  # the ghosting scene: deform vs deform+STDR
     "cost-probe": "cost_probe",              # seconds per training step at large Gaussian counts
     "bench-rasterizer": "bench_rasterizer",  # rasterizer backends: time, memory, share of peak
+    "bench-train": "bench_train",            # ms per training step by section at fixed counts and sizes
     "identity-check": "identity_check",      # bit-identity of training / composed configs between commits
     "variants": "variants",                  # variants of one method side by side (plain, +STDR, +cull, ...)
     "stability": "stability",                # the degradation study: accuracy under each stress and level

@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 from torch import Tensor
 
 from ..data.load import load_scene
-from ..device import resolve_device
+from ..device import resolve_device, synchronize
 from ..metrics import l1, psnr, ssim
 from ..model import build_model, initial_points, model_entry
 from ..scene.gaussians import scene_extent
@@ -32,16 +32,58 @@ PAYLOAD_KEYS = ("model", "optimizers", "net_opt", "strategy_state", "sampler", "
 
 
 class Profiler:
-    """Accumulated wall time per named section of the training step."""
+    """Accumulated wall time per named section of the training step.
 
-    def __init__(self):
+    For benchmarks (`stdr-tool bench-train`): `device` set synchronizes it at every section
+    boundary (CUDA runs asynchronously, so unsynchronized sections measure launches), and
+    `split_backward` splits the backward at the tensors given to `watch`: each watched group
+    names the part of the backward that ends when the gradient reaches the group (the last of
+    its tensors); what follows the last group is `after`. The parts go to `backward_parts`, not
+    into `seconds` (they are inside "backward"). Both are off in training: no hooks, no syncs."""
+
+    def __init__(self, split_backward: bool = False, device: Optional[torch.device] = None,
+                 after: str = "rest"):
         self.seconds: dict[str, float] = defaultdict(float)
+        self.backward_parts: dict[str, float] = defaultdict(float)
+        self.split_backward, self.device, self.after = split_backward, device, after
+        self._marks: dict[str, float] = {}
+
+    def _now(self) -> float:
+        if self.device is not None:
+            synchronize(self.device)
+        return time.perf_counter()
 
     @contextmanager
     def __call__(self, name: str):
-        t0 = time.perf_counter()
+        t0 = self._now()
         yield
-        self.seconds[name] += time.perf_counter() - t0
+        self.seconds[name] += self._now() - t0
+
+    def watch(self, name: str, tensors) -> None:
+        """With split_backward: mark when the backward has reached `tensors` (those computed in
+        this step's graph; a leaf's hook would outlive the step, so leaves are not watched)."""
+        if not self.split_backward:
+            return
+        for t in tensors:
+            if isinstance(t, Tensor) and t.requires_grad and t.grad_fn is not None:
+                t.register_hook(lambda grad, n=name: self._mark(n))
+
+    def _mark(self, name: str) -> None:
+        self._marks[name] = self._now()
+
+    def backward(self, loss: Tensor) -> None:
+        """loss.backward() timed as "backward", split at the watched groups when asked."""
+        t0 = self._now()
+        loss.backward()
+        t1 = self._now()
+        self.seconds["backward"] += t1 - t0
+        prev = t0
+        for name, tm in sorted(self._marks.items(), key=lambda kv: kv[1]):
+            self.backward_parts[name] += tm - prev
+            prev = tm
+        if self._marks:
+            self.backward_parts[self.after] += t1 - prev
+        self._marks.clear()
 
 
 class CameraSampler:
@@ -253,6 +295,9 @@ class Trainer:
             g, rows = model.deformed_rows(frame.time, it, cs, cull=self.cull_train)
         with prof("render_fwd"):
             out = model.render_gaussians(g, frame.camera, it)
+        pj = out.projection  # benchmarks split the backward here (no-ops in training)
+        prof.watch("loss+rasterizer", (pj.means2d, pj.conics, pj.opacities, pj.depths))
+        prof.watch("projection+sh", (g.means, g.quats, g.scales, g.opacities, g.sh))
         with prof("loss"):
             lam = cfg.optim.lambda_dssim
             loss_l1 = l1(out.image, frame.image)
@@ -269,8 +314,7 @@ class Trainer:
                 for k, v in model.deform.regularizers(params, frame.time, it, cs[0]).items():
                     terms[k] = v
                     loss = loss + v
-        with prof("backward"):
-            loss.backward()
+        prof.backward(loss)
         if cfg.train.guard.enabled:
             with prof("guard"):
                 bad = self._nonfinite_step(loss, it + 1)
@@ -444,9 +488,12 @@ class Trainer:
 
     def profile_summary(self) -> dict[str, Any]:
         tot = sum(self.profile.seconds.values()) or 1.0
-        return {"seconds": dict(self.profile.seconds),
-                "fraction": {k: v / tot for k, v in self.profile.seconds.items()},
-                "iterations_timed": self.step}
+        out = {"seconds": dict(self.profile.seconds),
+               "fraction": {k: v / tot for k, v in self.profile.seconds.items()},
+               "iterations_timed": self.step}
+        if self.profile.backward_parts:
+            out["backward_parts"] = dict(self.profile.backward_parts)
+        return out
 
     def _log_scalars(self, tb, it, logs, dt) -> None:
         for k in ("loss", "l1", "dssim"):

@@ -1,0 +1,177 @@
+"""Milliseconds per training step, split into sections, at fixed Gaussian counts and resolutions.
+
+For each experiment (e.g. dnerf_deform, dnerf_deform_stdr) and each resolution (data.max_width):
+1. Build the experiment's trainer (the real training step of stdr.train.Trainer, nothing copied).
+2. For each count N, replace its Gaussians by N copies of a source set (a finished run's
+   Gaussians with `--run`, else the trainer's initial points), jittered as `stdr-tool
+   cost-probe` does, and set the step to the end of the schedule minus the steps to time, so
+   every phase is on: the deformation network, STDR's frozen mask and separated field, the
+   full SH degree. Densification is off (N stays fixed); its per-step statistics still run.
+3. Time `--iters` steps after `--warmup-iters` untimed ones. Per step: the median wall time,
+   and the mean of each section of the trainer's profiler: deformation forward (`deform`:
+   conditioning and deformed rows), `render_fwd` (projection, SH and rasterizer), `loss`, the
+   plug-ins' and the baseline's regularizers, `backward`, `optimizer`, `densify`. The backward
+   is split where its gradient reaches the projection's outputs (`loss+rasterizer`), then the
+   deformed Gaussians (`projection+sh`); the rest is the deformation network's and the
+   regularizers' backward (`deformation+reg`). On CUDA every section boundary synchronizes.
+
+A fixed `torch.mm` workload (2048², fp32) is timed before and after, so results from machines
+under other load can be compared as ratios (`ms / mm_ms`).
+
+    stdr-tool bench-train --run RUN --gaussians 10000 20000 50000 --res 200 400 \\
+        --experiments dnerf_deform dnerf_deform_stdr --out docs/measurements/bench_train_cpu \\
+        -- data.path=../shared/data/dnerf/standup budget=cpu
+"""
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from ..cli.common import compose_config
+from ..device import synchronize
+from ..eval.evaluate import code_version, machine_name
+from ..eval.table import fmt_value as fmt
+from ..eval.table import markdown_table, write_outputs
+from ..scene.gaussians import GAUSSIAN_KEYS
+from ..train.checkpoint import load_checkpoint
+from ..train.trainer import Profiler, Trainer
+from .cost_probe import replicate
+
+SECTIONS = ("deform", "render_fwd", "loss", "stdr_reg", "deform_reg", "backward", "optimizer", "densify")
+PARTS = ("loss+rasterizer", "projection+sh", "deformation+reg")
+
+
+def mm_reference(device: torch.device, n: int = 2048, repeats: int = 5) -> float:
+    """Median milliseconds of one n x n fp32 torch.mm on `device` (the machine's yardstick)."""
+    a = torch.randn(n, n, device=device)
+    b = torch.randn(n, n, device=device)
+    torch.mm(a, b)
+    times = []
+    for _ in range(repeats):
+        synchronize(device)
+        t0 = time.perf_counter()
+        torch.mm(a, b)
+        synchronize(device)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) * 1e3
+
+
+def source_params(run: Path | None, trainer: Trainer) -> dict:
+    if run is None:
+        return {k: trainer.model.params[k].detach().cpu() for k in GAUSSIAN_KEYS}
+    ck = load_checkpoint(Path(run) / "checkpoints" / "last.pt")
+    return {k: v.cpu() for k, v in (ck["model"]["params"] if "model" in ck else ck["params"]).items()}
+
+
+def bench_one(tr: Trainer, source: dict, n: int, iters: int, warmup_iters: int, seed: int = 0) -> dict:
+    """Time `iters` training steps of `tr` with n Gaussians replicated from `source`."""
+    tr.replace_gaussians(replicate(source, n, torch.Generator().manual_seed(seed)))
+    total = warmup_iters + iters
+    tr.step = max(tr.cfg.optim.iterations - total, tr.model.warmup)
+    dev = tr.device
+    times, active = [], []
+    for i in range(total):
+        if i == warmup_iters:
+            tr.profile = Profiler(split_backward=True, device=dev, after="deformation+reg")
+        synchronize(dev)
+        t0 = time.perf_counter()
+        info = tr.train_step()
+        synchronize(dev)
+        if i >= warmup_iters:
+            times.append(time.perf_counter() - t0)
+            active.append(info["active"])
+    prof = tr.profile
+    return {"gaussians": tr.model.num_gaussians, "active_mean": statistics.mean(active),
+            "ms": statistics.median(times) * 1e3, "ms_mean": statistics.mean(times) * 1e3,
+            "sections_ms": {k: v * 1e3 / iters for k, v in prof.seconds.items()},
+            "backward_parts_ms": {k: v * 1e3 / iters for k, v in prof.backward_parts.items()},
+            "step": tr.step, "iters": iters}
+
+
+def run(experiments: list[str], resolutions: list[int], counts: list[int], overrides: list[str],
+        source_run: Path | None, iters: int, warmup_iters: int) -> dict:
+    rows = []
+    fixed = ["densify.refine_start=1000000000", "train.progress=false", "eval.lpips=false",
+             "train.eval_every=0", "train.eval_at_warmup_end=false"]
+    mm_before = None
+    for exp in experiments:
+        for res in resolutions:
+            cfg = compose_config([f"experiment={exp}", *overrides, f"data.max_width={res}", *fixed])
+            with tempfile.TemporaryDirectory() as tmp:
+                tr = Trainer(cfg, tmp, splits=("train",))
+                if mm_before is None:
+                    mm_before = mm_reference(tr.device)
+                cam = tr.scene.frames("train")[0].camera
+                if max(cam.width, cam.height) < res and cam.width != res:
+                    print(f"[bench-train] {exp}: the scene's images are {cam.width}x{cam.height}, below "
+                          f"data.max_width={res} (images are never upscaled)", file=sys.stderr)
+                src = source_params(source_run, tr)
+                for n in counts:
+                    r = bench_one(tr, src, n, iters, warmup_iters)
+                    r.update({"experiment": exp, "stdr": bool(cfg.stdr.enabled), "width": cam.width,
+                              "height": cam.height, "backend": tr.backend, "device": str(tr.device)})
+                    rows.append(r)
+                    print(f"{exp:>22} {cam.width}x{cam.height} N={r['gaussians']:>7,}: {r['ms']:7.1f} ms/step  "
+                          + " ".join(f"{k}={v:.1f}" for k, v in r["sections_ms"].items()), flush=True)
+    dev = torch.device(rows[0]["device"]) if rows else torch.device("cpu")
+    mm_after = mm_reference(dev)
+    return {"rows": rows, "mm_ms_before": mm_before, "mm_ms_after": mm_after,
+            "mm_gflops": 2 * 2048 ** 3 / (min(mm_before or mm_after, mm_after) * 1e-3) / 1e9,
+            "threads": torch.get_num_threads(), "machine": machine_name(), "platform": platform.platform(),
+            "torch": torch.__version__, "code": code_version(), "overrides": overrides,
+            "source_run": None if source_run is None else str(source_run), "iters": iters,
+            "warmup_iters": warmup_iters}
+
+
+def markdown(res: dict) -> str:
+    mm = min(res["mm_ms_before"], res["mm_ms_after"])
+    head = ["experiment", "res", "Gaussians", "active", "ms/step", "÷ mm", *SECTIONS, *(f"bwd: {p}" for p in PARTS)]
+    body = []
+    for r in res["rows"]:
+        sec, parts = r["sections_ms"], r["backward_parts_ms"]
+        body.append([r["experiment"], f"{r['width']}x{r['height']}", f"{r['gaussians']:,}", f"{r['active_mean']:,.0f}",
+                     fmt(r["ms"], "{:.1f}"), fmt(r["ms"] / mm, "{:.1f}"),
+                     *(fmt(sec.get(k), "{:.1f}") for k in SECTIONS), *(fmt(parts.get(p), "{:.1f}") for p in PARTS)])
+    return "\n".join([
+        "Training step time by section (stdr-tool bench-train): median ms per step, sections as the mean ms "
+        "per step of the trainer's profiler; `bwd:` splits the backward where its gradient reaches the "
+        "projection's outputs and then the deformed Gaussians.", "",
+        f"Machine: {res['machine']}, {res['threads']} threads, torch {res['torch']}; torch.mm 2048² fp32: "
+        f"{res['mm_ms_before']:.1f} ms before, {res['mm_ms_after']:.1f} ms after ({res['mm_gflops']:.0f} GFLOP/s); "
+        f"÷ mm = ms/step over the faster mm time. {res['iters']} timed steps after {res['warmup_iters']} untimed; "
+        f"overrides: {' '.join(res['overrides']) or '–'}.", "",
+        markdown_table(head, body), ""])
+
+
+def main(argv=None) -> None:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    overrides = argv[argv.index("--") + 1:] if "--" in argv else []
+    ap = argparse.ArgumentParser(prog="stdr-tool bench-train", description=__doc__.split("\n")[0],
+                                 epilog="Hydra overrides for every experiment follow --")
+    ap.add_argument("--experiments", nargs="+", required=True)
+    ap.add_argument("--gaussians", type=int, nargs="+", default=[10000, 20000, 50000])
+    ap.add_argument("--res", type=int, nargs="+", default=[200, 400], help="data.max_width values")
+    ap.add_argument("--run", type=Path, default=None, help="a finished run whose Gaussians are replicated")
+    ap.add_argument("--iters", type=int, default=10)
+    ap.add_argument("--warmup-iters", type=int, default=3)
+    ap.add_argument("--out", type=Path, default=None, help="write OUT.json and OUT.md")
+    a = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
+    if a.iters < 1 or a.warmup_iters < 0:
+        raise SystemExit("--iters must be at least 1 and --warmup-iters at least 0")
+    if a.run is not None and not (a.run / "checkpoints" / "last.pt").is_file():
+        raise SystemExit(f"--run {a.run}: no checkpoints/last.pt there (give a finished run's folder)")
+    res = run(a.experiments, a.res, a.gaussians, overrides, a.run, a.iters, a.warmup_iters)
+    md = markdown(res)
+    print(md, end="")
+    write_outputs(a.out, md, res)
+
+
+if __name__ == "__main__":
+    main()
