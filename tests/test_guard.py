@@ -47,10 +47,15 @@ def test_all_finite_is_exact():
 
 
 @pytest.mark.slow
-def test_guard_changes_nothing_without_a_fault(tmp_path):
-    on = _trainer(tmp_path, "on")
+@pytest.mark.parametrize("name", ["deform", "deform_stdr", "scgs_stdr", "spgs_stdr", "4dgs_stdr"])
+def test_guard_changes_nothing_without_a_fault(tmp_path, name):
+    """The guard is on by default, so it must leave every configuration's training bit-identical:
+    across densification, the warm-up end, STDR's freeze and the baselines' stages."""
+    from stdr.tools.identity_check import SCHEDULE, STDR_PHASES
+    extra = [*SCHEDULE, *STDR_PHASES, f"experiment=embedded_{name}", "train.guard.snapshot_every=10"]
+    on = _trainer(tmp_path, "on", extra + ["train.guard.enabled=true"])
     on.train()
-    off = _trainer(tmp_path, "off", ["train.guard.enabled=false"])
+    off = _trainer(tmp_path, "off", extra + ["train.guard.enabled=false"])
     off.train()
     assert on.step == off.step == 60 and on.guard.recoveries == []
     _same_params(on, off)
