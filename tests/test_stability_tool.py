@@ -104,13 +104,14 @@ def test_the_stability_sweep_composes_every_preset():
     assert len(seen) == len(presets)
 
 
-def _theta_runs(root, name, values):
+def _theta_runs(root, name, values, skipped=50):
     """<root>/<name>/<scene>/metrics.json with (psnr, fps) per scene."""
     for scene, (psnr, fps) in values.items():
         d = root / name / scene
         d.mkdir(parents=True)
         (d / "metrics.json").write_text(json.dumps({"val": {"psnr": psnr, "fps": fps, "fps_passes": [fps] * 5,
-                                                            "static_skipped_mean": 50, "active_gaussians_mean": 100}}))
+                                                            "static_skipped_mean": skipped,
+                                                            "active_gaussians_mean": 100}}))
     return str(root / name)
 
 
@@ -138,3 +139,11 @@ def test_static_rule_picks_the_largest_qualifying_theta(tmp_path):
     assert strict["qualifying"] == [] and strict["default"] == 0.0
     with pytest.raises(SystemExit, match="0=FOLDER"):
         rule(["--baseline", "x", f"0.1={tmp_path}", f"0.3={tmp_path}"])
+    # a θ that skips no row renders what θ = 0 renders: a faster timing there is noise, not a gain
+    nz = tmp_path / "noskip"
+    rule(["--split", "val", "--out", str(tmp_path / "noise"), "--baseline", "spgs", f"0={_theta_runs(nz, 'r0', ref)}",
+          f"0.01={_theta_runs(nz, 'r1', {'a': (30.0, 11.0), 'b': (20.0, 22.0)}, skipped=0)}"])
+    noise = json.loads((tmp_path / "noise.json").read_text())
+    assert noise["rows"][0]["fps_gain"] == pytest.approx(0.10) and not noise["rows"][0]["skips_rows"]
+    assert noise["qualifying"] == [] and noise["default"] == 0.0
+    assert "no row skipped" in (tmp_path / "noise.md").read_text()
