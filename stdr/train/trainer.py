@@ -295,8 +295,10 @@ class Trainer:
             g, rows = model.deformed_rows(frame.time, it, cs, cull=self.cull_train)
         with prof("render_fwd"):
             out = model.render_gaussians(g, frame.camera, it)
-        pj = out.projection  # benchmarks split the backward here (no-ops in training)
-        prof.watch("loss+rasterizer", (pj.means2d, pj.conics, pj.opacities, pj.depths))
+        pj = out.projection  # benchmarks split the backward here (no-ops in training); the
+        # projection's opacities may be the deformed ones themselves, so only means2d and conics
+        # (made by the projection alone) mark the end of the rasterizer's backward
+        prof.watch("loss+rasterizer", (pj.means2d, pj.conics))
         prof.watch("projection+sh", (g.means, g.quats, g.scales, g.opacities, g.sh))
         with prof("loss"):
             lam = cfg.optim.lambda_dssim
