@@ -11,7 +11,7 @@ For each experiment (e.g. dnerf_deform, dnerf_deform_stdr) and each resolution (
    and the mean of each section of the trainer's profiler: deformation forward (`deform`:
    conditioning and deformed rows), `render_fwd` (projection, SH and rasterizer), `loss`, the
    plug-ins' and the baseline's regularizers, `backward`, `optimizer`, `densify`. The backward
-   is split where its gradient reaches the projection's outputs (`loss+rasterizer`), then the
+   is split where its gradient reaches the projection's means2d and conics (`loss+rasterizer`), then the
    deformed Gaussians (`projection+sh`); the rest is the deformation network's and the
    regularizers' backward (`deformation+reg`). On CUDA every section boundary synchronizes.
 
@@ -40,9 +40,8 @@ from ..eval.evaluate import code_version, machine_name
 from ..eval.table import fmt_value as fmt
 from ..eval.table import markdown_table, write_outputs
 from ..scene.gaussians import GAUSSIAN_KEYS
-from ..train.checkpoint import load_checkpoint
 from ..train.trainer import Profiler, Trainer
-from .cost_probe import replicate
+from .cost_probe import replicate, run_gaussians
 
 SECTIONS = ("deform", "render_fwd", "loss", "stdr_reg", "deform_reg", "backward", "optimizer", "densify")
 PARTS = ("loss+rasterizer", "projection+sh", "deformation+reg")
@@ -66,8 +65,7 @@ def mm_reference(device: torch.device, n: int = 2048, repeats: int = 5) -> float
 def source_params(run: Path | None, trainer: Trainer) -> dict:
     if run is None:
         return {k: trainer.model.params[k].detach().cpu() for k in GAUSSIAN_KEYS}
-    ck = load_checkpoint(Path(run) / "checkpoints" / "last.pt")
-    return {k: v.cpu() for k, v in (ck["model"]["params"] if "model" in ck else ck["params"]).items()}
+    return run_gaussians(run)
 
 
 def bench_one(tr: Trainer, source: dict, n: int, iters: int, warmup_iters: int, seed: int = 0) -> dict:
@@ -109,7 +107,7 @@ def run(experiments: list[str], resolutions: list[int], counts: list[int], overr
                 if mm_before is None:
                     mm_before = mm_reference(tr.device)
                 cam = tr.scene.frames("train")[0].camera
-                if max(cam.width, cam.height) < res and cam.width != res:
+                if cam.width < res:
                     print(f"[bench-train] {exp}: the scene's images are {cam.width}x{cam.height}, below "
                           f"data.max_width={res} (images are never upscaled)", file=sys.stderr)
                 src = source_params(source_run, tr)
@@ -142,7 +140,7 @@ def markdown(res: dict) -> str:
     return "\n".join([
         "Training step time by section (stdr-tool bench-train): median ms per step, sections as the mean ms "
         "per step of the trainer's profiler; `bwd:` splits the backward where its gradient reaches the "
-        "projection's outputs and then the deformed Gaussians.", "",
+        "projection's means2d and conics and then the deformed Gaussians.", "",
         f"Machine: {res['machine']}, {res['threads']} threads, torch {res['torch']}; torch.mm 2048² fp32: "
         f"{res['mm_ms_before']:.1f} ms before, {res['mm_ms_after']:.1f} ms after ({res['mm_gflops']:.0f} GFLOP/s); "
         f"÷ mm = ms/step over the faster mm time. {res['iters']} timed steps after {res['warmup_iters']} untimed; "

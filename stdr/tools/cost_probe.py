@@ -36,6 +36,12 @@ from stdr.train.checkpoint import load_checkpoint
 from stdr.train.trainer import Trainer
 
 
+def run_gaussians(run: Path) -> dict:
+    """A finished run's Gaussian parameters (CPU tensors) from its checkpoint (format 1 or 2)."""
+    ck = load_checkpoint(Path(run) / "checkpoints" / "last.pt")
+    return {k: v.cpu() for k, v in (ck["model"]["params"] if "model" in ck else ck["params"]).items()}
+
+
 def replicate(params: dict, n: int, gen: torch.Generator) -> dict:
     """Resample the Gaussians of `params` to n: copies jittered by half their scale."""
     n0 = params["means"].shape[0]
@@ -65,13 +71,12 @@ def main(argv=None):
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
         cfg = compose("train", overrides=list(args.overrides) + [
             "densify.refine_start=1000000000", "train.progress=false", "eval.lpips=false"])
-    ck = load_checkpoint(args.run / "checkpoints" / "last.pt")
     gen = torch.Generator().manual_seed(0)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(cfg, tmp, splits=("train",))
         f0 = tr.scene.frames("train")[0]
-        source = ck["model"]["params"] if "model" in ck else ck["params"]  # checkpoint format 2 or 1
+        source = run_gaussians(args.run)
         for n in args.gaussians:
             tr.replace_gaussians(replicate(source, n, gen))
             tr.step = cfg.baseline.warmup  # deformation on

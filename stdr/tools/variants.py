@@ -34,7 +34,12 @@ def read(run: Path, split: str) -> dict:
     conv = m.get("conventions", {})
     out = {k: m.get(k) for k in KEYS}
     prof = run / "train_profile.json"  # the training's seconds by section, where the run kept it
-    out["profile"] = json.loads(prof.read_text())["seconds"] if prof.is_file() else None
+    out["profile"] = None
+    if prof.is_file():
+        sec = json.loads(prof.read_text()).get("seconds")
+        if not isinstance(sec, dict):
+            raise SystemExit(f"{prof}: no 'seconds' section table (a train_profile.json the trainer writes has one)")
+        out["profile"] = sec
     out.update({"run": str(run), "iterations": m.get("iterations"),
                 "render_cull": conv.get("fps_render_cull", m.get("render_cull")),
                 "static_skip": conv.get("fps_static_skip", m.get("static_skip", 0.0)),
