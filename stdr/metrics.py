@@ -13,14 +13,29 @@ from torch import Tensor
 _WINDOWS: dict = {}
 
 
+def _gauss1d(size: int, sigma: float) -> Tensor:
+    x = torch.arange(size, dtype=torch.float64, device="cpu") - size // 2  # built on the host, then moved
+    g = torch.exp(-x * x / (2 * sigma * sigma))
+    return g / g.sum()  # [size], float64
+
+
 def _window(size: int, sigma: float, channels: int, dtype, device) -> Tensor:
+    """The 2D window [channels, 1, size, size] (the outer product of `_gauss1d`)."""
     key = (size, sigma, channels, dtype, device)
     if key not in _WINDOWS:
-        x = torch.arange(size, dtype=torch.float64, device="cpu") - size // 2  # built on the host, then moved
-        g = torch.exp(-x * x / (2 * sigma * sigma))
-        g = g / g.sum()
+        g = _gauss1d(size, sigma)
         w = (g[:, None] @ g[None, :]).to(dtype=dtype, device=device)
         _WINDOWS[key] = w.expand(channels, 1, size, size).contiguous()
+    return _WINDOWS[key]
+
+
+def _windows_1d(size: int, sigma: float, channels: int, dtype, device) -> tuple[Tensor, Tensor]:
+    """The same window as two passes: [channels, 1, size, 1] (down) and [channels, 1, 1, size]."""
+    key = ("1d", size, sigma, channels, dtype, device)
+    if key not in _WINDOWS:
+        g = _gauss1d(size, sigma).to(dtype=dtype, device=device)
+        _WINDOWS[key] = (g.view(1, 1, size, 1).expand(channels, 1, size, 1).contiguous(),
+                         g.view(1, 1, 1, size).expand(channels, 1, 1, size).contiguous())
     return _WINDOWS[key]
 
 
@@ -29,21 +44,49 @@ def _to_bchw(img: Tensor) -> Tensor:
     return img.permute(2, 0, 1)[None] if img.dim() == 3 else img
 
 
+def _blur(x: Tensor, size: int, sigma: float) -> Tensor:
+    """Zero-padded "same" Gaussian filter of x [B, C, H, W] per channel, as a vertical then a
+    horizontal pass: with zero padding the two passes equal the 2D window's convolution (the
+    window is separable), at 2 x size instead of size^2 products a pixel."""
+    wv, wh = _windows_1d(size, sigma, x.shape[1], x.dtype, x.device)
+    pad = size // 2
+    x = F.conv2d(x, wv, padding=(pad, 0), groups=x.shape[1])
+    return F.conv2d(x, wh, padding=(0, pad), groups=x.shape[1])
+
+
+def _ssim_map(mu1, mu2, s1, s2, s12) -> Tensor:
+    C1, C2 = 0.01 ** 2, 0.03 ** 2
+    mu12 = mu1 * mu2
+    return ((2 * mu12 + C1) * (2 * (s12 - mu12) + C2)) / \
+        ((mu1 * mu1 + mu2 * mu2 + C1) * (s1 - mu1 * mu1 + s2 - mu2 * mu2 + C2))
+
+
 def ssim(img1: Tensor, img2: Tensor, window_size: int = 11, sigma: float = 1.5) -> Tensor:
-    """Mean SSIM of two images [H, W, C] (or [B, C, H, W]) with values in [0, 1]."""
+    """Mean SSIM of two images [H, W, C] (or [B, C, H, W]) with values in [0, 1].
+
+    The window is applied as two 1D passes (`_blur`), and the five filtered images go through
+    two batched calls: the three that depend on img1 (the one a loss differentiates: img1,
+    img1^2, img1 img2) and the two of img2 alone. `ssim_2d` is the direct 2D form (the 3DGS
+    code's); the two agree to float rounding (tests/test_metrics.py)."""
+    a, b = _to_bchw(img1), _to_bchw(img2)
+    C = a.shape[1]
+    fa = _blur(torch.cat([a, a * a, a * b], 1), window_size, sigma)
+    fb = _blur(torch.cat([b, b * b], 1), window_size, sigma)
+    mu1, s1, s12 = fa[:, :C], fa[:, C:2 * C], fa[:, 2 * C:]
+    mu2, s2 = fb[:, :C], fb[:, C:]
+    return _ssim_map(mu1, mu2, s1, s2, s12).mean()
+
+
+def ssim_2d(img1: Tensor, img2: Tensor, window_size: int = 11, sigma: float = 1.5) -> Tensor:
+    """`ssim` with the 2D window in one convolution per filtered image (the reference form)."""
     a, b = _to_bchw(img1), _to_bchw(img2)
     C = a.shape[1]
     w = _window(window_size, sigma, C, a.dtype, a.device)
     pad = window_size // 2
-    mu1 = F.conv2d(a, w, padding=pad, groups=C)
-    mu2 = F.conv2d(b, w, padding=pad, groups=C)
-    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    s1 = F.conv2d(a * a, w, padding=pad, groups=C) - mu1_sq
-    s2 = F.conv2d(b * b, w, padding=pad, groups=C) - mu2_sq
-    s12 = F.conv2d(a * b, w, padding=pad, groups=C) - mu12
-    C1, C2 = 0.01 ** 2, 0.03 ** 2
-    m = ((2 * mu12 + C1) * (2 * s12 + C2)) / ((mu1_sq + mu2_sq + C1) * (s1 + s2 + C2))
-    return m.mean()
+
+    def blur(x):
+        return F.conv2d(x, w, padding=pad, groups=C)
+    return _ssim_map(blur(a), blur(b), blur(a * a), blur(b * b), blur(a * b)).mean()
 
 
 def psnr(img1: Tensor, img2: Tensor) -> Tensor:

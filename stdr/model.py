@@ -227,7 +227,7 @@ class DynamicGaussians:
         if c is None or c[0] != key or not torch.equal(c[1], static):
             rows = torch.nonzero(static).squeeze(1)
             with torch.no_grad():
-                d = self.deform.forward_rows(self.params, self.reference_time(), cond, rows)
+                d = self.deform.deltas(self.params, self.reference_time(), cond, rows)
             c = self._static_cache = (key, static.clone(), rows, d)
         return c[2], c[3]
 
@@ -242,7 +242,7 @@ class DynamicGaussians:
         pos[cached_rows] = torch.arange(cached_rows.shape[0], device=static.device)
         d_still = type(cached)(**{k: None if v is None else v.index_select(0, pos[still])
                                  for k, v in vars(cached).items()})
-        d_moving = self.deform.forward_rows(self.params, t, cond, moving)
+        d_moving = self.deform.deltas(self.params, t, cond, moving)
         order = torch.cat([moving, still])
         d = _scaled(concat_deltas(d_moving, d_still, moving.shape[0], still.shape[0]),
                     rows_of(scale, order), order.shape[0])

@@ -44,6 +44,10 @@ class BaselineConfig:
     lr_final: float = 1.6e-6
     lr_max_steps: int = 40_000
     lr_from_warmup: bool = False    # the network's lr schedule starts at the warm-up's end (4DGS restarts it)
+    # the network's arithmetic: "fp32", or "bf16" (autocast: matrix products in bfloat16 with fp32
+    # accumulation, deltas returned in fp32; fast where the CPU has AMX / AVX512-BF16 or on a GPU;
+    # docs/performance.md has the measurement)
+    precision: str = "fp32"
 
 
 def mlp_kwargs(b: Any, cond_dim: int) -> dict:
@@ -118,6 +122,8 @@ class Deformation(nn.Module):
 
     #: width of the per-Gaussian conditioning input this module was built for (0 = none)
     cond_dim: int = 0
+    #: "fp32" or "bf16" (baseline.precision): the arithmetic of `deltas`
+    precision: str = "fp32"
 
     @classmethod
     def config_kwargs(cls, b: Any, cond_dim: int = 0, train_times: Optional[np.ndarray] = None, seed: int = 0,
@@ -132,7 +138,9 @@ class Deformation(nn.Module):
     def from_config(cls, b: Any, cond_dim: int = 0, train_times: Optional[np.ndarray] = None, seed: int = 0,
                     schedule=None) -> "Deformation":
         """The module of a baseline config (see `config_kwargs`)."""
-        return cls(**cls.config_kwargs(b, cond_dim, train_times, seed, schedule))
+        module = cls(**cls.config_kwargs(b, cond_dim, train_times, seed, schedule))
+        module.precision = check_precision(getattr(b, "precision", "fp32"))
+        return module
 
     def gaussian_params(self, n: int) -> dict[str, Tensor]:
         return {}
@@ -179,6 +187,17 @@ class Deformation(nn.Module):
         from ..ops import RowView, rows_of
         return self.forward(RowView(params, rows), t, rows_of(cond, rows))
 
+    def deltas(self, params, t: float, cond: Optional[Tensor] = None, rows: Optional[Tensor] = None) -> Deltas:
+        """Deltas [N] (or [M] of `rows`) in fp32, computed in `precision`: every render path
+        (`deform`, `deform_rows`, the model's static rows) calls the network through this."""
+        def run() -> Deltas:
+            return self.forward(params, t, cond) if rows is None else self.forward_rows(params, t, cond, rows)
+        if self.precision == "fp32":
+            return run()
+        with torch.autocast(device_type=params["means"].device.type, dtype=torch.bfloat16):
+            d = run()
+        return Deltas(**{k: None if v is None else v.float() for k, v in vars(d).items()})
+
     def deform_rows(self, params, t: float, cond: Optional[Tensor] = None,
                     delta_scale: Optional[Tensor] = None, rows: Optional[Tensor] = None) -> Gaussians:
         """`deform` for the Gaussians `rows` [M] only (all when None): Gaussians [M], equal to
@@ -190,7 +209,7 @@ class Deformation(nn.Module):
         n = params["means"].shape[0]
         if cond is not None and cond.shape != (n, self.cond_dim):
             raise ValueError(f"conditioning must be [N, {self.cond_dim}], got {tuple(cond.shape)}")
-        d = self.forward_rows(params, t, cond, rows)
+        d = self.deltas(params, t, cond, rows)
         return self.apply(RowView(params, rows), _scaled(d, rows_of(delta_scale, rows), rows.shape[0]))
 
     def deform(self, params, t: float, cond: Optional[Tensor] = None,
@@ -204,8 +223,17 @@ class Deformation(nn.Module):
         n = params["means"].shape[0]
         if cond is not None and cond.shape != (n, self.cond_dim):
             raise ValueError(f"conditioning must be [N, {self.cond_dim}], got {tuple(cond.shape)}")
-        d = self.forward(params, t, cond)
+        d = self.deltas(params, t, cond)
         return self.apply(params, _scaled(d, delta_scale, n))
+
+
+PRECISIONS = ("fp32", "bf16")
+
+
+def check_precision(p: str) -> str:
+    if p not in PRECISIONS:
+        raise ValueError(f"baseline.precision={p!r}: use one of {PRECISIONS}")
+    return p
 
 
 def concat_deltas(a: Deltas, b: Deltas, na: int, nb: int) -> Deltas:
