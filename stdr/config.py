@@ -140,6 +140,9 @@ class RenderConfig:
     # off | eval (evaluation, FPS and every render outside training) | train (training too;
     # needs densify.count_invisible=false, since a culled row is not seen by densification)
     cull: str = "eval"
+    # with a compiled backend, projection and SH shading run in the extension too (forward and
+    # backward; csrc/project_math.h); false runs their torch twin (stdr/render/projection.py, sh.py)
+    compiled_projection: bool = True
 
 
 @dataclass

@@ -412,3 +412,25 @@ def test_scgs_resampling_and_arap_use_the_given_conditioning():
     lam = log_interp_schedule(6 - m.node_stage_end, m.arap_steps, m.arap_weights)
     hand = lam * arap_energy(p + m.node_deltas(p, t1, cond_n)[0], p + m.node_deltas(p, t1 + m.arap_dt, cond_n)[0], nbr)
     torch.testing.assert_close(a_cond, hand)
+
+
+def test_hexplane_sampling_equals_grid_sample_with_gradients():
+    """The HexPlane field's gather / index_add sampling (and the time planes' row-blended line)
+    equal F.grid_sample(align_corners=True, zeros padding), values and plane gradients,
+    including points outside the plane and on its edges."""
+    from stdr.deform.hexplane import _grid_sample, sample_plane, sample_plane_row
+    g = torch.Generator().manual_seed(0)
+    plane = torch.randn(8, 13, 17, generator=g, dtype=torch.float64, requires_grad=True)
+    uv = torch.rand(500, 2, generator=g, dtype=torch.float64) * 2.6 - 1.3
+    uv[:4] = torch.tensor([[-1.0, -1.0], [1.0, 1.0], [1.0, -1.0], [-1.0, 1.0]], dtype=torch.float64)
+    w = torch.randn(500, 8, generator=g, dtype=torch.float64)
+    for got, ref in ((sample_plane(plane, uv), _grid_sample(plane, uv)),) + tuple(
+            (sample_plane_row(plane, uv[:, 0], v), _grid_sample(plane, torch.stack([uv[:, 0], torch.full_like(uv[:, 0], v)], -1)))
+            for v in (-1.0, -0.41, 0.0, 1.0)):
+        assert float((got - ref).abs().max()) <= 1e-12
+        ga, = torch.autograd.grad((got * w).sum(), plane)
+        gb, = torch.autograd.grad((ref * w).sum(), plane)
+        assert float((ga - gb).abs().max()) <= 1e-12
+    # a position that needs a gradient takes grid_sample itself
+    uv_g = uv.clone().requires_grad_(True)
+    assert sample_plane(plane, uv_g).grad_fn.name() != "_PlaneGatherBackward"

@@ -49,3 +49,55 @@ def test_apply_rules_differ_as_documented():
     assert torch.allclose(post.scales, torch.exp(p["scales"]) + 0.5)     # Deformable 3DGS
     assert torch.allclose(pre.scales, torch.exp(p["scales"] + 0.5))      # 4DGS
     assert torch.allclose(post.means, p["means"] + 0.1)
+
+
+def _concatenated_trunk(net, xyz, t, cond=None):
+    """DeformMLP's function written as the published code runs it: one Linear on the
+    concatenated input [PE(xyz), time embedding, cond], the input re-concatenated after a skip."""
+    n = xyz.shape[0]
+    t_emb = positional_encoding(torch.full((1, 1), float(t), dtype=xyz.dtype), net.t_freqs)
+    if net.time_net is not None:
+        t_emb = net.time_net(t_emb)
+    x0 = torch.cat([positional_encoding(xyz, net.xyz_freqs), t_emb.expand(n, -1)] + ([cond] if net.cond_dim else []), -1)
+    h = x0
+    for i, layer in enumerate(net.layers):
+        h = torch.relu(layer(h))
+        if i in net.skips:
+            h = torch.cat([h, x0], -1)
+    return h
+
+
+def test_blockwise_trunk_equals_the_concatenated_mlp_with_gradients():
+    """The trunk multiplies the input's column blocks separately (the time embedding once); the
+    function and every gradient (weights, time net, conditioning) equal the concatenated form."""
+    torch.manual_seed(0)
+    for kw in (dict(depth=6, width=32, skips=(3,)), dict(depth=4, width=16, skips=(1,), cond_dim=5, time_net=False,
+                                                         t_freqs=10)):
+        net = DeformMLP(**kw, head_init_std=None).double()
+        xyz = torch.randn(300, 3, dtype=torch.float64)
+        cond = torch.randn(300, 5, dtype=torch.float64, requires_grad=True) if kw.get("cond_dim") else None
+        a, b = net.trunk(xyz, 0.37, cond), _concatenated_trunk(net, xyz, 0.37, cond)
+        assert float((a - b).detach().abs().max()) <= 1e-12
+        wrt = [p for n, p in net.named_parameters() if not n.startswith("head")] + ([cond] if cond is not None else [])
+        ga = torch.autograd.grad(a.square().sum(), wrt)
+        gb = torch.autograd.grad(b.square().sum(), wrt)
+        for x, y in zip(ga, gb):
+            assert float((x - y).abs().max()) <= 1e-10 * max(1.0, float(y.abs().max()))
+
+
+def test_bf16_precision_is_an_option_with_fp32_deltas():
+    import pytest
+
+    from stdr.deform.base import check_precision
+    torch.manual_seed(0)
+    net = DeformMLP(depth=3, width=64, skips=(1,), head_init_std=None)
+    params = init_params(torch.rand(200, 3), torch.rand(200, 3), sh_degree=0)
+    full = net.deltas(params, 0.4)
+    net.precision = "bf16"
+    half = net.deltas(params, 0.4)
+    for k in ("means", "quats", "scales"):
+        x, y = getattr(half, k), getattr(full, k)
+        assert x.dtype == torch.float32
+        assert 0 < float((x - y).abs().max()) <= 0.05 * float(y.abs().max())  # bf16: ~3 significant digits
+    with pytest.raises(ValueError, match="baseline.precision='fp16'"):
+        check_precision("fp16")

@@ -43,6 +43,22 @@ def test_ssim_identity_and_against_direct_window_computation():
     assert float(ssim(a.double(), b.double())) == pytest.approx(float(mp.mean()), abs=1e-12)
 
 
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 1e-6)])
+def test_separable_ssim_equals_the_2d_window_with_gradients(dtype, tol):
+    """The loss's SSIM (two 1D passes, zero padding) equals the 2D window's (ssim_2d) in value
+    and in the gradient for the rendered image, border pixels included, on a non-square image."""
+    from stdr.metrics import ssim_2d
+    g = torch.Generator().manual_seed(1)
+    a = torch.rand(23, 31, 3, generator=g, dtype=torch.float64).to(dtype).requires_grad_(True)
+    b = torch.rand(23, 31, 3, generator=g, dtype=torch.float64).to(dtype)
+    x, y = ssim(a, b), ssim_2d(a, b)
+    assert abs(float(x) - float(y)) <= tol
+    gx, = torch.autograd.grad(x, a)
+    gy, = torch.autograd.grad(y, a)
+    assert float((gx - gy).abs().max() / gy.abs().max()) <= (1e-10 if dtype == torch.float64 else 1e-4)
+    assert float(gy[0, 0].abs().sum()) > 0  # the corner pixel has a gradient to compare
+
+
 def _img(path):
     return torch.from_numpy(cv2.imread(str(path))[..., ::-1].copy()).float() / 255
 

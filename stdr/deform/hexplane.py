@@ -164,6 +164,14 @@ class _PlaneGather(torch.autograd.Function):
         return grad.view(H, W, C).permute(2, 0, 1), None, None
 
 
+def second_difference_smoothness(plane: Tensor) -> Tensor:
+    """mean over the plane of the squared second difference along its H axis (for a time
+    plane, along time). plane [C, H, W]."""
+    d1 = plane[:, 1:, :] - plane[:, :-1, :]
+    d2 = d1[:, 1:, :] - d1[:, :-1, :]
+    return d2.square().mean()
+
+
 class HexPlaneField(nn.Module):
     def __init__(self, base_res: int = 64, multires: Sequence[int] = (1, 2), channels: int = 32,
                  time_res: int = 25):

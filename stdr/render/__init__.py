@@ -76,13 +76,15 @@ class RenderOutput:
 def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor,
            camera: Camera, sh_degree: int, background: Optional[Tensor] = None,
            backend: str = "reference", near: float = 0.01, eps2d: float = 0.3,
-           antialiased: bool = False, tile_size: int = 0) -> RenderOutput:
+           antialiased: bool = False, tile_size: int = 0, compiled_projection: bool = True) -> RenderOutput:
     """Render N Gaussians seen by `camera`.
 
     means [N, 3]; quats [N, 4] (w, x, y, z; any norm); scales [N, 3] (activated);
     opacities [N] (activated, in [0, 1]); sh [N, K, 3] SH coefficients (K >= (sh_degree+1)^2);
     background [3] colour or None for black. backend: a resolved name (see resolve_backend);
-    tile_size 0 = the backend's default.
+    tile_size 0 = the backend's default. compiled_projection: with a compiled backend, the
+    projection and SH shading run in the extension too (`compiled.project_sh_compiled`); False
+    (or the reference backend) runs the torch twin.
     """
     N = means.shape[0]
     for name, x, shape in (("means", means, (N, 3)), ("quats", quats, (N, 4)),
@@ -91,14 +93,18 @@ def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: 
             raise ValueError(f"render: {name} must have shape {shape}, got {tuple(x.shape)}")
     if backend not in BACKENDS:
         backend = resolve_backend(backend, means.device)
-    proj = project_gaussians(means, quats, scales, opacities, camera, near=near, eps2d=eps2d,
-                             antialiased=antialiased)
+    if backend != "reference" and compiled_projection:
+        proj, colors = compiled.project_sh_compiled(means, quats, scales, opacities, sh, camera, sh_degree,
+                                                    near=near, eps2d=eps2d, antialiased=antialiased, kind=backend)
+    else:
+        proj = project_gaussians(means, quats, scales, opacities, camera, near=near, eps2d=eps2d,
+                                 antialiased=antialiased)
+        dirs = means - camera.center.to(means)  # gradient flows through the view direction, as in 3DGS
+        dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        colors = eval_sh(sh_degree, sh, dirs)  # [N, 3]
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
-    dirs = means - camera.center.to(means)  # gradient flows through the view direction, as in 3DGS
-    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    colors = eval_sh(sh_degree, sh, dirs)  # [N, 3]
     feats = torch.cat([colors, proj.depths[:, None]], -1)  # depth rides along as a 4th channel
     acc, T = rasterize(means2d, proj.conics, proj.opacities, feats, proj.depths, proj.radii,
                        camera.width, camera.height, tile_size=tile_size, backend=backend)

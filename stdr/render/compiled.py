@@ -1,4 +1,5 @@
-"""Compiled rasterizer backends: C++ (CPU, vectorized, multi-threaded) and CUDA.
+"""Compiled rasterizer backends: C++ (CPU, vectorized, multi-threaded) and CUDA, with the
+projection and SH shading (`project_sh_compiled`, math in `csrc/project_math.h`).
 
 Both are built just in time on first use with `torch.utils.cpp_extension` into a cache keyed by
 the sources, flags, torch version and CPU, or ahead of time with `stdr-build`. The CUDA backend is
@@ -29,7 +30,7 @@ from torch.autograd.function import once_differentiable
 CSRC = Path(__file__).resolve().parent / "csrc"
 CPU_SOURCES = [CSRC / "cpu" / "raster_cpu.cpp"]
 CUDA_SOURCES = [CSRC / "cuda" / "raster_cuda.cpp", CSRC / "cuda" / "raster_kernels.cu"]
-HEADERS = [CSRC / "raster_math.h", CSRC / "cuda" / "raster_kernels.h"]
+HEADERS = [CSRC / "raster_math.h", CSRC / "project_math.h", CSRC / "cuda" / "raster_kernels.h"]
 PORTABLE_ENV = "STDR_PORTABLE_BUILD"  # =1: no -march=native (e.g. a cache shared by machines)
 
 _lock = threading.Lock()
@@ -275,3 +276,76 @@ def rasterize_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, featu
     return _Rasterize.apply(means2d, conics, opacities, features, depths,
                             radii.to(torch.int32).contiguous(), int(width), int(height),
                             int(tile_size), ext)
+
+
+# ---------------------------------------------------------------- projection and SH shading
+
+def camera_values(camera) -> list[float]:
+    """The 26 camera numbers `csrc/project_math.h` (make_proj_cam) reads: R (row-major), t, the
+    centre, fx, fy, cx, cy, the Jacobian clamp limits (1.3x the field of view, computed as
+    stdr.render.projection does) and near, far, eps2d are appended by the caller."""
+    W, H = camera.width, camera.height
+    fx, fy, cx, cy = float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
+    tan_x, tan_y = 0.5 * W / fx, 0.5 * H / fy
+    lims = [(W - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x, (H - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y]
+    R = camera.R.detach().double().cpu().reshape(-1).tolist()
+    t = camera.t.detach().double().cpu().reshape(-1).tolist()
+    c = camera.center.detach().double().cpu().reshape(-1).tolist()
+    return R + t + c + [fx, fy, cx, cy] + lims
+
+
+class _ProjectSH(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, sh, cam, width, height, antialiased, degree, ext):
+        ins = [x.detach().contiguous() for x in (means, quats, scales, opacities, sh)]
+        means2d, depths, conics, opac, radii, colors = ext.project_forward(*ins, cam, width, height, antialiased,
+                                                                           degree)
+        ctx.save_for_backward(*ins)
+        ctx.meta = (cam, width, height, antialiased, degree, ext)
+        ctx.mark_non_differentiable(radii)
+        return means2d, depths, conics, opac, radii, colors
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_m2d, g_depth, g_conic, g_opac, g_radii, g_color):
+        ins = ctx.saved_tensors
+        cam, width, height, antialiased, degree, ext = ctx.meta
+        m = ins[0]
+        n = m.shape[0]
+        grads = []
+        for g, shape in ((g_m2d, (n, 2)), (g_depth, (n,)), (g_conic, (n, 3)), (g_opac, (n,)), (g_color, (n, 3))):
+            grads.append(m.new_zeros(shape) if g is None else g.to(m.dtype).contiguous())
+        gm, gq, gs, go, gh = ext.project_backward(*ins, *grads, cam, width, height, antialiased, degree)
+        return gm, gq, gs, go, gh, None, None, None, None, None, None
+
+
+def project_sh_compiled(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor, camera,
+                        sh_degree: int, near: float = 0.01, far: float = 1e10, eps2d: float = 0.3,
+                        antialiased: bool = False, kind: str = "cpu"):
+    """`project_gaussians` and `eval_sh` (view direction from the camera centre) in one compiled
+    pass, forward and backward: (Projection, colours [N, 3]). The same contract and values as
+    the torch twin (stdr/render/projection.py, sh.py; the parity tests in tests/test_compiled.py).
+
+    means [N, 3], quats [N, 4], scales [N, 3] (activated), opacities [N] (activated),
+    sh [N, K, 3] with (sh_degree + 1)^2 <= K <= 16."""
+    from .projection import Projection
+    n = means.shape[0]
+    if not 0 <= sh_degree <= 3:
+        raise ValueError(f"SH degree must be in [0, 3], got {sh_degree}")
+    if sh.dim() != 3 or sh.shape[0] != n or sh.shape[2] != 3 or not (sh_degree + 1) ** 2 <= sh.shape[1] <= 16:
+        raise ValueError(f"stdr projection: sh must be [N, K, 3] with N={n} and {(sh_degree + 1) ** 2} <= K <= 16 "
+                         f"for SH degree {sh_degree}, got {list(sh.shape)}")
+    want = (torch.float32,) if kind == "cuda" else (torch.float32, torch.float64)
+    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "sh": sh}
+    for name, t in tensors.items():
+        if t.dtype != means.dtype or t.dtype not in want:
+            raise ValueError(f"stdr {kind} projection: {name} is {t.dtype}; every input must be one of {want}")
+        if t.device != means.device or t.device.type != ("cuda" if kind == "cuda" else "cpu"):
+            raise ValueError(f"stdr {kind} projection: {name} is on {t.device}; every input must be on the "
+                             f"{'GPU' if kind == 'cuda' else 'CPU'}")
+    ext = load_extension(kind)
+    cam = camera_values(camera) + [float(near), float(far), float(eps2d)]
+    means2d, depths, conics, opac, radii, colors = _ProjectSH.apply(
+        means, quats, scales, opacities, sh, cam, int(camera.width), int(camera.height), bool(antialiased),
+        int(sh_degree), ext)
+    return Projection(means2d=means2d, depths=depths, conics=conics, opacities=opac, radii=radii), colors

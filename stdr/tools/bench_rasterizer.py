@@ -115,8 +115,8 @@ def measure_row(backend: str, n: int, res: int, coverage: float, repeats: int, t
         acc, T = rasterize(m2, con, op, feats, depths, radii, res, res, tile, backend)
         (acc.sum() + T.sum()).backward()
 
-    def render_fb():
-        out = render(*params, cam, 0, backend=backend, tile_size=tile)
+    def render_fb(compiled_projection=True):
+        out = render(*params, cam, 0, backend=backend, tile_size=tile, compiled_projection=compiled_projection)
         (out.image.sum() + out.depth.sum()).backward()
 
     if device == "cuda":
@@ -131,8 +131,11 @@ def measure_row(backend: str, n: int, res: int, coverage: float, repeats: int, t
     else:  # growth of the process's peak resident set over the scene's inputs
         peak = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
     t_r = timed(render_fb, max(1, repeats // 2), device)
+    # compiled backends: the same render() with the projection and SH in torch (render.compiled_projection=false)
+    t_rt = None if backend == "reference" else timed(lambda: render_fb(False), max(1, repeats // 2), device)
     return dict(backend=backend, device=device, n=n, width=res, height=res, tile=tile, coverage=coverage,
-                fwd_ms=t_f, fwd_bwd_ms=t_fb, render_fwd_bwd_ms=t_r, peak_mb=peak, pairs=n_pairs,
+                fwd_ms=t_f, fwd_bwd_ms=t_fb, render_fwd_bwd_ms=t_r, render_torch_projection_fwd_bwd_ms=t_rt,
+                peak_mb=peak, pairs=n_pairs,
                 pair_evals=evals, threads=torch.get_num_threads(), repeats=repeats)
 
 
@@ -161,7 +164,7 @@ def main(argv=None):
 
     rows = []
     header = (f"{'backend':>9} {'N':>8} {'res':>5} {'fwd ms':>9} {'fwd+bwd ms':>11} "
-              f"{'render f+b':>11} {'pairs/s':>9} {'%peak':>6} {'peak MB':>8}")
+              f"{'render f+b':>11} {'torch proj':>11} {'pairs/s':>9} {'%peak':>6} {'peak MB':>8}")
     print(header)
     for n in args.n:
         for res in args.res:
@@ -182,8 +185,10 @@ def main(argv=None):
                 row.update(pair_evals_per_s=rate,
                            peak_fraction=rate * args.flop_per_pair / (args.peak_gflops * 1e9))
                 rows.append(row)
+                rt = row.get("render_torch_projection_fwd_bwd_ms")
                 print(f"{label(row):>9} {n:>8} {res:>5} {row['fwd_ms']:>9.1f} "
                       f"{row['fwd_bwd_ms']:>11.1f} {row['render_fwd_bwd_ms']:>11.1f} "
+                      f"{'-' if rt is None else f'{rt:.1f}':>11} "
                       f"{rate:>9.2e} {100 * row['peak_fraction']:>5.1f}% {row['peak_mb']:>8.0f}",
                       flush=True)
     # speed-ups against the reference where both ran
@@ -213,13 +218,14 @@ def label(row: dict) -> str:
 
 
 def markdown_table(rows, peak_gflops) -> str:
-    out = ["| backend | N | image | fwd ms | fwd+bwd ms | render() fwd+bwd ms | pair evals/s "
-           f"| % of {peak_gflops:.0f} GFLOP/s | peak MB | vs reference (fwd+bwd) |",
-           "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    out = ["| backend | N | image | fwd ms | fwd+bwd ms | render() fwd+bwd ms | render() with torch projection "
+           f"| pair evals/s | % of {peak_gflops:.0f} GFLOP/s | peak MB | vs reference (fwd+bwd) |",
+           "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         sp = r.get("speedup_fwd_bwd_vs_reference")
+        rt = r.get("render_torch_projection_fwd_bwd_ms")
         out.append(f"| {label(r)} | {r['n']:,} | {r['width']}x{r['height']} | {r['fwd_ms']:.1f} "
-                   f"| {r['fwd_bwd_ms']:.1f} | {r['render_fwd_bwd_ms']:.1f} "
+                   f"| {r['fwd_bwd_ms']:.1f} | {r['render_fwd_bwd_ms']:.1f} | {'' if rt is None else f'{rt:.1f}'} "
                    f"| {r['pair_evals_per_s']:.2e} | {100 * r['peak_fraction']:.1f} "
                    f"| {r['peak_mb']:.0f} | {'' if sp is None else f'{sp:.0f}x'} |")
     return "\n".join(out) + "\n"

@@ -14,6 +14,7 @@
 #include <type_traits>
 #include <vector>
 
+#include "../project_math.h"
 #include "../raster_math.h"
 
 namespace {
@@ -356,9 +357,89 @@ std::vector<at::Tensor> backward(at::Tensor packed, at::Tensor order, int64_t N,
   return {g_m, g_c, g_o, g_f};
 }
 
+
+// ---------------------------------------------------------------- projection and SH (project_math.h)
+
+void check_project_inputs(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                          const at::Tensor& opac, const at::Tensor& sh, const std::vector<double>& cam,
+                          int64_t degree) {
+  const int64_t N = means.size(0);
+  TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "stdr projection: means must be [N, 3]");
+  TORCH_CHECK(quats.dim() == 2 && quats.size(0) == N && quats.size(1) == 4, "stdr projection: quats must be [N, 4]");
+  TORCH_CHECK(scales.dim() == 2 && scales.size(0) == N && scales.size(1) == 3, "stdr projection: scales must be [N, 3]");
+  TORCH_CHECK(opac.dim() == 1 && opac.size(0) == N, "stdr projection: opacities must be [N]");
+  TORCH_CHECK(sh.dim() == 3 && sh.size(0) == N && sh.size(2) == 3, "stdr projection: sh must be [N, K, 3]");
+  TORCH_CHECK(degree >= 0 && degree <= 3 && sh.size(1) >= (degree + 1) * (degree + 1) && sh.size(1) <= 16,
+              "stdr projection: SH degree must be in [0, 3] with (degree + 1)^2 <= K <= 16");
+  TORCH_CHECK((int)cam.size() == stdr::PROJ_CAM_VALUES, "stdr projection: the camera must be 26 values");
+  for (const at::Tensor* t : {&means, &quats, &scales, &opac, &sh}) {
+    TORCH_CHECK(t->device().is_cpu(), "stdr CPU projection: tensors must be on the CPU");
+    TORCH_CHECK(t->scalar_type() == means.scalar_type(), "stdr projection: all inputs must share one dtype");
+    TORCH_CHECK(t->is_contiguous(), "stdr projection: inputs must be contiguous");
+  }
+}
+
+std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::Tensor scales, at::Tensor opac,
+                                        at::Tensor sh, std::vector<double> cam, int64_t width, int64_t height,
+                                        bool antialiased, int64_t degree) {
+  check_project_inputs(means, quats, scales, opac, sh, cam, degree);
+  const int64_t N = means.size(0), K = sh.size(1);
+  auto o = means.options();
+  auto means2d = at::empty({N, 2}, o), depths = at::empty({N}, o), conics = at::empty({N, 3}, o);
+  auto opac_out = at::empty({N}, o), colors = at::empty({N, 3}, o);
+  auto radii = at::empty({N}, o.dtype(at::kInt));
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "stdr_project_forward", [&] {
+    const auto c = stdr::make_proj_cam<scalar_t>(cam.data(), (int)width, (int)height, antialiased, (int)degree, (int)K);
+    const scalar_t *m = means.data_ptr<scalar_t>(), *q = quats.data_ptr<scalar_t>(),
+                   *s = scales.data_ptr<scalar_t>(), *op = opac.data_ptr<scalar_t>(), *h = sh.data_ptr<scalar_t>();
+    scalar_t *m2 = means2d.data_ptr<scalar_t>(), *dp = depths.data_ptr<scalar_t>(),
+             *cn = conics.data_ptr<scalar_t>(), *oo = opac_out.data_ptr<scalar_t>(), *cl = colors.data_ptr<scalar_t>();
+    int32_t* r = radii.data_ptr<int32_t>();
+    at::parallel_for(0, N, 2048, [&](int64_t b, int64_t e) {
+      for (int64_t i = b; i < e; ++i)
+        stdr::project_forward_one<scalar_t>(c, m + 3 * i, q + 4 * i, s + 3 * i, op[i], h + K * 3 * i, m2 + 2 * i,
+                                            dp + i, cn + 3 * i, oo + i, r + i, cl + 3 * i);
+    });
+  });
+  return {means2d, depths, conics, opac_out, radii, colors};
+}
+
+std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at::Tensor scales, at::Tensor opac,
+                                         at::Tensor sh, at::Tensor g_m2d, at::Tensor g_depth, at::Tensor g_conic,
+                                         at::Tensor g_opac, at::Tensor g_color, std::vector<double> cam,
+                                         int64_t width, int64_t height, bool antialiased, int64_t degree) {
+  check_project_inputs(means, quats, scales, opac, sh, cam, degree);
+  const int64_t N = means.size(0), K = sh.size(1);
+  for (const at::Tensor* t : {&g_m2d, &g_depth, &g_conic, &g_opac, &g_color}) {
+    TORCH_CHECK(t->device().is_cpu() && t->is_contiguous() && t->scalar_type() == means.scalar_type(),
+                "stdr projection backward: gradients must be contiguous CPU tensors of the inputs' dtype");
+    TORCH_CHECK(t->size(0) == N, "stdr projection backward: one gradient row per Gaussian");
+  }
+  auto gm = at::empty_like(means), gq = at::empty_like(quats), gs = at::empty_like(scales);
+  auto go = at::empty_like(opac), gh = at::empty_like(sh);
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "stdr_project_backward", [&] {
+    const auto c = stdr::make_proj_cam<scalar_t>(cam.data(), (int)width, (int)height, antialiased, (int)degree, (int)K);
+    const scalar_t *m = means.data_ptr<scalar_t>(), *q = quats.data_ptr<scalar_t>(),
+                   *s = scales.data_ptr<scalar_t>(), *op = opac.data_ptr<scalar_t>(), *h = sh.data_ptr<scalar_t>();
+    const scalar_t *a2 = g_m2d.data_ptr<scalar_t>(), *ad = g_depth.data_ptr<scalar_t>(),
+                   *ac = g_conic.data_ptr<scalar_t>(), *ao = g_opac.data_ptr<scalar_t>(), *acl = g_color.data_ptr<scalar_t>();
+    scalar_t *pm = gm.data_ptr<scalar_t>(), *pq = gq.data_ptr<scalar_t>(), *ps = gs.data_ptr<scalar_t>(),
+             *po = go.data_ptr<scalar_t>(), *ph = gh.data_ptr<scalar_t>();
+    at::parallel_for(0, N, 2048, [&](int64_t b, int64_t e) {
+      for (int64_t i = b; i < e; ++i)
+        stdr::project_backward_one<scalar_t>(c, m + 3 * i, q + 4 * i, s + 3 * i, op[i], h + K * 3 * i, a2 + 2 * i,
+                                             ad[i], ac + 3 * i, ao[i], acl + 3 * i, pm + 3 * i, pq + 4 * i,
+                                             ps + 3 * i, po + i, ph + K * 3 * i);
+    });
+  });
+  return {gm, gq, gs, go, gh};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "tile rasterizer forward (CPU)");
   m.def("backward", &backward, "tile rasterizer backward (CPU)");
+  m.def("project_forward", &project_forward, "projection and SH forward (CPU)");
+  m.def("project_backward", &project_backward, "projection and SH backward (CPU)");
 }

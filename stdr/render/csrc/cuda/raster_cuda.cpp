@@ -98,9 +98,65 @@ std::vector<at::Tensor> backward(at::Tensor packed, at::Tensor order, int64_t N,
           full.select(1, 5).contiguous(), full.slice(1, stdr::PACK_BASE, D).contiguous()};
 }
 
+// ---------------------------------------------------------------- projection and SH (project_math.h)
+
+void check_project_cuda(const std::vector<at::Tensor*>& ts, const std::vector<double>& cam) {
+  for (const at::Tensor* t : ts) {
+    TORCH_CHECK(t->is_cuda(), "stdr CUDA projection: every input must be a CUDA tensor");
+    TORCH_CHECK(t->scalar_type() == at::kFloat, "stdr CUDA projection: float32 inputs only");
+    TORCH_CHECK(t->is_contiguous(), "stdr CUDA projection: inputs must be contiguous");
+  }
+  TORCH_CHECK((int)cam.size() == stdr::PROJ_CAM_VALUES, "stdr projection: the camera must be 26 values");
+}
+
+std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::Tensor scales, at::Tensor opac,
+                                        at::Tensor sh, std::vector<double> cam, int64_t width, int64_t height,
+                                        bool antialiased, int64_t degree) {
+  check_project_cuda({&means, &quats, &scales, &opac, &sh}, cam);
+  TORCH_CHECK(sh.dim() == 3 && sh.size(1) >= (degree + 1) * (degree + 1) && sh.size(1) <= 16 && degree >= 0 &&
+                  degree <= 3,
+              "stdr projection: SH degree must be in [0, 3] with (degree + 1)^2 <= K <= 16");
+  const at::cuda::CUDAGuard guard(means.device());
+  auto stream = c10::cuda::getCurrentCUDAStream().stream();
+  const int64_t N = means.size(0), K = sh.size(1);
+  auto o = means.options();
+  auto means2d = at::empty({N, 2}, o), depths = at::empty({N}, o), conics = at::empty({N, 3}, o);
+  auto opac_out = at::empty({N}, o), colors = at::empty({N, 3}, o);
+  auto radii = at::empty({N}, o.dtype(at::kInt));
+  const auto c = stdr::make_proj_cam<float>(cam.data(), (int)width, (int)height, antialiased, (int)degree, (int)K);
+  stdr_cuda::project_forward(c, N, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(),
+                             opac.data_ptr<float>(), sh.data_ptr<float>(), means2d.data_ptr<float>(),
+                             depths.data_ptr<float>(), conics.data_ptr<float>(), opac_out.data_ptr<float>(),
+                             radii.data_ptr<int32_t>(), colors.data_ptr<float>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
+  return {means2d, depths, conics, opac_out, radii, colors};
+}
+
+std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at::Tensor scales, at::Tensor opac,
+                                         at::Tensor sh, at::Tensor g_m2d, at::Tensor g_depth, at::Tensor g_conic,
+                                         at::Tensor g_opac, at::Tensor g_color, std::vector<double> cam,
+                                         int64_t width, int64_t height, bool antialiased, int64_t degree) {
+  check_project_cuda({&means, &quats, &scales, &opac, &sh, &g_m2d, &g_depth, &g_conic, &g_opac, &g_color}, cam);
+  const at::cuda::CUDAGuard guard(means.device());
+  auto stream = c10::cuda::getCurrentCUDAStream().stream();
+  const int64_t N = means.size(0), K = sh.size(1);
+  auto gm = at::empty_like(means), gq = at::empty_like(quats), gs = at::empty_like(scales);
+  auto go = at::empty_like(opac), gh = at::empty_like(sh);
+  const auto c = stdr::make_proj_cam<float>(cam.data(), (int)width, (int)height, antialiased, (int)degree, (int)K);
+  stdr_cuda::project_backward(c, N, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(),
+                              opac.data_ptr<float>(), sh.data_ptr<float>(), g_m2d.data_ptr<float>(),
+                              g_depth.data_ptr<float>(), g_conic.data_ptr<float>(), g_opac.data_ptr<float>(),
+                              g_color.data_ptr<float>(), gm.data_ptr<float>(), gq.data_ptr<float>(),
+                              gs.data_ptr<float>(), go.data_ptr<float>(), gh.data_ptr<float>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
+  return {gm, gq, gs, go, gh};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "tile rasterizer forward (CUDA)");
   m.def("backward", &backward, "tile rasterizer backward (CUDA)");
+  m.def("project_forward", &project_forward, "projection and SH forward (CUDA)");
+  m.def("project_backward", &project_backward, "projection and SH backward (CUDA)");
 }

@@ -261,4 +261,52 @@ void backward(const float* packed, int F, const int32_t* pair_ids, const int64_t
 #undef STDR_CALL
 }
 
+// ---------------------------------------------------------------- projection and SH
+
+__global__ void project_forward_kernel(stdr::ProjCam<float> cam, int64_t N, const float* __restrict__ means,
+                                       const float* __restrict__ quats, const float* __restrict__ scales,
+                                       const float* __restrict__ opac, const float* __restrict__ sh,
+                                       float* means2d, float* depths, float* conics, float* opac_out,
+                                       int32_t* radii, float* colors) {
+  const int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (i >= N) return;
+  stdr::project_forward_one<float>(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, opac[i],
+                                   sh + (int64_t)cam.K * 3 * i, means2d + 2 * i, depths + i, conics + 3 * i,
+                                   opac_out + i, radii + i, colors + 3 * i);
+}
+
+__global__ void project_backward_kernel(stdr::ProjCam<float> cam, int64_t N, const float* __restrict__ means,
+                                        const float* __restrict__ quats, const float* __restrict__ scales,
+                                        const float* __restrict__ opac, const float* __restrict__ sh,
+                                        const float* __restrict__ g_m2d, const float* __restrict__ g_depth,
+                                        const float* __restrict__ g_conic, const float* __restrict__ g_opac,
+                                        const float* __restrict__ g_color, float* g_means, float* g_quats,
+                                        float* g_scales, float* g_opac_in, float* g_sh) {
+  const int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (i >= N) return;
+  const int64_t k3 = (int64_t)cam.K * 3 * i;
+  stdr::project_backward_one<float>(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, opac[i], sh + k3,
+                                    g_m2d + 2 * i, g_depth[i], g_conic + 3 * i, g_opac[i], g_color + 3 * i,
+                                    g_means + 3 * i, g_quats + 4 * i, g_scales + 3 * i, g_opac_in + i, g_sh + k3);
+}
+
+void project_forward(const stdr::ProjCam<float>& cam, int64_t N, const float* means, const float* quats,
+                     const float* scales, const float* opac, const float* sh, float* means2d, float* depths,
+                     float* conics, float* opac_out, int32_t* radii, float* colors, cudaStream_t stream) {
+  if (N == 0) return;
+  project_forward_kernel<<<(unsigned)((N + 255) / 256), 256, 0, stream>>>(
+      cam, N, means, quats, scales, opac, sh, means2d, depths, conics, opac_out, radii, colors);
+}
+
+void project_backward(const stdr::ProjCam<float>& cam, int64_t N, const float* means, const float* quats,
+                      const float* scales, const float* opac, const float* sh, const float* g_m2d,
+                      const float* g_depth, const float* g_conic, const float* g_opac, const float* g_color,
+                      float* g_means, float* g_quats, float* g_scales, float* g_opac_in, float* g_sh,
+                      cudaStream_t stream) {
+  if (N == 0) return;
+  project_backward_kernel<<<(unsigned)((N + 255) / 256), 256, 0, stream>>>(
+      cam, N, means, quats, scales, opac, sh, g_m2d, g_depth, g_conic, g_opac, g_color, g_means, g_quats,
+      g_scales, g_opac_in, g_sh);
+}
+
 }  // namespace stdr_cuda

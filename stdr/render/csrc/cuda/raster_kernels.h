@@ -6,6 +6,8 @@
 #include <cstdint>
 #include <cuda_runtime.h>
 
+#include "../project_math.h"
+
 namespace stdr_cuda {
 
 // packed[v] = [mx, my, a, b, c, o, f_0..f_{F-1}] of Gaussian order[v]; vradii[v] = radii[order[v]]
@@ -32,5 +34,17 @@ void backward(const float* packed, int F, const int32_t* pair_ids, const int64_t
               int width, int height, int tile, const float* g_acc, const float* g_T,
               const float* T_img, const int32_t* last_img, float* grad_packed,
               cudaStream_t stream);
+
+// One thread per Gaussian: projection and SH shading (project_math.h), forward.
+void project_forward(const stdr::ProjCam<float>& cam, int64_t N, const float* means, const float* quats,
+                     const float* scales, const float* opac, const float* sh, float* means2d, float* depths,
+                     float* conics, float* opac_out, int32_t* radii, float* colors, cudaStream_t stream);
+
+// One thread per Gaussian: projection and SH shading, backward (every output row written).
+void project_backward(const stdr::ProjCam<float>& cam, int64_t N, const float* means, const float* quats,
+                      const float* scales, const float* opac, const float* sh, const float* g_m2d,
+                      const float* g_depth, const float* g_conic, const float* g_opac, const float* g_color,
+                      float* g_means, float* g_quats, float* g_scales, float* g_opac_in, float* g_sh,
+                      cudaStream_t stream);
 
 }  // namespace stdr_cuda
