@@ -126,6 +126,7 @@ class OptimConfig:
     opacities_lr: float = 0.05
     sh0_lr: float = 2.5e-3
     shN_lr: float = 1.25e-4
+    fused_adam: bool = True         # torch's fused Adam on CPU and CUDA (false: the for-loop one)
 
 
 @dataclass

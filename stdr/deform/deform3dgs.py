@@ -75,7 +75,10 @@ class DeformMLP(Deformation):
 
     def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:
         h = self.trunk(params["means"].detach(), t, cond)
-        return Deltas(means=self.head_xyz(h), quats=self.head_rot(h), scales=self.head_scale(h))
+        # the three heads as one [N, 10] product (three skinny ones cost more than one)
+        heads = (self.head_xyz, self.head_rot, self.head_scale)
+        out = F.linear(h, torch.cat([m.weight for m in heads]), torch.cat([m.bias for m in heads]))
+        return Deltas(means=out[:, :3], quats=out[:, 3:7], scales=out[:, 7:])
 
     def trunk(self, xyz: Tensor, t: float, cond: Optional[Tensor] = None) -> Tensor:
         """Hidden features [N, width] at points xyz [N, 3] and time t (the baselines that query

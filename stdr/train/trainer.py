@@ -133,7 +133,8 @@ class Trainer:
         self.optimizers = self._make_optimizers()
         self.net_groups = self._net_groups()
         self.net_opt = torch.optim.Adam([{k: v for k, v in g.items() if k == "params" or k == "name"}
-                                         for g in self.net_groups], lr=cfg.baseline.lr_init, eps=1e-15)
+                                         for g in self.net_groups], lr=cfg.baseline.lr_init, eps=1e-15,
+                                        fused=self._fused_adam)
         self.strategy = DensifyStrategy(**OmegaConf.to_container(cfg.densify))
         self.cull_train = self.model.cull_mode() == "train"
         if self.cull_train and self.strategy.count_invisible:
@@ -202,8 +203,15 @@ class Trainer:
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         """One Adam per per-Gaussian parameter, including those a plug-in freezes for a phase, so the
         optimizer set does not depend on the step; a parameter without a gradient is not updated."""
-        return {k: torch.optim.Adam([{"params": [p], "lr": self._lr(k, 0), "name": k}], eps=1e-15)
+        return {k: torch.optim.Adam([{"params": [p], "lr": self._lr(k, 0), "name": k}], eps=1e-15,
+                                    fused=self._fused_adam)
                 for k, p in self.model.params.items()}
+
+    @property
+    def _fused_adam(self) -> bool:
+        """optim.fused_adam: torch's fused Adam (one kernel per parameter instead of ~10
+        elementwise passes) where torch has it (CPU and CUDA)."""
+        return bool(self.cfg.optim.get("fused_adam", True)) and self.device.type in ("cpu", "cuda")
 
     def _net_groups(self) -> list[dict]:
         """Network parameter groups: the deformation's (each with an lr multiplier on the
