@@ -437,4 +437,5 @@ def test_hexplane_sampling_equals_grid_sample_with_gradients():
     assert torch.equal(g1, g2)
     # a position that needs a gradient takes grid_sample itself
     uv_g = uv.clone().requires_grad_(True)
-    assert sample_plane(plane, uv_g).grad_fn.name() != "_PlaneGatherBackward"
+    assert sample_plane(plane, uv_g).grad_fn.name() != "_PlaneSampleBackward"
+    assert sample_plane(plane, uv).grad_fn.name() == "_PlaneSampleBackward"

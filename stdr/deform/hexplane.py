@@ -79,15 +79,14 @@ def sample_plane(plane: Tensor, uv: Tensor) -> Tensor:
     """Bilinear sample of plane [C, H, W] at uv [N, 2] in [-1, 1] (u along W, v along H;
     -1 and 1 are the centres of the corner cells, zero outside) -> [N, C].
 
-    `F.grid_sample(align_corners=True, padding_mode="zeros")`'s function. When uv needs no
-    gradient (the HexPlane field samples at detached positions) it runs as four row gathers
-    from a [H*W, C] copy of the plane and, backward, four `index_add_`s into it: 4-5x faster
-    than grid_sample's backward on the CPU (docs/performance.md), deterministic, and within
-    float rounding of it (tests/test_deform.py pins the two together)."""
+    `F.grid_sample(align_corners=True, padding_mode="zeros")` itself. When uv needs no
+    gradient (the HexPlane field samples at detached positions) the backward is four
+    `index_add_`s of the bilinear weights into the plane: 4-5x faster than grid_sample's
+    backward on the CPU (docs/performance.md), deterministic, and within float rounding of it
+    (tests/test_baselines.py pins the two together)."""
     if uv.requires_grad:
         return _grid_sample(plane, uv)
-    idx, w = _bilinear_corners(uv, plane.shape[1], plane.shape[2])
-    return _PlaneGather.apply(plane, idx, w)
+    return _PlaneSample.apply(plane, uv)
 
 
 def sample_plane_row(plane: Tensor, u: Tensor, v: float) -> Tensor:
@@ -104,17 +103,7 @@ def sample_plane_row(plane: Tensor, u: Tensor, v: float) -> Tensor:
     for yi, wy in ((y0, 1.0 - fy), (y0 + 1, fy)):
         if 0 <= yi < H:
             line = line + wy * plane[:, yi:yi + 1, :]
-    x = (u + 1) * (0.5 * (W - 1))
-    x0 = torch.floor(x)
-    fx = x - x0
-    x0 = x0.long()
-    idx, w = [], []
-    for dx, wk in ((0, 1 - fx), (1, fx)):
-        xi = x0 + dx
-        ok = (xi >= 0) & (xi < W)
-        idx.append(torch.where(ok, xi, torch.zeros_like(xi)))
-        w.append(torch.where(ok, wk, torch.zeros_like(wk)))
-    return _PlaneGather.apply(line, torch.stack(idx), torch.stack(w))
+    return _PlaneSample.apply(line, torch.stack([u, torch.zeros_like(u)], -1))  # H = 1: any v is row 0
 
 
 def _grid_sample(plane: Tensor, uv: Tensor) -> Tensor:
@@ -124,15 +113,17 @@ def _grid_sample(plane: Tensor, uv: Tensor) -> Tensor:
 
 
 def _bilinear_corners(uv: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
-    """(idx [4, N] int64 rows of a [H*W, C] plane, w [4, N]) of the four bilinear corners of
-    uv [N, 2]; a corner outside the plane gets weight 0 (and row 0)."""
+    """(idx [K, N] int64 rows of a [H*W, C] plane, w [K, N]) of the K = 4 bilinear corners of
+    uv [N, 2] (K = 2 for a one-row plane, a line); a corner outside the plane gets weight 0
+    (and row 0)."""
     x = (uv[:, 0] + 1) * (0.5 * (W - 1))  # [N] pixel coordinates (align_corners)
     y = (uv[:, 1] + 1) * (0.5 * (H - 1))
     x0, y0 = torch.floor(x), torch.floor(y)
     fx, fy = x - x0, y - y0
     x0, y0 = x0.long(), y0.long()
     idx, w = [], []
-    for dy, dx, wk in ((0, 0, (1 - fx) * (1 - fy)), (0, 1, fx * (1 - fy)), (1, 0, (1 - fx) * fy), (1, 1, fx * fy)):
+    corners = ((0, 0, (1 - fx) * (1 - fy)), (0, 1, fx * (1 - fy)), (1, 0, (1 - fx) * fy), (1, 1, fx * fy))
+    for dy, dx, wk in corners[:2] if H == 1 else corners:
         xi, yi = x0 + dx, y0 + dy
         ok = (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
         idx.append(torch.where(ok, yi * W + xi, torch.zeros_like(xi)))
@@ -140,28 +131,25 @@ def _bilinear_corners(uv: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
     return torch.stack(idx), torch.stack(w)
 
 
-class _PlaneGather(torch.autograd.Function):
-    """sum_k w[k, n] * plane[:, idx[k, n]] (K corners) -> [N, C]; gradient for the plane only."""
+class _PlaneSample(torch.autograd.Function):
+    """`_grid_sample(plane, uv)` forward (the same values); backward for the plane only, as four
+    deterministic `index_add_`s of the bilinear weights (grid_sample's CPU backward also
+    computes the unneeded position gradient and is 4-5x slower)."""
 
     @staticmethod
-    def forward(ctx, plane: Tensor, idx: Tensor, w: Tensor) -> Tensor:
-        C, H, W = plane.shape
-        rows = plane.permute(1, 2, 0).reshape(H * W, C)  # [H*W, C]
-        v = rows[idx.reshape(-1)].view(idx.shape[0], -1, C)  # [K, N, C]: one gather (index_select is slower)
-        out = v[0] * w[0, :, None]
-        for k in range(1, idx.shape[0]):
-            out.addcmul_(v[k], w[k, :, None])
-        ctx.save_for_backward(idx, w)
-        ctx.shape = (C, H, W)
-        return out
+    def forward(ctx, plane: Tensor, uv: Tensor) -> Tensor:
+        ctx.save_for_backward(uv)
+        ctx.shape = tuple(plane.shape)
+        return _grid_sample(plane, uv)
 
     @staticmethod
     def backward(ctx, g: Tensor):
-        idx, w = ctx.saved_tensors
+        uv, = ctx.saved_tensors
         C, H, W = ctx.shape
+        idx, w = _bilinear_corners(uv, H, W)  # [4, N]
         grad = g.new_zeros(H * W, C)
         grad.index_add_(0, idx.reshape(-1), (g[None] * w[:, :, None]).reshape(-1, C))
-        return grad.view(H, W, C).permute(2, 0, 1), None, None
+        return grad.view(H, W, C).permute(2, 0, 1), None
 
 
 def second_difference_smoothness(plane: Tensor) -> Tensor:
