@@ -311,8 +311,13 @@ class Trainer:
         with prof("loss"):
             lam = cfg.optim.lambda_dssim
             loss_l1 = l1(out.image, frame.image)
-            loss_dssim = 1.0 - ssim(out.image, frame.image)
-            loss = (1 - lam) * loss_l1 + lam * loss_dssim
+            if lam > 0:
+                loss_dssim = 1.0 - ssim(out.image, frame.image)
+                loss = (1 - lam) * loss_l1 + lam * loss_dssim
+            else:  # D-SSIM only for the log (4dgs's presets): its backward would add exact zeros
+                with torch.no_grad():
+                    loss_dssim = 1.0 - ssim(out.image.detach(), frame.image)
+                loss = loss_l1
         terms: dict[str, Tensor] = {}
         for p in model.plugins:
             with prof(f"{p.name}_reg"):
