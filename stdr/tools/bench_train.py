@@ -21,10 +21,12 @@ under other load can be compared as ratios (`ms / mm_ms`).
     stdr-tool bench-train --run RUN --gaussians 10000 20000 50000 --res 200 400 \\
         --experiments dnerf_deform dnerf_deform_stdr --out docs/measurements/bench_train_cpu \\
         -- data.path=../shared/data/dnerf/standup budget=cpu
+    stdr-tool bench-train --compare BEFORE.json AFTER.json --out docs/measurements/bench_train_cpu_compare
 """
 from __future__ import annotations
 
 import argparse
+import json
 import platform
 import statistics
 import sys
@@ -148,8 +150,65 @@ def markdown(res: dict) -> str:
         markdown_table(head, body), ""])
 
 
+def compare(before: dict, after: dict, labels=("before", "after")) -> tuple[str, dict]:
+    """Two bench-train results side by side: for every (experiment, resolution, Gaussians) both
+    have, the ms per step of each, the speed-up, and the sections and backward parts of each.
+    Rows one side lacks are listed, never compared. Returns (Markdown, the rows as a dict)."""
+    def key(r):
+        return (r["experiment"], r["width"], r["height"], r["gaussians"])
+    b = {key(r): r for r in before["rows"]}
+    a = {key(r): r for r in after["rows"]}
+    common = [k for k in b if k in a]
+    missing = sorted({k for k in list(a) + list(b) if k not in common})
+    head = ["experiment", "res", "Gaussians", f"ms/step {labels[0]}", f"ms/step {labels[1]}", "speed-up",
+            *(f"{p} ({labels[0]} → {labels[1]})" for p in ("deform", "render_fwd", "loss", "optimizer")),
+            *(f"bwd: {p} ({labels[0]} → {labels[1]})" for p in PARTS)]
+    body, rows = [], []
+    for k in common:
+        rb, ra = b[k], a[k]
+        body.append([k[0], f"{k[1]}x{k[2]}", f"{k[3]:,}", fmt(rb["ms"], "{:.1f}"), fmt(ra["ms"], "{:.1f}"),
+                     fmt(rb["ms"] / ra["ms"], "{:.2f}x"),
+                     *(f"{fmt(rb['sections_ms'].get(p), '{:.1f}')} → {fmt(ra['sections_ms'].get(p), '{:.1f}')}"
+                       for p in ("deform", "render_fwd", "loss", "optimizer")),
+                     *(f"{fmt(rb['backward_parts_ms'].get(p), '{:.1f}')} → {fmt(ra['backward_parts_ms'].get(p), '{:.1f}')}"
+                       for p in PARTS)])
+        rows.append({"experiment": k[0], "width": k[1], "height": k[2], "gaussians": k[3], "ms_before": rb["ms"],
+                     "ms_after": ra["ms"], "speedup": rb["ms"] / ra["ms"]})
+    code = lambda r: (r.get("code") or {}).get("commit", "?")[:7]  # noqa: E731
+    md = "\n".join([
+        f"Training step, {labels[0]} and {labels[1]} (stdr-tool bench-train --compare): median ms per step; "
+        "sections are the mean ms per step of the trainer's profiler.", "",
+        f"{labels[0]}: code {code(before)}, torch.mm 2048² {min(before['mm_ms_before'], before['mm_ms_after']):.1f} ms; "
+        f"{labels[1]}: code {code(after)}, torch.mm 2048² {min(after['mm_ms_before'], after['mm_ms_after']):.1f} ms "
+        f"({before['machine']} / {after['machine']}; overrides {' '.join(after['overrides']) or '–'}).", "",
+        markdown_table(head, body), ""]
+        + ([f"Not compared (in one file only): {', '.join(f'{e} {w}x{h} {n:,}' for e, w, h, n in missing)}", ""]
+           if missing else []))
+    return md, {"rows": rows, "before": {"code": before.get("code"), "mm_ms": before["mm_ms_after"]},
+                "after": {"code": after.get("code"), "mm_ms": after["mm_ms_after"]}, "labels": list(labels)}
+
+
 def main(argv=None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["--compare"]:
+        cp = argparse.ArgumentParser(prog="stdr-tool bench-train --compare",
+                                     description="two bench-train JSON files side by side")
+        cp.add_argument("--compare", nargs=2, type=Path, metavar=("BEFORE.json", "AFTER.json"), required=True)
+        cp.add_argument("--labels", nargs=2, default=["before", "after"])
+        cp.add_argument("--out", type=Path, default=None, help="write OUT.json and OUT.md")
+        c = cp.parse_args(argv)
+        loaded = []
+        for f in c.compare:
+            try:
+                loaded.append(json.loads(f.read_text()))
+            except (OSError, ValueError) as e:
+                raise SystemExit(f"--compare {f}: {e} (give the .json a bench-train --out wrote)")
+            if "rows" not in loaded[-1]:
+                raise SystemExit(f"--compare {f}: no 'rows' (not a bench-train result)")
+        md, res = compare(*loaded, labels=tuple(c.labels))
+        print(md, end="")
+        write_outputs(c.out, md, res)
+        return
     overrides = argv[argv.index("--") + 1:] if "--" in argv else []
     ap = argparse.ArgumentParser(prog="stdr-tool bench-train", description=__doc__.split("\n")[0],
                                  epilog="Hydra overrides for every experiment follow --")
