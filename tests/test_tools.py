@@ -123,6 +123,21 @@ def test_bench_train_times_the_step_by_section_at_fixed_counts(tmp_path):
     assert "÷ mm" in md and "bwd: projection+sh" in md and "embedded_deform_stdr" in md
     with pytest.raises(SystemExit, match="no checkpoints/last.pt"):
         bench_train.main(["--experiments", "embedded_deform", "--run", str(tmp_path), "--", *common])
+    # --compare: the same file against a copy with one row twice as fast and one row removed
+    faster = json.loads(json.dumps(data))
+    faster["rows"][0]["ms"] = data["rows"][0]["ms"] / 2
+    del faster["rows"][3]
+    (tmp_path / "after.json").write_text(json.dumps(faster))
+    bench_train.main(["--compare", str(out.with_suffix(".json")), str(tmp_path / "after.json"),
+                      "--out", str(tmp_path / "cmp")])
+    cmp = json.loads((tmp_path / "cmp.json").read_text())
+    assert [(r["experiment"], r["gaussians"]) for r in cmp["rows"]] == [
+        ("embedded_deform", 400), ("embedded_deform", 900), ("embedded_deform_stdr", 400)]
+    assert cmp["rows"][0]["speedup"] == pytest.approx(2.0) and cmp["rows"][1]["speedup"] == pytest.approx(1.0)
+    assert "Not compared (in one file only): embedded_deform_stdr 64x64 900" in (tmp_path / "cmp.md").read_text()
+    with pytest.raises(SystemExit, match="not a bench-train result"):
+        (tmp_path / "bad.json").write_text("{}")
+        bench_train.main(["--compare", str(tmp_path / "bad.json"), str(tmp_path / "after.json")])
 
 
 def test_profiler_adds_no_hooks_in_training():
