@@ -13,7 +13,7 @@ import torch
 
 from stdr import render as render_mod
 from stdr.render import compiled, rasterize, render, resolve_backend
-from stdr.render.projection import project_gaussians
+from stdr.render.projection import project_and_shade, project_gaussians
 
 from helpers import brute_force_composite, hard_case_scene, look_at_camera, random_gaussians
 
@@ -380,15 +380,6 @@ def test_a_lock_left_by_a_killed_build_is_cleared_not_waited_on_forever(tmp_path
 
 # ---------------------------------------------------------------- projection and SH (csrc/project_math.h)
 
-def _twin_project_sh(means, quats, scales, opac, sh, cam, degree, antialiased):
-    """The torch twin, as render() calls it: projection, then SH at the normalized view direction."""
-    from stdr.render.sh import eval_sh
-    p = project_gaussians(means, quats, scales, opac, cam, antialiased=antialiased)
-    d = means - cam.center.to(means)
-    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    return p, eval_sh(degree, sh, d)
-
-
 def _project_outputs_and_grads(fn, inputs, device, seed=3):
     """Outputs (means2d, depths, conics, opacities, colours), radii and the gradients of a
     random linear function of every output for (means, quats, scales, opacities, sh)."""
@@ -437,7 +428,7 @@ def test_projection_and_sh_match_the_torch_twin(backend, dtype, antialiased):
     gnames = ("means", "quats", "scales", "opacities", "sh")
     for degree in range(4):
         ref_o, ref_r, ref_g = _project_outputs_and_grads(
-            lambda *a: _twin_project_sh(*a, cam, degree, antialiased), inputs, "cpu")
+            lambda *a: project_and_shade(*a, cam, degree, antialiased=antialiased), inputs, "cpu")
         out_o, out_r, out_g = _project_outputs_and_grads(
             lambda *a: compiled.project_sh_compiled(*a, cam, degree, antialiased=antialiased, kind=backend),
             inputs, device)

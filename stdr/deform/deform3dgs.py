@@ -91,7 +91,6 @@ class DeformMLP(Deformation):
         input is concatenated. The same function as one Linear on the concatenated input (the
         weights are unchanged; only float rounding differs), and with xyz detached autograd
         computes no gradient for the PE block (about a fifth of the backward's products)."""
-        N = xyz.shape[0]
         t_in = torch.full((1, 1), float(t), dtype=xyz.dtype, device=xyz.device)
         t_emb = positional_encoding(t_in, self.t_freqs)  # [1, T]
         if self.time_net is not None:
@@ -117,7 +116,6 @@ class DeformMLP(Deformation):
             reads_input = i == 0 or (i - 1) in self.skips
             z = read_input(layer, None if i == 0 else h) if reads_input else layer(h)
             h = torch.relu_(z)  # z is a fresh sum: nothing else reads it
-        assert h is not None and h.shape[0] == N
         return h
 
 

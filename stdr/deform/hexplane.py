@@ -80,8 +80,8 @@ def sample_plane(plane: Tensor, uv: Tensor) -> Tensor:
     -1 and 1 are the centres of the corner cells, zero outside) -> [N, C].
 
     `F.grid_sample(align_corners=True, padding_mode="zeros")` itself. When uv needs no
-    gradient (the HexPlane field samples at detached positions) the backward is four
-    `index_add_`s of the bilinear weights into the plane: 4-5x faster than grid_sample's
+    gradient (the HexPlane field samples at detached positions) the backward is one
+    `index_add_` of the bilinear corners' weighted gradients into the plane: 4-5x faster than grid_sample's
     backward on the CPU (docs/performance.md), deterministic, and within float rounding of it
     (tests/test_baselines.py pins the two together)."""
     if uv.requires_grad:
@@ -132,8 +132,8 @@ def _bilinear_corners(uv: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
 
 
 class _PlaneSample(torch.autograd.Function):
-    """`_grid_sample(plane, uv)` forward (the same values); backward for the plane only, as four
-    deterministic `index_add_`s of the bilinear weights (grid_sample's CPU backward also
+    """`_grid_sample(plane, uv)` forward (the same values); backward for the plane only, as one
+    deterministic `index_add_` of the bilinear corners' weighted gradients (grid_sample's CPU backward also
     computes the unneeded position gradient and is 4-5x slower)."""
 
     @staticmethod
@@ -146,7 +146,7 @@ class _PlaneSample(torch.autograd.Function):
     def backward(ctx, g: Tensor):
         uv, = ctx.saved_tensors
         C, H, W = ctx.shape
-        idx, w = _bilinear_corners(uv, H, W)  # [4, N]
+        idx, w = _bilinear_corners(uv, H, W)  # [K, N]
         grad = g.new_zeros(H * W, C)
         grad.index_add_(0, idx.reshape(-1), (g[None] * w[:, :, None]).reshape(-1, C))
         return grad.view(H, W, C).permute(2, 0, 1), None

@@ -9,10 +9,9 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera
-from .projection import Projection, project_gaussians
+from .projection import Projection, project_and_shade
 from . import compiled
 from .reference import rasterize_reference
-from .sh import eval_sh
 
 BACKENDS = ("cuda", "cpu", "reference")  # compiled CUDA, compiled C++ (CPU), pure torch
 # Tile size per backend when `tile_size` is 0 (auto). Measured in docs/rasterizer.md.
@@ -97,11 +96,8 @@ def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: 
         proj, colors = compiled.project_sh_compiled(means, quats, scales, opacities, sh, camera, sh_degree,
                                                     near=near, eps2d=eps2d, antialiased=antialiased, kind=backend)
     else:
-        proj = project_gaussians(means, quats, scales, opacities, camera, near=near, eps2d=eps2d,
-                                 antialiased=antialiased)
-        dirs = means - camera.center.to(means)  # gradient flows through the view direction, as in 3DGS
-        dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        colors = eval_sh(sh_degree, sh, dirs)  # [N, 3]
+        proj, colors = project_and_shade(means, quats, scales, opacities, sh, camera, sh_degree, near=near,
+                                         eps2d=eps2d, antialiased=antialiased)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()

@@ -281,17 +281,13 @@ def rasterize_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, featu
 # ---------------------------------------------------------------- projection and SH shading
 
 def camera_values(camera) -> list[float]:
-    """The 26 camera numbers `csrc/project_math.h` (make_proj_cam) reads: R (row-major), t, the
-    centre, fx, fy, cx, cy, the Jacobian clamp limits (1.3x the field of view, computed as
-    stdr.render.projection does) and near, far, eps2d are appended by the caller."""
-    W, H = camera.width, camera.height
-    fx, fy, cx, cy = float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
-    tan_x, tan_y = 0.5 * W / fx, 0.5 * H / fy
-    lims = [(W - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x, (H - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y]
-    R = camera.R.detach().double().cpu().reshape(-1).tolist()
-    t = camera.t.detach().double().cpu().reshape(-1).tolist()
-    c = camera.center.detach().double().cpu().reshape(-1).tolist()
-    return R + t + c + [fx, fy, cx, cy] + lims
+    """The first 23 of the 26 camera numbers `csrc/project_math.h` (make_proj_cam) reads: R
+    (row-major), t, the centre, fx, fy, cx, cy and the Jacobian clamp limits
+    (`projection.frustum_limits`); the caller appends near, far and eps2d. One host copy."""
+    from .projection import frustum_limits
+    pose = torch.cat([camera.R.detach().reshape(-1), camera.t.detach().reshape(-1), camera.center.detach()])
+    return pose.double().cpu().tolist() + [float(camera.fx), float(camera.fy), float(camera.cx),
+                                           float(camera.cy), *frustum_limits(camera)]
 
 
 class _ProjectSH(torch.autograd.Function):

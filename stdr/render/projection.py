@@ -34,6 +34,14 @@ def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
     return M @ M.transpose(1, 2)
 
 
+def frustum_limits(camera: Camera) -> tuple[float, float, float, float]:
+    """(lim_xp, lim_xn, lim_yp, lim_yn): the Jacobian is evaluated at x/z clamped to
+    [-lim_xn, lim_xp] and y/z to [-lim_yn, lim_yp], 1.3x the frustum, as 3DGS/gsplat do."""
+    fx, fy, cx, cy, W, H = camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height
+    tan_x, tan_y = 0.5 * W / fx, 0.5 * H / fy
+    return (W - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x, (H - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
+
+
 @dataclass
 class Projection:
     means2d: Tensor    # [N, 2] pixel coordinates (pixel centres at i + 0.5)
@@ -60,10 +68,7 @@ def project_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
 
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     W, H = camera.width, camera.height
-    # Clamp the Jacobian's evaluation point to 1.3x the frustum, as 3DGS/gsplat do.
-    tan_x, tan_y = 0.5 * W / fx, 0.5 * H / fy
-    lim_xp, lim_xn = (W - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
-    lim_yp, lim_yn = (H - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
+    lim_xp, lim_xn, lim_yp, lim_yn = frustum_limits(camera)
     tx = zs * torch.clamp(x / zs, -lim_xn, lim_xp)
     ty = zs * torch.clamp(y / zs, -lim_yn, lim_yp)
     zero = torch.zeros_like(zs)
@@ -96,3 +101,17 @@ def project_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
                | (means2d[:, 1] + r <= 0) | (means2d[:, 1] - r >= H))
         radii = torch.where(off, torch.zeros_like(radii), radii)
     return Projection(means2d=means2d, depths=z, conics=conics, opacities=opacities, radii=radii)
+
+
+def project_and_shade(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor,
+                      camera: Camera, sh_degree: int, near: float = 0.01, eps2d: float = 0.3,
+                      antialiased: bool = False) -> tuple[Projection, Tensor]:
+    """(Projection, colours [N, 3]): `project_gaussians` and SH at the normalized view direction
+    (camera centre to Gaussian; the gradient flows through it, as in 3DGS). The torch twin of
+    `compiled.project_sh_compiled`."""
+    from .sh import eval_sh
+    proj = project_gaussians(means, quats, scales, opacities, camera, near=near, eps2d=eps2d,
+                             antialiased=antialiased)
+    dirs = means - camera.center.to(means)
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return proj, eval_sh(sh_degree, sh, dirs)
