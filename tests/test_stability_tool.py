@@ -9,7 +9,8 @@ import yaml
 from stdr.tools.stability import main as stability
 
 
-def _run(root, method, scene, stress, level, seed=0, psnr=30.0, peak=900, cap=1000, metrics=True, recoveries=0):
+def _run(root, method, scene, stress, level, seed=0, psnr=30.0, peak=900, cap=1000, metrics=True, recoveries=0,
+         best=None):
     base, stdr = method.split("+")[0], method.endswith("+STDR")
     d = root / method / scene / f"{stress}_{level}" / f"s{seed}"
     d.mkdir(parents=True)
@@ -18,7 +19,8 @@ def _run(root, method, scene, stress, level, seed=0, psnr=30.0, peak=900, cap=10
     (d / "config.yaml").write_text(yaml.safe_dump(cfg))
     if metrics:
         m = {"psnr": psnr, "ssim": 0.9, "lpips": 0.1, "num_gaussians": peak - 10,
-             "guard": {"n_recoveries": recoveries, "peak_gaussians": peak, "max_gaussians": cap}}
+             "guard": {"n_recoveries": recoveries, "peak_gaussians": peak, "max_gaussians": cap},
+             "best": {"step": 1000 if best else 2000, "psnr": best or psnr}, "last": {"step": 2000, "psnr": psnr}}
         (d / "metrics.json").write_text(json.dumps({"val": m}))
     return d
 
@@ -30,7 +32,8 @@ def _fixture(root):
         for seed, off in ((1, 0.4), (2, -0.2)):
             _run(root, "deform", scene, "none", 0, seed=seed, psnr=ref + off)
         _run(root, "deform", scene, "window", 1, psnr=ref - 1.0)
-        _run(root, "deform", scene, "window", 2, psnr=ref - 3.0, recoveries=1)
+        _run(root, "deform", scene, "window", 2, psnr=ref - 3.0, recoveries=1,
+             best=ref - 1.5 if scene == "a" else ref - 2.5)  # fell 1.5 dB (a), 0.5 dB (b) from its best
         _run(root, "deform+STDR", scene, "window", 1, psnr=ref + 0.5 - 0.5)
     # deform+STDR at window 2: one scene crashed (recorded), one run over the cap, one NaN
     crashed = _run(root, "deform+STDR", "a", "window", 2, metrics=False)
@@ -52,6 +55,7 @@ def test_degradation_table_and_chart(tmp_path, capsys):
     assert w1["scenes_without_reference"] == ["c"] and w1["psnr"] == pytest.approx((29.0 + 25.0) / 2)
     w2 = rows[("deform", "window", 2)]
     assert w2["psnr_drop"] == pytest.approx(3.0) and w2["recoveries"] == 2 and w2["cap_held"] is True
+    assert w2["fall_max"] == pytest.approx(1.5) and w1["fall_max"] == pytest.approx(0.0)
     s2 = rows[("deform+STDR", "window", 2)]
     assert s2["crashes"] == 1 and s2["nonfinite"] == 1 and s2["psnr_drop"] is None and s2["cap_held"] is False
     assert rows[("deform+STDR", "window", 1)]["psnr_drop"] == pytest.approx(0.5)
@@ -66,7 +70,7 @@ def test_degradation_table_and_chart(tmp_path, capsys):
     assert spread["deform"]["psnr_std"] == pytest.approx(math.sqrt(sum((x - m) ** 2 for x in per_seed) / 2))
     assert spread["deform+STDR"]["psnr_std"] is None  # one seed
     md = (tmp_path / "out" / "table.md").read_text()
-    assert "| deform | window | 2 | 25.00 | +3.00 |" in md and "**no**" in md
+    assert "| deform | window | 2 | 25.00 | +3.00 |" in md and "**no**" in md and "| 2 | 1.50 |" in md
     for ext in ("png", "svg", "csv"):
         assert (tmp_path / "out" / f"degradation_psnr.{ext}").stat().st_size > 0
     with open(tmp_path / "out" / "degradation_psnr.csv") as f:

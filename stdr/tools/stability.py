@@ -8,7 +8,9 @@ OUT/degradation_<metric>.{png,svg,csv}:
 
 * per method x stress x level (seed 0; means over the scenes that have the unstressed run too):
   PSNR / SSIM / LPIPS, the PSNR drop against the same method's unstressed run on the same scene,
-  runs, crashes, recoveries, non-finite metrics, final Gaussians, and whether the cap held;
+  runs, crashes, recoveries, non-finite metrics, the largest fall from the run's best periodic
+  evaluation to its last one (a collapse the final number alone hides; train.eval_every),
+  final Gaussians, and whether the cap held;
 * the seed spread of the unstressed runs: per method, mean ± sample std over seeds of the
   scene-mean PSNR;
 * the chart: PSNR drop against level, one line per method (colour per baseline, dashed plain,
@@ -81,6 +83,10 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
             g = m.get("guard") or {}
             cap = g.get("max_gaussians")
             row.update({k: m.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians")})
+            best, last = m.get("best") or {}, m.get("last") or {}
+            row.update(fall=best["psnr"] - last["psnr"]
+                       if _finite(best.get("psnr")) and _finite(last.get("psnr")) else None,
+                       best_step=best.get("step"))
             row.update(recoveries=g.get("n_recoveries", 0), peak=g.get("peak_gaussians"), cap=cap,
                        nonfinite=not all(_finite(m.get(k)) for k in ("psnr", "ssim")),
                        cap_held=None if not cap or g.get("peak_gaussians") is None else g["peak_gaussians"] <= cap)
@@ -116,6 +122,7 @@ def degradation(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                      "recoveries": sum(r.get("recoveries") or 0 for r in rs if not r["crashed"]),
                      "psnr": avg("psnr"), "ssim": avg("ssim"), "lpips": avg("lpips"),
                      "psnr_drop": mean(drops) if drops else None,
+                     "fall_max": max((r["fall"] for r in good if r.get("fall") is not None), default=None),
                      "gaussians": avg("num_gaussians"),
                      "cap_held": None if not ok or any(r["cap_held"] is None for r in ok)
                      else all(r["cap_held"] for r in ok)})
@@ -144,14 +151,15 @@ def seed_spread(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def markdown(rows, spread, unfinished, split) -> str:
     head = ["method", "stress", "level", "PSNR↑", "drop (dB)", "SSIM↑", "LPIPS↓", "runs", "crashes",
-            "non-finite", "recoveries", "Gaussians", "cap held", "scenes"]
+            "non-finite", "recoveries", "fell from best (dB)", "Gaussians", "cap held", "scenes"]
     body = [[r["method"], r["stress"], str(r["level"]), fmt(r["psnr"], "{:.2f}"), fmt(r["psnr_drop"], "{:+.2f}"),
              fmt(r["ssim"], "{:.4f}"), fmt(r["lpips"], "{:.4f}"), str(r["runs"]), str(r["crashes"]), str(r["nonfinite"]),
-             str(r["recoveries"]), fmt(r["gaussians"], "{:,.0f}"),
+             str(r["recoveries"]), fmt(r["fall_max"], "{:.2f}"), fmt(r["gaussians"], "{:,.0f}"),
              {True: "yes", False: "**no**", None: "–"}[r["cap_held"]], ", ".join(r["scenes"]) or "–"]
             for r in rows]
     md = [f"Degradation under stress ({split} split, seed 0; drop = unstressed PSNR − stressed PSNR, "
-          "mean over the scenes listed)", "", markdown_table(head, body)]
+          "mean over the scenes listed; fell from best = the largest best-minus-last PSNR of the "
+          "periodic evaluations over those scenes)", "", markdown_table(head, body)]
     if spread:
         md += ["", "Seed spread of the unstressed runs (scene-mean PSNR per seed)", "",
                markdown_table(["method", "seeds", "PSNR mean ± std", "scenes"],
