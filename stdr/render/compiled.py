@@ -30,7 +30,8 @@ from torch.autograd.function import once_differentiable
 CSRC = Path(__file__).resolve().parent / "csrc"
 CPU_SOURCES = [CSRC / "cpu" / "raster_cpu.cpp"]
 CUDA_SOURCES = [CSRC / "cuda" / "raster_cuda.cpp", CSRC / "cuda" / "raster_kernels.cu"]
-HEADERS = [CSRC / "raster_math.h", CSRC / "project_math.h", CSRC / "cuda" / "raster_kernels.h"]
+HEADERS = [CSRC / "raster_math.h", CSRC / "project_math.h", CSRC / "cpu" / "raster_simd.h",
+           CSRC / "cuda" / "raster_kernels.h"]
 PORTABLE_ENV = "STDR_PORTABLE_BUILD"  # =1: no -march=native (e.g. a cache shared by machines)
 
 _lock = threading.Lock()
