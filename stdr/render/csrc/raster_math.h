@@ -36,6 +36,21 @@ constexpr int MAX_CHANNELS = 8;
 template <typename T> STDR_HD T tmin(T a, T b) { return a < b ? a : b; }
 template <typename T> STDR_HD T tmax(T a, T b) { return a > b ? a : b; }
 
+// exp(x - n ln2) for the integer n nearest x / ln2, so |x - n ln2| <= ln2/2: ln2 split in two
+// for an exact reduction, then a degree-6 Taylor/Horner polynomial (truncation < 2e-8). V is
+// float or the CPU's 16-lane float vector (csrc/cpu/raster_simd.h): only * and + with floats.
+template <typename V> STDR_HD V exp_reduced(V x, V n) {
+  V r = x - n * 0.693145751953125f;
+  r = r - n * 1.428606765330187045e-06f;
+  V p = r * (1.0f / 720.0f) + 1.0f / 120.0f;
+  p = p * r + 1.0f / 24.0f;
+  p = p * r + 1.0f / 6.0f;
+  p = p * r + 0.5f;
+  p = p * r + 1.0f;
+  p = p * r + 1.0f;
+  return p;
+}
+
 // exp(x) for x <= 0 as needed by alpha (arguments below -80 return ~0). On the host this is a
 // branch-free polynomial the compiler vectorizes (relative error < 2e-7 in float); double uses
 // the library exp so float64 parity tests are exact to rounding.
@@ -44,19 +59,9 @@ STDR_HD float exp_neg(float x) {
   return expf(x);
 #else
   x = tmax(x, -80.0f);
-  // x = n ln2 + r, |r| <= ln2/2
   const float inv_ln2 = 1.44269504088896341f;
-  float n = std::nearbyint(x * inv_ln2);
-  float r = x - n * 0.693145751953125f;   // ln2 split in two for an exact reduction
-  r = r - n * 1.428606765330187045e-06f;
-  // exp(r) by a degree-6 Taylor/Horner polynomial (|r| <= 0.347: truncation < 2e-8)
-  float p = 1.0f / 720.0f;
-  p = p * r + 1.0f / 120.0f;
-  p = p * r + 1.0f / 24.0f;
-  p = p * r + 1.0f / 6.0f;
-  p = p * r + 0.5f;
-  p = p * r + 1.0f;
-  p = p * r + 1.0f;
+  const float n = std::nearbyint(x * inv_ln2);
+  const float p = exp_reduced(x, n);
   // scale by 2^n through the exponent bits (n in [-116, 0])
   int32_t e = (int32_t)n + 127;
   union { int32_t i; float f; } u;

@@ -61,15 +61,7 @@ inline vf exp_neg(vf x) {
   x = vmax(x, splat(-80.0f));
   const float inv_ln2 = 1.44269504088896341f, shifter = 12582912.0f;
   const vf n = (x * inv_ln2 + shifter) - shifter;
-  vf r = x - n * 0.693145751953125f;
-  r = r - n * 1.428606765330187045e-06f;
-  vf p = splat(1.0f / 720.0f);
-  p = p * r + 1.0f / 120.0f;
-  p = p * r + 1.0f / 24.0f;
-  p = p * r + 1.0f / 6.0f;
-  p = p * r + 0.5f;
-  p = p * r + 1.0f;
-  p = p * r + 1.0f;
+  const vf p = exp_reduced(x, n);
   const vi e = (__builtin_convertvector(n, vi) + 127) << 23;
   return p * (vf)e;
 }
