@@ -1,5 +1,6 @@
 """End-to-end: config composition, training on the embedded scene, exact resume, stdr-eval."""
 import json
+import os
 import subprocess
 import sys
 
@@ -184,3 +185,35 @@ def test_stdr_eval_render_keys_change_only_themselves():
         OmegaConf.merge(OmegaConf.structured(EvalAppConfig), {"stdr": {"lambda_temp": 0.1}})
     with pytest.raises(Exception, match="tile_sizes"):
         OmegaConf.merge(OmegaConf.structured(EvalAppConfig), {"render": {"tile_sizes": 8}})
+
+
+@pytest.mark.parametrize("user_value", [None, "COMPATIBLE"])
+def test_stdr_train_turns_on_mkl_reproducibility_before_its_first_call(user_value):
+    """stdr-train's entry sets MKL_CBWR=AUTO (oneMKL's run-to-run reproducibility mode), which MKL
+    reads at its first call: MKL_VERBOSE then reports CNR:AUTO for a GEMM; a user's value is kept."""
+    if "blas_info=mkl" not in torch.__config__.show().lower():
+        pytest.skip("this torch does not use MKL for BLAS")
+    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
+    env["MKL_VERBOSE"] = "1"
+    if user_value:
+        env["MKL_CBWR"] = user_value
+    code = ("from stdr.cli.common import reproducible_blas; reproducible_blas(); import torch; "
+            "a = torch.randn(300, 300); a @ a")
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    cnr = {w for w in (proc.stdout + proc.stderr).split() if w.startswith("CNR:")}
+    assert cnr == {f"CNR:{user_value or 'AUTO'}"}, cnr
+
+
+def test_the_stdr_train_command_runs_with_mkl_reproducibility_and_records_it(tmp_path):
+    from stdr.testing import TINY_SCENE
+    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
+    over = TINY_SCENE + [f"data.cache_dir={tmp_path / 'cache'}", "device=cpu", "model.init_num=500",
+                         "eval.lpips=false", "train.progress=false", "eval.save_images=false",
+                         "train.image_every=0", "optim.iterations=20", "baseline.warmup=10",
+                         f"hydra.run.dir={tmp_path / 'run'}"]
+    proc = subprocess.run([sys.executable, "-m", "stdr.cli.train", *over], env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    conv = json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]["conventions"]
+    assert conv["mkl_cbwr"] == "AUTO"

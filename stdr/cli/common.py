@@ -16,6 +16,15 @@ def use_fast_allocator_hint() -> None:
         print(f"[stdr] hint: CPU training runs faster with LD_PRELOAD={lib} (scripts/run.sh sets it)")
 
 
+def reproducible_blas() -> None:
+    """Turn on oneMKL's conditional numerical reproducibility (CNR) mode unless the user chose
+    one. Without it (CNR:OFF, the default) oneMKL documents that results may differ from run to
+    run with the inputs' memory alignment. AUTO keeps the fastest code path for this CPU; it cost
+    nothing measurable and gave the same bits here (docs/performance.md, "Determinism"). MKL
+    reads it at its first call, so this runs before any training work."""
+    os.environ.setdefault("MKL_CBWR", "AUTO")
+
+
 def compose_config(overrides=(), config_name: str = "train", return_hydra_config: bool = False):
     """The config `stdr-train` (config_name="train") or `stdr-eval` ("eval") would run with these
     command-line overrides, composed with Hydra's compose API: for scripts, notebooks and tests

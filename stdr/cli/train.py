@@ -8,7 +8,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from ..config import register
-from .common import CONFIG_DIR, use_fast_allocator_hint
+from .common import CONFIG_DIR, reproducible_blas, use_fast_allocator_hint
 
 register()
 
@@ -77,6 +77,7 @@ def sweep_job(cfg: DictConfig, run_dir: Path, data_base: str) -> dict | None:
 def _main(cfg: DictConfig) -> None:
     from hydra.types import RunMode
     use_fast_allocator_hint()
+    reproducible_blas()
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     if HydraConfig.get().mode == RunMode.MULTIRUN:
         sweep_job(cfg, run_dir, hydra.utils.get_original_cwd())

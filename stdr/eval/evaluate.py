@@ -186,6 +186,7 @@ def metric_conventions(eval_cfg, lpips_fn, backend: str, device: torch.device) -
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "machine": machine_name(),
         "torch_threads": torch.get_num_threads(),
+        "mkl_cbwr": os.environ.get("MKL_CBWR"),  # MKL's reproducibility mode (stdr-train sets AUTO)
         "render_backend": backend,
     }
 
