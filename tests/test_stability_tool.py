@@ -9,29 +9,37 @@ import yaml
 from stdr.tools.stability import main as stability
 
 
+TIMES = [0.1, 0.4, 0.6, 0.9]  # evaluation frames' times in the fixture; window [0.3, 0.7] holds two
+
+
 def _run(root, method, scene, stress, level, seed=0, psnr=30.0, peak=900, cap=1000, metrics=True, recoveries=0,
-         best=None):
+         best=None, per_frame=None, window=None):
     base, stdr = method.split("+")[0], method.endswith("+STDR")
     d = root / method / scene / f"{stress}_{level}" / f"s{seed}"
     d.mkdir(parents=True)
-    cfg = {"seed": seed, "data": {"name": scene, "stress": {"label": stress, "level": level}},
+    st = {"label": stress, "level": level, **({"drop_times": window} if window else {})}
+    cfg = {"seed": seed, "data": {"name": scene, "stress": st},
            "baseline": {"name": base}, "render": {"backend": "cpu"}, "stdr": {"enabled": stdr}}
     (d / "config.yaml").write_text(yaml.safe_dump(cfg))
     if metrics:
         m = {"psnr": psnr, "ssim": 0.9, "lpips": 0.1, "num_gaussians": peak - 10,
              "guard": {"n_recoveries": recoveries, "peak_gaussians": peak, "max_gaussians": cap},
              "best": {"step": 1000 if best else 2000, "psnr": best or psnr}, "last": {"step": 2000, "psnr": psnr}}
+        if per_frame is not None:
+            m.update(per_frame_psnr=per_frame, per_frame_time=TIMES)
         (d / "metrics.json").write_text(json.dumps({"val": m}))
     return d
 
 
 def _fixture(root):
     for scene, ref in (("a", 30.0), ("b", 26.0)):
-        _run(root, "deform", scene, "none", 0, psnr=ref)
+        _run(root, "deform", scene, "none", 0, psnr=ref, per_frame=[ref] * 4)
         _run(root, "deform+STDR", scene, "none", 0, psnr=ref + 0.5)
         for seed, off in ((1, 0.4), (2, -0.2)):
             _run(root, "deform", scene, "none", 0, seed=seed, psnr=ref + off)
-        _run(root, "deform", scene, "window", 1, psnr=ref - 1.0)
+        # 1 dB lower on average, 2 dB lower on the two frames inside the dropped window
+        _run(root, "deform", scene, "window", 1, psnr=ref - 1.0, per_frame=[ref, ref - 2, ref - 2, ref],
+             window=[0.3, 0.7])
         _run(root, "deform", scene, "window", 2, psnr=ref - 3.0, recoveries=1,
              best=ref - 1.5 if scene == "a" else ref - 2.5)  # fell 1.5 dB (a), 0.5 dB (b) from its best
         _run(root, "deform+STDR", scene, "window", 1, psnr=ref + 0.5 - 0.5)
@@ -53,7 +61,9 @@ def test_degradation_table_and_chart(tmp_path, capsys):
     w1 = rows[("deform", "window", 1)]
     assert w1["psnr_drop"] == pytest.approx(1.0) and w1["scenes"] == ["a", "b"]
     assert w1["scenes_without_reference"] == ["c"] and w1["psnr"] == pytest.approx((29.0 + 25.0) / 2)
+    assert w1["window_drop"] == pytest.approx(2.0) and w1["window_frames"] == 4
     w2 = rows[("deform", "window", 2)]
+    assert w2["window_drop"] is None and w2["window_frames"] == 0  # no per-frame numbers in these runs
     assert w2["psnr_drop"] == pytest.approx(3.0) and w2["recoveries"] == 2 and w2["cap_held"] is True
     assert w2["fall_max"] == pytest.approx(1.5) and w1["fall_max"] == pytest.approx(0.0)
     s2 = rows[("deform+STDR", "window", 2)]
@@ -70,7 +80,8 @@ def test_degradation_table_and_chart(tmp_path, capsys):
     assert spread["deform"]["psnr_std"] == pytest.approx(math.sqrt(sum((x - m) ** 2 for x in per_seed) / 2))
     assert spread["deform+STDR"]["psnr_std"] is None  # one seed
     md = (tmp_path / "out" / "table.md").read_text()
-    assert "| deform | window | 2 | 25.00 | +3.00 |" in md and "**no**" in md and "| 2 | 1.50 |" in md
+    assert "| deform | window | 2 | 25.00 | +3.00 | – |" in md and "**no**" in md and "| 2 | 1.50 |" in md
+    assert "| deform | window | 1 | 27.00 | +1.00 | +2.00 (4 fr.) |" in md
     for ext in ("png", "svg", "csv"):
         assert (tmp_path / "out" / f"degradation_psnr.{ext}").stat().st_size > 0
     with open(tmp_path / "out" / "degradation_psnr.csv") as f:
@@ -151,3 +162,20 @@ def test_static_rule_picks_the_largest_qualifying_theta(tmp_path):
     assert noise["rows"][0]["fps_gain"] == pytest.approx(0.10) and not noise["rows"][0]["skips_rows"]
     assert noise["qualifying"] == [] and noise["default"] == 0.0
     assert "no row skipped" in (tmp_path / "noise.md").read_text()
+
+
+def test_frame_times_come_from_the_scene_for_runs_that_did_not_record_them(tmp_path):
+    """Runs written before metrics.json had per_frame_time: the tool loads the evaluation split
+    as the trainer does and takes its frames' times, in the same order."""
+    from omegaconf import OmegaConf
+    from stdr.data.load import load_scene
+    from stdr.testing import tiny_config
+    from stdr.tools.stability import _frame_times
+    cfg = tiny_config(tmp_path, ["stress=window_2"])
+    want = [f.time for f in load_scene(cfg.data, ["val"]).splits["val"]]
+    container = OmegaConf.to_container(cfg, resolve=True)
+    cache = {}
+    assert _frame_times(container, "val", {"per_frame_psnr": [1.0] * len(want)}, cache) == want
+    assert _frame_times(container, "val", {"per_frame_time": [0.5]}, cache) == [0.5]  # recorded wins
+    container["data"].update(format="dnerf", path=str(tmp_path / "nowhere"), name="gone")
+    assert _frame_times(container, "val", {}, {}) is None  # unreadable data: no in-window drop, no crash

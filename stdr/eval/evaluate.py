@@ -142,6 +142,7 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
         **fps_summary(passes), **size_summary(model, active, static),
         "num_frames": len(frames),
         "per_frame_psnr": ps,
+        "per_frame_time": [float(f.time) for f in frames],  # normalized times, in per_frame_psnr's order
         "width": frames[0].camera.width, "height": frames[0].camera.height,
     }
 

@@ -8,6 +8,8 @@ OUT/degradation_<metric>.{png,svg,csv}:
 
 * per method x stress x level (seed 0; means over the scenes that have the unstressed run too):
   PSNR / SSIM / LPIPS, the PSNR drop against the same method's unstressed run on the same scene,
+  the drop on the evaluation frames inside the stress's time window (window: times never
+  trained on; sparse: sparsely trained), against the same frames of the unstressed run,
   runs, crashes, recoveries, non-finite metrics, the largest fall from the run's best periodic
   evaluation to its last one (a collapse the final number alone hides; train.eval_every),
   final Gaussians, and whether the cap held;
@@ -45,6 +47,32 @@ def _finite(v) -> bool:
     return v is not None and isinstance(v, (int, float)) and math.isfinite(v)
 
 
+def _window(cfg: dict) -> list[float] | None:
+    """The time window a stress thins out: drop_times (window) or sparse_times (sparse)."""
+    st = (cfg.get("data") or {}).get("stress") or {}
+    w = st.get("drop_times") or st.get("sparse_times")
+    return [float(w[0]), float(w[1])] if w else None
+
+
+def _frame_times(cfg: dict, split: str, m: dict, cache: dict) -> list[float] | None:
+    """Normalized times of the evaluation frames, in per_frame_psnr's order: from metrics.json
+    (per_frame_time), else (runs written before it was recorded) from the run's scene as the
+    trainer loads it, once per scene and split; None where the data cannot be read."""
+    if m.get("per_frame_time") is not None:
+        return [float(t) for t in m["per_frame_time"]]
+    from omegaconf import OmegaConf
+    data = OmegaConf.create(cfg["data"])
+    key = (str(data.get("path")), str(data.get("name")), split)
+    if key not in cache:
+        from ..data.load import load_scene
+        try:
+            cache[key] = [f.time for f in load_scene(data, [split]).splits[split]]
+        except (OSError, ValueError, KeyError, AttributeError) as e:
+            print(f"[stdr] stability: frame times of {key[0]} unavailable ({e}); no in-window drop for it")
+            cache[key] = None
+    return cache[key]
+
+
 def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, Any]], list[str]]:
     """Every run folder (config.yaml) under `paths`: finished ones with their numbers, crashed
     ones (recorded in a failures.jsonl of the sweep) with the error; unfinished ones named."""
@@ -64,7 +92,7 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
                     failures[str(Path(rec["run_dir"]).resolve())] = rec.get("error", "?")
     if not folders:
         raise SystemExit(f"stdr-tool stability: no run folders (config.yaml) under {', '.join(map(str, paths))}")
-    runs, unfinished = [], []
+    runs, unfinished, times_cache = [], [], {}
     for d in dict.fromkeys(folders):
         cfg = yaml.safe_load((d / "config.yaml").read_text())
         label, level = _stress(cfg)
@@ -83,6 +111,10 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
             g = m.get("guard") or {}
             cap = g.get("max_gaussians")
             row.update({k: m.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians")})
+            frames = m.get("per_frame_psnr")
+            times = _frame_times(cfg, split, m, times_cache) if frames else None
+            row.update(window=_window(cfg), per_frame_psnr=frames,
+                       per_frame_time=times if times is not None and len(times) == len(frames) else None)
             best, last = m.get("best") or {}, m.get("last") or {}
             row.update(fall=best["psnr"] - last["psnr"]
                        if _finite(best.get("psnr")) and _finite(last.get("psnr")) else None,
@@ -95,6 +127,19 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
         raise SystemExit(f"stdr-tool stability: no finished or crashed run with a {split!r} entry "
                          f"({len(unfinished)} unfinished)")
     return runs, unfinished
+
+
+def window_drop(run: dict[str, Any], ref: dict[str, Any]) -> tuple[float, int] | None:
+    """(unstressed minus stressed mean PSNR, frame count) over the evaluation frames whose time
+    lies in the run's stress window; None without a window, frame times or such frames."""
+    w, t = run.get("window"), run.get("per_frame_time")
+    if not w or t is None or ref.get("per_frame_psnr") is None or len(ref["per_frame_psnr"]) != len(t):
+        return None
+    inside = [i for i, x in enumerate(t) if w[0] <= x <= w[1]]
+    if not inside:
+        return None
+    return (mean(ref["per_frame_psnr"][i] for i in inside) - mean(run["per_frame_psnr"][i] for i in inside),
+            len(inside))
 
 
 def degradation(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -112,6 +157,7 @@ def degradation(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
         ok = [r for r in rs if not r["crashed"] and (method, r["scene"]) in ref]
         good = [r for r in ok if not r["nonfinite"]]
         drops = [ref[(method, r["scene"])]["psnr"] - r["psnr"] for r in good]
+        win = [w for r in good for w in [window_drop(r, ref[(method, r["scene"])])] if w is not None]
         avg = lambda k: mean(r[k] for r in good) if good and all(_finite(r[k]) for r in good) else None  # noqa: E731
         rows.append({"method": method, "baseline": rs[0]["baseline"], "stdr": rs[0]["stdr"], "stress": stress,
                      "level": level, "scenes": sorted(r["scene"] for r in good),
@@ -122,6 +168,8 @@ def degradation(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                      "recoveries": sum(r.get("recoveries") or 0 for r in rs if not r["crashed"]),
                      "psnr": avg("psnr"), "ssim": avg("ssim"), "lpips": avg("lpips"),
                      "psnr_drop": mean(drops) if drops else None,
+                     "window_drop": mean(d for d, _ in win) if win else None,
+                     "window_frames": sum(n for _, n in win),
                      "fall_max": max((r["fall"] for r in good if r.get("fall") is not None), default=None),
                      "gaussians": avg("num_gaussians"),
                      "cap_held": None if not ok or any(r["cap_held"] is None for r in ok)
@@ -150,16 +198,18 @@ def seed_spread(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def markdown(rows, spread, unfinished, split) -> str:
-    head = ["method", "stress", "level", "PSNR↑", "drop (dB)", "SSIM↑", "LPIPS↓", "runs", "crashes",
+    head = ["method", "stress", "level", "PSNR↑", "drop (dB)", "drop in window (dB)", "SSIM↑", "LPIPS↓", "runs", "crashes",
             "non-finite", "recoveries", "fell from best (dB)", "Gaussians", "cap held", "scenes"]
     body = [[r["method"], r["stress"], str(r["level"]), fmt(r["psnr"], "{:.2f}"), fmt(r["psnr_drop"], "{:+.2f}"),
+             fmt(r["window_drop"], "{:+.2f}") + (f" ({r['window_frames']} fr.)" if r["window_drop"] is not None else ""),
              fmt(r["ssim"], "{:.4f}"), fmt(r["lpips"], "{:.4f}"), str(r["runs"]), str(r["crashes"]), str(r["nonfinite"]),
              str(r["recoveries"]), fmt(r["fall_max"], "{:.2f}"), fmt(r["gaussians"], "{:,.0f}"),
              {True: "yes", False: "**no**", None: "–"}[r["cap_held"]], ", ".join(r["scenes"]) or "–"]
             for r in rows]
     md = [f"Degradation under stress ({split} split, seed 0; drop = unstressed PSNR − stressed PSNR, "
-          "mean over the scenes listed; fell from best = the largest best-minus-last PSNR of the "
-          "periodic evaluations over those scenes)", "", markdown_table(head, body)]
+          "mean over the scenes listed; drop in window = the same on the evaluation frames whose time "
+          "lies in the stress's window (window, sparse), with their count; fell from best = the largest "
+          "best-minus-last PSNR of the periodic evaluations over those scenes)", "", markdown_table(head, body)]
     if spread:
         md += ["", "Seed spread of the unstressed runs (scene-mean PSNR per seed)", "",
                markdown_table(["method", "seeds", "PSNR mean ± std", "scenes"],
