@@ -167,3 +167,37 @@ def test_a_real_browser_shows_a_render(runs, tmp_path, capsys):
     assert img.shape[0] > 100 and img.std() > 5  # not a blank page
     h, w = img.shape[:2]
     assert img[h // 3: 2 * h // 3, w // 4: w // 2].mean() < 250  # the render behind the panel, not white
+
+
+@pytest.mark.parametrize("ignore_term", [False, True])
+def test_the_browser_and_every_helper_it_forked_are_stopped(ignore_term):
+    """stdr-view --screenshot stops Chromium's whole process group (its helpers outlive the main
+    process and kept writing to the profile folder, so removing it failed): here a main process
+    with two forked children; with SIGTERM ignored, SIGKILL follows."""
+    import os
+    import subprocess
+    from stdr.view.browser import stop_process_group
+    trap = 'trap "" TERM; ' if ignore_term else ""
+    proc = subprocess.Popen(["bash", "-c", f"{trap}sleep 300 & sleep 300 & wait"], start_new_session=True)
+    time.sleep(0.3)
+    assert len(_live_group_members(proc.pid)) == 3  # bash and its two children
+    t0 = time.time()
+    stop_process_group(proc, timeout=1.0)
+    assert proc.returncode is not None and time.time() - t0 < 5.0
+    assert _live_group_members(proc.pid) == []  # (zombies awaiting init's reaping do not count)
+
+
+def _live_group_members(pgid: int) -> list[int]:
+    """Processes of group pgid that are not zombies, from /proc/<pid>/stat."""
+    import os
+    live = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                stat = open(f"/proc/{d}/stat").read()
+            except OSError:
+                continue
+            fields = stat[stat.rindex(")") + 2:].split()  # state, ppid, pgrp, ...
+            if int(fields[2]) == pgid and fields[0] != "Z":
+                live.append(int(d))
+    return live

@@ -33,12 +33,15 @@ def screenshot(url: str, out: str | Path, ready: Callable[[], bool], width: int 
         raise RuntimeError("no Chromium found: apt-get install -y chromium")
     from websockets.sync.client import connect
     out = Path(out)
-    with tempfile.TemporaryDirectory(prefix="stdr-chromium-") as prof:
+    # ignore_cleanup_errors: a helper that outlived stop_process_group may still write to the
+    # profile; the screenshot is saved by then and must not fail on the leftover files
+    with tempfile.TemporaryDirectory(prefix="stdr-chromium-", ignore_cleanup_errors=True) as prof:
         proc = subprocess.Popen([exe, "--headless=new", "--no-sandbox", "--use-angle=swiftshader",
                                  "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
                                  "--no-first-run", "--remote-debugging-port=0", f"--user-data-dir={prof}",
                                  f"--window-size={width},{height}", url],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, "HOME": prof})
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, "HOME": prof},
+                                start_new_session=True)  # its own process group: its helpers are stopped with it
         try:
             t0 = time.time()
             port_file = Path(prof) / "DevToolsActivePort"
@@ -73,8 +76,30 @@ def screenshot(url: str, out: str | Path, ready: Callable[[], bool], width: int 
             out.write_bytes(base64.b64decode(msg["result"]["data"]))
             return out
         finally:
-            proc.terminate()
+            stop_process_group(proc)
+
+
+def stop_process_group(proc: subprocess.Popen, timeout: float = 10.0) -> None:
+    """Stop a process started with start_new_session=True and every process of its group.
+    Chromium forks helpers (renderer, GPU, crashpad) that outlive a terminated main process and
+    keep writing to the profile folder, which then could not be removed. SIGTERM to the group,
+    then SIGKILL to whatever is left after `timeout` seconds; waits for the group to be gone
+    (bounded: zombies of an init that does not reap would keep it alive)."""
+    import signal
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            break
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            proc.poll()  # reap the main process
             try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+                os.killpg(proc.pid, 0)
+            except ProcessLookupError:
+                return
+            time.sleep(0.05)
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        pass
