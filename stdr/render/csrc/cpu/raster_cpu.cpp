@@ -96,15 +96,71 @@ void bin_pairs(const T* packed, const int32_t* radii, int64_t V, int64_t D, cons
   });
 }
 
+// The pixels of one tile at a time, padded to S >= tile^2 entries (the SIMD path pads to whole
+// 16-lane chunks) with outside pixels. The offsets inside a tile are computed once per thread
+// (no integer division per pixel and tile).
 template <typename T>
-void tile_pixels(const Grid& gr, int t, T* px, T* py, int* inside) {
-  const int tx = t % gr.ntx, ty = t / gr.ntx;
-  for (int p = 0; p < gr.pt; ++p) {
-    const int x = tx * gr.tile + p % gr.tile, y = ty * gr.tile + p / gr.tile;
-    px[p] = T(x) + T(0.5);
-    py[p] = T(y) + T(0.5);
-    inside[p] = (x < gr.width && y < gr.height) ? 1 : 0;
+struct TileLayout {
+  const Grid& gr;
+  int S;                        // padded pixels per tile
+  std::vector<int32_t> lx, ly;  // [S]: pixel p's column and row inside its tile
+  std::vector<T> px, py;        // [S]: pixel centres of the current tile
+  std::vector<int32_t> inside;  // [S]: 1 for pixels in the image
+  int64_t base = 0;             // image index of the current tile's top-left pixel
+  TileLayout(const Grid& g, int padded) : gr(g), S(padded), lx(S), ly(S), px(S), py(S), inside(S) {
+    for (int p = 0; p < S; ++p) {
+      lx[p] = p % g.tile;
+      ly[p] = p / g.tile;
+    }
   }
+  void set(int t) {
+    const int x0 = (t % gr.ntx) * gr.tile, y0 = (t / gr.ntx) * gr.tile;
+    base = (int64_t)y0 * gr.width + x0;
+    for (int p = 0; p < S; ++p) {
+      const int x = x0 + lx[p], y = y0 + ly[p];
+      px[p] = T(x) + T(0.5);
+      py[p] = T(y) + T(0.5);
+      inside[p] = (p < gr.pt && x < gr.width && y < gr.height) ? 1 : 0;
+    }
+  }
+  int64_t pix(int p) const { return base + (int64_t)ly[p] * gr.width + lx[p]; }  // inside pixels
+};
+
+// A tile's forward results (pixel p's feature f at acc[f * stride + p]) into the images.
+template <typename T, int F>
+void store_tile(const TileLayout<T>& tl, const T* Tb, const int32_t* last, const T* acc, int stride,
+                T* out_acc, T* out_T, int32_t* out_last) {
+  for (int p = 0; p < tl.gr.pt; ++p) {
+    if (!tl.inside[p]) continue;
+    const int64_t pix = tl.pix(p);
+    out_T[pix] = Tb[p];
+    out_last[pix] = last[p];
+    for (int f = 0; f < F; ++f) out_acc[pix * F + f] = acc[(size_t)f * stride + p];
+  }
+}
+
+// A tile's backward state from the images, for its S padded pixels (outside ones: T = 1, no
+// gradient, nothing composited): final T (also the walking T), dL/dT, last index, dL/d acc_f
+// and the features behind (0). Returns the largest last index.
+template <typename T, int F>
+int load_tile(const TileLayout<T>& tl, const T* g_acc, const T* g_T, const T* Tfin_img,
+              const int32_t* last_img, T* Tf, T* Tp, T* GT, int32_t* last, T* G, T* behind) {
+  const int S = tl.S;
+  int max_last = 0;
+  for (int p = 0; p < S; ++p) {
+    const bool in = tl.inside[p];
+    const int64_t pix = in ? tl.pix(p) : 0;
+    Tf[p] = in ? Tfin_img[pix] : T(1);
+    Tp[p] = Tf[p];
+    GT[p] = in ? g_T[pix] : T(0);
+    last[p] = in ? last_img[pix] : 0;
+    max_last = std::max(max_last, (int)last[p]);
+    for (int f = 0; f < F; ++f) {
+      G[(size_t)f * S + p] = in ? g_acc[pix * F + f] : T(0);
+      behind[(size_t)f * S + p] = T(0);
+    }
+  }
+  return max_last;
 }
 
 template <typename T, int F>
@@ -112,22 +168,23 @@ void forward_tiles(const T* packed, int64_t D, const int32_t* ids, const int64_t
                    const Grid& gr, int slots, T* out_acc, T* out_T, int32_t* out_last) {
   for_each_slot(slots, [&](int s) {
     const int Pt = gr.pt;
-    std::vector<T> px(Pt), py(Pt), Tb(Pt), acc((size_t)F * Pt);
-    std::vector<int> inside(Pt), done(Pt), last(Pt);
+    TileLayout<T> tl(gr, Pt);
+    std::vector<T> Tb(Pt), acc((size_t)F * Pt);
+    std::vector<int32_t> done(Pt), last(Pt);
     for (int t = s; t < gr.n_tiles; t += slots) {
-      tile_pixels(gr, t, px.data(), py.data(), inside.data());
+      tl.set(t);
       int live = 0;
       for (int p = 0; p < Pt; ++p) {
         Tb[p] = T(1);
-        done[p] = inside[p] ? 0 : 1;
+        done[p] = tl.inside[p] ? 0 : 1;
         last[p] = 0;
-        live += inside[p];
+        live += tl.inside[p];
       }
       std::fill(acc.begin(), acc.end(), T(0));
       T* A = acc.data();
       T* Tp = Tb.data();
-      int *dn = done.data(), *ls = last.data();
-      const T *X = px.data(), *Y = py.data();
+      int32_t *dn = done.data(), *ls = last.data();
+      const T *X = tl.px.data(), *Y = tl.py.data();
       for (int64_t k = off[t]; k < off[t + 1] && live > 0; ++k) {
         const T* g = packed + (int64_t)ids[k] * D;
         const int idx = (int)(k - off[t]);
@@ -137,15 +194,7 @@ void forward_tiles(const T* packed, int64_t D, const int32_t* ids, const int64_t
           stops += stdr::forward_pixel<T, F>(g, X[p], Y[p], idx, Tp[p], dn[p], ls[p], A + p, Pt);
         live -= stops;
       }
-      const int tx = t % gr.ntx, ty = t / gr.ntx;
-      for (int p = 0; p < Pt; ++p) {
-        if (!inside[p]) continue;
-        const int64_t pix = (int64_t)(ty * gr.tile + p / gr.tile) * gr.width + tx * gr.tile +
-                            p % gr.tile;
-        out_T[pix] = Tb[p];
-        out_last[pix] = last[p];
-        for (int f = 0; f < F; ++f) out_acc[pix * F + f] = acc[(size_t)f * Pt + p];
-      }
+      store_tile<T, F>(tl, Tb.data(), last.data(), acc.data(), Pt, out_acc, out_T, out_last);
     }
   });
 }
@@ -156,33 +205,20 @@ void backward_tiles(const T* packed, int64_t D, const int32_t* ids, const int64_
                     const int32_t* last_img, T* grads /* [slots, V, D] */, int64_t V) {
   for_each_slot(slots, [&](int s) {
     const int Pt = gr.pt;
-    std::vector<T> px(Pt), py(Pt), Tp(Pt), Tf(Pt), GT(Pt), G((size_t)F * Pt),
-        behind((size_t)F * Pt), contrib((size_t)D * Pt);
-    std::vector<int> inside(Pt), last(Pt);
+    TileLayout<T> tl(gr, Pt);
+    std::vector<T> Tp(Pt), Tf(Pt), GT(Pt), G((size_t)F * Pt), behind((size_t)F * Pt),
+        contrib((size_t)D * Pt);
+    std::vector<int32_t> last(Pt);
     T* mine = grads + (int64_t)s * V * D;
     std::fill(mine, mine + V * D, T(0));
     for (int t = s; t < gr.n_tiles; t += slots) {
       if (off[t] == off[t + 1]) continue;
-      tile_pixels(gr, t, px.data(), py.data(), inside.data());
-      const int tx = t % gr.ntx, ty = t / gr.ntx;
-      int max_last = 0;
-      for (int p = 0; p < Pt; ++p) {
-        const int64_t pix = (int64_t)(ty * gr.tile + p / gr.tile) * gr.width + tx * gr.tile +
-                            p % gr.tile;
-        const bool in = inside[p];
-        Tf[p] = in ? Tfin_img[pix] : T(1);
-        Tp[p] = Tf[p];
-        GT[p] = in ? g_T[pix] : T(0);
-        last[p] = in ? last_img[pix] : 0;
-        max_last = std::max(max_last, last[p]);
-        for (int f = 0; f < F; ++f) {
-          G[(size_t)f * Pt + p] = in ? g_acc[pix * F + f] : T(0);
-          behind[(size_t)f * Pt + p] = T(0);
-        }
-      }
+      tl.set(t);
+      const int max_last = load_tile<T, F>(tl, g_acc, g_T, Tfin_img, last_img, Tf.data(), Tp.data(),
+                                           GT.data(), last.data(), G.data(), behind.data());
       T *TP = Tp.data(), *B = behind.data(), *C = contrib.data();
-      const T *X = px.data(), *Y = py.data(), *Gp = G.data(), *GTp = GT.data(), *TF = Tf.data();
-      const int* LS = last.data();
+      const T *X = tl.px.data(), *Y = tl.py.data(), *Gp = G.data(), *GTp = GT.data(), *TF = Tf.data();
+      const int32_t* LS = last.data();
       for (int idx = max_last - 1; idx >= 0; --idx) {
         const int64_t v = ids[off[t] + idx];
         const T* g = packed + v * D;
@@ -204,35 +240,13 @@ void backward_tiles(const T* packed, int64_t D, const int32_t* ids, const int64_
 }
 
 #ifdef STDR_SIMD
-// The pixels of a tile in 16-lane chunks (raster_simd.h), padded with outside lanes. The offsets
-// inside a tile are computed once per thread (no integer division per pixel and tile).
-struct SimdTiles {
-  const Grid& gr;
-  int nch, S;  // chunks per tile, padded pixels per tile
-  std::vector<int32_t> lx, ly;  // [S]: pixel p's column and row inside its tile
-  std::vector<float> px, py;
-  std::vector<int32_t> inside;
+// A tile layout padded to whole 16-lane chunks, with the view raster_simd.h reads.
+struct SimdTiles : TileLayout<float> {
+  int nch;  // chunks per tile
   stdr::simd::TilePixels tp;
-  int64_t base = 0;  // image index of the current tile's top-left pixel
   explicit SimdTiles(const Grid& g)
-      : gr(g), nch((g.pt + stdr::simd::L - 1) / stdr::simd::L), S(nch * stdr::simd::L), lx(S), ly(S),
-        px(S), py(S), inside(S), tp{nch, px.data(), py.data(), inside.data()} {
-    for (int p = 0; p < S; ++p) {
-      lx[p] = p % g.tile;
-      ly[p] = p / g.tile;
-    }
-  }
-  void set(int t) {  // pixel centres and in-image flags of tile t
-    const int x0 = (t % gr.ntx) * gr.tile, y0 = (t / gr.ntx) * gr.tile;
-    base = (int64_t)y0 * gr.width + x0;
-    for (int p = 0; p < S; ++p) {
-      const int x = x0 + lx[p], y = y0 + ly[p];
-      px[p] = float(x) + 0.5f;
-      py[p] = float(y) + 0.5f;
-      inside[p] = (p < gr.pt && x < gr.width && y < gr.height) ? 1 : 0;
-    }
-  }
-  int64_t pix(int p) const { return base + (int64_t)ly[p] * gr.width + lx[p]; }  // inside pixels
+      : TileLayout<float>(g, (g.pt + stdr::simd::L - 1) / stdr::simd::L * stdr::simd::L),
+        nch(S / stdr::simd::L), tp{nch, px.data(), py.data(), inside.data()} {}
 };
 
 // Prefetch the image rows of tile t that the backward's set-up reads next: each tile row is a
@@ -244,11 +258,11 @@ inline void prefetch_tile_rows(const Grid& gr, int t, const float* g_acc, int F,
   const int x0 = (t % gr.ntx) * gr.tile, y0 = (t / gr.ntx) * gr.tile;
   for (int y = y0; y < std::min(y0 + gr.tile, gr.height); ++y) {
     const int64_t i = (int64_t)y * gr.width + x0;
-    __builtin_prefetch(g_acc + i * F);
-    __builtin_prefetch(g_acc + i * F + (int64_t)F * gr.tile - 1);
-    __builtin_prefetch(g_T + i);
-    __builtin_prefetch(Tfin + i);
-    __builtin_prefetch(last + i);
+    STDR_PREFETCH(g_acc + i * F, 0);
+    STDR_PREFETCH(g_acc + i * F + (int64_t)F * gr.tile - 1, 0);
+    STDR_PREFETCH(g_T + i, 0);
+    STDR_PREFETCH(Tfin + i, 0);
+    STDR_PREFETCH(last + i, 0);
   }
 }
 
@@ -264,13 +278,7 @@ void forward_tiles_simd(const float* packed, int64_t D, const int32_t* ids, cons
       tl.set(t);
       stdr::simd::forward_tile<F>(packed, D, ids, off[t], off[t + 1], tl.tp, Tb.data(), last.data(),
                                   acc.data(), S);
-      for (int p = 0; p < gr.pt; ++p) {
-        if (!tl.inside[p]) continue;
-        const int64_t pix = tl.pix(p);
-        out_T[pix] = Tb[p];
-        out_last[pix] = last[p];
-        for (int f = 0; f < F; ++f) out_acc[pix * F + f] = acc[(size_t)f * S + p];
-      }
+      store_tile<float, F>(tl, Tb.data(), last.data(), acc.data(), S, out_acc, out_T, out_last);
     }
   });
 }
@@ -292,25 +300,11 @@ void backward_tiles_simd(const float* packed, int64_t D, const int32_t* ids, con
       if (off[t] == off[t + 1]) continue;
       tl.set(t);
       prefetch_tile_rows(gr, t + slots, g_acc, F, g_T, Tfin_img, last_img);
-      int max_last = 0;
-      for (int ch = 0; ch < nch; ++ch) {
-        int cl = 0;
-        for (int p = ch * stdr::simd::L; p < (ch + 1) * stdr::simd::L; ++p) {
-          const bool in = tl.inside[p];
-          const int64_t pix = in ? tl.pix(p) : 0;
-          Tf[p] = in ? Tfin_img[pix] : 1.0f;
-          Tp[p] = Tf[p];
-          GT[p] = in ? g_T[pix] : 0.0f;
-          last[p] = in ? last_img[pix] : 0;
-          cl = std::max(cl, last[p]);
-          for (int f = 0; f < F; ++f) {
-            G[(size_t)f * S + p] = in ? g_acc[pix * F + f] : 0.0f;
-            behind[(size_t)f * S + p] = 0.0f;
-          }
-        }
-        chunk_last[ch] = cl;
-        max_last = std::max(max_last, cl);
-      }
+      const int max_last = load_tile<float, F>(tl, g_acc, g_T, Tfin_img, last_img, Tf.data(), Tp.data(),
+                                               GT.data(), last.data(), G.data(), behind.data());
+      for (int ch = 0; ch < nch; ++ch)
+        chunk_last[ch] = *std::max_element(last.begin() + ch * stdr::simd::L,
+                                           last.begin() + (ch + 1) * stdr::simd::L);
       stdr::simd::backward_tile<F>(packed, D, ids, off[t], max_last, tl.tp, st, mine);
     }
   });
