@@ -187,27 +187,28 @@ def test_stdr_eval_render_keys_change_only_themselves():
         OmegaConf.merge(OmegaConf.structured(EvalAppConfig), {"render": {"tile_sizes": 8}})
 
 
-@pytest.mark.parametrize("user_value", [None, "COMPATIBLE"])
-def test_stdr_train_turns_on_mkl_reproducibility_before_its_first_call(user_value):
-    """stdr-train's entry sets MKL_CBWR=AUTO (oneMKL's run-to-run reproducibility mode), which MKL
-    reads at its first call: MKL_VERBOSE then reports CNR:AUTO for a GEMM; a user's value is kept."""
+@pytest.mark.parametrize("user", [{}, {"MKL_CBWR": "COMPATIBLE", "MKL_DYNAMIC": "TRUE"}])
+def test_stdr_train_sets_mkl_reproducibility_conditions_before_its_first_call(user):
+    """stdr-train's entry sets oneMKL's run-to-run reproducibility conditions (MKL_CBWR=AUTO, a
+    fixed thread count: MKL's dynamic threading off): MKL_VERBOSE then reports CNR:AUTO and Dyn:0
+    for a GEMM, with torch's thread count left alone (where MKL's default is Dyn:1). A user's
+    values are kept."""
     if "blas_info=mkl" not in torch.__config__.show().lower():
         pytest.skip("this torch does not use MKL for BLAS")
-    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
-    env["MKL_VERBOSE"] = "1"
-    if user_value:
-        env["MKL_CBWR"] = user_value
+    env = {k: v for k, v in os.environ.items() if k not in ("MKL_CBWR", "MKL_DYNAMIC")}
+    env.update(user, MKL_VERBOSE="1")
     code = ("from stdr.cli.common import reproducible_blas; reproducible_blas(); import torch; "
             "a = torch.randn(300, 300); a @ a")
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    cnr = {w for w in (proc.stdout + proc.stderr).split() if w.startswith("CNR:")}
-    assert cnr == {f"CNR:{user_value or 'AUTO'}"}, cnr
+    words = (proc.stdout + proc.stderr).split()
+    assert {w for w in words if w.startswith("CNR:")} == {f"CNR:{user.get('MKL_CBWR', 'AUTO')}"}
+    assert {w for w in words if w.startswith("Dyn:")} == {"Dyn:1" if user else "Dyn:0"}
 
 
 def test_the_stdr_train_command_runs_with_mkl_reproducibility_and_records_it(tmp_path):
     from stdr.testing import TINY_SCENE
-    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
+    env = {k: v for k, v in os.environ.items() if k not in ("MKL_CBWR", "MKL_DYNAMIC")}
     over = TINY_SCENE + [f"data.cache_dir={tmp_path / 'cache'}", "device=cpu", "model.init_num=500",
                          "eval.lpips=false", "train.progress=false", "eval.save_images=false",
                          "train.image_every=0", "optim.iterations=20", "baseline.warmup=10",
@@ -216,4 +217,4 @@ def test_the_stdr_train_command_runs_with_mkl_reproducibility_and_records_it(tmp
                           text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     conv = json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]["conventions"]
-    assert conv["mkl_cbwr"] == "AUTO"
+    assert conv["mkl_cbwr"] == "AUTO" and conv["mkl_dynamic"] == "FALSE"

@@ -17,12 +17,23 @@ def use_fast_allocator_hint() -> None:
 
 
 def reproducible_blas() -> None:
-    """Turn on oneMKL's conditional numerical reproducibility (CNR) mode unless the user chose
-    one. Without it (CNR:OFF, the default) oneMKL documents that results may differ from run to
-    run with the inputs' memory alignment. AUTO keeps the fastest code path for this CPU; it cost
-    nothing measurable and gave the same bits here (docs/performance.md, "Determinism"). MKL
-    reads it at its first call, so this runs before any training work."""
+    """oneMKL's documented conditions for run-to-run reproducible results, unless the user chose
+    otherwise (MKL_CBWR, MKL_DYNAMIC set):
+    * conditional numerical reproducibility on, MKL_CBWR=AUTO. Without it (CNR:OFF) oneMKL
+      documents that results may differ from run to run with the inputs' memory alignment. MKL
+      reads it at its first call, so this runs before any training work;
+    * a fixed thread count: MKL's dynamic threading off. It is on by default while torch's thread
+      count is left alone (MKL_VERBOSE: Dyn:1), and then MKL may run a call on fewer threads than
+      asked, while a GEMM's sums differ between 1 and 2 threads. torch.set_num_threads turns it
+      off (MKL reads MKL_DYNAMIC when it loads, before this can set it), so the count torch
+      already uses is set again; MKL_DYNAMIC=FALSE is then exported for child processes and
+      recorded in metrics.json (conventions).
+    Neither cost anything measurable here (docs/performance.md, "Determinism")."""
     os.environ.setdefault("MKL_CBWR", "AUTO")
+    if "MKL_DYNAMIC" not in os.environ:
+        import torch
+        torch.set_num_threads(torch.get_num_threads())
+        os.environ["MKL_DYNAMIC"] = "FALSE"
 
 
 def compose_config(overrides=(), config_name: str = "train", return_hydra_config: bool = False):

@@ -14,7 +14,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from ..config import load_config, register
-from .common import CONFIG_DIR
+from .common import CONFIG_DIR, reproducible_blas
 
 register()
 
@@ -171,6 +171,7 @@ def _refresh_fps(entry: dict, timing: dict, model, rd: Path) -> None:
 def _main(cfg: DictConfig) -> None:
     if not cfg.runs:
         raise SystemExit("usage: stdr-eval RUN_DIR [RUN_DIR ...] [key=value ...]")
+    reproducible_blas()
     out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
     evaluate_dirs(list(cfg.runs), cfg.split, cfg.eval, cfg.render, cfg.reevaluate, out,
                   hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure, cfg.stdr)

@@ -188,6 +188,7 @@ def metric_conventions(eval_cfg, lpips_fn, backend: str, device: torch.device) -
         "machine": machine_name(),
         "torch_threads": torch.get_num_threads(),
         "mkl_cbwr": os.environ.get("MKL_CBWR"),  # MKL's reproducibility mode (stdr-train sets AUTO)
+        "mkl_dynamic": os.environ.get("MKL_DYNAMIC"),  # MKL's dynamic threads (stdr-train: FALSE)
         "render_backend": backend,
     }
 
