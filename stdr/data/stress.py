@@ -59,6 +59,16 @@ def _window(value, key: str) -> Optional[tuple[float, float]]:
     return w[0], w[1]
 
 
+def thinned_window(stress) -> Optional[tuple[float, float]]:
+    """The time window a stress thins out of the training set: drop_times (no frame kept there)
+    or sparse_times (a few kept); None for the other stresses. `stress` is a data.stress config
+    or the plain mapping of a run's config.yaml (stdr-tool stability)."""
+    for key in ("drop_times", "sparse_times"):
+        if stress.get(key):
+            return _window(stress.get(key), key)
+    return None
+
+
 def check_stress(cfg) -> None:
     """Errors that name the key, for values that cannot work."""
     _window(cfg.drop_times, "drop_times")

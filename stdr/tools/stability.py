@@ -32,6 +32,7 @@ from typing import Any
 
 import yaml
 
+from ..data.stress import thinned_window
 from ..eval.table import fmt_value as fmt
 from ..eval.table import markdown_table, method_name, write_outputs
 
@@ -45,13 +46,6 @@ def _stress(cfg: dict) -> tuple[str, int]:
 
 def _finite(v) -> bool:
     return v is not None and isinstance(v, (int, float)) and math.isfinite(v)
-
-
-def _window(cfg: dict) -> list[float] | None:
-    """The time window a stress thins out: drop_times (window) or sparse_times (sparse)."""
-    st = (cfg.get("data") or {}).get("stress") or {}
-    w = st.get("drop_times") or st.get("sparse_times")
-    return [float(w[0]), float(w[1])] if w else None
 
 
 def _frame_times(cfg: dict, split: str, m: dict, cache: dict) -> list[float] | None:
@@ -113,7 +107,8 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
             row.update({k: m.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians")})
             frames = m.get("per_frame_psnr")
             times = _frame_times(cfg, split, m, times_cache) if frames else None
-            row.update(window=_window(cfg), per_frame_psnr=frames,
+            stress = (cfg.get("data") or {}).get("stress") or {}
+            row.update(window=thinned_window(stress), per_frame_psnr=frames,
                        per_frame_time=times if times is not None and len(times) == len(frames) else None)
             best, last = m.get("best") or {}, m.get("last") or {}
             row.update(fall=best["psnr"] - last["psnr"]
