@@ -3,6 +3,7 @@ metrics.json, a failures.jsonl), and the sweep that produces such runs composes.
 import csv
 import json
 import math
+import shutil
 
 import pytest
 import yaml
@@ -100,6 +101,78 @@ def test_bad_input_is_named(tmp_path):
     _run(tmp_path / "r", "deform", "a", "none", 0)
     with pytest.raises(SystemExit, match="no stressed runs"):
         stability([str(tmp_path / "r"), "--out", str(tmp_path / "o")])
+
+
+def _table(tmp_path, name, *inputs, split="val"):
+    stability([*map(str, inputs), "--split", split, "--out", str(tmp_path / name), "--no-chart"])
+    return json.loads((tmp_path / name / "table.json").read_text())
+
+
+def test_a_committed_table_resumes_the_study_without_its_run_folders(tmp_path):
+    """A study spread over machines: the first part's table.json plus the second part's folders
+    give the table of all runs in one place, though the first part's folders are gone."""
+    runs = tmp_path / "runs"
+    _fixture(runs)
+    full = _table(tmp_path, "full", runs)
+    stdr_part = runs / "deform+STDR"
+    (stdr_part / "failures.jsonl").write_text((runs / "failures.jsonl").read_text())  # its crash, recorded
+    first = _table(tmp_path, "first", runs / "deform")
+    assert first["unfinished"] and {r["method"] for r in first["runs"]} == {"deform"}
+    shutil.rmtree(runs / "deform")  # the first machine is lost; its table.json was kept
+    resumed = _table(tmp_path, "resumed", tmp_path / "first" / "table.json", stdr_part)
+    assert resumed["rows"] == full["rows"] and resumed["seed_spread"] == full["seed_spread"]
+    assert sorted(r["run"] for r in resumed["runs"]) == sorted(r["run"] for r in full["runs"])
+    assert resumed["unfinished"] == []  # a table's unfinished runs are not carried (their folders decide)
+    crashed = [r for r in resumed["runs"] if r["crashed"]]
+    assert len(crashed) == 1 and crashed[0]["error"].startswith("TrainingDiverged")
+
+
+def test_a_run_folder_replaces_its_record_in_a_table(tmp_path):
+    runs = tmp_path / "runs"
+    _fixture(runs)
+    table = tmp_path / "full" / "table.json"
+    full = _table(tmp_path, "full", runs)
+    assert _table(tmp_path, "same", table, runs)["runs"] == full["runs"]  # every record replaced by itself
+    d = runs / "deform+STDR" / "a" / "window_1" / "s0"
+    m = json.loads((d / "metrics.json").read_text())
+    m["val"]["psnr"] = 10.0  # re-run since the table was written
+    (d / "metrics.json").write_text(json.dumps(m))
+    rows = {(r["method"], r["stress"], r["level"]): r for r in _table(tmp_path, "new", table, runs)["rows"]}
+    assert rows[("deform+STDR", "window", 1)]["psnr"] == pytest.approx((10.0 + 26.0) / 2)
+    (d / "metrics.json").unlink()  # being re-run now: unfinished, its old record left out
+    t = _table(tmp_path, "rerun", table, runs)
+    assert str(d.resolve()) in t["unfinished"] and str(d.resolve()) not in [r["run"] for r in t["runs"]]
+
+
+def test_the_same_run_from_two_sources_or_a_foreign_table_is_named(tmp_path):
+    runs = tmp_path / "runs"
+    _fixture(runs)
+    table = tmp_path / "full" / "table.json"
+    _table(tmp_path, "full", runs)
+    copy = tmp_path / "elsewhere" / "s0"
+    shutil.copytree(runs / "deform" / "b" / "window_1" / "s0", copy)
+    with pytest.raises(SystemExit, match=r"method=deform, scene=b, seed=0, stress=window, level=1 comes twice: "
+                                         r".*window_1/s0 \(.*table.json\) and .*elsewhere/s0 \(run folder\)"):
+        _table(tmp_path, "o", table, copy)
+    with pytest.raises(SystemExit, match=r"holds the 'val' split, not 'test'; pass --split val"):
+        _table(tmp_path, "o", table, split="test")
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"split": "val", "rows": []}))
+    with pytest.raises(SystemExit, match=r"bad.json has no 'runs' list"):
+        _table(tmp_path, "o", bad)
+    t = json.loads(table.read_text())
+    del t["runs"][3]["psnr"]
+    bad.write_text(json.dumps(t))
+    with pytest.raises(SystemExit, match=r"bad.json: runs\[3\] lacks psnr"):
+        _table(tmp_path, "o", bad)
+    bad.write_text("{not json")
+    with pytest.raises(SystemExit, match=r"bad.json is not a readable table.json"):
+        _table(tmp_path, "o", bad)
+    other = json.loads(table.read_text())
+    other["runs"][0]["psnr"] += 1.0
+    bad.write_text(json.dumps(other))
+    with pytest.raises(SystemExit, match=r"differs between .*table.json and .*bad.json"):
+        _table(tmp_path, "o", table, bad)
 
 
 def test_the_stability_sweep_composes_every_preset():

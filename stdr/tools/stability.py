@@ -3,8 +3,11 @@
 Reads the runs of `stdr-train -m +sweep=stability` (and of its seed runs: `stress=none
 seed=0,1,2`) from their folders: config.yaml gives method, scene, seed and the stress preset
 (data.stress.label / level), metrics.json[split] the numbers and the guard's record, and the
-sweep's failures.jsonl the crashes. Writes OUT/table.md and table.json, and
-OUT/degradation_<metric>.{png,svg,csv}:
+sweep's failures.jsonl the crashes. An input may also be a table.json this tool wrote: its
+per-run records (`runs`) join those of the folders, so a study spread over machines or sessions
+resumes from its committed table without the run folders. A folder that is also in a table
+replaces its record; one run (method, scene, seed, stress, level) from two different sources is
+an error. Writes OUT/table.md and table.json, and OUT/degradation_<metric>.{png,svg,csv}:
 
 * per method x stress x level (seed 0; means over the scenes that have the unstressed run too):
   PSNR / SSIM / LPIPS, the PSNR drop against the same method's unstressed run on the same scene,
@@ -19,6 +22,8 @@ OUT/degradation_<metric>.{png,svg,csv}:
   solid +STDR), one panel per stress.
 
     stdr-tool stability multirun/stability_cpu --split val --out docs/measurements/stability
+    stdr-tool stability docs/measurements/stability/table.json multirun/stability_cpu \
+        --split val --out docs/measurements/stability        # add new runs to the committed ones
 """
 from __future__ import annotations
 
@@ -67,14 +72,74 @@ def _frame_times(cfg: dict, split: str, m: dict, cache: dict) -> list[float] | N
     return cache[key]
 
 
+RUN_KEY = ("method", "scene", "seed", "stress", "level")
+RECORD_FIELDS = ("run", "method", "baseline", "stdr", "scene", "seed", "stress", "level", "crashed", "error")
+
+
+def load_records(path: Path, split: str) -> list[dict[str, Any]]:
+    """The per-run records of a table.json written by this tool (its `runs`), checked: the same
+    split, and every record with the fields a run folder gives."""
+    try:
+        t = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"stdr-tool stability: {path} is not a readable table.json ({e})") from None
+    if not isinstance(t, dict) or not isinstance(t.get("runs"), list):
+        raise SystemExit(f"stdr-tool stability: {path} has no 'runs' list; pass a table.json written by "
+                         "stdr-tool stability (or a sweep or run folder)")
+    if t.get("split") != split:
+        raise SystemExit(f"stdr-tool stability: {path} holds the {t.get('split')!r} split, not {split!r}; "
+                         f"pass --split {t.get('split')} or leave this table out")
+    for i, r in enumerate(t["runs"]):
+        missing = [k for k in RECORD_FIELDS if not isinstance(r, dict) or k not in r]
+        finished = isinstance(r, dict) and not r.get("crashed")
+        missing += [k for k in ("psnr", "ssim", "lpips", "nonfinite", "cap_held") if finished and k not in r]
+        if missing:
+            raise SystemExit(f"stdr-tool stability: {path}: runs[{i}] lacks {', '.join(missing)}; "
+                             "regenerate that table from its run folders")
+    return t["runs"]
+
+
+def _merge(folder_runs: list[dict[str, Any]], unfinished: list[str],
+           tables: list[tuple[Path, list[dict[str, Any]]]]) -> list[dict[str, Any]]:
+    """Table records, then folder runs: a folder's state (finished, crashed or unfinished)
+    replaces the record of the same run path; the same run from two sources is an error."""
+    by_path: dict[str, tuple[str, dict[str, Any]]] = {}
+    for path, recs in tables:
+        for r in recs:
+            prev = by_path.get(r["run"])
+            if prev is not None and prev[1] != r:
+                raise SystemExit(f"stdr-tool stability: run {r['run']} differs between {prev[0]} and {path}; "
+                                 "pass one of them")
+            by_path[r["run"]] = (str(path), r)
+    for d in unfinished:
+        by_path.pop(d, None)
+    for r in folder_runs:
+        by_path[r["run"]] = ("run folder", r)
+    seen: dict[tuple, tuple[str, str]] = {}
+    for src, r in by_path.values():
+        key = tuple(r[k] for k in RUN_KEY)
+        if key in seen:
+            other_src, other_run = seen[key]
+            raise SystemExit("stdr-tool stability: " + ", ".join(f"{k}={v}" for k, v in zip(RUN_KEY, key))
+                             + f" comes twice: {other_run} ({other_src}) and {r['run']} ({src}); "
+                             "leave one of them out")
+        seen[key] = (src, r["run"])
+    return [r for _, r in by_path.values()]
+
+
 def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, Any]], list[str]]:
     """Every run folder (config.yaml) under `paths`: finished ones with their numbers, crashed
-    ones (recorded in a failures.jsonl of the sweep) with the error; unfinished ones named."""
+    ones (recorded in a failures.jsonl of the sweep) with the error; unfinished ones named.
+    A path that is a file is a table.json of this tool: its run records join (load_records)."""
     failures: dict[str, str] = {}
     folders: list[Path] = []
+    tables: list[tuple[Path, list[dict[str, Any]]]] = []
     for p in map(Path, paths):
         if not p.exists():
             raise SystemExit(f"stdr-tool stability: {p} does not exist")
+        if p.is_file():
+            tables.append((p, load_records(p, split)))
+            continue
         if (p / "config.yaml").is_file():
             folders.append(p)
             continue
@@ -84,10 +149,10 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
                 if line.strip():
                     rec = json.loads(line)
                     failures[str(Path(rec["run_dir"]).resolve())] = rec.get("error", "?")
-    if not folders:
+    if not folders and not tables:
         raise SystemExit(f"stdr-tool stability: no run folders (config.yaml) under {', '.join(map(str, paths))}")
     runs, unfinished, times_cache = [], [], {}
-    for d in dict.fromkeys(folders):
+    for d in dict.fromkeys(f.resolve() for f in folders):  # absolute: a table's records name runs so
         cfg = yaml.safe_load((d / "config.yaml").read_text())
         label, level = _stress(cfg)
         row = {"run": str(d), "method": method_name(cfg), "baseline": cfg["baseline"]["name"],
@@ -118,6 +183,7 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
                        nonfinite=not all(_finite(m.get(k)) for k in ("psnr", "ssim")),
                        cap_held=None if not cap or g.get("peak_gaussians") is None else g["peak_gaussians"] <= cap)
         runs.append(row)
+    runs = _merge(runs, unfinished, tables)
     if not runs:
         raise SystemExit(f"stdr-tool stability: no finished or crashed run with a {split!r} entry "
                          f"({len(unfinished)} unfinished)")
@@ -260,7 +326,7 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="stdr-tool stability", description=__doc__.splitlines()[0])
-    ap.add_argument("runs", nargs="+", help="sweep folders or run folders")
+    ap.add_argument("runs", nargs="+", help="sweep folders, run folders or table.json files of this tool")
     ap.add_argument("--split", default="val")
     ap.add_argument("--out", type=Path, required=True, help="folder for table.md/.json and the chart")
     ap.add_argument("--no-chart", action="store_true")
