@@ -14,7 +14,7 @@ TIMES = [0.1, 0.4, 0.6, 0.9]  # evaluation frames' times in the fixture; window 
 
 
 def _run(root, method, scene, stress, level, seed=0, psnr=30.0, peak=900, cap=1000, metrics=True, recoveries=0,
-         best=None, per_frame=None, window=None):
+         best=None, per_frame=None, window=None, machine=None):
     base, stdr = method.split("+")[0], method.endswith("+STDR")
     d = root / method / scene / f"{stress}_{level}" / f"s{seed}"
     d.mkdir(parents=True)
@@ -28,6 +28,8 @@ def _run(root, method, scene, stress, level, seed=0, psnr=30.0, peak=900, cap=10
              "best": {"step": 1000 if best else 2000, "psnr": best or psnr}, "last": {"step": 2000, "psnr": psnr}}
         if per_frame is not None:
             m.update(per_frame_psnr=per_frame, per_frame_time=TIMES)
+        if machine:
+            m.update(conventions={"machine": machine}, code={"commit": "444c090334e30bdd", "dirty": True})
         (d / "metrics.json").write_text(json.dumps({"val": m}))
     return d
 
@@ -35,7 +37,7 @@ def _run(root, method, scene, stress, level, seed=0, psnr=30.0, peak=900, cap=10
 def _fixture(root):
     for scene, ref in (("a", 30.0), ("b", 26.0)):
         _run(root, "deform", scene, "none", 0, psnr=ref, per_frame=[ref] * 4)
-        _run(root, "deform+STDR", scene, "none", 0, psnr=ref + 0.5)
+        _run(root, "deform+STDR", scene, "none", 0, psnr=ref + 0.5, machine="AMD EPYC, 2 logical CPUs")
         for seed, off in ((1, 0.4), (2, -0.2)):
             _run(root, "deform", scene, "none", 0, seed=seed, psnr=ref + off)
         # 1 dB lower on average, 2 dB lower on the two frames inside the dropped window
@@ -83,6 +85,9 @@ def test_degradation_table_and_chart(tmp_path, capsys):
     md = (tmp_path / "out" / "table.md").read_text()
     assert "| deform | window | 2 | 25.00 | +3.00 | – |" in md and "**no**" in md and "| 2 | 1.50 |" in md
     assert "| deform | window | 1 | 27.00 | +1.00 | +2.00 (4 fr.) |" in md
+    finished = sum(not r["crashed"] for r in t["runs"])
+    assert ("AMD EPYC, 2 logical CPUs, code 444c090+dirty: 2 runs; machine not recorded, code commit not recorded: "
+            f"{finished - 2} runs") in md
     for ext in ("png", "svg", "csv"):
         assert (tmp_path / "out" / f"degradation_psnr.{ext}").stat().st_size > 0
     with open(tmp_path / "out" / "degradation_psnr.csv") as f:

@@ -19,7 +19,10 @@ an error. Writes OUT/table.md and table.json, and OUT/degradation_<metric>.{png,
 * the seed spread of the unstressed runs: per method, mean ± sample std over seeds of the
   scene-mean PSNR;
 * the chart: PSNR drop against level, one line per method (colour per baseline, dashed plain,
-  solid +STDR), one panel per stress.
+  solid +STDR), one panel per stress;
+* provenance: the finished runs counted per machine and code commit (metrics.json
+  conventions.machine, code.commit; kept in each run's record). The same seed gives other
+  numbers on another machine, so runs from two machines compare as two seeds do.
 
     stdr-tool stability multirun/stability_cpu --split val --out docs/measurements/stability
     stdr-tool stability docs/measurements/stability/table.json multirun/stability_cpu \
@@ -179,6 +182,9 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
             row.update(fall=best["psnr"] - last["psnr"]
                        if _finite(best.get("psnr")) and _finite(last.get("psnr")) else None,
                        best_step=best.get("step"))
+            code = m.get("code") or {}
+            row.update(machine=(m.get("conventions") or {}).get("machine"),
+                       commit=(code.get("commit") or "")[:7] + ("+dirty" if code.get("dirty") else "") or None)
             row.update(recoveries=g.get("n_recoveries", 0), peak=g.get("peak_gaussians"), cap=cap,
                        nonfinite=not all(_finite(m.get(k)) for k in ("psnr", "ssim")),
                        cap_held=None if not cap or g.get("peak_gaussians") is None else g["peak_gaussians"] <= cap)
@@ -258,7 +264,16 @@ def seed_spread(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def markdown(rows, spread, unfinished, split) -> str:
+def provenance(runs: list[dict[str, Any]]) -> str:
+    """'machine × code commit: runs' for the finished runs (records from before these were kept: 'not recorded')."""
+    count: dict[tuple[str, str], int] = defaultdict(int)
+    for r in runs:
+        if not r["crashed"]:
+            count[(r.get("machine") or "machine not recorded", r.get("commit") or "commit not recorded")] += 1
+    return "; ".join(f"{mach}, code {code}: {n} runs" for (mach, code), n in sorted(count.items()))
+
+
+def markdown(rows, spread, unfinished, split, runs) -> str:
     head = ["method", "stress", "level", "PSNR↑", "drop (dB)", "drop in window (dB)", "SSIM↑", "LPIPS↓", "runs", "crashes",
             "non-finite", "recoveries", "fell from best (dB)", "Gaussians", "cap held", "scenes"]
     body = [[r["method"], r["stress"], str(r["level"]), fmt(r["psnr"], "{:.2f}"), fmt(r["psnr_drop"], "{:+.2f}"),
@@ -277,6 +292,8 @@ def markdown(rows, spread, unfinished, split) -> str:
                               [[s["method"], ", ".join(map(str, s["seeds"])),
                                 fmt(s["psnr_mean"], "{:.2f}") + (f" ± {s['psnr_std']:.2f}" if s["psnr_std"] is not None
                                                               else ""), ", ".join(s["scenes"])] for s in spread])]
+    md += ["", "Provenance (finished runs; the same seed gives other numbers on another machine, "
+           "so compare across machines as across seeds): " + provenance(runs)]
     missing = sorted({sc for r in rows for sc in r["scenes_without_reference"]})
     if missing:
         md += ["", f"Runs without an unstressed reference (left out of the means): scenes {', '.join(missing)}"]
@@ -334,7 +351,7 @@ def main(argv=None) -> None:
     runs, unfinished = collect_runs(a.runs, a.split)
     rows = degradation(runs)
     spread = seed_spread(runs)
-    md = markdown(rows, spread, unfinished, a.split)
+    md = markdown(rows, spread, unfinished, a.split, runs)
     write_outputs(a.out / "table", md, {"split": a.split, "rows": rows, "seed_spread": spread, "runs": runs,
                                         "unfinished": unfinished})
     print(md)
