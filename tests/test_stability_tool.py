@@ -197,6 +197,33 @@ def test_the_stability_sweep_composes_every_preset():
     assert len(seen) == len(presets)
 
 
+def test_the_study_script_runs_the_whole_grid_breadth_first_and_keeps_the_committed_table(tmp_path):
+    import os
+    import subprocess
+    from stdr.config import CONFIG_DIR
+    script = CONFIG_DIR.parent / "scripts" / "stability_study.sh"
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "table.json").write_text("{}")
+    env = {**os.environ, "STDR_STUDY_DRY": "1"}
+    r = subprocess.run(["bash", str(script), "/data/dnerf", str(out), "train.threads=2"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, check=True)
+    lines = [ln.split() for ln in r.stdout.splitlines() if ln.startswith("stdr-train")]
+    arg = lambda words, key: next(w.split("=", 1)[1] for w in words if w.startswith(key + "="))  # noqa: E731
+    order = [(arg(w, "stress"), int(arg(w, "seed"))) for w in lines]
+    presets = sorted(p.stem for p in (CONFIG_DIR / "stress").glob("*.yaml"))
+    assert sorted(order) == sorted([(p, 0) for p in presets] + [("none", 1), ("none", 2)])
+    assert all("data.root=/data/dnerf" in w and "+sweep=stability" in w and w[-1] == "train.threads=2" for w in lines)
+    rank = lambda st, seed: (0 if st == "none" and seed == 0 else 1 if st.endswith("_3") else  # noqa: E731
+                             2 if st == "none" else 3 if st.endswith("_1") else 4)
+    assert [rank(*o) for o in order] == sorted(rank(*o) for o in order)  # breadth first
+    tool = [ln for ln in r.stdout.splitlines() if ln.startswith("stdr-tool")]
+    assert tool == [f"stdr-tool stability {out}/table.json --split val --out {out}"]  # no sweep folder yet
+    bad = subprocess.run(["bash", str(script), "/data/dnerf"], cwd=tmp_path, capture_output=True, text=True,
+                         env={**env, "STDR_STUDY_PRESETS": "none:0 windw_1:0"})
+    assert bad.returncode == 2 and "bad preset 'windw_1:0'" in bad.stderr
+
+
 def _theta_runs(root, name, values, skipped=50):
     """<root>/<name>/<scene>/metrics.json with (psnr, fps) per scene."""
     for scene, (psnr, fps) in values.items():
