@@ -2,6 +2,7 @@
 checkpoints that survive a kill, truncation and corruption."""
 import json
 import math
+import mmap
 import os
 import signal
 import subprocess
@@ -256,3 +257,20 @@ def test_best_and_last_of_a_curve():
     assert out["best"]["step"] == 30 and out["best"]["psnr"] == 25.0
     assert out["last"]["step"] == 40 and out["last"]["tag"] == "final"
     assert best_and_last([]) == {"best": None, "last": None}
+
+
+def test_peak_memory_follows_an_allocation_and_survives_a_resume():
+    from stdr.train.guard import GuardState
+    cpu = torch.device("cpu")
+    g = GuardState()
+    before = g.note_memory(cpu)
+    x = mmap.mmap(-1, 256 * 2**20)  # 256 MiB of fresh pages (an allocator would reuse freed ones)
+    x[::4096] = b"\1" * (256 * 2**20 // 4096)  # one write a page: all of them resident
+    during = g.note_memory(cpu)
+    assert during - before > 200 and g.peak_memory_mb == pytest.approx(during)
+    x.close()
+    g.note_memory(cpu)
+    assert g.peak_memory_mb == pytest.approx(during)  # a peak, not the last sample
+    h = GuardState()
+    h.load_state_dict(g.state_dict())
+    assert h.peak_memory_mb == g.peak_memory_mb and g.summary(10)["peak_memory_mb"] == g.peak_memory_mb

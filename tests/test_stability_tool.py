@@ -14,7 +14,7 @@ TIMES = [0.1, 0.4, 0.6, 0.9]  # evaluation frames' times in the fixture; window 
 
 
 def _run(root, method, scene, stress, level, seed=0, psnr=30.0, peak=900, cap=1000, metrics=True, recoveries=0,
-         best=None, per_frame=None, window=None, machine=None):
+         best=None, per_frame=None, window=None, machine=None, memory=None):
     base, stdr = method.split("+")[0], method.endswith("+STDR")
     d = root / method / scene / f"{stress}_{level}" / f"s{seed}"
     d.mkdir(parents=True)
@@ -24,7 +24,8 @@ def _run(root, method, scene, stress, level, seed=0, psnr=30.0, peak=900, cap=10
     (d / "config.yaml").write_text(yaml.safe_dump(cfg))
     if metrics:
         m = {"psnr": psnr, "ssim": 0.9, "lpips": 0.1, "num_gaussians": peak - 10,
-             "guard": {"n_recoveries": recoveries, "peak_gaussians": peak, "max_gaussians": cap},
+             "guard": {"n_recoveries": recoveries, "peak_gaussians": peak, "max_gaussians": cap,
+                       **({"peak_memory_mb": memory} if memory else {})},
              "best": {"step": 1000 if best else 2000, "psnr": best or psnr}, "last": {"step": 2000, "psnr": psnr}}
         if per_frame is not None:
             m.update(per_frame_psnr=per_frame, per_frame_time=TIMES)
@@ -44,7 +45,8 @@ def _fixture(root):
         _run(root, "deform", scene, "window", 1, psnr=ref - 1.0, per_frame=[ref, ref - 2, ref - 2, ref],
              window=[0.3, 0.7])
         _run(root, "deform", scene, "window", 2, psnr=ref - 3.0, recoveries=1,
-             best=ref - 1.5 if scene == "a" else ref - 2.5)  # fell 1.5 dB (a), 0.5 dB (b) from its best
+             best=ref - 1.5 if scene == "a" else ref - 2.5,  # fell 1.5 dB (a), 0.5 dB (b) from its best
+             memory=800.0 if scene == "a" else 950.0)
         _run(root, "deform+STDR", scene, "window", 1, psnr=ref + 0.5 - 0.5)
     # deform+STDR at window 2: one scene crashed (recorded), one run over the cap, one NaN
     crashed = _run(root, "deform+STDR", "a", "window", 2, metrics=False)
@@ -69,6 +71,7 @@ def test_degradation_table_and_chart(tmp_path, capsys):
     assert w2["window_drop"] is None and w2["window_frames"] == 0  # no per-frame numbers in these runs
     assert w2["psnr_drop"] == pytest.approx(3.0) and w2["recoveries"] == 2 and w2["cap_held"] is True
     assert w2["fall_max"] == pytest.approx(1.5) and w1["fall_max"] == pytest.approx(0.0)
+    assert w2["memory_max_mb"] == 950.0 and w1["memory_max_mb"] is None  # not recorded in those runs
     s2 = rows[("deform+STDR", "window", 2)]
     assert s2["crashes"] == 1 and s2["nonfinite"] == 1 and s2["psnr_drop"] is None and s2["cap_held"] is False
     assert rows[("deform+STDR", "window", 1)]["psnr_drop"] == pytest.approx(0.5)
@@ -84,6 +87,7 @@ def test_degradation_table_and_chart(tmp_path, capsys):
     assert spread["deform+STDR"]["psnr_std"] is None  # one seed
     md = (tmp_path / "out" / "table.md").read_text()
     assert "| deform | window | 2 | 25.00 | +3.00 | – |" in md and "**no**" in md and "| 2 | 1.50 |" in md
+    assert "| yes | 950 | a, b |" in md
     assert "| deform | window | 1 | 27.00 | +1.00 | +2.00 (4 fr.) |" in md
     finished = sum(not r["crashed"] for r in t["runs"])
     assert ("AMD EPYC, 2 logical CPUs, code 444c090+dirty: 2 runs; machine not recorded, code commit not recorded: "

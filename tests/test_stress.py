@@ -125,3 +125,4 @@ def test_a_stressed_run_records_the_stress_and_keeps_the_cap(tmp_path):
     # densification wanted to grow (every seen Gaussian passes the gradient threshold), the cap held
     assert g["max_gaussians"] == 1600 and 1500 < g["peak_gaussians"] <= 1600
     assert m["num_gaussians"] <= 1600
+    assert g["peak_memory_mb"] > 50 and m["conventions"]["memory"].startswith("resident set")  # recorded

@@ -23,6 +23,7 @@ import torch
 
 from ..device import synchronize
 from ..metrics import psnr, ssim
+from ..train.guard import MEMORY_CONVENTION
 from .lpips import LPIPS
 
 
@@ -190,6 +191,7 @@ def metric_conventions(eval_cfg, lpips_fn, backend: str, device: torch.device) -
         "mkl_cbwr": os.environ.get("MKL_CBWR"),  # MKL's reproducibility mode (stdr-train sets AUTO)
         "mkl_dynamic": os.environ.get("MKL_DYNAMIC"),  # MKL's dynamic threads (stdr-train: FALSE)
         "render_backend": backend,
+        "memory": MEMORY_CONVENTION["cuda" if device.type == "cuda" else "cpu"],  # guard.peak_memory_mb
     }
 
 

@@ -15,7 +15,8 @@ an error. Writes OUT/table.md and table.json, and OUT/degradation_<metric>.{png,
   trained on; sparse: sparsely trained), against the same frames of the unstressed run,
   runs, crashes, recoveries, non-finite metrics, the largest fall from the run's best periodic
   evaluation to its last one (a collapse the final number alone hides; train.eval_every),
-  final Gaussians, and whether the cap held;
+  final Gaussians, whether the cap held, and the largest peak memory of the runs
+  (metrics.json guard.peak_memory_mb; runs from before it was recorded: –);
 * the seed spread of the unstressed runs: per method, mean ± sample std over seeds of the
   scene-mean PSNR;
 * the chart: PSNR drop against level, one line per method (colour per baseline, dashed plain,
@@ -186,6 +187,7 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
             row.update(machine=(m.get("conventions") or {}).get("machine"),
                        commit=(code.get("commit") or "")[:7] + ("+dirty" if code.get("dirty") else "") or None)
             row.update(recoveries=g.get("n_recoveries", 0), peak=g.get("peak_gaussians"), cap=cap,
+                       peak_memory_mb=g.get("peak_memory_mb"),
                        nonfinite=not all(_finite(m.get(k)) for k in ("psnr", "ssim")),
                        cap_held=None if not cap or g.get("peak_gaussians") is None else g["peak_gaussians"] <= cap)
         runs.append(row)
@@ -239,6 +241,8 @@ def degradation(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                      "window_frames": sum(n for _, n in win),
                      "fall_max": max((r["fall"] for r in good if r.get("fall") is not None), default=None),
                      "gaussians": avg("num_gaussians"),
+                     "memory_max_mb": max((r["peak_memory_mb"] for r in ok if _finite(r.get("peak_memory_mb"))),
+                                          default=None),
                      "cap_held": None if not ok or any(r["cap_held"] is None for r in ok)
                      else all(r["cap_held"] for r in ok)})
     return rows
@@ -275,12 +279,13 @@ def provenance(runs: list[dict[str, Any]]) -> str:
 
 def markdown(rows, spread, unfinished, split, runs) -> str:
     head = ["method", "stress", "level", "PSNR↑", "drop (dB)", "drop in window (dB)", "SSIM↑", "LPIPS↓", "runs", "crashes",
-            "non-finite", "recoveries", "fell from best (dB)", "Gaussians", "cap held", "scenes"]
+            "non-finite", "recoveries", "fell from best (dB)", "Gaussians", "cap held", "peak memory (MiB)", "scenes"]
     body = [[r["method"], r["stress"], str(r["level"]), fmt(r["psnr"], "{:.2f}"), fmt(r["psnr_drop"], "{:+.2f}"),
              fmt(r["window_drop"], "{:+.2f}") + (f" ({r['window_frames']} fr.)" if r["window_drop"] is not None else ""),
              fmt(r["ssim"], "{:.4f}"), fmt(r["lpips"], "{:.4f}"), str(r["runs"]), str(r["crashes"]), str(r["nonfinite"]),
              str(r["recoveries"]), fmt(r["fall_max"], "{:.2f}"), fmt(r["gaussians"], "{:,.0f}"),
-             {True: "yes", False: "**no**", None: "–"}[r["cap_held"]], ", ".join(r["scenes"]) or "–"]
+             {True: "yes", False: "**no**", None: "–"}[r["cap_held"]], fmt(r.get("memory_max_mb"), "{:,.0f}"),
+             ", ".join(r["scenes"]) or "–"]
             for r in rows]
     md = [f"Degradation under stress ({split} split, seed 0; drop = unstressed PSNR − stressed PSNR, "
           "mean over the scenes listed; drop in window = the same on the evaluation frames whose time "

@@ -98,6 +98,25 @@ def clone_tree(x: Any) -> Any:
     return x
 
 
+def process_memory_mb(device: torch.device) -> Optional[float]:
+    """The training's memory now, in MiB: on CUDA the peak torch allocated on `device` since the
+    run reset it (Trainer.train); elsewhere the process's resident set (Linux /proc/self/statm),
+    which also holds what earlier runs of the same process (an in-process multirun) left behind.
+    None where neither can be read."""
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**20
+    try:
+        import os
+        pages = int(open("/proc/self/statm").read().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+
+
+MEMORY_CONVENTION = {"cuda": "torch.cuda.max_memory_allocated since the run began",
+                     "cpu": "resident set of the process (/proc/self/statm), sampled every train.log_every steps"}
+
+
 @dataclass
 class GuardState:
     """What the guard keeps across recoveries (saved in checkpoints, except the snapshots)."""
@@ -105,20 +124,30 @@ class GuardState:
     lr_scale: float = 1.0
     recoveries: list[dict[str, Any]] = field(default_factory=list)
     peak_gaussians: int = 0
+    peak_memory_mb: Optional[float] = None  # process_memory_mb's largest sample
     best: Optional[dict[str, Any]] = None          # the best periodic evaluation: {step, psnr}
     snapshot: Optional[dict[str, Any]] = None      # last good state (a checkpoint payload, cloned)
     best_snapshot: Optional[dict[str, Any]] = None  # the state at `best`
     fired: set = field(default_factory=set)        # injected faults already fired (this process)
 
     def state_dict(self) -> dict[str, Any]:
-        return {"lr_scale": self.lr_scale, "recoveries": list(self.recoveries), "peak_gaussians": self.peak_gaussians}
+        return {"lr_scale": self.lr_scale, "recoveries": list(self.recoveries), "peak_gaussians": self.peak_gaussians,
+                "peak_memory_mb": self.peak_memory_mb}
 
     def load_state_dict(self, s: dict[str, Any]) -> None:
         self.lr_scale = float(s.get("lr_scale", 1.0))
         self.recoveries = list(s.get("recoveries", []))
         self.peak_gaussians = int(s.get("peak_gaussians", 0))
+        self.peak_memory_mb = s.get("peak_memory_mb")
+
+    def note_memory(self, device: torch.device) -> Optional[float]:
+        mb = process_memory_mb(device)
+        if mb is not None:
+            self.peak_memory_mb = max(self.peak_memory_mb or 0.0, mb)
+        return mb
 
     def summary(self, cap: Optional[int]) -> dict[str, Any]:
         """metrics.json -> guard."""
         return {"recoveries": list(self.recoveries), "n_recoveries": len(self.recoveries),
-                "lr_scale": self.lr_scale, "peak_gaussians": self.peak_gaussians, "max_gaussians": cap}
+                "lr_scale": self.lr_scale, "peak_gaussians": self.peak_gaussians, "max_gaussians": cap,
+                "peak_memory_mb": self.peak_memory_mb}

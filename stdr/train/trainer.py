@@ -446,6 +446,8 @@ class Trainer:
         guard = cfg.train.guard
         if guard.enabled:
             self._snapshot()
+        if self.device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(self.device)  # guard.peak_memory_mb: this run's peak
         total = cfg.optim.iterations
         tb = self._tb()
         bar = None
@@ -497,6 +499,7 @@ class Trainer:
                 self._snapshot()
         if bar is not None:
             bar.close()
+        self.guard.note_memory(self.device)
         self.save()
         save_ply(self.model.params, self.run_dir / "point_cloud.ply")
         (self.run_dir / "train_profile.json").write_text(json.dumps(self.profile_summary(), indent=1))
@@ -517,6 +520,9 @@ class Trainer:
         tb.add_scalar("gaussians/count", self.model.num_gaussians, it)
         tb.add_scalar("gaussians/rendered", logs["active"], it)  # after temporal culling (render.cull=train)
         tb.add_scalar("time/seconds_per_iteration", dt, it)
+        mb = self.guard.note_memory(self.device)
+        if mb is not None:
+            tb.add_scalar("memory/mb", mb, it)  # docs/stability.md: the process's memory (CUDA: peak allocated)
         for k, o in self.optimizers.items():
             tb.add_scalar(f"lr/{k}", o.param_groups[0]["lr"], it)
         for g in self.net_opt.param_groups:
