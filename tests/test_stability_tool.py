@@ -201,31 +201,91 @@ def test_the_stability_sweep_composes_every_preset():
     assert len(seen) == len(presets)
 
 
+def _study_table(tmp_path, lacking=()):
+    """A committed table.json of the study grid (every method of the sweep on its scenes) that holds
+    `none:0`, `window_1:0` and `fraction_1:0`, less the (method, scene) pairs of fraction_1 in `lacking`."""
+    from stdr.tools.stability import study_grid
+    exps, scenes = study_grid()
+    runs = tmp_path / "study_runs"
+    for stress, level in (("none", 0), ("window", 1), ("fraction", 1)):
+        for _, method in exps:
+            for scene in scenes:
+                if stress != "fraction" or (method, scene) not in lacking:
+                    _run(runs, method, scene, stress, level, psnr=28.0 - level)
+    _table(tmp_path, "out", runs)
+    return tmp_path / "out" / "table.json", exps, scenes
+
+
+def test_todo_names_what_a_committed_table_lacks(tmp_path, capsys):
+    table, exps, scenes = _study_table(tmp_path, lacking={("spgs", "standup"), ("spgs+STDR", "standup"),
+                                                          ("deform", "jumpingjacks")})
+    assert [e for e, _ in exps][:2] == ["dnerf_4dgs", "dnerf_4dgs_stdr"] and len(exps) == 8  # study_grid's pairs
+    assert scenes == ["jumpingjacks", "standup"]
+    capsys.readouterr()  # the table's own print
+    stability(["--todo", "none:0", "--todo", "window_1:0", "--todo", "fraction_1:0", "--todo", "pose_1:0",
+               str(table)])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == ["fraction_1:0 experiment=dnerf_deform data.name=jumpingjacks",
+                     "fraction_1:0 experiment=dnerf_spgs,dnerf_spgs_stdr data.name=standup",
+                     f"pose_1:0 experiment={','.join(e for e, _ in exps)} data.name=jumpingjacks,standup"]
+    stability(["--todo", "none:1", str(table)])  # another seed: nothing of it is recorded
+    assert capsys.readouterr().out.split()[1:] == [f"experiment={','.join(e for e, _ in exps)}",
+                                                   "data.name=jumpingjacks,standup"]
+    with pytest.raises(SystemExit, match="no stress preset"):
+        stability(["--todo", "windw_1:0", str(table)])
+    with pytest.raises(SystemExit, match="2"):  # argparse: a malformed word, a folder instead of a table
+        stability(["--todo", "window_1", str(table)])
+    with pytest.raises(SystemExit, match="2"):
+        stability(["--todo", "window_1:0", str(tmp_path)])
+
+
 def test_the_study_script_runs_the_whole_grid_breadth_first_and_keeps_the_committed_table(tmp_path):
     import os
     import subprocess
     from stdr.config import CONFIG_DIR
     script = CONFIG_DIR.parent / "scripts" / "stability_study.sh"
-    out = tmp_path / "out"
-    out.mkdir()
-    (out / "table.json").write_text("{}")
-    env = {**os.environ, "STDR_STUDY_DRY": "1"}
+    table, exps, scenes = _study_table(tmp_path, lacking={("spgs", "standup"), ("spgs+STDR", "standup")})
+    out = table.parent
+    code = tmp_path / "frozen"  # STDR_STUDY_CODE: another checkout runs stdr-train
+    (code / "scripts").mkdir(parents=True)
+    (code / "scripts" / "run.sh").write_text("#!/bin/sh\n")
+    (code / "scripts" / "run.sh").chmod(0o755)
+    env = {**os.environ, "STDR_STUDY_DRY": "1", "STDR_STUDY_CODE": str(code)}
     r = subprocess.run(["bash", str(script), "/data/dnerf", str(out), "train.threads=2"], cwd=tmp_path, env=env,
                        capture_output=True, text=True, check=True)
-    lines = [ln.split() for ln in r.stdout.splitlines() if ln.startswith("stdr-train")]
-    arg = lambda words, key: next(w.split("=", 1)[1] for w in words if w.startswith(key + "="))  # noqa: E731
+    lines = [ln.split() for ln in r.stdout.splitlines() if " stdr-train " in ln]
+    assert all(w[0] == f"{code}/scripts/run.sh" and w[1] == "stdr-train" for w in lines)
+    arg = lambda words, key: next((w.split("=", 1)[1] for w in words if w.startswith(key + "=")), None)  # noqa: E731
     order = [(arg(w, "stress"), int(arg(w, "seed"))) for w in lines]
     presets = sorted(p.stem for p in (CONFIG_DIR / "stress").glob("*.yaml"))
-    assert sorted(order) == sorted([(p, 0) for p in presets] + [("none", 1), ("none", 2)])
+    done = {("none", 0), ("window_1", 0)}  # every run of these is in the table: skipped
+    assert sorted(order) == sorted([(p, 0) for p in presets if (p, 0) not in done] + [("none", 1), ("none", 2)])
+    assert "window_1 seed 0: every run is in" in r.stdout
     assert all("data.root=/data/dnerf" in w and "+sweep=stability" in w and w[-1] == "train.threads=2" for w in lines)
     rank = lambda st, seed: (0 if st == "none" and seed == 0 else 1 if st.endswith("_3") else  # noqa: E731
                              2 if st == "none" else 3 if st.endswith("_1") else 4)
     assert [rank(*o) for o in order] == sorted(rank(*o) for o in order)  # breadth first
-    tool = [ln for ln in r.stdout.splitlines() if ln.startswith("stdr-tool")]
-    assert tool == [f"stdr-tool stability {out}/table.json --split val --out {out}"]  # no sweep folder yet
+    # fraction_1 runs only what the table lacks; a preset with nothing recorded runs whole
+    frac = [w for w in lines if arg(w, "stress") == "fraction_1"]
+    assert len(frac) == 1 and arg(frac[0], "experiment") == "dnerf_spgs,dnerf_spgs_stdr"
+    assert arg(frac[0], "data.name") == "standup"
+    pose = next(w for w in lines if arg(w, "stress") == "pose_1")
+    assert arg(pose, "experiment") == ",".join(e for e, _ in exps) and arg(pose, "data.name") == ",".join(scenes)
+    tool = [ln for ln in r.stdout.splitlines() if " stdr-tool " in ln]
+    assert tool == [f"{CONFIG_DIR.parent}/scripts/run.sh stdr-tool stability {out}/table.json --split val "
+                    f"--out {out}"]  # no sweep folder yet
+    # without a committed table every preset runs whole, with the sweep's own lists
+    fresh = subprocess.run(["bash", str(script), "/data/dnerf", str(tmp_path / "none_yet")], cwd=tmp_path,
+                           env={**env, "STDR_STUDY_PRESETS": "window_1:0"}, capture_output=True, text=True,
+                           check=True)
+    [w] = [ln.split() for ln in fresh.stdout.splitlines() if " stdr-train " in ln]
+    assert arg(w, "stress") == "window_1" and arg(w, "experiment") is None and arg(w, "data.name") is None
     bad = subprocess.run(["bash", str(script), "/data/dnerf"], cwd=tmp_path, capture_output=True, text=True,
                          env={**env, "STDR_STUDY_PRESETS": "none:0 windw_1:0"})
     assert bad.returncode == 2 and "bad preset 'windw_1:0'" in bad.stderr
+    nocode = subprocess.run(["bash", str(script), "/data/dnerf"], cwd=tmp_path, capture_output=True, text=True,
+                            env={**env, "STDR_STUDY_CODE": str(tmp_path / "nowhere")})
+    assert nocode.returncode == 2 and "no scripts/run.sh there" in nocode.stderr
 
 
 def _theta_runs(root, name, values, skipped=50):

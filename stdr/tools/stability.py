@@ -28,12 +28,22 @@ an error. Writes OUT/table.md and table.json, and OUT/degradation_<metric>.{png,
     stdr-tool stability multirun/stability_cpu --split val --out docs/measurements/stability
     stdr-tool stability docs/measurements/stability/table.json multirun/stability_cpu \
         --split val --out docs/measurements/stability        # add new runs to the committed ones
+    stdr-tool stability --todo fraction_1:0 --todo sparse_1:0 docs/measurements/stability/table.json
+        # the sweep overrides that run what the table lacks of each preset and seed
+
+`--todo PRESET:SEED` (repeatable) plans, it writes nothing: for the study sweep
+(configs/sweep/stability.yaml: every registered baseline, plain and +STDR, on its scenes) it
+prints `PRESET:SEED experiment=a,b data.name=x`, a line per group of scenes lacking the same
+experiments, and nothing for a preset whose runs the given tables all hold.
+scripts/stability_study.sh uses it, so a study resumed on another machine runs only what its
+committed table lacks.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import re
 from collections import defaultdict
 from pathlib import Path
 from statistics import mean, stdev
@@ -346,13 +356,63 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
     return _save(fig, out, "degradation_psnr", ["stress", "method", "level", "psnr_drop_db"], data)
 
 
+def study_grid(data: str = "dnerf") -> tuple[list[tuple[str, str]], list[str]]:
+    """The study sweep's methods as (experiment, method name) pairs, every registered baseline
+    plain and +STDR, and its scenes (configs/sweep/stability.yaml)."""
+    from ..config import CONFIG_DIR, _experiments_resolver
+    exps = [(e, e[len(data) + 1:].removesuffix("_stdr") + ("+STDR" if e.endswith("_stdr") else ""))
+            for e in _experiments_resolver(data).split(",")]
+    sweep = yaml.safe_load((CONFIG_DIR / "sweep" / "stability.yaml").read_text())
+    scenes = str(sweep["hydra"]["sweeper"]["params"]["data.name"]).split(",")
+    return exps, scenes
+
+
+def todo_overrides(tables: list[Path], preset: str, seed: int, split: str) -> list[str]:
+    """Hydra overrides for the runs of one stress preset and seed that no record of `tables`
+    holds (a crashed run counts as held: it is a result). One line per group of scenes that lack
+    the same experiments, e.g. 'experiment=dnerf_spgs,dnerf_spgs_stdr data.name=standup'."""
+    from ..config import CONFIG_DIR
+    f = CONFIG_DIR / "stress" / f"{preset}.yaml"
+    if not f.is_file():
+        raise SystemExit(f"stdr-tool stability: --todo {preset}:{seed}: no stress preset {f}")
+    st = yaml.safe_load(f.read_text()) or {}  # `# @package data.stress`: the keys sit at the top
+    label, level = st.get("label") or "none", int(st.get("level") or 0)
+    have = {tuple(r[k] for k in RUN_KEY) for t in tables for r in load_records(t, split)}
+    exps, scenes = study_grid()
+    groups: dict[tuple[str, ...], list[str]] = {}
+    for scene in scenes:
+        lack = tuple(e for e, method in exps if (method, scene, seed, label, level) not in have)
+        if lack:
+            groups.setdefault(lack, []).append(scene)
+    return [f"experiment={','.join(lack)} data.name={','.join(sc)}" for lack, sc in groups.items()]
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="stdr-tool stability", description=__doc__.splitlines()[0])
-    ap.add_argument("runs", nargs="+", help="sweep folders, run folders or table.json files of this tool")
+    ap.add_argument("runs", nargs="*", help="sweep folders, run folders or table.json files of this tool "
+                    "(with --todo: table.json files only)")
     ap.add_argument("--split", default="val")
-    ap.add_argument("--out", type=Path, required=True, help="folder for table.md/.json and the chart")
+    ap.add_argument("--out", type=Path, help="folder for table.md/.json and the chart")
     ap.add_argument("--no-chart", action="store_true")
+    ap.add_argument("--todo", metavar="PRESET:SEED", action="append", help="print, as 'PRESET:SEED overrides', "
+                    "the sweep overrides for the runs of this stress preset and seed that the given tables "
+                    "lack, and write nothing (repeatable)")
     a = ap.parse_args(argv)
+    if a.todo:
+        bad = [t for t in a.todo if not re.fullmatch(r"[A-Za-z0-9_]+:\d+", t)]
+        if bad:
+            ap.error(f"--todo {bad[0]}: want PRESET:SEED, e.g. fraction_1:0")
+        not_tables = [r for r in a.runs if not Path(r).is_file()]
+        if not_tables:
+            ap.error(f"--todo reads table.json files; {', '.join(not_tables)} is not one")
+        tables = [Path(r) for r in a.runs]
+        for t in a.todo:
+            preset, _, seed = t.partition(":")
+            for line in todo_overrides(tables, preset, int(seed), a.split):
+                print(t, line)
+        return
+    if not a.runs or a.out is None:
+        ap.error("give the runs (sweep folders, run folders or table.json files) and --out")
     runs, unfinished = collect_runs(a.runs, a.split)
     rows = degradation(runs)
     spread = seed_spread(runs)
