@@ -34,19 +34,20 @@ for p in $PRESETS; do
   [[ "$p" == *:* && -f "$here/configs/stress/${p%%:*}.yaml" ]] || {
     echo "[study] bad preset '$p': want <preset>:<seed> with configs/stress/<preset>.yaml" >&2; exit 2; }
 done
-planned=""
+planned="" planned_from=""
 if [ -f "$OUT/table.json" ]; then   # what the committed table lacks, per preset: "preset:seed overrides"
   todo_args=()
   for p in $PRESETS; do todo_args+=(--todo "$p"); done
   planned=$("$here/scripts/run.sh" stdr-tool stability "${todo_args[@]}" "$OUT/table.json") || exit 2
+  planned_from=$OUT/table.json
 fi
 status=0
 for p in $PRESETS; do
   stress=${p%%:*}; seed=${p##*:}
   todo=("")   # no committed table: the whole preset
-  if [ -f "$OUT/table.json" ]; then
+  if [ -n "$planned_from" ]; then
     lines=$(grep "^$p " <<< "$planned" | cut -d' ' -f2-)
-    [ -n "$lines" ] || { echo "[study] $stress seed $seed: every run is in $OUT/table.json"; continue; }
+    [ -n "$lines" ] || { echo "[study] $stress seed $seed: every run is in $planned_from"; continue; }
     mapfile -t todo <<< "$lines"
   fi
   for overrides in "${todo[@]}"; do

@@ -360,25 +360,29 @@ def study_grid(data: str = "dnerf") -> tuple[list[tuple[str, str]], list[str]]:
     """The study sweep's methods as (experiment, method name) pairs, every registered baseline
     plain and +STDR, and its scenes (configs/sweep/stability.yaml)."""
     from ..config import CONFIG_DIR, _experiments_resolver
-    exps = [(e, e[len(data) + 1:].removesuffix("_stdr") + ("+STDR" if e.endswith("_stdr") else ""))
-            for e in _experiments_resolver(data).split(",")]
+    exps = []
+    for e in _experiments_resolver(data).split(","):
+        base = e[len(data) + 1:]
+        cfg = {"baseline": {"name": base.removesuffix("_stdr")}, "stdr": {"enabled": base.endswith("_stdr")}}
+        exps.append((e, method_name(cfg)))
     sweep = yaml.safe_load((CONFIG_DIR / "sweep" / "stability.yaml").read_text())
     scenes = str(sweep["hydra"]["sweeper"]["params"]["data.name"]).split(",")
     return exps, scenes
 
 
-def todo_overrides(tables: list[Path], preset: str, seed: int, split: str) -> list[str]:
-    """Hydra overrides for the runs of one stress preset and seed that no record of `tables`
-    holds (a crashed run counts as held: it is a result). One line per group of scenes that lack
-    the same experiments, e.g. 'experiment=dnerf_spgs,dnerf_spgs_stdr data.name=standup'."""
+def todo_overrides(have: set[tuple], grid: tuple[list[tuple[str, str]], list[str]], preset: str,
+                   seed: int) -> list[str]:
+    """Hydra overrides for the runs of one stress preset and seed of the study grid
+    (study_grid) whose RUN_KEY is not in `have` (a crashed run counts as held: it is a result).
+    One line per group of scenes that lack the same experiments, e.g.
+    'experiment=dnerf_spgs,dnerf_spgs_stdr data.name=standup'."""
     from ..config import CONFIG_DIR
     f = CONFIG_DIR / "stress" / f"{preset}.yaml"
     if not f.is_file():
         raise SystemExit(f"stdr-tool stability: --todo {preset}:{seed}: no stress preset {f}")
-    st = yaml.safe_load(f.read_text()) or {}  # `# @package data.stress`: the keys sit at the top
-    label, level = st.get("label") or "none", int(st.get("level") or 0)
-    have = {tuple(r[k] for k in RUN_KEY) for t in tables for r in load_records(t, split)}
-    exps, scenes = study_grid()
+    # `# @package data.stress`: the preset's keys sit at the top of its file
+    label, level = _stress({"data": {"stress": yaml.safe_load(f.read_text()) or {}}})
+    exps, scenes = grid
     groups: dict[tuple[str, ...], list[str]] = {}
     for scene in scenes:
         lack = tuple(e for e, method in exps if (method, scene, seed, label, level) not in have)
@@ -405,10 +409,11 @@ def main(argv=None) -> None:
         not_tables = [r for r in a.runs if not Path(r).is_file()]
         if not_tables:
             ap.error(f"--todo reads table.json files; {', '.join(not_tables)} is not one")
-        tables = [Path(r) for r in a.runs]
+        have = {tuple(r[k] for k in RUN_KEY) for t in a.runs for r in load_records(Path(t), a.split)}
+        grid = study_grid()
         for t in a.todo:
             preset, _, seed = t.partition(":")
-            for line in todo_overrides(tables, preset, int(seed), a.split):
+            for line in todo_overrides(have, grid, preset, int(seed)):
                 print(t, line)
         return
     if not a.runs or a.out is None:
