@@ -77,3 +77,24 @@ def test_lpips_calibration(shared_dir, net):
 def test_lpips_missing_weights_message(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"vgg16_features.pth.*eval.lpips_weights"):
         LPIPS("vgg", weights_dir=tmp_path)
+
+
+def _cpuinfo(family, model, flags, name="AMD EPYC"):
+    one = (f"processor\t: {{}}\nvendor_id\t: AuthenticAMD\ncpu family\t: {family}\nmodel\t\t: {model}\n"
+           f"model name\t: {name}\nstepping\t: 1\nflags\t\t: fpu sse4_2 {flags}\n")
+    return one.format(0) + "\n" + one.format(1).replace(name, "second processor ignored")
+
+
+def test_machine_label_tells_apart_cpus_sold_under_one_name():
+    # float32 results differ between two "AMD EPYC" machines of other families or SIMD widths,
+    # so the label recorded with every metric must tell them apart
+    from stdr.eval.evaluate import machine_name
+    zen3 = machine_name(_cpuinfo(25, 1, "avx avx2"))
+    zen4 = machine_name(_cpuinfo(25, 17, "avx avx2 avx512f"))
+    rome = machine_name(_cpuinfo(23, 49, "avx avx2"))
+    assert zen3.startswith("AMD EPYC, family 25 model 1 stepping 1, AVX2, ")
+    assert "AVX512F" in zen4 and "AVX2" not in zen4  # the widest level only
+    assert len({zen3, zen4, rome}) == 3 and all(s.endswith("logical CPUs") for s in (zen3, zen4, rome))
+    assert "second processor" not in zen3
+    # no /proc/cpuinfo (macOS, Windows): the platform's name, still with the CPU count
+    assert machine_name("").endswith("logical CPUs") and "family" not in machine_name("")

@@ -148,18 +148,43 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
     }
 
 
-def machine_name() -> str:
-    """The CPU model (Linux /proc/cpuinfo, else platform), and the GPU when CUDA is in use."""
-    import platform
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
+def _cpu_fields(cpuinfo: str) -> dict[str, str]:
+    """The first processor's `key: value` fields of a /proc/cpuinfo text."""
+    fields: dict[str, str] = {}
+    for line in cpuinfo.splitlines():
+        if not line.strip():
+            if fields:
                 break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} logical CPUs"
+            continue
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    return fields
+
+
+# widest SIMD level first: float32 reductions (MKL, the compiled rasterizer) round differently per level
+_ISA_LEVELS = ("avx512f", "avx2", "avx", "sse4_2", "neon", "asimd")
+
+
+def machine_name(cpuinfo: str | None = None) -> str:
+    """The CPU as results depend on it: model name, x86 family/model/stepping and the widest SIMD
+    level (Linux /proc/cpuinfo, else platform), and the logical CPU count. Two machines sold
+    under one model name ("AMD EPYC") give different float32 results when their family or ISA
+    differ, so the label tells them apart. The GPU is `conventions.device_name`."""
+    import platform
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpuinfo = ""
+    f = _cpu_fields(cpuinfo)
+    parts = [f.get("model name") or platform.processor() or platform.machine()]
+    if "cpu family" in f:
+        parts.append(f"family {f['cpu family']} model {f.get('model', '?')} stepping {f.get('stepping', '?')}")
+    flags = set((f.get("flags") or f.get("Features") or "").split())
+    isa = next((x for x in _ISA_LEVELS if x in flags), None)
+    if isa:
+        parts.append(isa.upper().replace("_", "."))
+    return f"{', '.join(parts)}, {os.cpu_count()} logical CPUs"
 
 
 def model_bytes(model) -> int:
