@@ -148,19 +148,6 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
     }
 
 
-def _cpu_fields(cpuinfo: str) -> dict[str, str]:
-    """The first processor's `key: value` fields of a /proc/cpuinfo text."""
-    fields: dict[str, str] = {}
-    for line in cpuinfo.splitlines():
-        if not line.strip():
-            if fields:
-                break
-            continue
-        key, _, value = line.partition(":")
-        fields.setdefault(key.strip(), value.strip())
-    return fields
-
-
 # widest SIMD level first: float32 reductions (MKL, the compiled rasterizer) round differently per level
 _ISA_LEVELS = ("avx512f", "avx2", "avx", "sse4_2", "neon", "asimd")
 
@@ -176,7 +163,8 @@ def machine_name(cpuinfo: str | None = None) -> str:
             cpuinfo = Path("/proc/cpuinfo").read_text()
         except OSError:
             cpuinfo = ""
-    f = _cpu_fields(cpuinfo)
+    first = cpuinfo.strip().split("\n\n", 1)[0]  # the first processor's block of `key: value` lines
+    f = {k.strip(): v.strip() for k, _, v in (line.partition(":") for line in first.splitlines())}
     parts = [f.get("model name") or platform.processor() or platform.machine()]
     if "cpu family" in f:
         parts.append(f"family {f['cpu family']} model {f.get('model', '?')} stepping {f.get('stepping', '?')}")
