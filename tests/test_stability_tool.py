@@ -96,9 +96,13 @@ def test_degradation_table_and_chart(tmp_path, capsys):
         assert (tmp_path / "out" / f"degradation_psnr.{ext}").stat().st_size > 0
     with open(tmp_path / "out" / "degradation_psnr.csv") as f:
         data = list(csv.DictReader(f))
-    deform_w = [(int(r["level"]), float(r["psnr_drop_db"])) for r in data
-                if r["stress"] == "window" and r["method"] == "deform"]
-    assert deform_w == [(0, 0.0), (1, 1.0), (2, 3.0)]
+    def curve(stress, frames, method="deform"):
+        return [(int(r["level"]), float(r["psnr_drop_db"])) for r in data
+                if (r["stress"], r["frames"], r["method"]) == (stress, frames, method)]
+    assert curve("window", "all") == [(0, 0.0), (1, 1.0), (2, 3.0)]
+    # the window's own panel: only deform's level 1 has per-frame times, so only it is drawn there
+    assert curve("window", "in window") == [(0, 0.0), (1, 2.0)]
+    assert curve("window", "in window", "deform+STDR") == [] and curve("window", "all", "deform+STDR")
 
 
 def test_bad_input_is_named(tmp_path):

@@ -328,13 +328,19 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
     stresses = sorted({r["stress"] for r in rows if r["stress"] != "none"})
     if not stresses:
         raise SystemExit("stdr-tool stability: no stressed runs to chart")
+    # one panel per stress over all evaluation frames; a stress with a time window (window,
+    # sparse) gets a second panel over the frames inside it, where the mean over all frames
+    # hides the loss (frames outside the window often gain)
+    panels = [(st, key) for st in stresses for key in ("psnr_drop", "window_drop")
+              if key == "psnr_drop" or any(r["stress"] == st and r["window_drop"] is not None for r in rows)]
     colors = _style(sorted({r["baseline"] for r in rows}))
-    fig, axes = plt.subplots(1, len(stresses), figsize=(3.2 * len(stresses), 3.2), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.2), squeeze=False, sharey=True)
     data = []
-    for ax, st in zip(axes[0], stresses):
+    for ax, (st, key) in zip(axes[0], panels):
+        frames = "all" if key == "psnr_drop" else "in window"
         for method in sorted({r["method"] for r in rows}):
-            pts = sorted((r["level"], r["psnr_drop"]) for r in rows
-                         if r["method"] == method and r["stress"] == st and r["psnr_drop"] is not None)
+            pts = sorted((r["level"], r[key]) for r in rows
+                         if r["method"] == method and r["stress"] == st and r[key] is not None)
             ref = [r for r in rows if r["method"] == method and (r["stress"], r["level"]) == REFERENCE]
             if not pts or not ref:
                 continue
@@ -342,8 +348,8 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
             r0 = ref[0]
             ax.plot(*zip(*pts), marker="o", ms=4, color=colors[r0["baseline"]], ls="-" if r0["stdr"] else "--",
                     lw=1.4)
-            data += [[st, method, lv, f"{d:.4f}"] for lv, d in pts]
-        ax.set_title(st, fontsize=9)
+            data += [[st, frames, method, lv, f"{d:.4f}"] for lv, d in pts]
+        ax.set_title(st if key == "psnr_drop" else f"{st}: frames in the window", fontsize=9)
         ax.set_xlabel("severity level")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(True, alpha=0.3)
@@ -353,7 +359,7 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False, fontsize=8,
                bbox_to_anchor=(0.5, -0.08))
     fig.tight_layout()
-    return _save(fig, out, "degradation_psnr", ["stress", "method", "level", "psnr_drop_db"], data)
+    return _save(fig, out, "degradation_psnr", ["stress", "frames", "method", "level", "psnr_drop_db"], data)
 
 
 def study_grid(data: str = "dnerf") -> tuple[list[tuple[str, str]], list[str]]:
