@@ -334,9 +334,13 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
     panels = [(st, key) for st in stresses for key in ("psnr_drop", "window_drop")
               if key == "psnr_drop" or any(r["stress"] == st and r["window_drop"] is not None for r in rows)]
     colors = _style(sorted({r["baseline"] for r in rows}))
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.2), squeeze=False, sharey=True)
+    ncol = min(len(panels), 4)
+    nrow = -(-len(panels) // ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(3.2 * ncol, 3.0 * nrow), squeeze=False, sharey=True)
+    for ax in axes.flat[len(panels):]:
+        ax.set_visible(False)
     data = []
-    for ax, (st, key) in zip(axes[0], panels):
+    for ax, (st, key) in zip(axes.flat, panels):
         frames = "all" if key == "psnr_drop" else "in window"
         for method in sorted({r["method"] for r in rows}):
             pts = sorted((r["level"], r[key]) for r in rows
@@ -353,7 +357,8 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
         ax.set_xlabel("severity level")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(True, alpha=0.3)
-    axes[0][0].set_ylabel(f"PSNR drop (dB, {split}) ↓")
+    for row in axes:
+        row[0].set_ylabel(f"PSNR drop (dB, {split}) ↓")
     handles = [Line2D([], [], color=c, label=b) for b, c in colors.items()]
     handles += [Line2D([], [], color="k", ls="--", label="plain"), Line2D([], [], color="k", label="+STDR")]
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False, fontsize=8,
