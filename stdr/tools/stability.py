@@ -331,7 +331,8 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
     # one panel per stress over all evaluation frames; a stress with a time window (window,
     # sparse) gets a second panel over the frames inside it, where the mean over all frames
     # hides the loss (frames outside the window often gain)
-    panels = [(st, key) for st in stresses for key in ("psnr_drop", "window_drop")
+    panels = [(st, key, frames) for st in stresses
+              for key, frames in (("psnr_drop", "all"), ("window_drop", "in window"))
               if key == "psnr_drop" or any(r["stress"] == st and r["window_drop"] is not None for r in rows)]
     colors = _style(sorted({r["baseline"] for r in rows}))
     ncol = min(len(panels), 4)
@@ -340,8 +341,7 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
     for ax in axes.flat[len(panels):]:
         ax.set_visible(False)
     data = []
-    for ax, (st, key) in zip(axes.flat, panels):
-        frames = "all" if key == "psnr_drop" else "in window"
+    for ax, (st, key, frames) in zip(axes.flat, panels):
         for method in sorted({r["method"] for r in rows}):
             pts = sorted((r["level"], r[key]) for r in rows
                          if r["method"] == method and r["stress"] == st and r[key] is not None)
@@ -353,7 +353,7 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
             ax.plot(*zip(*pts), marker="o", ms=4, color=colors[r0["baseline"]], ls="-" if r0["stdr"] else "--",
                     lw=1.4)
             data += [[st, frames, method, lv, f"{d:.4f}"] for lv, d in pts]
-        ax.set_title(st if key == "psnr_drop" else f"{st}: frames in the window", fontsize=9)
+        ax.set_title(st if frames == "all" else f"{st}: frames in the window", fontsize=9)
         ax.set_xlabel("severity level")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(True, alpha=0.3)
