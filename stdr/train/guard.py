@@ -39,8 +39,16 @@ class GuardConfig:
     lr_factor: float = 0.5       # every learning rate x this at each recovery
     max_recoveries: int = 3      # one more stops the run (TrainingDiverged, checkpoint of the last good state)
     # a periodic evaluation (train.eval_every) more than this many dB below the best one so far
-    # restores the best one's state (0 = off). It reads data.eval_split: use val for studies
+    # restores the best one's state (0 = off)
     divergence_db: float = 10.0
+    # what the divergence detector evaluates. It restores earlier states, so what it reads steers
+    # training, and it never reads the test split: auto = val where the scene has a val split of
+    # its own (D-NeRF, the embedded scene), else train (Nerfies format: its val frames are its
+    # test frames); or val, or train (a fixed seeded subset of the training frames)
+    monitor: str = "auto"
+    # frames of the detector's own evaluation (a fixed seeded subset; 0 = all). When the monitor
+    # split is data.eval_split, the periodic evaluation itself is used (train.eval_frames)
+    monitor_frames: int = 10
     # fault injection, for tests and drills: a NaN in the gradient of the means at each step
     # listed (counted from 1), once per process
     inject_nan_grad_at: List[int] = field(default_factory=list)
@@ -61,6 +69,31 @@ def check_guard_config(g) -> None:
         raise ValueError(f"train.guard.max_recoveries={g.max_recoveries}: must be 0 or more")
     if g.divergence_db < 0:
         raise ValueError(f"train.guard.divergence_db={g.divergence_db}: must be 0 (off) or positive")
+    if g.monitor_frames < 0:
+        raise ValueError(f"train.guard.monitor_frames={g.monitor_frames}: must be 0 (all frames) or positive")
+
+
+MONITORS = ("auto", "val", "train")
+#: data formats whose val split is held out from training and distinct from their test split
+OWN_VAL_SPLIT = ("dnerf", "procedural")
+
+
+def monitor_split(g, data_format: str) -> str:
+    """The split the divergence detector evaluates (train.guard.monitor resolved for the data
+    format). The test split is never one: a detector that reads it lets test images steer training."""
+    m = str(g.monitor)
+    if m == "test":
+        raise ValueError("train.guard.monitor=test: the divergence detector restores earlier states, so the split "
+                         "it reads steers training, and test images must not; use auto, val or train")
+    if m not in MONITORS:
+        raise ValueError(f"train.guard.monitor={m!r}: use one of {', '.join(MONITORS)}")
+    own_val = data_format in OWN_VAL_SPLIT
+    if m == "auto":
+        return "val" if own_val else "train"
+    if m == "val" and not own_val:
+        raise ValueError(f"train.guard.monitor=val: data.format={data_format} has no val split of its own (its val "
+                         "frames are its test frames); use train or auto")
+    return m
 
 
 def all_finite(tensors: Iterable[Optional[Tensor]]) -> bool:
@@ -126,6 +159,7 @@ class GuardState:
     recoveries: list[dict[str, Any]] = field(default_factory=list)
     peak_gaussians: int = 0
     peak_memory_mb: Optional[float] = None  # process_memory_mb's largest sample
+    monitor: Optional[str] = None  # the divergence detector's split (None: no detector in this run)
     best: Optional[dict[str, Any]] = None          # the best periodic evaluation: {step, psnr}
     snapshot: Optional[dict[str, Any]] = None      # last good state (a checkpoint payload, cloned)
     best_snapshot: Optional[dict[str, Any]] = None  # the state at `best`
@@ -133,7 +167,7 @@ class GuardState:
 
     def state_dict(self) -> dict[str, Any]:
         return {"lr_scale": self.lr_scale, "recoveries": list(self.recoveries), "peak_gaussians": self.peak_gaussians,
-                "peak_memory_mb": self.peak_memory_mb}
+                "peak_memory_mb": self.peak_memory_mb, "monitor": self.monitor}
 
     def load_state_dict(self, s: dict[str, Any]) -> None:
         self.lr_scale = float(s.get("lr_scale", 1.0))
@@ -151,4 +185,4 @@ class GuardState:
         """metrics.json -> guard."""
         return {"recoveries": list(self.recoveries), "n_recoveries": len(self.recoveries),
                 "lr_scale": self.lr_scale, "peak_gaussians": self.peak_gaussians, "max_gaussians": cap,
-                "peak_memory_mb": self.peak_memory_mb}
+                "peak_memory_mb": self.peak_memory_mb, "monitor": self.monitor}

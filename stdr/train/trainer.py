@@ -24,7 +24,8 @@ from ..scene.gaussians import scene_extent
 from ..scene.ply import save_ply
 from ..scene.strategy import DensifyStrategy
 from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
-from .guard import GuardState, TrainingDiverged, all_finite, check_guard_config, clone_tree, first_nonfinite
+from .guard import (GuardState, TrainingDiverged, all_finite, check_guard_config, clone_tree, first_nonfinite,
+                    monitor_split)
 from .schedule import exp_lr
 
 CKPT = "checkpoints/last.pt"
@@ -123,6 +124,12 @@ class Trainer:
         np.random.seed(cfg.seed)
         if cfg.train.eval_every > 0 or cfg.train.eval_at_warmup_end:  # evaluations during training need it
             splits = tuple(dict.fromkeys((*splits, cfg.data.eval_split)))
+        check_guard_config(cfg.train.guard)
+        # the divergence detector (periodic evaluations only) reads its own split, never test's
+        self.monitor = (monitor_split(cfg.train.guard, cfg.data.format)
+                        if cfg.train.guard.enabled and cfg.train.eval_every > 0 else None)
+        if self.monitor is not None:
+            splits = tuple(dict.fromkeys((*splits, self.monitor)))
         self.scene = load_scene(cfg.data, splits, base=data_base, seed=cfg.seed).to(self.device)  # images moved once
         has_train = "train" in self.scene.splits
         train_times = self.scene.train_times() if has_train else None
@@ -150,8 +157,7 @@ class Trainer:
         self.profile = Profiler()
         self.history: list[dict[str, Any]] = []
         self.writer = None
-        check_guard_config(cfg.train.guard)
-        self.guard = GuardState(peak_gaussians=len(pts))
+        self.guard = GuardState(peak_gaussians=len(pts), monitor=self.monitor)
 
     @property
     def step(self) -> int:
@@ -486,8 +492,8 @@ class Trainer:
             elif cfg.train.eval_every and it % cfg.train.eval_every == 0 and it < total:
                 res = self.evaluate(cfg.data.eval_split, tag="periodic", frames=self.curve_frames(cfg.data.eval_split),
                                     lpips_fn=self._curve_lpips())
-            if res is not None and guard.enabled:
-                self._after_evaluation(float(res["psnr"]))
+            if res is not None and self.monitor is not None:
+                self._after_evaluation(self._monitor_psnr(res))
                 if self.step != it:  # recovered: go on from the restored step
                     if bar is not None:
                         bar.n = self.step
@@ -538,15 +544,25 @@ class Trainer:
         tb.add_image(tag, grid, it, dataformats="HWC")
 
     # ----------------------------------------------------------------- evaluation
-    def curve_frames(self, split: str) -> Optional[list[int]]:
+    def curve_frames(self, split: str, n: Optional[int] = None) -> Optional[list[int]]:
         """Indices of the frames a periodic (learning-curve) evaluation renders: all (None) with
-        train.eval_frames=0, else a fixed subset of that many, drawn once from a generator seeded
-        with the run's seed (the training RNG is not touched)."""
-        n, total = int(self.cfg.train.eval_frames), len(self.scene.frames(split))
+        train.eval_frames=0, else a fixed subset of that many (or of `n`), drawn once from a
+        generator seeded with the run's seed (the training RNG is not touched)."""
+        n = int(self.cfg.train.eval_frames if n is None else n)
+        total = len(self.scene.frames(split))
         if n <= 0 or n >= total:
             return None
         g = torch.Generator().manual_seed(int(self.cfg.seed))
         return sorted(torch.randperm(total, generator=g)[:n].tolist())
+
+    def _monitor_psnr(self, res: dict[str, Any]) -> float:
+        """The divergence detector's PSNR at a periodic evaluation `res` (of data.eval_split):
+        its own when data.eval_split is the monitor split, else an evaluation of the monitor
+        split's fixed subset of train.guard.monitor_frames frames (history tag 'guard')."""
+        if self.monitor == self.cfg.data.eval_split:
+            return float(res["psnr"])
+        frames = self.curve_frames(self.monitor, n=self.cfg.train.guard.monitor_frames)
+        return float(self.evaluate(self.monitor, tag="guard", frames=frames)["psnr"])
 
     def _curve_lpips(self):
         """The LPIPS network for periodic evaluations (train.eval_lpips), built once."""
