@@ -142,8 +142,10 @@ class RenderConfig:
     # needs densify.count_invisible=false, since a culled row is not seen by densification)
     cull: str = "eval"
     # with a compiled backend, projection and SH shading run in the extension too (forward and
-    # backward; csrc/project_math.h); false runs their torch twin (stdr/render/projection.py, sh.py)
-    compiled_projection: bool = True
+    # backward; csrc/project_math.h); false runs their torch twin (stdr/render/projection.py, sh.py).
+    # null (auto): compiled on the CPU backend; on CUDA the torch twin, because the CUDA projection
+    # kernels have not yet run on a GPU (stdr.render.VERIFIED_PROJECTION); true opts in
+    compiled_projection: Optional[bool] = None
 
 
 @dataclass

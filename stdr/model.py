@@ -263,7 +263,7 @@ class DynamicGaussians:
         return render(g.means, g.quats, g.scales, g.opacities, g.sh, camera,
                       sh_degree=self.sh_degree(self.step if step is None else step), background=self.background,
                       backend=self.backend, near=r.near, eps2d=r.eps2d, antialiased=r.antialiased,
-                      tile_size=r.tile_size, compiled_projection=bool(r.get("compiled_projection", True)))
+                      tile_size=r.tile_size, compiled_projection=r.get("compiled_projection"))
 
     def render(self, camera: Camera, t: float, step: Optional[int] = None,
                cull: Optional[bool] = None) -> RenderOutput:

@@ -472,6 +472,18 @@ def test_projection_backward_is_deterministic_and_render_uses_it():
     assert (on.image - off.image).abs().max() <= 1e-5
 
 
+def test_unverified_compiled_projection_is_not_a_default():
+    """render.compiled_projection=null (auto): the compiled projection on the CPU backend, whose
+    kernels the suite checks; the torch twin on CUDA, whose projection kernels have never run on a
+    GPU; true or false overrides either; the reference backend never uses it."""
+    from stdr.render import use_compiled_projection
+    assert use_compiled_projection("cpu") and not use_compiled_projection("cuda")
+    assert use_compiled_projection("cuda", True) and not use_compiled_projection("cpu", False)
+    assert not use_compiled_projection("reference", True)
+    from stdr.testing import make_cfg
+    assert make_cfg([]).render.compiled_projection is None
+
+
 def test_projection_rejects_bad_inputs_with_the_key():
     inputs, cam = _projection_scene(torch.float32)
     means, quats, scales, opac, sh = inputs

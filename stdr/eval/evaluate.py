@@ -280,7 +280,11 @@ def write_metrics(run_dir: Path, split: str, res: dict[str, Any], model, eval_cf
     """Add the conventions, the data's description and each plug-in's statistics (under its
     name: STDR's mask memory, KNN time, mask/field statistics) to `res`, and merge it into
     run_dir/metrics.json under `split` (atomically)."""
-    res.update({"conventions": metric_conventions(eval_cfg, lpips_fn, model.backend, model.device),
+    from ..render import use_compiled_projection
+    conv = metric_conventions(eval_cfg, lpips_fn, model.backend, model.device)
+    compiled = use_compiled_projection(model.backend, model.cfg.render.get("compiled_projection"))
+    conv["render_projection"] = "compiled" if compiled else "torch"  # projection + SH: extension or torch twin
+    res.update({"conventions": conv,
                 "data": data_meta,  # how the scene was read (split, scale, intrinsics, ...)
                 "code": code_version()})  # the checkout that wrote this entry
     res["model_mb"] = model_bytes(model) / 2 ** 20

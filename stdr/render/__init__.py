@@ -72,10 +72,26 @@ class RenderOutput:
     projection: Projection
 
 
+#: backends whose compiled projection + SH kernels have passed their parity tests on real hardware.
+#: The CUDA kernels (csrc/cuda, project_forward/backward) compile but have never run on a GPU, so
+#: render.compiled_projection=null (auto) keeps CUDA renders on the torch twin until
+#: scripts/gpu_check.sh passes them there; render.compiled_projection=true opts in.
+VERIFIED_PROJECTION = ("cpu",)
+
+
+def use_compiled_projection(backend: str, compiled_projection: Optional[bool] = None) -> bool:
+    """Whether render() runs projection and SH in the compiled extension: never on the reference
+    backend; with compiled_projection None (auto) on the verified backends only."""
+    if backend == "reference":
+        return False
+    return backend in VERIFIED_PROJECTION if compiled_projection is None else bool(compiled_projection)
+
+
 def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor,
            camera: Camera, sh_degree: int, background: Optional[Tensor] = None,
            backend: str = "reference", near: float = 0.01, eps2d: float = 0.3,
-           antialiased: bool = False, tile_size: int = 0, compiled_projection: bool = True) -> RenderOutput:
+           antialiased: bool = False, tile_size: int = 0,
+           compiled_projection: Optional[bool] = None) -> RenderOutput:
     """Render N Gaussians seen by `camera`.
 
     means [N, 3]; quats [N, 4] (w, x, y, z; any norm); scales [N, 3] (activated);
@@ -83,7 +99,8 @@ def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: 
     background [3] colour or None for black. backend: a resolved name (see resolve_backend);
     tile_size 0 = the backend's default. compiled_projection: with a compiled backend, the
     projection and SH shading run in the extension too (`compiled.project_sh_compiled`); False
-    (or the reference backend) runs the torch twin.
+    (or the reference backend) runs the torch twin; None (auto) = True on the backends in
+    VERIFIED_PROJECTION (the CPU), False elsewhere (CUDA, until its kernels have run on a GPU).
     """
     N = means.shape[0]
     for name, x, shape in (("means", means, (N, 3)), ("quats", quats, (N, 4)),
@@ -92,7 +109,7 @@ def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: 
             raise ValueError(f"render: {name} must have shape {shape}, got {tuple(x.shape)}")
     if backend not in BACKENDS:
         backend = resolve_backend(backend, means.device)
-    if backend != "reference" and compiled_projection:
+    if use_compiled_projection(backend, compiled_projection):
         proj, colors = compiled.project_sh_compiled(means, quats, scales, opacities, sh, camera, sh_degree,
                                                     near=near, eps2d=eps2d, antialiased=antialiased, kind=backend)
     else:
