@@ -400,7 +400,7 @@ def test_freeze_opacity_false_trains_opacity_in_the_warmup_as_an_empty_warmup_do
     """stdr.freeze_opacity=false: opacity trains from step 0 and the opacity reset is the usual
     one; the phases themselves (regularized until the freeze) do not move."""
     held, free = _plugin(freeze_opacity=True), _plugin()
-    assert not OmegaConf.structured(StdrConfig).freeze_opacity  # the measured default (docs/stdr.md §8)
+    assert not OmegaConf.structured(StdrConfig).freeze_opacity  # the measured default (docs/notes/2026-11-24-stdr-measurements.md, fidelity study)
     assert (held.warmup_end, held.freeze_at) == (free.warmup_end, free.freeze_at) == (10, 20)
     p = init_params(torch.rand(6, 3), sh_degree=1, init_opacity=0.1)
     held.init_gaussians(p)
