@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# The D-NeRF headline table, rerun at one commit: 4 baselines x {plain, +STDR} x the four shared
+# scenes x seeds 0-2 (96 runs, budget=cpu, test split), breadth first (every method and scene at
+# seed 0, then seed 1, then 2), resumable. Each finished run's records (config.yaml, metrics.json,
+# history.json, train_profile.json; no checkpoint) are copied to
+# docs/measurements/dnerf_headline_cpu/runs/<experiment>/<scene>/s<seed>/, and a run whose records
+# are there already is skipped, so the study goes on from the committed records on any machine.
+# Then scripts/results.py rebuilds docs/results.md and the README's table from them.
+#
+#   bash scripts/headline_table.sh DNERF_ROOT [WORK_DIR]       # WORK_DIR: run folders (default outputs/headline)
+#
+# HEADLINE_CODE=<checkout> runs stdr-train from another checkout (its scripts/run.sh), e.g. a
+# worktree frozen at the table's commit; HEADLINE_DRY=1 prints the commands; HEADLINE_SEEDS picks
+# the seeds (default "0 1 2"). Run it on an otherwise idle machine: train seconds are reported.
+set -uo pipefail
+here=$(cd "$(dirname "$0")/.." && pwd)
+ROOT=${1:?usage: headline_table.sh DNERF_ROOT [WORK_DIR]}
+WORK=${2:-$here/outputs/headline}
+REC=$here/docs/measurements/dnerf_headline_cpu/runs
+CODE=${HEADLINE_CODE:-$here}
+[ -x "$CODE/scripts/run.sh" ] || { echo "[headline] HEADLINE_CODE=$CODE: no scripts/run.sh there" >&2; exit 2; }
+SCENES="bouncingballs hellwarrior jumpingjacks standup"
+for s in $SCENES; do
+  [ -f "$ROOT/$s/transforms_train.json" ] || { echo "[headline] $ROOT/$s: not a D-NeRF scene (no transforms_train.json)" >&2; exit 2; }
+done
+EXPS=""
+for b in deform scgs spgs 4dgs; do EXPS+=" dnerf_$b dnerf_${b}_stdr"; done
+failed=0
+for seed in ${HEADLINE_SEEDS:-0 1 2}; do
+  for scene in $SCENES; do
+    for exp in $EXPS; do
+      rec=$REC/$exp/$scene/s$seed
+      [ -f "$rec/metrics.json" ] && continue
+      run=$WORK/$exp/$scene/s$seed
+      cmd=("$CODE/scripts/run.sh" stdr-train "experiment=$exp" budget=cpu "seed=$seed" "data.path=$ROOT/$scene"
+           "data.name=$scene" data.eval_split=test train.progress=false "hydra.run.dir=$run")
+      if [ "${HEADLINE_DRY:-0}" = 1 ]; then echo "${cmd[*]}"; continue; fi
+      echo "[headline] $(date +%T) $exp $scene seed $seed"
+      mkdir -p "$run"
+      if "${cmd[@]}" > "$run.log" 2>&1 && [ -f "$run/metrics.json" ]; then
+        mkdir -p "$rec"
+        for f in config.yaml metrics.json history.json train_profile.json; do
+          [ -f "$run/$f" ] && cp "$run/$f" "$rec/$f"
+        done
+      else
+        echo "[headline] FAILED $exp $scene seed $seed (log: $run.log)" >&2; failed=$((failed + 1))
+      fi
+    done
+  done
+done
+[ "${HEADLINE_DRY:-0}" = 1 ] && exit 0
+"$here/scripts/run.sh" python "$here/scripts/results.py" || exit 2
+echo "[headline] done; $failed failed"
+[ "$failed" = 0 ]

@@ -1,0 +1,71 @@
+"""The front door and the manual: links and paths that exist, no tracker numbers, a short README,
+and README numbers that are the generated results file's."""
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+MANUAL = [ROOT / "README.md", ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").glob("*.md"))]
+DATED = [*sorted((ROOT / "docs" / "notes").glob("*.md")), *sorted((ROOT / "docs" / "measurements").glob("*/README.md"))]
+TOP = ("stdr/", "docs/", "configs/", "scripts/", "tests/", ".ci/")
+LINK = re.compile(r"\]\(([^)\s]+)\)")
+CODE = re.compile(r"`([^`\s]+)`")
+
+
+def _relative_links(md: Path):
+    for target in LINK.findall(md.read_text()):
+        if re.match(r"[a-z]+:", target) or target.startswith("#"):
+            continue
+        yield target.split("#")[0]
+
+
+def _repo_paths(md: Path):
+    """Backticked tokens that name a file (with its extension) or a folder (with a trailing /) of
+    this repository, without placeholders; a test id's ::name and a :line suffix are dropped.
+    (`stdr/phase` is a TensorBoard tag, not a path.)"""
+    for tok in CODE.findall(md.read_text()):
+        tok = re.sub(r":\d+(-\d+)?$", "", tok.split("::")[0].rstrip(".,;"))
+        if (tok.startswith(TOP) and not re.search(r"[<>*{}\[\]$]|\.\.\.|…", tok)
+                and (tok.endswith("/") or re.search(r"\.[A-Za-z]+$", tok))):
+            yield tok
+
+
+@pytest.mark.parametrize("md", MANUAL, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_link_and_repository_path_exists(md):
+    missing = [t for t in _relative_links(md) if not (md.parent / t).exists()]
+    missing += [t for t in _repo_paths(md) if not (ROOT / t).exists()]
+    assert missing == [], f"{md.relative_to(ROOT)} names paths that do not exist: {missing}"
+
+
+@pytest.mark.parametrize("md", DATED, ids=lambda p: str(p.relative_to(ROOT)))
+def test_notes_and_study_readmes_link_to_what_exists(md):
+    missing = [t for t in _relative_links(md) if not (md.parent / t).exists()]
+    assert missing == [], f"{md.relative_to(ROOT)} links to paths that do not exist: {missing}"
+
+
+def test_no_issue_tracker_numbers_in_the_docs():
+    """A reader cannot resolve the tracker's numbers: each says the decision it stands for."""
+    pat = re.compile(r"issues? ?#?[0-9]+", re.IGNORECASE)
+    hits = [f"{p.relative_to(ROOT)}: {m.group(0)}" for p in MANUAL + DATED for m in pat.finditer(p.read_text())]
+    assert hits == []
+
+
+def test_the_readme_is_a_front_door():
+    lines = (ROOT / "README.md").read_text().split("\n")
+    assert len(lines) <= 150
+    first = "\n".join(lines[:40])
+    assert "bash scripts/setup.sh && scripts/run.sh stdr-train" in first
+    assert "bash scripts/setup.sh && scripts/run.sh python -m pytest -q" in first
+    # .ci/run runs the README's test command
+    assert "bash scripts/setup.sh && scripts/run.sh python -m pytest -q" in (ROOT / ".ci" / "run").read_text()
+
+
+def test_the_numbers_the_readme_quotes_are_the_generated_ones():
+    """README.md's results and demo blocks and docs/results.md are what scripts/results.py makes
+    from the committed records now (a hand edit, or a record added without regenerating, fails)."""
+    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "results.py"), "--check"], capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stderr + r.stdout
