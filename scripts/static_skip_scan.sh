@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Static skipping (docs/measurements/compactness_protocol.md §4): evaluate trained STDR runs on the
+# Static skipping (docs/measurements/compactness/protocol.md §4): evaluate trained STDR runs on the
 # val split at each threshold θ, on copies (the runs' own metrics.json stay as they are).
 #   scripts/static_skip_scan.sh OUT RUN_DIR [RUN_DIR ...]
 # RUN_DIRs are a sweep's runs, <experiment>/<scene>/s<seed> (one seed per scene). Writes

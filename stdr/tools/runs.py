@@ -15,7 +15,7 @@ laid out as <candidate>/<scene>), `--group-by KEY...` a mean ± sample-std row p
 scene, method, backend, seed, label or a config key), e.g. seeds of one scene and backend; the
 paper-style table that averages seeds per method is `stdr-eval RUNS reevaluate=false`.
 `--rule REF` (with --label) adds the screening rule's verdict per candidate
-(docs/measurements/stdr_fidelity_protocol.md).
+(docs/measurements/fidelity/stdr_fidelity_protocol.md).
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Static skipping's default by the rule of docs/measurements/compactness_protocol.md §4.
+"""Static skipping's default by the rule of docs/measurements/compactness/protocol.md §4.
 
 For each baseline, folders of its +STDR runs evaluated at θ = 0 (the reference) and at each
 candidate θ (laid out <folder>/<scene>/metrics.json, as `scripts/static_skip_scan.sh` and
