@@ -205,7 +205,8 @@ def build() -> tuple[str, str]:
     urows, ueff, udata = unseen()
     head = means and prov
     page = ["# Results", "",
-            f"{STAMP} at commit {_git('rev-parse', '--short', 'HEAD')} on {datetime.date.today().isoformat()}.",
+            f"{STAMP} at commit {_git('rev-parse', '--short', 'HEAD')}"
+            f"{' with uncommitted changes' if _git('status', '--porcelain') else ''} on {datetime.date.today().isoformat()}.",
             "Each section names the runs' code, machine and the command that made them; nothing here is typed by hand.",
             "",
             "## D-NeRF, four shared scenes, budget=cpu, test split", "",
