@@ -29,7 +29,7 @@ if [ -d $D/target ]; then
   args+=("default densification=$D/cull_train_val/A/dnerf_deform_stdr")
   stdr-tool variants --split val --smallest-within 0.1 --out $D/target_val "${args[@]}" > /dev/null
 fi
-if [ -d $D/reruns ]; then  # the same command and code trained twice (issue 15's reruns, the control)
+if [ -d $D/reruns ]; then  # the same command and code trained twice (the measurement-tooling work's reruns, the control)
   args=(); for m in $(ls $D/reruns/first); do
     args+=(--table "$m: trained twice" "first=$D/reruns/first/$m" "second=$D/reruns/second/$m"); done
   stdr-tool variants --split val --out $D/reruns "${args[@]}" > /dev/null

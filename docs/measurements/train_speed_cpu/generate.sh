@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Regenerate this folder's end-to-end table from the run copies kept here (README.md says what
-# each is): D-NeRF, budget=cpu, seed 0, test split, before (49cf03e) and after (issue 18's code).
+# each is): D-NeRF, budget=cpu, seed 0, test split, before (49cf03e) and after (the training-speed work's code).
 #   bash docs/measurements/train_speed_cpu/generate.sh      (from the repository root, in the venv)
 set -euo pipefail
 D=docs/measurements/train_speed_cpu
