@@ -46,6 +46,12 @@ def test_test_images_cannot_steer_training(tmp_path):
         runs[name] = tr
     a, b = runs["same"], runs["black"]
     assert a.monitor == b.monitor == "val" and a.step == b.step == 40
+    # recorded: in the checkpoint (so stdr-eval's re-evaluation reports it) and metrics.json's guard
+    from stdr.train.checkpoint import load_checkpoint
+    from stdr.train.guard import GuardState
+    g = GuardState()
+    g.load_state_dict(load_checkpoint(tmp_path / "same" / "checkpoints" / "last.pt")["guard"])
+    assert g.summary(None)["monitor"] == "val" and a.guard.summary(None)["monitor"] == "val"
     for k in a.model.params:
         assert torch.equal(a.model.params[k], b.model.params[k]), k
     for (ka, va), (kb, vb) in zip(a.model.deform.state_dict().items(), b.model.deform.state_dict().items()):

@@ -174,6 +174,7 @@ class GuardState:
         self.recoveries = list(s.get("recoveries", []))
         self.peak_gaussians = int(s.get("peak_gaussians", 0))
         self.peak_memory_mb = s.get("peak_memory_mb")
+        self.monitor = s.get("monitor")  # the divergence detector's split, as the run recorded it
 
     def note_memory(self, device: torch.device) -> Optional[float]:
         mb = process_memory_mb(device)

@@ -268,6 +268,7 @@ class Trainer:
         ck = load_checkpoint(path, require=PAYLOAD_KEYS)
         self.load_payload(ck, str(path))
         self.guard.load_state_dict(ck.get("guard", {}))
+        self.guard.monitor = self.monitor  # this run's detector split, whatever the checkpoint's run had
 
     def load_payload(self, ck: dict[str, Any], where: str) -> None:
         """The optimization state of a checkpoint payload (a file's, or a guard snapshot's)."""
