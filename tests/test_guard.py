@@ -1,4 +1,4 @@
-"""Fault tolerance (issue 17 §2): the non-finite guard, recoveries, the divergence detector,
+"""Fault tolerance: the non-finite guard, recoveries, the divergence detector,
 checkpoints that survive a kill, truncation and corruption."""
 import json
 import math

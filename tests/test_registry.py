@@ -1,5 +1,5 @@
 """The baseline registry: one module and one config make a baseline that every entry point,
-experiment and test sees (issue 14 §5)."""
+experiment and test sees."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field

@@ -326,7 +326,7 @@ def test_tensorboard_shows_phase_losses_histograms_and_mask_image(tmp_path):
     assert [e.value for e in ev.Scalars("stdr/phase")] == [0.0, 1.0, 1.0, 2.0]  # iterations 3, 7, 11, 15
 
 
-# ----------------------------------------------------------------------------- fidelity fixes (issue 13)
+# ----------------------------------------------------------------------------- fidelity fixes (the fidelity study)
 def _plugin(**over):
     from stdr.decouple import STDR
     cfg = OmegaConf.structured(StdrConfig)

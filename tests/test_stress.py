@@ -1,4 +1,4 @@
-"""Stress transforms of the training set (issue 17 §1): what each key does, that the evaluation
+"""Stress transforms of the training set: what each key does, that the evaluation
 splits are untouched, reproducibility, and errors naming the key."""
 import json
 

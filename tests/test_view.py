@@ -1,4 +1,4 @@
-"""stdr-view and stdr-render (issue 19): camera conversions, views, the viser server on a free
+"""stdr-view and stdr-render: camera conversions, views, the viser server on a free
 port (page served, renders equal to render(), clean shutdown, clear errors), a real browser when
 Chromium is installed, and videos with the expected frame count and size."""
 import socket

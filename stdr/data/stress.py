@@ -1,4 +1,4 @@
-"""Stress transforms: a harder training set derived from any scene at load time (issue 17).
+"""Stress transforms: a harder training set derived from any scene at load time.
 
 `data.stress.*` keys (StressConfig) act on the *training* split only, seeded, in this order:
 1. frames whose time lies in `drop_times` = [t0, t1] are dropped (evaluation frames inside the

@@ -7,7 +7,7 @@ position, log-scale and raw-quaternion deltas, added *before* activation.
 
 Coordinates: space is mapped to [-1, 1] by bounds taken from the initial points; time t in
 [0, 1] is mapped to 2t - 1, so the whole time axis of the planes is used. The published code
-feeds raw t in [0, 1] and so uses only half of the time axis (4DGaussians issue #251).
+feeds raw t in [0, 1] and so uses only half of the time axis (4DGaussians' issue tracker, #251).
 """
 from __future__ import annotations
 
