@@ -23,6 +23,7 @@ import torch
 
 from ..device import synchronize
 from ..metrics import psnr, ssim
+from ..render import use_compiled_projection
 from ..train.guard import MEMORY_CONVENTION
 from .lpips import LPIPS
 
@@ -280,7 +281,6 @@ def write_metrics(run_dir: Path, split: str, res: dict[str, Any], model, eval_cf
     """Add the conventions, the data's description and each plug-in's statistics (under its
     name: STDR's mask memory, KNN time, mask/field statistics) to `res`, and merge it into
     run_dir/metrics.json under `split` (atomically)."""
-    from ..render import use_compiled_projection
     conv = metric_conventions(eval_cfg, lpips_fn, model.backend, model.device)
     compiled = use_compiled_projection(model.backend, model.cfg.render.get("compiled_projection"))
     conv["render_projection"] = "compiled" if compiled else "torch"  # projection + SH: extension or torch twin
