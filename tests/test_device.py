@@ -80,15 +80,18 @@ def test_no_step_creates_a_tensor_on_a_hard_coded_device(tmp_path, name):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine (torch.cuda.is_available() is False)")
-@pytest.mark.parametrize("name", ["deform", "scgs"])
+@pytest.mark.parametrize("name", sorted(BASELINES))
 def test_training_on_cuda_keeps_every_tensor_there_and_resumes(tmp_path, name):
-    """device=cuda: parameters, optimizer moments, strategy state, the deformation module and
-    STDR's field live on the GPU; the CUDA rasterizer is used; a stopped run resumes on the GPU.
-    The CUDA backward accumulates with atomics, so the resumed run is compared within a tolerance."""
+    """device=cuda, every baseline with STDR: parameters, optimizer moments, strategy state, the
+    deformation module and STDR's field live on the GPU; the CUDA rasterizer and the CUDA
+    projection + SH kernels are used (pinned, so a broken build fails instead of falling back);
+    a stopped run resumes on the GPU. The CUDA backward accumulates with atomics, so the resumed
+    run is compared within a tolerance."""
     from stdr.eval.evaluate import evaluate_run
     from stdr.train.trainer import Trainer
 
-    sched = SCHEDULE + [f"experiment=embedded_{name}_stdr", "device=cuda", "render.backend=auto"]
+    sched = SCHEDULE + [f"experiment=embedded_{name}_stdr", "device=cuda", "render.backend=cuda",
+                        "render.compiled_projection=true"]
     a = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "a", splits=("train", "test"))
     assert a.backend == "cuda"
     a.train()
@@ -106,4 +109,5 @@ def test_training_on_cuda_keeps_every_tensor_there_and_resumes(tmp_path, name):
     assert b.step == 60
     ra, rb = evaluate_run(a, "test", a.cfg.eval), evaluate_run(b, "test", b.cfg.eval)
     assert ra["conventions"]["device"].startswith("cuda") and ra["conventions"]["render_backend"] == "cuda"
+    assert ra["conventions"]["render_projection"] == "compiled"
     assert abs(ra["psnr"] - rb["psnr"]) < 0.5, (ra["psnr"], rb["psnr"])

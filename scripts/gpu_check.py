@@ -1,0 +1,314 @@
+"""The checks that need an NVIDIA GPU, staged to fit one short device call.
+
+    python scripts/gpu_check.py OUT --scene DNERF_SCENE [--budget 420] [--stages a b ...]
+    python scripts/gpu_check.py OUT --dry-run           # every stage's plumbing, CPU, toy sizes (CI)
+
+Stages run in order of value; each has an estimate and a cap (seconds). A stage is skipped when
+its estimate no longer fits before the deadline (`--budget`), and killed at its cap. After each
+stage OUT holds everything that finished, in three files (a device call returns at most eight):
+
+    summary.json   one record per stage: status (ok, failed, timeout, skipped), rc, seconds, and
+                   the facts the stage extracted (test counts, a run's PSNR and seconds, ...)
+    progress.log   what the script printed
+    results.tgz    every stage's log, pytest's junit XML, each run's metrics.json, config.yaml
+                   and train_profile.json, the benchmarks' JSON and Markdown
+
+Stages (GPU): env (GPU, torch, nvcc, Python packages: exit 3 when one is missing) -> build (the
+CUDA extension, failing loudly: exit 4; the CPU extension builds beside it) -> kernels (the CUDA
+parity tests of the projection + SH and the rasterizer, CUDA_LAUNCH_BLOCKING=1) -> proj_scale
+(CUDA against the CPU extension at 200k and 1M Gaussians, both antialiasing modes) -> train_tests
+(rasterizer at training scale; training + resume on CUDA, all four baselines with STDR) ->
+run_deform (a budget=cpu D-NeRF run, comparable to docs/measurements/gpu_check_h100) ->
+bench_raster -> bench_train -> run_4dgs, run_deform_stdr, run_4dgs_stdr, run_scgs, run_spgs ->
+sanitize (compute-sanitizer memcheck over every kernel of the extension).
+
+Training pins render.backend=cuda and render.compiled_projection=true: a broken build fails
+instead of falling back to the pure-torch reference, and the kernels under test are the ones
+that run. The CUDA build cache is STDR_EXT_DIR (default build/ext in this checkout, kept while a
+device machine stays warm); a build lock left there by a killed call is removed at start (this
+script is the cache's only user). In --dry-run every stage runs on the CPU at toy sizes: the
+same code paths of this script, the same tools with the CPU backend, the embedded scene.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# the embedded scene at test size (stdr.testing.TINY_SCENE), for --dry-run
+TINY = ["data.procedural.resolution=64", "data.procedural.n_train=40", "data.procedural.n_val=2",
+        "data.procedural.n_test=4", "model.init_num=1500", "optim.iterations=30"]
+SANITIZE_PROBE = "--sanitize-probe"
+
+
+@dataclass
+class Stage:
+    name: str
+    est: int  # seconds expected on an H100 machine
+    cap: int  # killed after this many seconds
+    cmd: list
+    env: dict = field(default_factory=dict)
+    facts: object = None  # fn(log_text, res_dir) -> dict
+
+
+class Runner:
+    def __init__(self, out: Path, work: Path, budget: float, only: set[str]):
+        self.out, self.work, self.budget, self.only = out, work, budget, only
+        self.res = work / "res"
+        self.res.mkdir(parents=True, exist_ok=True)
+        self.t0 = time.monotonic()
+        self.records: list[dict] = []
+        self.log = open(out / "progress.log", "a", buffering=1)
+
+    def say(self, msg: str) -> None:
+        line = f"[gpu_check {time.strftime('%H:%M:%S')}] {msg}"
+        print(line, flush=True)
+        self.log.write(line + "\n")
+
+    def left(self) -> float:
+        return self.budget - (time.monotonic() - self.t0)
+
+    def pack(self) -> None:
+        (self.out / "summary.json").write_text(json.dumps(self.records, indent=1) + "\n")
+        tmp = self.out / "results.tgz.tmp"
+        with tarfile.open(tmp, "w:gz") as tar:
+            tar.add(self.res, arcname="res")
+        tmp.replace(self.out / "results.tgz")
+
+    def run(self, st: Stage, always: bool = False) -> bool:
+        rec = {"stage": st.name, "est_s": st.est}
+        if not always and self.only and st.name not in self.only:
+            return False
+        left = self.left()
+        if left < st.est:
+            rec.update(status="skipped", rc=None, seconds=0, why=f"{left:.0f} s left < estimate {st.est} s")
+            self.records.append(rec)
+            self.say(f"{st.name}: skipped ({rec['why']})")
+            self.pack()
+            return False
+        cap = max(1, int(min(st.cap, left)))
+        self.say(f"{st.name}: start (cap {cap} s, {left:.0f} s left)")
+        logf = self.res / f"{st.name}.log"
+        t = time.monotonic()
+        with open(logf, "w") as fh:
+            fh.write("$ " + " ".join(map(str, st.cmd)) + "\n")
+            fh.flush()
+            proc = subprocess.Popen([str(c) for c in st.cmd], stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT,
+                                    env={**os.environ, **st.env}, start_new_session=True)
+            try:
+                rc = proc.wait(timeout=cap)
+                status = "ok" if rc == 0 else "failed"
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                rc = proc.wait()
+                status = "timeout"
+        rec.update(status=status, rc=rc, seconds=round(time.monotonic() - t, 1))
+        text = logf.read_text(errors="replace")
+        if st.facts is not None:
+            try:
+                rec.update(st.facts(text, self.res))
+            except Exception as e:  # a stage's facts must never hide its status
+                rec["facts_error"] = repr(e)
+        self.records.append(rec)
+        tail = "\n".join("    " + ln for ln in text.rstrip().splitlines()[-6:])
+        self.say(f"{st.name}: {status} (rc {rc}, {rec['seconds']} s)\n{tail}")
+        self.pack()
+        return status == "ok"
+
+
+def pytest_facts(text: str, _res) -> dict:
+    """The counts of pytest's summary line and the failing test ids."""
+    out = {}
+    m = re.findall(r"(\d+) (passed|failed|skipped|errors?|deselected)", text.splitlines()[-1] if text else "")
+    for n, k in m:
+        out[k] = int(n)
+    fails = re.findall(r"^(?:FAILED|ERROR) (\S+)", text, flags=re.M)
+    if fails:
+        out["failing"] = fails
+    return out
+
+
+def run_facts(name: str, run_dir: Path):
+    """Copy a run's small files into res/runs/NAME and extract its test numbers."""
+    def facts(_text, res: Path) -> dict:
+        dest = res / "runs" / name
+        dest.mkdir(parents=True, exist_ok=True)
+        for f in ("metrics.json", "config.yaml", "train_profile.json"):
+            if (run_dir / f).is_file():
+                shutil.copy2(run_dir / f, dest / f)
+        m = json.loads((run_dir / "metrics.json").read_text())["test"]
+        keys = ("psnr", "ssim", "lpips", "train_seconds", "num_gaussians", "fps", "peak_memory_mb")
+        out = {k: m.get(k) for k in keys if k in m}
+        conv = m.get("conventions", {})
+        out.update(device=conv.get("device"), backend=conv.get("render_backend"),
+                   projection=conv.get("render_projection"))
+        return out
+    return facts
+
+
+def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
+    """(env and build, which always run; the rest in order of value)."""
+    res = args.work / "res"
+    pyt = [py, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider", "--durations=15"]
+    junit = lambda name: [f"--junitxml={res / (name + '.xml')}"]  # noqa: E731
+    env_code = ("import importlib, platform, torch; "
+                "mods = ['hydra', 'omegaconf', 'plyfile', 'tensorboard', 'imageio', 'cv2', 'skimage', 'pytest', 'tqdm', 'matplotlib']; "
+                "missing = [m for m in mods if importlib.util.find_spec(m) is None]; "
+                "print('python', platform.python_version(), 'torch', torch.__version__, 'cuda', torch.version.cuda, "
+                "'gpu', torch.cuda.get_device_name(0) if torch.cuda.is_available() else None); "
+                "print('missing python packages:', missing) if missing else print('python packages: ok'); "
+                "raise SystemExit(3 if missing else 0)")
+    kind = "cpu" if dry else "cuda"
+    build_code = ("import time; from stdr.render import compiled as c; t = time.time(); "
+                  f"m = c.load_extension('{kind}', verbose=True); "
+                  f"print('{kind} extension in %.1f s: %s' % (time.time() - t, m.__file__))")
+    first = [Stage("env", 15, 60, ["bash", "-c", ("nvidia-smi -L && nvidia-smi --query-gpu=name,driver_version,memory.total,"
+                                                   "clocks.max.sm --format=csv && (nvcc --version | tail -2); " if not dry else "")
+                                   + f"{py} -c \"{env_code}\""], facts=lambda t, r: {"lines": t.splitlines()[1:8]}),
+             Stage("build", 60, 240, [py, "-c", build_code])]
+
+    def train(name: str, exp: str, est: int, cap: int) -> Stage:
+        d = args.work / "runs" / name
+        if dry:
+            base = [f"experiment=embedded_{exp}", "device=cpu", "render.backend=cpu", *TINY,
+                    f"data.cache_dir={args.work / 'cache'}"]
+        else:
+            base = [f"experiment=dnerf_{exp}", "budget=cpu", "device=cuda", "render.backend=cuda",
+                    f"data.path={args.scene}", f"data.name={args.scene.name}"]
+        cmd = [py, "-m", "stdr.cli.train", *base, "render.compiled_projection=true", "train.progress=false",
+               "eval.save_images=false", f"hydra.run.dir={d}"]
+        return Stage(name, est, cap, cmd, facts=run_facts(name, d))
+
+    if dry:
+        kernels = pyt + junit("kernels") + ["tests/test_compiled.py", "-k", "projection_and_sh_match_the_torch_twin and cpu"]
+        scale = pyt + junit("proj_scale") + ["tests/test_compiled.py", "-k", "cuda_projection_matches_the_cpu_extension_at_scale"]
+        ttests = pyt + junit("train_tests") + ["tests/test_device.py", "-k", "device_names_resolve"]
+        braster = [py, "-m", "stdr.tools.bench_rasterizer", "--backends", "cpu", "--n", "2000", "--res", "64", "--repeats", "1"]
+        btrain_x = ["--experiments", "embedded_deform", "--gaussians", "1000", "--res", "64", "--iters", "2",
+                    "--warmup-iters", "1", "--", "device=cpu", "render.backend=cpu", *TINY[:4], f"data.cache_dir={args.work / 'cache'}"]
+        sanitize = [py, str(Path(__file__).resolve()), SANITIZE_PROBE, "cpu"]
+    else:
+        kernels = pyt + junit("kernels") + ["tests/test_compiled.py", "-k",
+                                            "cuda and not nvcc and not torch_headers and not training_scale and not benchmark_row and not at_scale"]
+        scale = pyt + junit("proj_scale") + ["tests/test_compiled.py", "-k", "cuda_projection_matches_the_cpu_extension_at_scale"]
+        ttests = pyt + junit("train_tests") + ["tests/test_compiled.py", "tests/test_device.py", "-k",
+                                               "training_scale or training_on_cuda or (benchmark_row and not cpu)"]
+        braster = [py, "-m", "stdr.tools.bench_rasterizer", "--backends", "cuda", "--n", "10000", "100000", "1000000",
+                   "--res", "400", "800", "--repeats", "20", "--peak-gflops", os.environ.get("STDR_GPU_PEAK_GFLOPS", "67000")]
+        btrain_x = ["--experiments", "dnerf_deform", "dnerf_4dgs", "--gaussians", "10000", "50000", "--res", "200", "400",
+                    "--iters", "20", "--warmup-iters", "5", "--", f"data.path={args.scene}", "budget=cpu", "device=cuda",
+                    "render.backend=cuda", "render.compiled_projection=true"]
+        sanitize = ["compute-sanitizer", "--tool", "memcheck", "--error-exitcode", "9", py, str(Path(__file__).resolve()),
+                    SANITIZE_PROBE, "cuda"]
+    braster += ["--json", str(res / "bench_raster.json"), "--markdown", str(res / "bench_raster.md")]
+    btrain = [py, "-m", "stdr.cli.tool", "bench-train", "--out", str(res / "bench_train"), *btrain_x]
+    rest = [
+        Stage("kernels", 45, 150, kernels, env={"CUDA_LAUNCH_BLOCKING": "1"}, facts=pytest_facts),
+        Stage("proj_scale", 40, 120, scale, facts=pytest_facts),
+        Stage("train_tests", 90, 200, ttests, facts=pytest_facts),
+        train("run_deform", "deform", 80, 150),
+        Stage("bench_raster", 50, 120, braster),
+        Stage("bench_train", 70, 150, btrain),
+        train("run_4dgs", "4dgs", 95, 170),
+        train("run_deform_stdr", "deform_stdr", 85, 160),
+        train("run_4dgs_stdr", "4dgs_stdr", 100, 180),
+        train("run_scgs", "scgs", 100, 180),
+        train("run_spgs", "spgs", 100, 180),
+        Stage("sanitize", 90, 150, sanitize, env={"PYTORCH_NO_CUDA_MEMORY_CACHING": "1"}),
+    ]
+    if dry:  # the dry run has no time estimates to honour: toy sizes everywhere
+        for st in first + rest:
+            st.est = 0
+    return first, rest
+
+
+def sanitize_probe(kind: str) -> None:
+    """One small render() forward + backward through every kernel of the extension (projection +
+    SH, pack, tiles, forward, backward), both antialiasing modes and two tile sizes."""
+    import torch
+
+    sys.path.insert(0, str(ROOT))
+    from stdr.render import render
+    from stdr.tools.bench_rasterizer import make_scene
+
+    (means, quats, scales, opac, _), cam = make_scene(3000, 96, coverage=5.0, seed=1)
+    sh = torch.randn(3000, 16, 3, generator=torch.Generator().manual_seed(2)) * 0.3
+    xs = [x.to(kind).requires_grad_(True) for x in (means, quats, scales, opac, sh)]
+    for aa, tile in ((False, 16), (True, 8)):
+        out = render(*xs, cam, 3, background=torch.ones(3), backend=kind, antialiased=aa, tile_size=tile,
+                     compiled_projection=True)
+        (out.image.square().sum() + out.depth.sum() + out.alpha.sum()).backward()
+    if kind == "cuda":
+        torch.cuda.synchronize()
+    sums = [float(x.grad.abs().sum()) for x in xs]
+    assert all(s > 0 and s == s for s in sums), sums
+    print("ok: gradient sums", sums)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--scene", type=Path, default=None, help="a D-NeRF scene folder (GPU mode)")
+    ap.add_argument("--budget", type=float, default=420.0, help="seconds for all stages (deadline)")
+    ap.add_argument("--stages", nargs="*", default=[], help="only these (env and build always run)")
+    ap.add_argument("--dry-run", action="store_true", help="CPU, toy sizes: the plumbing of every stage")
+    ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a new temporary one)")
+    ap.add_argument("--python", default=sys.executable)
+    args = ap.parse_args(argv)
+    if not args.dry_run and (args.scene is None or not (args.scene / "transforms_train.json").is_file()):
+        ap.error(f"--scene must be a D-NeRF scene folder with transforms_train.json (got {args.scene})")
+    args.out.mkdir(parents=True, exist_ok=True)
+    args.work = args.work or Path(tempfile.mkdtemp(prefix="stdr_gpu_check_"))
+    if args.scene is not None:
+        args.scene = args.scene.resolve()
+    os.environ["PYTHONUNBUFFERED"] = "1"
+    os.environ["PYTHONPATH"] = str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")
+    if not args.dry_run:
+        ext = Path(os.environ.setdefault("STDR_EXT_DIR", str(ROOT / "build" / "ext")))
+        for lock in ext.glob("*/lock"):  # left by a build that an earlier call's time-out killed
+            lock.unlink()
+    runner = Runner(args.out, args.work, args.budget, set(args.stages))
+    runner.say(f"{'dry run (CPU)' if args.dry_run else 'GPU check'} on {platform.node()}, budget {args.budget:.0f} s, "
+               f"work {args.work}")
+    first, rest = build_stages(args, args.python, args.dry_run)
+    if not runner.run(first[0], always=True):
+        runner.say("environment not usable: see res/env.log")
+        return 3
+    cpu_build = None
+    if not args.dry_run:  # the CPU extension (the CUDA-vs-CPU tests need it) builds beside the CUDA one
+        cpu_build = subprocess.Popen([args.python, "-c", "from stdr.render import compiled; compiled.load_extension('cpu')"],
+                                     cwd=ROOT, stdout=open(args.work / "res" / "build_cpu.log", "w"),
+                                     stderr=subprocess.STDOUT)
+    if not runner.run(first[1], always=True):
+        runner.say("the extension did not build: see res/build.log")
+        return 4
+    if cpu_build is not None:
+        cpu_build.wait()
+    for st in rest:
+        runner.run(st)
+    runner.pack()
+    bad = [r["stage"] for r in runner.records if r["status"] in ("failed", "timeout")]
+    runner.say(f"done in {time.monotonic() - runner.t0:.0f} s; "
+               + (f"FAILED: {', '.join(bad)}" if bad else "no stage failed")
+               + f"; skipped: {', '.join(r['stage'] for r in runner.records if r['status'] == 'skipped') or 'none'}")
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == SANITIZE_PROBE:
+        sanitize_probe(sys.argv[2])
+        sys.exit(0)
+    sys.exit(main())
