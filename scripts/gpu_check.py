@@ -19,6 +19,7 @@ parity tests of the projection + SH and the rasterizer, CUDA_LAUNCH_BLOCKING=1) 
 (CUDA against the CPU extension at 200k and 1M Gaussians, both antialiasing modes) -> train_tests
 (rasterizer at training scale; training + resume on CUDA, all four baselines with STDR) ->
 run_deform (a budget=cpu D-NeRF run, comparable to docs/measurements/gpu_check_h100) ->
+run_deform_twin (the same with the torch projection + SH: what the compiled one saves) ->
 bench_raster -> bench_train -> run_4dgs, run_deform_stdr, run_4dgs_stdr, run_scgs, run_spgs ->
 sanitize (compute-sanitizer memcheck over every kernel of the extension).
 
@@ -180,7 +181,7 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
                                    + f"{py} -c \"{env_code}\""], facts=lambda t, r: {"lines": t.splitlines()[1:8]}),
              Stage("build", 60, 240, [py, "-c", build_code])]
 
-    def train(name: str, exp: str, est: int, cap: int) -> Stage:
+    def train(name: str, exp: str, est: int, cap: int, projection: str = "true") -> Stage:
         d = args.work / "runs" / name
         if dry:
             base = [f"experiment=embedded_{exp}", "device=cpu", "render.backend=cpu", *TINY,
@@ -188,7 +189,7 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
         else:
             base = [f"experiment=dnerf_{exp}", "budget=cpu", "device=cuda", "render.backend=cuda",
                     f"data.path={args.scene}", f"data.name={args.scene.name}"]
-        cmd = [py, "-m", "stdr.cli.train", *base, "render.compiled_projection=true", "train.progress=false",
+        cmd = [py, "-m", "stdr.cli.train", *base, f"render.compiled_projection={projection}", "train.progress=false",
                "eval.save_images=false", f"hydra.run.dir={d}"]
         return Stage(name, est, cap, cmd, facts=run_facts(name, d))
 
@@ -220,6 +221,7 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
         Stage("proj_scale", 40, 120, scale, facts=pytest_facts),
         Stage("train_tests", 90, 200, ttests, facts=pytest_facts),
         train("run_deform", "deform", 80, 150),
+        train("run_deform_twin", "deform", 80, 150, projection="false"),  # the torch projection: the same run
         Stage("bench_raster", 50, 120, braster),
         Stage("bench_train", 70, 150, btrain),
         train("run_4dgs", "4dgs", 95, 170),

@@ -422,10 +422,14 @@ def _projection_scene(dtype):
 @pytest.mark.parametrize("antialiased", [False, True])
 def test_projection_and_sh_match_the_torch_twin(backend, dtype, antialiased):
     """Every output and every input gradient of the compiled projection + SH equals the torch
-    twin's: to 1e-10 in float64, to 1e-5 (outputs) and 1e-4 (gradients) relative to the largest
-    value in float32, for SH degrees 0-3, with the hard cases included. Radii are equal in
-    float64; in float32 a ceil() may land on the other integer for a value within rounding of
-    one (at most 1 px, on at most 0.5 % of rows)."""
+    twin's, for SH degrees 0-3, with the hard cases included. In float64: to 1e-10 relative to the
+    largest value, radii equal. In float32 both are measured against the truth (the twin in
+    float64 on the same inputs): the compiled error must stay within 1e-5 (outputs) / 1e-4
+    (gradients) of the largest value, or within 4x the float32 twin's own error where float32
+    cannot do better (the quaternion gradient of the hard cases: the twin itself is ~8e-5 off;
+    CUDA's fast-math kernels measured 1.4e-4 from the twin on an H100). A ceil() may land on the
+    other integer for a value within rounding of one (radii: at most 1 px, on at most 0.5 % of
+    rows)."""
     if backend == "cuda" and dtype == torch.float64:
         pytest.skip("the CUDA backend takes float32 only")
     device = "cuda" if backend == "cuda" else "cpu"
@@ -438,18 +442,27 @@ def test_projection_and_sh_match_the_torch_twin(backend, dtype, antialiased):
     f_tol, g_tol = (1e-10, 1e-10) if dtype == torch.float64 else (1e-5, 1e-4)
     names = ("means2d", "depths", "conics", "opacities", "colours")
     gnames = ("means", "quats", "scales", "opacities", "sh")
+    err = lambda a, b: ((a.double() - b.double()).abs().max() / b.double().abs().max().clamp_min(1e-12)).item()  # noqa: E731
+    truth_cam = _projection_scene(torch.float64)[1]  # the same camera values in float64
     for degree in range(4):
         ref_o, ref_r, ref_g = _project_outputs_and_grads(
             lambda *a: project_and_shade(*a, cam, degree, antialiased=antialiased), inputs, "cpu")
         out_o, out_r, out_g = _project_outputs_and_grads(
             lambda *a: compiled.project_sh_compiled(*a, cam, degree, antialiased=antialiased, kind=backend),
             inputs, device)
-        for name, a, b in zip(names, out_o, ref_o):
-            err = ((a - b).abs().max() / b.abs().max().clamp_min(1e-12)).item()
-            assert err <= f_tol, (degree, name, err)
-        for name, a, b in zip(gnames, out_g, ref_g):
-            err = ((a - b).abs().max() / b.abs().max().clamp_min(1e-12)).item()
-            assert err <= g_tol, (degree, name, err)
+        if dtype == torch.float64:
+            bars = [(f_tol, o) for o in ref_o] + [(g_tol, g) for g in ref_g]
+            truth = ref_o + ref_g
+        else:
+            t_o, _, t_g = _project_outputs_and_grads(
+                lambda *a: project_and_shade(*a, truth_cam, degree, antialiased=antialiased),
+                [x.double() for x in inputs], "cpu")
+            truth = t_o + t_g
+            bars = [(max(tol, 4 * err(r, t)), r) for tol, r, t in
+                    zip([f_tol] * 5 + [g_tol] * 5, ref_o + ref_g, truth)]
+        for name, a, b, (bar, _) in zip(names + gnames, out_o + out_g, truth, bars):
+            e = err(a, b)
+            assert e <= bar, (degree, name, e, bar)
         diff = out_r != ref_r
         if dtype == torch.float64:
             assert not bool(diff.any()), degree
