@@ -5,10 +5,11 @@
 
 Stages run in order of value; each has an estimate and a cap (seconds). A stage is skipped when
 its estimate no longer fits before the deadline (`--budget`), and killed at its cap. After each
-stage OUT holds everything that finished, in three files (a device call returns at most eight):
+stage OUT holds everything that finished, in four files (a device call returns at most eight):
 
     summary.json   one record per stage: status (ok, failed, timeout, skipped), rc, seconds, and
                    the facts the stage extracted (test counts, a run's PSNR and seconds, ...)
+    summary.md     the same as a table (`--report` prints it again from summary.json)
     progress.log   what the script printed
     results.tgz    every stage's log, pytest's junit XML, each run's metrics.json, config.yaml
                    and train_profile.json, the benchmarks' JSON and Markdown
@@ -72,6 +73,7 @@ class Runner:
         self.res.mkdir(parents=True, exist_ok=True)
         self.t0 = time.monotonic()
         self.records: list[dict] = []
+        self.header = {"started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "host": platform.node(), "budget_s": budget}
         self.log = open(out / "progress.log", "a", buffering=1)
 
     def say(self, msg: str) -> None:
@@ -84,6 +86,7 @@ class Runner:
 
     def pack(self) -> None:
         (self.out / "summary.json").write_text(json.dumps(self.records, indent=1) + "\n")
+        (self.out / "summary.md").write_text(report(self.records, self.header))
         tmp = self.out / "results.tgz.tmp"
         with tarfile.open(tmp, "w:gz") as tar:
             tar.add(self.res, arcname="res")
@@ -130,6 +133,34 @@ class Runner:
         return status == "ok"
 
 
+RUN_KEYS = (("psnr", "PSNR", "{:.2f}"), ("train_seconds", "train s", "{:.1f}"), ("num_gaussians", "#G", "{:,}"),
+            ("fps", "FPS", "{:.1f}"), ("projection", "projection", "{}"), ("backend", "backend", "{}"))
+
+
+def report(records: list[dict], header: dict | None = None) -> str:
+    """summary.json as a Markdown table: one row per stage with its status, seconds and facts."""
+    lines = ["# GPU check summary", ""]
+    if header:
+        lines += [", ".join(f"{k}: {v}" for k, v in header.items()), ""]
+    lines += ["| stage | status | s | facts |", "|---|---|---|---|"]
+    for r in records:
+        facts = []
+        for k in ("passed", "failed", "skipped", "errors", "error"):
+            if k in r:
+                facts.append(f"{r[k]} {k}")
+        if r.get("failing"):
+            facts.append("failing: " + ", ".join(r["failing"]))
+        for k, label, fmt in RUN_KEYS:
+            if r.get(k) is not None:
+                facts.append(f"{label} {fmt.format(r[k])}")
+        if r.get("why"):
+            facts.append(r["why"])
+        if r.get("facts_error"):
+            facts.append("facts not read: " + r["facts_error"])
+        lines.append(f"| {r['stage']} | {r['status']} | {r['seconds']} | {'; '.join(facts) or '–'} |")
+    return "\n".join(lines) + "\n"
+
+
 def pytest_facts(text: str, _res) -> dict:
     """The counts of pytest's summary line and the failing test ids."""
     out = {}
@@ -163,7 +194,7 @@ def run_facts(name: str, run_dir: Path):
 def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
     """(env and build, which always run; the rest in order of value)."""
     res = args.work / "res"
-    pyt = [py, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider", "--durations=15"]
+    pyt = [py, "-m", "pytest", "-q", "-rfEs", "-p", "no:cacheprovider", "--durations=15"]
     junit = lambda name: [f"--junitxml={res / (name + '.xml')}"]  # noqa: E731
     env_code = ("import importlib, platform, torch; "
                 "mods = ['hydra', 'omegaconf', 'plyfile', 'tensorboard', 'imageio', 'cv2', 'skimage', 'pytest', 'tqdm', 'matplotlib']; "
@@ -269,7 +300,11 @@ def main(argv=None) -> int:
     ap.add_argument("--dry-run", action="store_true", help="CPU, toy sizes: the plumbing of every stage")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a new temporary one)")
     ap.add_argument("--python", default=sys.executable)
+    ap.add_argument("--report", action="store_true", help="only print OUT/summary.json as Markdown")
     args = ap.parse_args(argv)
+    if args.report:
+        print(report(json.loads((args.out / "summary.json").read_text())), end="")
+        return 0
     if not args.dry_run and (args.scene is None or not (args.scene / "transforms_train.json").is_file()):
         ap.error(f"--scene must be a D-NeRF scene folder with transforms_train.json (got {args.scene})")
     args.out.mkdir(parents=True, exist_ok=True)

@@ -143,8 +143,8 @@ class RenderConfig:
     cull: str = "eval"
     # with a compiled backend, projection and SH shading run in the extension too (forward and
     # backward; csrc/project_math.h); false runs their torch twin (stdr/render/projection.py, sh.py).
-    # null (auto): compiled on the CPU backend; on CUDA the torch twin, because the CUDA projection
-    # kernels have not yet run on a GPU (stdr.render.VERIFIED_PROJECTION); true opts in
+    # null (auto): compiled on the backends whose kernels passed their checks on real hardware
+    # (stdr.render.VERIFIED_PROJECTION: the CPU, and CUDA since the H100 check of 2026-11-26)
     compiled_projection: Optional[bool] = None
 
 

@@ -515,11 +515,14 @@ def test_projection_backward_is_deterministic_and_render_uses_it():
     assert (on.image - off.image).abs().max() <= 1e-5
 
 
-def test_unverified_compiled_projection_is_not_a_default():
-    """render.compiled_projection=null (auto): the compiled projection on the CPU backend, whose
-    kernels the suite checks; the torch twin on CUDA, whose projection kernels have never run on a
-    GPU; true or false overrides either; the reference backend never uses it."""
+def test_compiled_projection_is_a_default_only_where_verified(monkeypatch):
+    """render.compiled_projection=null (auto): the compiled projection on the backends listed as
+    verified on real hardware (the CPU; CUDA after its H100 check), the torch twin on any other;
+    true or false overrides either; the reference backend never uses it."""
+    import stdr.render as R
     from stdr.render import use_compiled_projection
+    assert use_compiled_projection("cpu") and use_compiled_projection("cuda")
+    monkeypatch.setattr(R, "VERIFIED_PROJECTION", ("cpu",))  # a backend not yet verified: off by default
     assert use_compiled_projection("cpu") and not use_compiled_projection("cuda")
     assert use_compiled_projection("cuda", True) and not use_compiled_projection("cpu", False)
     assert not use_compiled_projection("reference", True)

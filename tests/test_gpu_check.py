@@ -1,0 +1,94 @@
+"""scripts/gpu_check.py, the staged GPU check: its deadline and caps, what it leaves in OUT after
+every stage, and (slow) the whole --dry-run on the CPU, which runs every stage's plumbing."""
+import importlib.util
+import json
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("gpu_check", ROOT / "scripts" / "gpu_check.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_stages_are_skipped_at_the_deadline_killed_at_their_cap_and_packed_after_each(tmp_path):
+    gc = _module()
+    out = tmp_path / "out"
+    out.mkdir()
+    r = gc.Runner(out, tmp_path / "work", budget=60, only=set())
+    py = sys.executable
+    assert r.run(gc.Stage("quick", 1, 30, [py, "-c", "print('hello from quick')"]))
+    t = time.monotonic()
+    assert not r.run(gc.Stage("hang", 1, 2, [py, "-c", "import time; time.sleep(60)"]))
+    assert time.monotonic() - t < 20  # killed at its cap, not after the sleep
+    assert not r.run(gc.Stage("late", 1000, 1000, [py, "-c", "raise SystemExit(0)"]))
+    assert not r.run(gc.Stage("bad", 1, 30, [py, "-c", "raise SystemExit(7)"]))
+    recs = {x["stage"]: x for x in json.loads((out / "summary.json").read_text())}
+    assert [x for x in recs] == ["quick", "hang", "late", "bad"]
+    assert recs["quick"]["status"] == "ok" and recs["quick"]["rc"] == 0
+    assert recs["hang"]["status"] == "timeout"
+    assert recs["late"]["status"] == "skipped" and "estimate 1000 s" in recs["late"]["why"]
+    assert recs["bad"]["status"] == "failed" and recs["bad"]["rc"] == 7
+    with tarfile.open(out / "results.tgz") as tar:
+        names = tar.getnames()
+        assert "res/quick.log" in names and "res/bad.log" in names and "res/late.log" not in names
+        assert "hello from quick" in tar.extractfile("res/quick.log").read().decode()
+    md = (out / "summary.md").read_text()
+    assert "| hang | timeout |" in md and "| late | skipped | 0 |" in md
+    assert "late: skipped" in (out / "progress.log").read_text()
+
+
+def test_only_the_named_stages_run_and_the_facts_of_a_pytest_log_are_read(tmp_path):
+    gc = _module()
+    r = gc.Runner(tmp_path, tmp_path / "w", budget=60, only={"b"})
+    py = sys.executable
+    assert not r.run(gc.Stage("a", 1, 10, [py, "-c", "pass"]))
+    assert r.run(gc.Stage("b", 1, 10, [py, "-c", "pass"]))
+    assert [x["stage"] for x in r.records] == ["b"]
+    log = "....\nFAILED tests/test_x.py::test_y[cuda] - AssertionError\n2 failed, 7 passed, 2 skipped, 37 deselected in 2.03s"
+    facts = gc.pytest_facts(log, None)
+    assert facts == {"failed": 2, "passed": 7, "skipped": 2, "deselected": 37,
+                     "failing": ["tests/test_x.py::test_y[cuda]"]}
+
+
+def test_gpu_mode_needs_a_dnerf_scene(tmp_path, capsys):
+    gc = _module()
+    with pytest.raises(SystemExit):
+        gc.main([str(tmp_path / "out"), "--scene", str(tmp_path)])
+    assert "--scene must be a D-NeRF scene folder with transforms_train.json" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_dry_run_runs_every_stage_on_the_cpu(tmp_path):
+    """`bash scripts/gpu_check.sh --dry-run OUT`: every stage ends ok on the CPU; the training
+    stages ran the compiled projection on the CPU backend and their metrics came back."""
+    out = tmp_path / "out"
+    proc = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_check.sh"), "--dry-run", str(out),
+                           "--work", str(tmp_path / "work")], capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    recs = json.loads((out / "summary.json").read_text())
+    gc = _module()
+    first, rest = gc.build_stages(type("A", (), {"work": tmp_path / "w", "scene": None})(), "python", True)
+    assert [r["stage"] for r in recs] == [s.name for s in first + rest]
+    assert all(r["status"] == "ok" for r in recs), [(r["stage"], r["status"]) for r in recs]
+    runs = [r for r in recs if r["stage"].startswith("run_")]
+    assert {r["stage"] for r in runs} == {"run_deform", "run_deform_twin", "run_deform_stdr", "run_4dgs",
+                                          "run_4dgs_stdr", "run_scgs", "run_spgs"}
+    for r in runs:
+        assert r["backend"] == "cpu" and r["device"] == "cpu", r
+        assert r["projection"] == ("torch" if r["stage"] == "run_deform_twin" else "compiled"), r
+        assert r["psnr"] > 5
+    with tarfile.open(out / "results.tgz") as tar:
+        names = set(tar.getnames())
+    assert {f"res/runs/{r['stage']}/metrics.json" for r in runs} <= names
+    assert {"res/kernels.xml", "res/bench_raster.json", "res/bench_train.json"} <= names
