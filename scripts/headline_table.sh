@@ -12,6 +12,8 @@
 # HEADLINE_CODE=<checkout> runs stdr-train from another checkout (its scripts/run.sh), e.g. a
 # worktree frozen at the table's commit; HEADLINE_DRY=1 prints the commands; HEADLINE_SEEDS picks
 # the seeds (default "0 1 2"). Run it on an otherwise idle machine: train seconds are reported.
+# To use the machine for something else meanwhile, `touch WORK_DIR/pause`: the queue finishes the
+# run in progress, then waits (no run is timed while paused) until the file is removed.
 set -uo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 ROOT=${1:?usage: headline_table.sh DNERF_ROOT [WORK_DIR]}
@@ -35,6 +37,8 @@ for seed in ${HEADLINE_SEEDS:-0 1 2}; do
       cmd=("$CODE/scripts/run.sh" stdr-train "experiment=$exp" budget=cpu "seed=$seed" "data.path=$ROOT/$scene"
            "data.name=$scene" data.eval_split=test train.progress=false "hydra.run.dir=$run")
       if [ "${HEADLINE_DRY:-0}" = 1 ]; then echo "${cmd[*]}"; continue; fi
+      [ -e "$WORK/pause" ] && echo "[headline] $(date +%T) paused ($WORK/pause)"
+      while [ -e "$WORK/pause" ]; do sleep 10; done
       echo "[headline] $(date +%T) $exp $scene seed $seed"
       mkdir -p "$run"
       if "${cmd[@]}" > "$run.log" 2>&1 && [ -f "$run/metrics.json" ]; then
