@@ -1,0 +1,62 @@
+"""scripts/results.py's headline table from the rerun's records: shown only once every method has
+every scene at one seed, averaging only seeds that are complete over the whole grid."""
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _results():
+    spec = importlib.util.spec_from_file_location("results_script", ROOT / "scripts" / "results.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _record(root: Path, baseline: str, stdr: bool, scene: str, seed: int, psnr: float, gaussians: int = 1000):
+    d = root / f"dnerf_{baseline}{'_stdr' if stdr else ''}" / scene / f"s{seed}"
+    d.mkdir(parents=True)
+    cfg = {"seed": seed, "baseline": {"name": baseline}, "stdr": {"enabled": stdr},
+           "data": {"name": scene, "path": f"/data/{scene}"}, "render": {"backend": "cpu"}}
+    (d / "config.yaml").write_text(yaml.safe_dump(cfg))
+    m = {"psnr": psnr, "ssim": 0.9, "lpips": 0.05, "fps": 50.0, "num_gaussians": gaussians, "train_seconds": 100.0,
+         "conventions": {"machine": "test machine"}, "code": {"commit": "abcdef0123", "dirty": False}}
+    (d / "metrics.json").write_text(json.dumps({"test": m}))
+
+
+def test_headline_waits_for_a_complete_seed_and_averages_only_complete_seeds(tmp_path):
+    r = _results()
+    runs, bases, scenes = tmp_path / "runs", ("deform", "scgs"), ("a", "b")
+    for b in bases:
+        for stdr in (False, True):
+            _record(runs, b, stdr, "a", 0, 20.0 + stdr)
+    means, recorded = r.headline_from_records(runs, bases, scenes)
+    assert means is None and recorded == 4  # scene b missing everywhere: no table yet
+    for b in bases:
+        for stdr in (False, True):
+            _record(runs, b, stdr, "b", 0, 30.0 + stdr, gaussians=3000)
+    _record(runs, "deform", False, "a", 1, 99.0)  # seed 1 has one cell only: left out
+    means, prov = r.headline_from_records(runs, bases, scenes)
+    assert set(means) == {"deform", "deform+STDR", "scgs", "scgs+STDR"}
+    assert means["deform"]["psnr"] == pytest.approx(25.0) and means["deform+STDR"]["psnr"] == pytest.approx(26.0)
+    assert means["scgs"]["num_gaussians"] == pytest.approx(2000)
+    assert means["deform"]["n_seeds"] == 1 and means["deform"]["psnr_std"] is None
+    assert prov["seeds"] == "seed 0" and "9 of the 96 planned" in prov["runs"] and prov["runs"].startswith("8 ")
+    assert prov["code"] == "abcdef0 (8 runs)" and prov["machine"] == "test machine (8 runs)"
+    for b in bases:  # seed 1 complete: two seeds, with a spread over their scene means
+        for stdr in (False, True):
+            for sc in scenes:
+                if not (b == "deform" and not stdr and sc == "a"):
+                    _record(runs, b, stdr, sc, 1, (20.0 if sc == "a" else 30.0) + stdr + 1.0)
+    means, prov = r.headline_from_records(runs, bases, scenes)
+    assert prov["seeds"] == "seeds 0, 1"
+    # deform plain: seed 0 scene mean 25, seed 1 scene mean (99 + 31) / 2 = 65
+    assert means["deform"]["psnr"] == pytest.approx(45.0) and means["deform"]["n_seeds"] == 2
+    assert means["deform"]["psnr_std"] == pytest.approx(((25 - 45) ** 2 + (65 - 45) ** 2) ** 0.5)
+    assert means["scgs+STDR"]["psnr"] == pytest.approx(26.5)
