@@ -31,8 +31,8 @@ CODE=${STDR_STUDY_CODE:-$here}
 [ -x "$CODE/scripts/run.sh" ] || { echo "[study] STDR_STUDY_CODE=$CODE: no scripts/run.sh there" >&2; exit 2; }
 do_run() { if [ "${STDR_STUDY_DRY:-0}" = 1 ]; then echo "$*"; else "$@"; fi; }
 for p in $PRESETS; do
-  [[ "$p" == *:* && -f "$here/configs/stress/${p%%:*}.yaml" ]] || {
-    echo "[study] bad preset '$p': want <preset>:<seed> with configs/stress/<preset>.yaml" >&2; exit 2; }
+  [[ "$p" == *:* && -f "$here/stdr/configs/stress/${p%%:*}.yaml" ]] || {
+    echo "[study] bad preset '$p': want <preset>:<seed> with stdr/configs/stress/<preset>.yaml" >&2; exit 2; }
 done
 planned="" planned_from=""
 if [ -f "$OUT/table.json" ]; then   # what the committed table lacks, per preset: "preset:seed overrides"

@@ -1,6 +1,6 @@
 """Structured configs: typed defaults registered with Hydra's ConfigStore.
 
-YAML files under configs/ select and override these; every key a run used is written to the run
+YAML files under stdr/configs/ select and override these; every key a run used is written to the run
 directory (config.yaml), and that file is what stdr-eval rebuilds the run from.
 """
 from __future__ import annotations
@@ -20,7 +20,8 @@ from .deform.registry import BaselineSpec, add_listener, get_baseline
 from .scene.strategy import DensifyStrategy
 from .train.guard import GuardConfig
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+#: the YAML config groups; they ship inside the package, so an installed wheel has them too
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
 
 @dataclass
@@ -28,8 +29,8 @@ class DataConfig:
     format: str = "procedural"  # procedural | dnerf | nerfies
     name: Optional[str] = "embedded"  # scene label in tables (null: the folder name)
     path: Optional[str] = None  # scene folder (dnerf, nerfies); procedural: the generated cache folder
-    root: Optional[str] = None  # a dataset folder; the sweeps (configs/sweep) set path = root/<name>
-    cache_dir: str = "data/embedded"  # where the procedural scene is generated (repo-relative)
+    root: Optional[str] = None  # a dataset folder; the sweeps (stdr/configs/sweep) set path = root/<name>
+    cache_dir: str = "data/embedded"  # where the procedural scene is generated (relative: under the checkout, or ~/.cache/stdr when installed)
     background: Any = "white"   # white | black | [r, g, b]
     resolution_scale: float = 1.0
     max_width: Optional[int] = None  # after resolution_scale, cap the width (aspect kept)
@@ -250,7 +251,7 @@ def _schedule_resolver(*, _root_) -> dict:
 
 
 def data_options() -> list[str]:
-    """The options of the `data` group (configs/data/*.yaml)."""
+    """The options of the `data` group (stdr/configs/data/*.yaml)."""
     return sorted(p.stem for p in (CONFIG_DIR / "data").glob("*.yaml"))
 
 
@@ -261,8 +262,8 @@ def _experiment_files() -> set[str]:
 def derived_experiments(name: str) -> dict[str, dict]:
     """The experiments baseline `name` gets: `<data>_<name>` and `<data>_<name>_stdr` for every
     data option, each selecting data, baseline and stdr, plus what every experiment on that
-    data adds (configs/experiment_data/<data>.yaml, optional: e.g. init from the capture's
-    points). A YAML file configs/experiment/<same name>.yaml, when present, is used instead."""
+    data adds (stdr/configs/experiment_data/<data>.yaml, optional: e.g. init from the capture's
+    points). A YAML file stdr/configs/experiment/<same name>.yaml, when present, is used instead."""
     files = _experiment_files()
     out = {}
     for d in data_options():

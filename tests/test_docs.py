@@ -10,7 +10,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 MANUAL = [ROOT / "README.md", ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").glob("*.md"))]
 DATED = [*sorted((ROOT / "docs" / "notes").glob("*.md")), *sorted((ROOT / "docs" / "measurements").glob("*/README.md"))]
-TOP = ("stdr/", "docs/", "configs/", "scripts/", "tests/", ".ci/")
+TOP = ("stdr/", "docs/", "scripts/", "tests/", ".ci/")
 LINK = re.compile(r"\]\(([^)\s]+)\)")
 CODE = re.compile(r"`([^`\s]+)`")
 

@@ -277,7 +277,7 @@ def test_data_config_selects_the_loader(tmp_path):
     from stdr.config import DataConfig
     from stdr.data.load import load_scene
     make_scene(tmp_path / "s")
-    cfg = OmegaConf.merge(OmegaConf.structured(DataConfig), OmegaConf.load("configs/data/nerfies.yaml"),
+    cfg = OmegaConf.merge(OmegaConf.structured(DataConfig), OmegaConf.load("stdr/configs/data/nerfies.yaml"),
                           {"path": str(tmp_path / "s"), "split_mode": "ids", "image_scale": 2,
                            "undistort_cache": None})
     sc = load_scene(cfg, ("train", "test"))

@@ -25,7 +25,7 @@ def test_every_registered_baseline_is_an_option_with_derived_experiments(name):
     for exp, on in ((f"dnerf_{name}", False), (f"dnerf_{name}_stdr", True)):
         c = make_cfg([f"experiment={exp}", "data.path=/x"])
         assert (c.name, c.data.format, c.baseline.name, c.stdr.enabled) == (exp, "dnerf", name, on)
-    # what every experiment on a dataset adds comes with it (configs/experiment_data)
+    # what every experiment on a dataset adds comes with it (stdr/configs/experiment_data)
     assert make_cfg([f"experiment=embedded_{name}"]).budget == "demo"
     assert make_cfg([f"experiment=nerfds_{name}", "data.path=/x"]).model.init == "points"
     assert make_cfg([f"experiment=dnerf_{name}", "data.path=/x"]).model.init == "random"

@@ -4,6 +4,7 @@ import csv
 import json
 import math
 import shutil
+from pathlib import Path
 
 import pytest
 import yaml
@@ -247,7 +248,7 @@ def test_the_study_script_runs_the_whole_grid_breadth_first_and_keeps_the_commit
     import os
     import subprocess
     from stdr.config import CONFIG_DIR
-    script = CONFIG_DIR.parent / "scripts" / "stability_study.sh"
+    script = Path(__file__).resolve().parents[1] / "scripts" / "stability_study.sh"
     table, exps, scenes = _study_table(tmp_path, lacking={("spgs", "standup"), ("spgs+STDR", "standup")})
     out = table.parent
     code = tmp_path / "frozen"  # STDR_STUDY_CODE: another checkout runs stdr-train

@@ -1,4 +1,4 @@
-"""Hydra callback for sweeps (configs/train.yaml: hydra.callbacks.sweep_report)."""
+"""Hydra callback for sweeps (stdr/configs/train.yaml: hydra.callbacks.sweep_report)."""
 from __future__ import annotations
 
 import json

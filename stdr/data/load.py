@@ -1,6 +1,7 @@
 """Build a SceneData from the `data` config."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Iterable
 
@@ -17,6 +18,18 @@ def project_root() -> Path:
     return Path(__file__).resolve().parents[2]
 
 
+def cache_base() -> Path:
+    """Where relative cache paths of the config (data.cache_dir, data.undistort_cache) live: the
+    source checkout when stdr runs from one (pyproject.toml beside the package), else the user
+    cache ($XDG_CACHE_HOME/stdr, default ~/.cache/stdr), so an installed wheel never writes into
+    site-packages."""
+    from .. import source_checkout
+    root = source_checkout()
+    if root is not None:
+        return root
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "stdr"
+
+
 def resolve_data_path(path: str, base: str | Path | None = None) -> Path:
     p = Path(path).expanduser()
     if not p.is_absolute():
@@ -25,9 +38,9 @@ def resolve_data_path(path: str, base: str | Path | None = None) -> Path:
 
 
 def repo_path(path: str) -> Path:
-    """A cache path from the config: relative paths are under the project root."""
+    """A cache path from the config: relative paths are under `cache_base()`."""
     p = Path(path).expanduser()
-    return p if p.is_absolute() else project_root() / p
+    return p if p.is_absolute() else cache_base() / p
 
 
 def scene_folder(cfg, base: str | Path | None = None) -> Path:

@@ -39,7 +39,7 @@ class StressConfig:
     pose_trans: float = 0.0                     # RMS camera-centre offset, as a fraction of the scene radius
     time_jitter: float = 0.0                    # std of the noise added to each normalized time
     seed: Optional[int] = None                  # null: the run's seed
-    # how tables name it (configs/stress/<label>_<level>.yaml set both); no effect on the data
+    # how tables name it (stdr/configs/stress/<label>_<level>.yaml set both); no effect on the data
     label: str = "none"
     level: int = 0
 

@@ -27,7 +27,7 @@ class BaselineConfig:
     """Keys every baseline has (`baseline.*`). A baseline's own config subclasses this with its
     defaults (the published values) and its own sub-config (`baseline.scgs.*`, ...); it is
     registered with the module (stdr.deform.registry.register_baseline) and becomes the Hydra
-    option `baseline=<name>`. Budget files (configs/budget_baseline/<name>_<budget>.yaml) are
+    option `baseline=<name>`. Budget files (stdr/configs/budget_baseline/<name>_<budget>.yaml) are
     optional deltas on top."""
 
     name: str = "deform"

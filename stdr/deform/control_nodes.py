@@ -56,7 +56,7 @@ class ScgsConfig:
 class ScgsBaselineConfig(BaselineConfig):
     """SC-GS (Huang et al. 2024), `baseline=scgs`: control nodes + linear blend skinning; the node
     MLP is Deformable 3DGS's with its heads started near zero (published dscale 1e-8). Sizes and
-    stages: configs/budget_baseline/scgs_<budget>.yaml."""
+    stages: stdr/configs/budget_baseline/scgs_<budget>.yaml."""
 
     name: str = "scgs"
     head_init_std: Optional[float] = 1.0e-5

@@ -17,7 +17,7 @@ from .registry import register_baseline
 class DeformConfig(BaselineConfig):
     """Deformable 3DGS (Yang et al. 2024), `baseline=deform`: the common keys at their published
     values (8x256 MLP, skip after layer 4, PE 10/6, a time net for synthetic data; real data uses
-    t_freqs 10 without it). Budget sizes: configs/budget_baseline/deform_<budget>.yaml."""
+    t_freqs 10 without it). Budget sizes: stdr/configs/budget_baseline/deform_<budget>.yaml."""
 
     name: str = "deform"
 

@@ -47,7 +47,7 @@ class HexPlaneBaselineConfig(BaselineConfig):
     (lr_from_warmup). depth: extra ReLU+Linear layers after feature_out (defor_depth). The lrs are
     1.6e-4 x 5: 4DGS scales the network and grid lrs by spatial_lr_scale (optim.spatial_lr_scale
     = 5); the grid gets hexplane.grid_lr_mult x these. Sizes:
-    configs/budget_baseline/4dgs_<budget>.yaml."""
+    stdr/configs/budget_baseline/4dgs_<budget>.yaml."""
 
     name: str = "4dgs"
     depth: int = 0

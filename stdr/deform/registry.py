@@ -16,7 +16,7 @@ Adding a baseline is one module and one config (docs/baselines.md, "Adding a bas
 
 Registering makes `baseline=mine` a Hydra option, derives the experiments `<data>_mine` and
 `<data>_mine_stdr` for every data option, and lets tests iterate over it. A budget file
-configs/budget_baseline/mine_<budget>.yaml is optional.
+stdr/configs/budget_baseline/mine_<budget>.yaml is optional.
 """
 from __future__ import annotations
 

@@ -45,7 +45,7 @@ class SpgsConfig:
 class SpgsBaselineConfig(BaselineConfig):
     """SP-GS (Wan et al. 2024), `baseline=spgs`: superpoints moving rigidly (SO(3) + translation);
     PE(t) with 6 frequencies and no time net, lr 1e-3. Sizes:
-    configs/budget_baseline/spgs_<budget>.yaml."""
+    stdr/configs/budget_baseline/spgs_<budget>.yaml."""
 
     name: str = "spgs"
     time_net: bool = False

@@ -259,9 +259,11 @@ def best_and_last(curve: list[dict[str, Any]]) -> dict[str, Any]:
 def code_version() -> dict[str, Any]:
     """Which code wrote a number: the stdr package version, and, in a git checkout, its commit
     and whether tracked files had uncommitted changes (None outside a checkout)."""
-    from .. import __version__
-    root = Path(__file__).resolve().parents[2]
+    from .. import __version__, source_checkout
+    root = source_checkout()
     out: dict[str, Any] = {"version": __version__, "commit": None, "dirty": None}
+    if root is None:  # an installed copy: no commit to name (a checkout that holds the venv is not it)
+        return out
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
                               timeout=10)

@@ -51,12 +51,15 @@ def _alexnet_features() -> nn.Sequential:
 
 
 def default_search_dirs() -> list[Path]:
+    """Where LPIPS weights are looked for when eval.lpips_weights is not set: $STDR_LPIPS_WEIGHTS,
+    the user cache ($XDG_CACHE_HOME/stdr/lpips, default ~/.cache/stdr/lpips), torch's hub cache,
+    the `lpips` package. Never a path relative to the source (scripts/run.sh points
+    STDR_LPIPS_WEIGHTS at a checkout's data/weights/lpips or ../shared/weights/lpips)."""
     dirs = []
     if os.environ.get("STDR_LPIPS_WEIGHTS"):
         dirs.append(Path(os.environ["STDR_LPIPS_WEIGHTS"]))
-    root = Path(__file__).resolve().parents[2]
-    dirs += [root / "data" / "weights" / "lpips", root.parent / "shared" / "weights" / "lpips",
-             Path(torch.hub.get_dir()) / "checkpoints"]
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    dirs += [cache / "stdr" / "lpips", Path(torch.hub.get_dir()) / "checkpoints"]
     spec = importlib.util.find_spec("lpips")  # the pip package ships the linear heads
     if spec is not None and spec.submodule_search_locations:
         dirs.append(Path(list(spec.submodule_search_locations)[0]) / "weights" / "v0.1")

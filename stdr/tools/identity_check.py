@@ -38,10 +38,9 @@ NAMES = [f"{b}{s}" for b in ("deform", "scgs", "spgs", "4dgs") for s in ("", "_s
 def _dnerf_config(scene: Path, overrides: list[str]):
     """budget=cpu on a D-NeRF scene (1500 initial points, 100 px wide, no LPIPS) with the short
     schedule, composed by the checked-out code's own Hydra configs (any commit)."""
-    import stdr
     from hydra import compose, initialize_config_dir
 
-    from stdr.config import register
+    from stdr.config import CONFIG_DIR, register  # wherever that commit keeps its configs
     try:  # per-baseline configs reject other baselines' keys
         from stdr.testing import applicable
     except ImportError:
@@ -52,8 +51,7 @@ def _dnerf_config(scene: Path, overrides: list[str]):
             "model.init_num=1500", "eval.lpips=false", "train.progress=false", "eval.save_images=false",
             "train.image_every=0", *overrides]
     name = next(o.split("=", 1)[1] for o in overrides if o.startswith("experiment=")).split("_")[1]
-    with initialize_config_dir(config_dir=str(Path(stdr.__file__).resolve().parents[1] / "configs"),
-                               version_base=None):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
         return compose("train", overrides=applicable(base, name))
 
 

@@ -32,7 +32,7 @@ an error. Writes OUT/table.md and table.json, and OUT/degradation_<metric>.{png,
         # the sweep overrides that run what the table lacks of each preset and seed
 
 `--todo PRESET:SEED` (repeatable) plans, it writes nothing: for the study sweep
-(configs/sweep/stability.yaml: every registered baseline, plain and +STDR, on its scenes) it
+(stdr/configs/sweep/stability.yaml: every registered baseline, plain and +STDR, on its scenes) it
 prints `PRESET:SEED experiment=a,b data.name=x`, a line per group of scenes lacking the same
 experiments, and nothing for a preset whose runs the given tables all hold.
 scripts/stability_study.sh uses it, so a study resumed on another machine runs only what its
@@ -369,7 +369,7 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
 
 def study_grid(data: str = "dnerf") -> tuple[list[tuple[str, str]], list[str]]:
     """The study sweep's methods as (experiment, method name) pairs, every registered baseline
-    plain and +STDR, and its scenes (configs/sweep/stability.yaml)."""
+    plain and +STDR, and its scenes (stdr/configs/sweep/stability.yaml)."""
     from ..config import CONFIG_DIR, _experiments_resolver
     exps = []
     for e in _experiments_resolver(data).split(","):
