@@ -277,7 +277,7 @@ def test_the_study_script_runs_the_whole_grid_breadth_first_and_keeps_the_commit
     pose = next(w for w in lines if arg(w, "stress") == "pose_1")
     assert arg(pose, "experiment") == ",".join(e for e, _ in exps) and arg(pose, "data.name") == ",".join(scenes)
     tool = [ln for ln in r.stdout.splitlines() if " stdr-tool " in ln]
-    assert tool == [f"{CONFIG_DIR.parent}/scripts/run.sh stdr-tool stability {out}/table.json --split val "
+    assert tool == [f"{script.parents[1]}/scripts/run.sh stdr-tool stability {out}/table.json --split val "
                     f"--out {out}"]  # no sweep folder yet
     # without a committed table every preset runs whole, with the sweep's own lists
     fresh = subprocess.run(["bash", str(script), "/data/dnerf", str(tmp_path / "none_yet")], cwd=tmp_path,
