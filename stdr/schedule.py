@@ -16,7 +16,9 @@ Collision rules, applied here and nowhere else:
   error.
 * `stdr.freeze_at` resolving to 0 with the mask on is an error (the mask would freeze at its
   initial value); so is a freeze before STDR's warm-up ends.
-* A boundary at or after `optim.iterations` never fires; the printed schedule says so.
+* `baseline.warmup` or STDR's freeze at or after `optim.iterations` is an error naming the key
+  (the deformation, or STDR's separated field, would never train). Any other boundary there
+  never fires; the printed schedule says so (e.g. densification until the end).
 """
 from __future__ import annotations
 
@@ -85,6 +87,10 @@ def resolve_schedule(cfg) -> Schedule:
     b = cfg.baseline
     total = int(cfg.optim.iterations)
     warm = int(b.warmup)
+    if warm >= total:
+        raise ValueError(f"baseline.warmup={warm} is at or after the run's end (optim.iterations={total}): the "
+                         "deformation would never train. Lower baseline.warmup, or leave it unset in the "
+                         "budget files (it then scales with the run)")
     s = Schedule(iterations=total, static_warmup_end=warm)
     s.events.append(Event(0, "start", "canonical Gaussians rendered without deformation"))
     s.events.append(Event(warm, "baseline.warmup", "static warm-up ends: the deformation network is on"))
@@ -99,6 +105,11 @@ def resolve_schedule(cfg) -> Schedule:
     if cfg.stdr.enabled:
         w, f = resolve_phases(cfg.stdr, warm, total)
         f, moved = place_freeze(f, w, s.windows, explicit=cfg.stdr.freeze_at is not None)
+        if f >= total:
+            raise ValueError(f"STDR's freeze resolves to step {f}, at or after the run's end (optim.iterations="
+                             f"{total}): the mask would never freeze and the separated field never feed the "
+                             "network. Set stdr.freeze_at (or stdr.warmup_end) below the end, or use "
+                             "stdr.phase_rule=fraction")
         s.stdr_warmup_end, s.stdr_freeze_at, s.stdr_freeze_moved = w, f, moved
         held = "opacity frozen" if cfg.stdr.freeze_opacity else "opacity trains"
         s.events.append(Event(0, "stdr", f"STDR mask warm-up ({held}), L_temp and L_spatial on"))

@@ -107,9 +107,14 @@ def test_a_baseline_is_one_module_and_one_config(tmp_path, drift):
 
 
 def test_budget_files_are_optional_deltas(drift):
-    # no budget_baseline/drift_cpu.yaml: the budget's shared keys apply on the typed defaults
-    c = make_cfg(["baseline=drift", "budget=cpu"])
-    assert (c.optim.iterations, c.baseline.depth, c.baseline.warmup) == (2000, 8, 3000)
+    # no budget_baseline/drift_*.yaml: the budget's shared keys apply on the typed defaults, and the
+    # schedule keys scale with the run: warm-up 7.5 % of it (3 000 of the paper's 40 000), the
+    # network's lr over all of it
+    for budget, iters, warm in (("demo", 1500, 112), ("cpu", 2000, 150), ("paper", 40000, 3000)):
+        c = make_cfg(["baseline=drift", f"budget={budget}"])
+        assert (c.optim.iterations, c.baseline.depth, c.baseline.warmup, c.baseline.lr_max_steps) == \
+            (iters, 8, warm, iters), budget
+    assert make_cfg(["baseline=drift", "budget=cpu", "optim.iterations=100"]).baseline.warmup == 8
     # a baseline's budget file, where there is one, still applies on top (deform_cpu.yaml: 6x128)
     assert (make_cfg(["baseline=deform", "budget=cpu"]).baseline.depth,
             make_cfg(["baseline=deform", "budget=paper"]).baseline.depth) == (6, 8)
@@ -167,3 +172,19 @@ def test_longer_cpu_preset_is_the_cpu_preset_run_longer(name, stdr):
     extra = long["optim.iterations"] - short["optim.iterations"]
     assert extra > 0 and long["optim.means_lr_max_steps"] - short["optim.means_lr_max_steps"] == extra
     assert long["baseline.lr_max_steps"] - short["baseline.lr_max_steps"] == extra
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("budget", ["demo", "cpu"])
+def test_a_baseline_without_budget_files_trains_its_deformation_under_every_budget(tmp_path, drift, budget):
+    """The warm-up trap: a fifth baseline with the typed defaults only used to keep a 3 000-step
+    warm-up under budget=cpu (2 000 iterations) and budget=demo (1 500), and never deformed. Here
+    the run is shortened to 60 steps (the warm-up scales with it: 4 or 5 steps) and the deformation's
+    own parameter must have moved."""
+    from stdr.train.trainer import Trainer
+    t = Trainer(tiny_config(tmp_path, ["experiment=embedded_drift", f"budget={budget}", "optim.iterations=60",
+                                       "train.checkpoint_every=0", "train.eval_at_warmup_end=false"]), tmp_path / "run")
+    assert t.model.warmup == round(0.075 * 60) and t.model.warmup < 60
+    before = t.model.deform.speed.detach().clone()
+    t.train()
+    assert not torch.equal(before, t.model.deform.speed.detach())

@@ -35,10 +35,16 @@ def test_schedule_of_each_baseline_with_and_without_stdr(name):
                                       "stdr.freeze_at=1300"])).stdr_freeze_at == 1300
 
 
-def test_schedule_marks_boundaries_a_run_never_reaches():
-    s = resolve_schedule(make_cfg(["experiment=dnerf_deform_stdr", "data.path=/x", "optim.iterations=800"]))
-    line = [ln for ln in s.describe().splitlines() if "[stdr.freeze_at]" in ln][0]
-    assert line.endswith("(never reached)") and "1000" in line
+def test_a_component_that_would_never_train_is_an_error_other_late_boundaries_are_marked():
+    base = ["experiment=dnerf_deform_stdr", "data.path=/x", "budget=cpu"]  # warm-up 500, STDR freeze 1000
+    with pytest.raises(ValueError, match=r"STDR's freeze resolves to step 1000.*optim.iterations=800.*stdr.freeze_at"):
+        resolve_schedule(make_cfg(base + ["optim.iterations=800"]))
+    with pytest.raises(ValueError, match=r"baseline.warmup=900 is at or after the run's end \(optim.iterations=800\)"):
+        resolve_schedule(make_cfg(["experiment=dnerf_deform", "data.path=/x", "budget=cpu", "optim.iterations=800",
+                                   "baseline.warmup=900"]))
+    s = resolve_schedule(make_cfg(base + ["densify.refine_stop=5000"]))  # densify until the end: allowed
+    line = [ln for ln in s.describe().splitlines() if "[densify.refine_stop]" in ln][0]
+    assert line.endswith("(never reached)") and "5000" in line
 
 
 def test_components_read_their_boundaries_from_the_schedule(tmp_path):

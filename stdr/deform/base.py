@@ -17,9 +17,23 @@ from typing import Any, List, Optional
 
 import numpy as np
 import torch
+from omegaconf import II, OmegaConf
 from torch import Tensor, nn
 
 from ..scene.gaussians import Gaussians
+
+
+#: the static warm-up's share of the run when no budget file sets baseline.warmup: Deformable
+#: 3DGS's published 3 000 of 40 000 iterations, so the paper length gives the published value
+WARMUP_SHARE = 0.075
+
+
+def _share(iterations, share) -> int:
+    return int(round(int(iterations) * float(share)))
+
+
+if not OmegaConf.has_resolver("stdr_share"):  # at import: saved configs may hold the interpolation
+    OmegaConf.register_new_resolver("stdr_share", _share)
 
 
 @dataclass
@@ -28,10 +42,13 @@ class BaselineConfig:
     defaults (the published values) and its own sub-config (`baseline.scgs.*`, ...); it is
     registered with the module (stdr.deform.registry.register_baseline) and becomes the Hydra
     option `baseline=<name>`. Budget files (stdr/configs/budget_baseline/<name>_<budget>.yaml) are
-    optional deltas on top."""
+    optional deltas on top. The schedule keys scale with the run unless a budget file sets them:
+    `warmup` = WARMUP_SHARE x optim.iterations, `lr_max_steps` = optim.iterations (a baseline
+    without budget files trains its deformation under every budget)."""
 
     name: str = "deform"
-    warmup: int = 3000          # static iterations before the deformation is applied
+    # static iterations before the deformation is applied (default: 7.5 % of the run)
+    warmup: int = II(f"stdr_share:${{optim.iterations}},{WARMUP_SHARE}")
     depth: int = 8
     width: int = 256
     skips: List[int] = field(default_factory=lambda: [4])
@@ -42,7 +59,7 @@ class BaselineConfig:
     head_init_std: Optional[float] = None  # None: PyTorch default (published); 1e-5: start at identity
     lr_init: float = 8e-4
     lr_final: float = 1.6e-6
-    lr_max_steps: int = 40_000
+    lr_max_steps: int = II("optim.iterations")  # the network's lr decays over the whole run
     lr_from_warmup: bool = False    # the network's lr schedule starts at the warm-up's end (4DGS restarts it)
     # the network's arithmetic: "fp32", or "bf16" (autocast: matrix products in bfloat16 with fp32
     # accumulation, deltas returned in fp32; fast where the CPU has AMX / AVX512-BF16 or on a GPU;
