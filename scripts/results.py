@@ -208,7 +208,6 @@ def build() -> tuple[str, str]:
     means, prov = headline()
     eff = stdr_effect(means)
     urows, ueff, udata = unseen()
-    head = means and prov
     page = ["# Results", "",
             f"{STAMP} at commit {_git('rev-parse', '--short', 'HEAD')}"
             f"{' with uncommitted changes' if _git('status', '--porcelain') else ''} on {datetime.date.today().isoformat()}.",

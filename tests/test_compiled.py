@@ -446,16 +446,16 @@ def test_projection_and_sh_match_the_torch_twin(backend, dtype, antialiased):
     truth_cam = _projection_scene(torch.float64)[1]  # the same camera values in float64
     for degree in range(4):
         ref_o, ref_r, ref_g = _project_outputs_and_grads(
-            lambda *a: project_and_shade(*a, cam, degree, antialiased=antialiased), inputs, "cpu")
+            lambda *a, degree=degree: project_and_shade(*a, cam, degree, antialiased=antialiased), inputs, "cpu")
         out_o, out_r, out_g = _project_outputs_and_grads(
-            lambda *a: compiled.project_sh_compiled(*a, cam, degree, antialiased=antialiased, kind=backend),
+            lambda *a, degree=degree: compiled.project_sh_compiled(*a, cam, degree, antialiased=antialiased, kind=backend),
             inputs, device)
         if dtype == torch.float64:
             bars = [(f_tol, o) for o in ref_o] + [(g_tol, g) for g in ref_g]
             truth = ref_o + ref_g
         else:
             t_o, _, t_g = _project_outputs_and_grads(
-                lambda *a: project_and_shade(*a, truth_cam, degree, antialiased=antialiased),
+                lambda *a, degree=degree: project_and_shade(*a, truth_cam, degree, antialiased=antialiased),
                 [x.double() for x in inputs], "cpu")
             truth = t_o + t_g
             bars = [(max(tol, 4 * err(r, t)), r) for tol, r, t in

@@ -74,7 +74,8 @@ def test_duplicate_split_remove_keep_rows_and_adam_state_aligned():
     sh_before = p["sh0"].detach().clone()
     mask_before = p["mask"].detach().clone()
 
-    dup = torch.zeros(12, dtype=torch.bool); dup[[1, 5]] = True
+    dup = torch.zeros(12, dtype=torch.bool)
+    dup[[1, 5]] = True
     duplicate(p, opts, state, dup)
     _check_aligned(p, opts, state)
     assert torch.equal(p["mask"][12:], mask_before[[1, 5]])  # children inherit parent rows
@@ -82,7 +83,8 @@ def test_duplicate_split_remove_keep_rows_and_adam_state_aligned():
     assert torch.equal(opts["sh0"].state[p["sh0"]]["exp_avg"][:12], avg_before["sh0"])
     assert (opts["sh0"].state[p["sh0"]]["exp_avg"][12:] == 0).all()
 
-    spl = torch.zeros(14, dtype=torch.bool); spl[[0, 13]] = True  # an original and a clone
+    spl = torch.zeros(14, dtype=torch.bool)
+    spl[[0, 13]] = True  # an original and a clone
     split(p, opts, state, spl, generator=torch.Generator().manual_seed(0))
     _check_aligned(p, opts, state)
     assert p["means"].shape[0] == 16
@@ -91,7 +93,8 @@ def test_duplicate_split_remove_keep_rows_and_adam_state_aligned():
     parent_scale = torch.exp(p["scales"][-1]).detach()
     assert torch.allclose(torch.exp(p["scales"][-3]).detach(), parent_scale)
 
-    rm = torch.zeros(16, dtype=torch.bool); rm[:3] = True
+    rm = torch.zeros(16, dtype=torch.bool)
+    rm[:3] = True
     kept_mask = p["mask"][3:, 0].detach().clone()
     remove(p, opts, state, rm)
     _check_aligned(p, opts, state)

@@ -64,7 +64,7 @@ def test_launcher_and_sweep_configs_compose():
     assert grid.data.path == "/data/dnerf/lego" and params["seed"] == "0,1,2"
     # without data.root the scene path is an error naming the key, never a folder "None/lego"
     with pytest.raises(Exception, match="data.root is not set"):
-        make_cfg(["+sweep=dnerf_grid", "data.name=lego"]).data.path
+        _ = make_cfg(["+sweep=dnerf_grid", "data.name=lego"]).data.path
 
 
 def test_parallel_jobs_generate_the_embedded_scene_once_without_clobbering(tmp_path):

@@ -174,7 +174,6 @@ def test_the_browser_and_every_helper_it_forked_are_stopped(ignore_term):
     """stdr-view --screenshot stops Chromium's whole process group (its helpers outlive the main
     process and kept writing to the profile folder, so removing it failed): here a main process
     with two forked children; with SIGTERM ignored, SIGKILL follows."""
-    import os
     import subprocess
     from stdr.view.browser import stop_process_group
     trap = 'trap "" TERM; ' if ignore_term else ""

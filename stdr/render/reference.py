@@ -105,7 +105,9 @@ def rasterize_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, feat
         # a tile is final when its list is exhausted or every pixel has stopped (T < 1e-4)
         alive = (counts[ids] > j * chunk) & ~done.all(1)
         if not bool(alive.all()):
-            out_ids.append(ids[~alive]); out_T.append(T[~alive]); out_acc.append(acc[~alive])
+            out_ids.append(ids[~alive])
+            out_T.append(T[~alive])
+            out_acc.append(acc[~alive])
             ids, T, acc, done = ids[alive], T[alive], acc[alive], done[alive]
             if ids.numel() == 0:
                 break
@@ -129,7 +131,9 @@ def rasterize_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, feat
         acc = acc + torch.bmm(w.transpose(1, 2), features[g])
         T = torch.where(keep, T_incl, T[:, None, :]).amin(1)
         done = done | (T_incl[:, -1] < T_MIN)
-    out_ids.append(ids); out_T.append(T); out_acc.append(acc)
+    out_ids.append(ids)
+    out_T.append(T)
+    out_acc.append(acc)
     order = torch.cat(out_ids)
     inv = torch.empty_like(order)
     inv[order] = torch.arange(order.numel(), device=dev)

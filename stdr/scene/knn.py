@@ -22,5 +22,6 @@ def knn(query: Tensor, points: Tensor, k: int, exclude_self: bool = False,
             r = torch.arange(q.shape[0], device=q.device)
             d2[r, r + s] = float("inf")
         d, i = torch.topk(d2, k, dim=1, largest=False)
-        d_out.append(d); i_out.append(i)
+        d_out.append(d)
+        i_out.append(i)
     return torch.cat(d_out), torch.cat(i_out)

@@ -237,7 +237,7 @@ def degradation(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
         good = [r for r in ok if not r["nonfinite"]]
         drops = [ref[(method, r["scene"])]["psnr"] - r["psnr"] for r in good]
         win = [w for r in good for w in [window_drop(r, ref[(method, r["scene"])])] if w is not None]
-        avg = lambda k: mean(r[k] for r in good) if good and all(_finite(r[k]) for r in good) else None  # noqa: E731
+        avg = lambda k, good=good: mean(r[k] for r in good) if good and all(_finite(r[k]) for r in good) else None  # noqa: E731
         rows.append({"method": method, "baseline": rs[0]["baseline"], "stdr": rs[0]["stdr"], "stress": stress,
                      "level": level, "scenes": sorted(r["scene"] for r in good),
                      "scenes_without_reference": sorted(r["scene"] for r in rs if not r["crashed"]
