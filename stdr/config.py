@@ -327,6 +327,8 @@ def register() -> None:
         OmegaConf.register_new_resolver("stdr_experiments", _experiments_resolver)
     if not OmegaConf.has_resolver("stdr_scene_path"):
         OmegaConf.register_new_resolver("stdr_scene_path", _scene_path_resolver)
+    from .deform.registry import discover_baselines
+    discover_baselines()  # baselines of other installed distributions (entry points)
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)
     cs.store(name="base_eval", node=EvalAppConfig)

@@ -75,7 +75,45 @@ def unregister_baseline(name: str) -> None:
             fn(spec, False)
 
 
+#: entry-point group through which another distribution adds baselines: in its pyproject.toml,
+#:   [project.entry-points."stdr.baselines"]
+#:   mine = "my_package.mine:register"     # a function that calls register_baseline (or a module
+#:                                         # whose import does)
+ENTRY_POINT_GROUP = "stdr.baselines"
+_discovered = False
+
+
+def discover_baselines() -> list[str]:
+    """Register the baselines that installed distributions provide through ENTRY_POINT_GROUP
+    (once per process; the CLIs' config registration and get_baseline call it). Returns the
+    names added. An entry point that fails, or registers nothing, is an error naming it."""
+    global _discovered
+    if _discovered:
+        return []
+    _discovered = True
+    from importlib.metadata import entry_points
+    added: list[str] = []
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        where = f"entry point {ep.name!r} = {ep.value!r} (group {ENTRY_POINT_GROUP!r}" + (
+            f", distribution {ep.dist.name} {ep.dist.version})" if getattr(ep, "dist", None) else ")")
+        before = set(BASELINES)
+        try:
+            obj = ep.load()
+            if callable(obj) and not isinstance(obj, type):
+                obj()
+        except Exception as e:
+            raise RuntimeError(f"{where} failed: {type(e).__name__}: {e}") from e
+        new = sorted(set(BASELINES) - before)
+        if not new and ep.name not in BASELINES:
+            raise RuntimeError(f"{where} registered no baseline; it must name a function (or module) that calls "
+                               "stdr.deform.register_baseline")
+        added += new
+    return added
+
+
 def get_baseline(name: str) -> BaselineSpec:
+    if name not in BASELINES:
+        discover_baselines()
     if name not in BASELINES:
         raise ValueError(f"baseline.name={name!r} is not a registered baseline; choose one of {sorted(BASELINES)} "
                          "(stdr.deform.registry.register_baseline adds one)")
