@@ -93,6 +93,12 @@ def test_arap_energy_zero_for_rigid_and_positive_for_stretch():
     assert arap_energy(p, p @ R.T + 1.0, nbr) < 1e-20
     stretch = p * torch.tensor([1.3, 1.0, 1.0], dtype=torch.float64)
     assert arap_energy(p, stretch, nbr) > 1e-4
+    # by hand: the origin and the three unit points, each the others' neighbours, doubled in size.
+    # The best rotation of a pure scaling is the identity, so each edge leaves a residual equal to
+    # itself: squared lengths 1, 1, 1 (from the origin) and 1, 2, 2 (from each unit point), mean 18 / 12
+    q = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64)
+    full = torch.tensor([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+    assert arap_energy(q, 2 * q, full).item() == pytest.approx(1.5, abs=1e-12)
 
 
 def test_arap_schedule_is_log_interpolated():
@@ -141,7 +147,7 @@ def test_scgs_hyper_coordinates_and_radii_get_gradients():
     g.means.square().sum().backward()
     assert params[FEATURE_KEY].grad.abs().sum() > 0
     assert m.node_log_radius.grad.abs().sum() > 0 and m.node_weight.grad.abs().sum() > 0
-    assert m.regularizers(params, 0.4, 6)["scgs_arap"] >= 0
+    assert m.regularizers(params, 0.4, 6)["scgs_arap"] > 0  # random heads: the nodes do not move rigidly
 
 
 # ----------------------------------------------------------------------------- SP-GS

@@ -22,12 +22,14 @@ def test_schedule_of_each_baseline_with_and_without_stdr(name):
     keys = {e.key for e in s.events}
     assert {"baseline.warmup", "stdr.warmup_end", "densify.refine_start"} <= keys
     assert s.stdr_warmup_end == 500
-    # the freeze (2 x 500) moves by rule only out of a baseline's switch window: SC-GS's
-    # node->skinning switch is at 1000, so 750 = halfway between the warm-up and the window
-    hit = [first for _, first, last in s.windows if first <= 1000 <= last]
-    assert s.stdr_freeze_at == (max(500, (500 + hit[0]) // 2) if hit else 1000)
-    assert ("moved" in s.describe()) == bool(hit)
-    assert bool(hit) == (name == "scgs") or name not in ("deform", "scgs", "spgs", "4dgs")
+    # the freeze (2 x 500 = 1000) moves by rule only out of a baseline's switch window: SC-GS's
+    # node->skinning switch spans [1000, 1100] at budget=cpu, so its freeze lands halfway
+    # between the warm-up's end and the window, at 750; the others keep 1000
+    expected = {"deform": 1000, "scgs": 750, "spgs": 1000, "4dgs": 1000}
+    if name not in expected:
+        pytest.skip(f"{name}: a baseline registered outside stdr; its freeze is not pinned here")
+    assert s.stdr_freeze_at == expected[name]
+    assert ("moved" in s.describe()) == (name == "scgs")
     if name == "scgs":
         assert "baseline.scgs.node_stage_end" in keys and s.windows == [(s.windows[0][0], 1000, 1100)]
     # an explicit freeze away from any window is kept as given

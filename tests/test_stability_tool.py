@@ -267,9 +267,11 @@ def test_the_study_script_runs_the_whole_grid_breadth_first_and_keeps_the_commit
     assert sorted(order) == sorted([(p, 0) for p in presets if (p, 0) not in done] + [("none", 1), ("none", 2)])
     assert "window_1 seed 0: every run is in" in r.stdout
     assert all("data.root=/data/dnerf" in w and "+sweep=stability" in w and w[-1] == "train.threads=2" for w in lines)
-    rank = lambda st, seed: (0 if st == "none" and seed == 0 else 1 if st.endswith("_3") else  # noqa: E731
-                             2 if st == "none" else 3 if st.endswith("_1") else 4)
-    assert [rank(*o) for o in order] == sorted(rank(*o) for o in order)  # breadth first
+    # breadth first, as the script's header says: (unstressed seed 0: done), level 3 of each stress
+    # (window, fraction, sparse, pose, jitter), unstressed seeds 1-2, level 1 (window_1: done), level 2
+    assert order == [("window_3", 0), ("fraction_3", 0), ("sparse_3", 0), ("pose_3", 0), ("jitter_3", 0),
+                     ("none", 1), ("none", 2), ("fraction_1", 0), ("sparse_1", 0), ("pose_1", 0), ("jitter_1", 0),
+                     ("window_2", 0), ("fraction_2", 0), ("sparse_2", 0), ("pose_2", 0), ("jitter_2", 0)]
     # fraction_1 runs only what the table lacks; a preset with nothing recorded runs whole
     frac = [w for w in lines if arg(w, "stress") == "fraction_1"]
     assert len(frac) == 1 and arg(frac[0], "experiment") == "dnerf_spgs,dnerf_spgs_stdr"

@@ -1,6 +1,7 @@
 """End-to-end: config composition, training on the embedded scene, exact resume, stdr-eval."""
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -64,15 +65,32 @@ def test_resume_gives_the_same_result_as_an_uninterrupted_run(tmp_path):
         assert torch.equal(va, vb), ka
 
 
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """One 900-step run on the tiny embedded scene (periodic evaluations every 300 steps), shared
+    by the tests below; a test that changes the run works on its own copy (`_copy`)."""
+    root = tmp_path_factory.mktemp("trained")
+    cfg = _tiny(root, ["optim.iterations=900", "baseline.warmup=300", "densify.refine_stop=700",
+                       "densify.grow_grad2d=1e-4", "baseline.head_init_std=1e-5", "train.eval_every=300",
+                       "train.eval_frames=2"])
+    res = run(cfg, root / "run")
+    return root / "run", res, json.loads((root / "run" / "metrics.json").read_text())["test"]
+
+
+def _copy(run_dir, tmp_path):
+    dst = tmp_path / "run"
+    shutil.copytree(run_dir, dst)
+    return dst
+
+
+def _eval(run_dir, out, *args):
+    return subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", *args],
+                          capture_output=True, text=True, timeout=600)
+
+
 @pytest.mark.slow
-def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
-    cfg = _tiny(tmp_path, ["optim.iterations=900", "baseline.warmup=300", "densify.refine_stop=700",
-                           "densify.grow_grad2d=1e-4", "baseline.head_init_std=1e-5", "train.eval_every=300",
-                           "train.eval_frames=2"])
-    run_dir = tmp_path / "run"
-    res = run(cfg, run_dir)
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    test = metrics["test"]
+def test_training_beats_static_warmup_and_writes_its_outputs(trained):
+    run_dir, res, test = trained
     for k in ("psnr", "ssim", "lpips", "fps", "num_gaussians", "train_seconds", "iterations"):
         assert k in test
     assert test["iterations"] == 900 and test["psnr"] == res["psnr"]
@@ -81,46 +99,53 @@ def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
     assert test["psnr"] > warm["psnr"] + 2.0, (warm["psnr"], test["psnr"])
     assert (run_dir / "point_cloud.ply").is_file() and (run_dir / "checkpoints" / "last.pt").is_file()
     assert list((run_dir / "tb").glob("events.out.tfevents.*"))
-
     assert test["conventions"]["device"] == str(resolve_device("auto"))
     assert test["conventions"]["machine"] and test["model_mb"] > 0
     # the model's size: every float32 tensor of the model (Gaussians, network, plug-ins), at least
     # the Gaussians' own 59 floats each
     assert test["model_mb"] * 2 ** 20 >= test["num_gaussians"] * 59 * 4
-    # the learning curve: the warm-up's and the periodic evaluations on a fixed 2-frame subset,
-    # then the final metrics (all 4 test frames) as its last point
+
+
+@pytest.mark.slow
+def test_the_learning_curve_holds_the_evaluations_and_ends_with_the_final_metrics(trained):
+    _, _, test = trained
+    # the warm-up's and the periodic evaluations on a fixed 2-frame subset, then the final
+    # metrics (all 4 test frames) as its last point
     curve = test["curve"]
     assert [(p["step"], p["tag"], p["frames"]) for p in curve] == \
         [(300, "static_warmup", 2), (600, "periodic", 2), (900, "final", 4)]
     assert [curve[-1][k] for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds")] == \
         [test[k] for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds")]
     assert curve[0]["train_seconds"] < curve[1]["train_seconds"] < curve[2]["train_seconds"]
+    # the FPS is the median of eval.fps_repeats (default 3) timed passes, all of them kept
+    assert len(test["fps_passes"]) == 3 and test["fps"] == sorted(test["fps_passes"])[1]
 
-    # stdr-eval re-renders from the checkpoint (on the device it is told) and reproduces the numbers
+
+@pytest.mark.slow
+def test_stdr_eval_reproduces_the_metrics_from_the_checkpoint_and_writes_tables(trained, tmp_path):
+    run_dir = _copy(trained[0], tmp_path)
+    test = trained[2]
     out = tmp_path / "tables"
-    proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}",
-                           "eval.lpips=false", "device=cpu"],
-                          capture_output=True, text=True, timeout=600)
+    proc = _eval(run_dir, out, "eval.lpips=false", "device=cpu")  # on the device it is told
     assert proc.returncode == 0, proc.stderr[-3000:]
     again = json.loads((run_dir / "metrics.json").read_text())["test"]
     assert again["conventions"]["device"] == "cpu"
     # re-evaluation keeps the training's curve and ends it with its own (equal) final point
-    assert [p["step"] for p in again["curve"]] == [300, 600, 900] and again["curve"][:2] == curve[:2]
+    assert [p["step"] for p in again["curve"]] == [300, 600, 900] and again["curve"][:2] == test["curve"][:2]
     assert again["curve"][-1]["psnr"] == again["psnr"] == pytest.approx(test["psnr"], abs=1e-4)
     table = json.loads((out / "table.json").read_text())
-    cell = table["cells"]["deform"]["embedded"]
-    assert cell["psnr"] == pytest.approx(test["psnr"], abs=1e-4)
+    assert table["cells"]["deform"]["embedded"]["psnr"] == pytest.approx(test["psnr"], abs=1e-4)
     assert "| deform |" in (out / "table.md").read_text()
     assert (out / "table.tex").read_text().startswith("\\begin{tabular}")
 
-    # the FPS is the median of eval.fps_repeats (default 3) timed passes, all of them kept
-    assert len(test["fps_passes"]) == 3 and test["fps"] == sorted(test["fps_passes"])[1]
 
-    # remeasure=fps re-times the renders only: fps and its passes change, the old values go to
-    # fps_history, every quality number and the curve stay as they were, the table shows the new fps
-    before = json.loads((run_dir / "metrics.json").read_text())["test"]
-    proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=fps",
-                           "eval.fps_repeats=5", "device=cpu"], capture_output=True, text=True, timeout=600)
+@pytest.mark.slow
+def test_remeasure_fps_retimes_the_renders_only(trained, tmp_path):
+    """fps and its passes change, the old values go to fps_history, every quality number and the
+    curve stay as they were, and the table shows the new fps."""
+    run_dir, out = _copy(trained[0], tmp_path), tmp_path / "tables"
+    before = trained[2]
+    proc = _eval(run_dir, out, "remeasure=fps", "eval.fps_repeats=5", "device=cpu")
     assert proc.returncode == 0, proc.stderr[-3000:]
     after = json.loads((run_dir / "metrics.json").read_text())["test"]
     assert after["fps_history"] == [{"fps": before["fps"], "fps_passes": before["fps_passes"],
@@ -137,29 +162,33 @@ def test_training_beats_static_warmup_and_eval_writes_tables(tmp_path):
     assert {k: v for k, v in after["conventions"].items() if not k.startswith("fps_")} == before["conventions"]
     assert json.loads((out / "table.json").read_text())["cells"]["deform"]["embedded"]["fps"] == \
         pytest.approx(after["fps"])
-    # a render key given to stdr-eval changes that key only (here: FPS without temporal culling),
-    # and the rows counted are those that setting renders: all of them
-    proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=fps",
-                           "render.cull=off", "device=cpu"], capture_output=True, text=True, timeout=600)
+
+
+@pytest.mark.slow
+def test_a_render_key_given_to_stdr_eval_changes_the_fps_setting_only(trained, tmp_path):
+    """Here FPS without temporal culling: the rows counted are those that setting renders, all of
+    them, and the history says which setting the earlier FPS had."""
+    run_dir = _copy(trained[0], tmp_path)
+    proc = _eval(run_dir, tmp_path / "tables", "remeasure=fps", "render.cull=off", "device=cpu")
     assert proc.returncode == 0, proc.stderr[-3000:]
     after = json.loads((run_dir / "metrics.json").read_text())["test"]
-    assert after["conventions"]["fps_render_cull"] == "off" and len(after["fps_history"]) == 2
+    assert after["conventions"]["fps_render_cull"] == "off" and len(after["fps_history"]) == 1
     assert after["render_cull"] == "off" and after["active_gaussians_mean"] == after["num_gaussians"]
     assert after["fps_history"][-1]["render_cull"] == "eval"
-    proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=fps",
-                           "eval.fps_repeats=0", "device=cpu"], capture_output=True, text=True, timeout=600)
-    assert proc.returncode != 0 and "eval.fps_repeats=0" in proc.stderr
 
-    # remeasure=size fills model_mb for runs evaluated before it was recorded, nothing else
+
+@pytest.mark.slow
+def test_remeasure_size_fills_model_mb_only_and_bad_remeasure_values_are_errors(trained, tmp_path):
+    run_dir, out = _copy(trained[0], tmp_path), tmp_path / "tables"
     m = json.loads((run_dir / "metrics.json").read_text())
     del m["test"]["model_mb"]
     (run_dir / "metrics.json").write_text(json.dumps(m))
-    proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=size",
-                           "device=cpu"], capture_output=True, text=True, timeout=600)
+    proc = _eval(run_dir, out, "remeasure=size", "device=cpu")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert json.loads((run_dir / "metrics.json").read_text())["test"] == after
-    proc = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(run_dir), f"out={out}", "remeasure=psnr"],
-                          capture_output=True, text=True, timeout=600)
+    assert json.loads((run_dir / "metrics.json").read_text())["test"] == trained[2]
+    proc = _eval(run_dir, out, "remeasure=fps", "eval.fps_repeats=0", "device=cpu")
+    assert proc.returncode != 0 and "eval.fps_repeats=0" in proc.stderr
+    proc = _eval(run_dir, out, "remeasure=psnr")
     assert proc.returncode != 0 and "remeasure='psnr'" in proc.stderr
 
 
