@@ -108,10 +108,6 @@ class StdrConfig:
     field_lr_init: Optional[float] = None
     field_lr_final: Optional[float] = None
     scale_deltas_by_dynamic: bool = False  # multiply the deformation deltas by the dynamic probability
-    # static skipping (docs/stdr.md §6): in renders outside training, Gaussians whose dynamic
-    # probability is below this take the deltas of one reference time (cached per model state)
-    # instead of running the deformation network at each t. 0 = off (exact)
-    static_skip: float = 0.0
 
 
 @dataclass
@@ -219,12 +215,6 @@ RenderOverrides = _overrides_of(RenderConfig, "RenderOverrides",
 
 
 @dataclass
-class StdrEvalOverrides:
-    """stdr-eval: the STDR keys that act only at render time, to change in each run's config."""
-    static_skip: Optional[float] = None  # stdr.static_skip (null = the run's own)
-
-
-@dataclass
 class EvalAppConfig:
     """stdr-eval: (re)evaluate run directories and write the comparison table."""
 
@@ -236,8 +226,6 @@ class EvalAppConfig:
     # render settings to change in each run's own (e.g. render.backend=reference, render.cull=off);
     # the keys left null keep the run's value
     render: RenderOverrides = field(default_factory=lambda: RenderOverrides())
-    # stdr.static_skip=θ: evaluate trained STDR runs with static skipping at θ (a render-time key)
-    stdr: StdrEvalOverrides = field(default_factory=StdrEvalOverrides)
     device: Optional[str] = None  # override the runs' device (auto | cpu | cuda | cuda:<index>)
     # fps: re-time the render FPS alone (e.g. on an idle machine) and update only `fps` in each
     # run's metrics.json, keeping the earlier values under `fps_history`; quality is not touched.
@@ -340,6 +328,8 @@ def register() -> None:
 # keys of other baselines that configs written before per-baseline config classes carried under
 # `baseline` (every run had baseline.scgs, .spgs and .hexplane); dropped when such a config is read
 _LEGACY_BASELINE_KEYS = ("scgs", "spgs", "hexplane")
+# STDR keys of earlier code that no longer exist; configs that carry them still load
+_REMOVED_STDR_KEYS = ("static_skip",)
 
 
 def load_config(raw: Any, where: str = "config"):
@@ -360,6 +350,8 @@ def load_config(raw: Any, where: str = "config"):
         if k in b and k not in fields:
             del b[k]
     raw["baseline"] = b
+    if isinstance(raw.get("stdr"), dict):  # a render-time key removed on 2026-11-26 (docs/stdr.md)
+        raw["stdr"] = {k: v for k, v in raw["stdr"].items() if k not in _REMOVED_STDR_KEYS}
     schema = OmegaConf.merge(OmegaConf.structured(Config), {"baseline": OmegaConf.structured(spec.config)})
     try:
         return OmegaConf.merge(schema, raw)

@@ -112,8 +112,6 @@ class DynamicGaussians:
         self.backend = resolve_backend(cfg.render.backend, device)
         self.step = 0  # iterations trained
         self.last_active: Optional[int] = None  # Gaussians rendered by the last `render` (after culling)
-        self.last_static = 0  # of those, how many took cached static deltas (stdr.static_skip)
-        self._static_cache = None
 
     # ----------------------------------------------------------------- plug-ins
     def plugin(self, name: str) -> Optional[Plugin]:
@@ -166,7 +164,7 @@ class DynamicGaussians:
 
     def deformed_rows(self, t: float, step: Optional[int] = None,
                       cond_scale: Optional[tuple[Optional[Tensor], Optional[Tensor]]] = None,
-                      cull: bool = False, skip_static: bool = False) -> tuple[Gaussians, Optional[Tensor]]:
+                      cull: bool = False) -> tuple[Gaussians, Optional[Tensor]]:
         """(Gaussians at time t, rows [M] they are of the model, or None for all).
 
         cull: temporal culling. Rows whose opacity at t, sigmoid(o) times the plug-ins' factors
@@ -175,15 +173,8 @@ class DynamicGaussians:
         the rasterizer. The image equals the unculled one; the culled rows get zero gradient,
         as they do without culling. Parts a baseline shares between Gaussians (SC-GS's node
         conditioning, SP-GS's superpoints) are still computed from every row
-        (`Deformation.forward_rows`).
-
-        skip_static: rows a plug-in calls static (STDR: dynamic probability below
-        stdr.static_skip, after the freeze) take the deltas the network gave them at one
-        reference time, computed once per model state (`static_deltas`), instead of running the
-        network at t. An approximation, for renders outside training; the rows then come back
-        as [moving rows, static rows]."""
+        (`Deformation.forward_rows`)."""
         step = self.step if step is None else step
-        self.last_static = 0
         factors = [f for p in self.plugins if (f := p.opacity_factor(self.params, t, step)) is not None]
         rows = None
         if cull and self.can_cull(step):
@@ -196,58 +187,10 @@ class DynamicGaussians:
             g = activate(self.params if rows is None else RowView(self.params, rows))
         else:
             cond, scale = self.conditioning(step) if cond_scale is None else cond_scale
-            static = self.static_mask(step) if skip_static else None
-            if static is None or not bool(static.any()):
-                g = self.deform.deform_rows(self.params, t, cond, scale, rows)
-            else:
-                g, rows = self._deform_with_static(t, step, cond, scale, rows, static)
+            g = self.deform.deform_rows(self.params, t, cond, scale, rows)
         for f in factors:
             g = g._replace(opacities=g.opacities * rows_of(f, rows))
         return g, rows
-
-    def static_mask(self, step: int) -> Optional[Tensor]:
-        """[N] bool: rows some plug-in calls static at `step` (None: none does)."""
-        masks = [m for p in self.plugins if (m := p.static_rows(self.params, step)) is not None]
-        if not masks:
-            return None
-        out = masks[0]
-        for m in masks[1:]:
-            out = out & m
-        return out
-
-    def reference_time(self) -> float:
-        """The time static rows are deformed to: the median training time (0.5 without them)."""
-        return 0.5 if self.train_times is None or not len(self.train_times) else float(np.median(self.train_times))
-
-    def static_deltas(self, step: int, cond: Optional[Tensor], static: Tensor):
-        """(rows [S], Deltas [S]) of the static rows at `reference_time`, cached while the model
-        state (step, Gaussians) and the static set stay the same."""
-        key = (step, id(self.params["means"]), self.params["means"]._version, int(static.sum()))
-        c = self._static_cache
-        if c is None or c[0] != key or not torch.equal(c[1], static):
-            rows = torch.nonzero(static).squeeze(1)
-            with torch.no_grad():
-                d = self.deform.deltas(self.params, self.reference_time(), cond, rows)
-            c = self._static_cache = (key, static.clone(), rows, d)
-        return c[2], c[3]
-
-    def _deform_with_static(self, t: float, step: int, cond, scale, rows: Optional[Tensor], static: Tensor):
-        from .deform.base import _scaled, concat_deltas
-        n = static.shape[0]
-        sel = torch.arange(n, device=static.device) if rows is None else rows
-        st = static[sel]
-        moving, still = sel[~st], sel[st]
-        cached_rows, cached = self.static_deltas(step, cond, static)
-        pos = torch.full((n,), -1, dtype=torch.long, device=static.device)
-        pos[cached_rows] = torch.arange(cached_rows.shape[0], device=static.device)
-        d_still = type(cached)(**{k: None if v is None else v.index_select(0, pos[still])
-                                 for k, v in vars(cached).items()})
-        d_moving = self.deform.deltas(self.params, t, cond, moving)
-        order = torch.cat([moving, still])
-        d = _scaled(concat_deltas(d_moving, d_still, moving.shape[0], still.shape[0]),
-                    rows_of(scale, order), order.shape[0])
-        self.last_static = int(still.shape[0])
-        return self.deform.apply(RowView(self.params, order), d), order
 
     def cull_mode(self) -> str:
         """render.cull: 'off', 'eval' (evaluation and rendering cull; training renders every
@@ -271,7 +214,7 @@ class DynamicGaussians:
         cull: temporal culling (`deformed_rows`); None follows render.cull (on unless 'off').
         The number of rows rendered is kept in `last_active`."""
         cull = self.cull_mode() != "off" if cull is None else cull
-        g, rows = self.deformed_rows(t, step, cull=cull, skip_static=True)
+        g, rows = self.deformed_rows(t, step, cull=cull)
         self.last_active = g.means.shape[0]
         return self.render_gaussians(g, camera, step)
 

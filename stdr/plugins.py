@@ -64,12 +64,6 @@ class Plugin:
         """[N] factor on the activated opacity at time t, or None."""
         return None
 
-    def static_rows(self, params, step: int) -> Optional[Tensor]:
-        """[N] bool: Gaussians this plug-in calls static at `step`, which renders outside training
-        may deform once (at a reference time) instead of at every t; None: no opinion. Read after
-        `conditioning` of the same render."""
-        return None
-
     def regularizers(self, params, step: int) -> dict[str, Tensor]:
         """Named loss terms, already weighted."""
         return {}

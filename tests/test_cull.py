@@ -159,51 +159,5 @@ def test_evaluation_reports_the_gaussians_rendered_per_frame(tmp_path):
     assert ref["active_gaussians_mean"] == ref["active_gaussians_max"] == n
     assert res["active_gaussians_mean"] <= res["active_gaussians_max"] < n
     assert res["psnr"] == pytest.approx(ref["psnr"], abs=1e-4)
-    assert res["static_skip"] == 0.0 and res["static_skipped_mean"] == 0.0
-    # with static skipping the threshold is recorded, and every rendered row under it is counted
-    tr.model.cfg.stdr.static_skip = 1.01  # above every dynamic probability: all rows static
-    skip = evaluate_model(tr.model, tr.scene.frames("test"))
-    assert skip["static_skip"] == 1.01 and skip["static_skipped_mean"] == skip["active_gaussians_mean"] == n
 
-
-@pytest.mark.slow
-@pytest.mark.parametrize("name", ["deform", "scgs"])
-def test_static_skipping_deforms_static_rows_once_at_the_reference_time(tmp_path, name):
-    """stdr.static_skip: rows whose dynamic probability is under the threshold take the deltas of
-    the reference time (cached); the others are deformed at t; 0 is exact."""
-    tr = _trained(tmp_path, name, 60)
-    model = tr.model.eval()
-    st = model.plugin("stdr")
-    t, tref = 0.1, model.reference_time()
-    with torch.no_grad():
-        exact_t, _ = model.deformed_rows(t, cull=False)
-        exact_ref, _ = model.deformed_rows(tref, cull=False)
-        d = st.last_dynamic[:, 0].clone()  # the same in every eval-mode render
-        thr = float(d.median())
-        for cfg_thr, want_static in ((0.0, 0), (thr, int((d < thr).sum())), (float(d.max()) + 1e-3, d.numel())):
-            st.cfg.static_skip = cfg_thr
-            g, rows = model.deformed_rows(t, cull=False, skip_static=True)
-            assert model.last_static == want_static
-            if want_static == 0:
-                assert rows is None and torch.equal(g.means, exact_t.means)
-                continue
-            still = rows[g.means.shape[0] - want_static:]
-            assert set(still.tolist()) == set(torch.nonzero(d < cfg_thr).squeeze(1).tolist())
-            moving = rows[:g.means.shape[0] - want_static]
-            n_mov = moving.numel()
-            for a, b_t, b_ref in ((g.means, exact_t.means, exact_ref.means), (g.scales, exact_t.scales, exact_ref.scales)):
-                if n_mov:
-                    assert (a[:n_mov] - b_t[moving]).abs().max() <= 1e-5
-                assert (a[n_mov:] - b_ref[still]).abs().max() <= 1e-5
-            # the training loop's call (no skip_static) deforms every row at t whatever the key says
-            g_train, rows_train = model.deformed_rows(t, cull=False)
-            assert rows_train is None and torch.equal(g_train.means, exact_t.means)
-        # the cache follows the model: moved Gaussians are deformed again
-        key = model._static_cache[0]
-        model.params["means"].add_(0.01)
-        g2, rows2 = model.deformed_rows(t, cull=False, skip_static=True)
-        assert model._static_cache[0] != key
-        ref2, _ = model.deformed_rows(tref, cull=False)
-        assert (g2.means[-model.last_static:] - ref2.means[rows2[-model.last_static:]]).abs().max() <= 1e-5
-    st.cfg.static_skip = 0.0
 

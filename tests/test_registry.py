@@ -147,6 +147,10 @@ def test_saved_configs_load_onto_their_baselines_typed_defaults(tmp_path):
     p = tmp_path / "config.yaml"
     p.write_text(OmegaConf.to_yaml(old))
     assert "scgs" not in load_config(p).baseline
+    # a config.yaml from before static skipping was removed carried stdr.static_skip
+    old["stdr"]["static_skip"] = 0.0
+    p.write_text(OmegaConf.to_yaml(old))
+    assert "static_skip" not in load_config(p).stdr
     # anything else unknown is an error that names the file
     old["baseline"]["nodes"] = 3
     p.write_text(OmegaConf.to_yaml(old))

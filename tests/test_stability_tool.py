@@ -295,51 +295,6 @@ def test_the_study_script_runs_the_whole_grid_breadth_first_and_keeps_the_commit
     assert nocode.returncode == 2 and "no scripts/run.sh there" in nocode.stderr
 
 
-def _theta_runs(root, name, values, skipped=50):
-    """<root>/<name>/<scene>/metrics.json with (psnr, fps) per scene."""
-    for scene, (psnr, fps) in values.items():
-        d = root / name / scene
-        d.mkdir(parents=True)
-        (d / "metrics.json").write_text(json.dumps({"val": {"psnr": psnr, "fps": fps, "fps_passes": [fps] * 5,
-                                                            "static_skipped_mean": skipped,
-                                                            "active_gaussians_mean": 100}}))
-    return str(root / name)
-
-
-def test_static_rule_picks_the_largest_qualifying_theta(tmp_path):
-    from stdr.tools.static_rule import main as rule
-    ref = {"a": (30.0, 10.0), "b": (20.0, 20.0)}
-    # deform: θ=0.1 costs 0.04 dB and gains +10 %; θ=0.3 costs 0.2 dB
-    d = {0: ref, 0.1: {"a": (29.96, 11.0), "b": (19.96, 22.0)}, 0.3: {"a": (29.8, 12.0), "b": (19.8, 24.0)}}
-    # 4dgs: θ=0.1 costs 0.01 dB, gains +2 % (mean of per-scene ratios: 1.0 and 1.04)
-    f = {0: ref, 0.1: {"a": (29.99, 10.0), "b": (19.99, 20.8)}, 0.3: {"a": (29.99, 10.0), "b": (19.99, 20.8)}}
-    args = ["--split", "val", "--out", str(tmp_path / "out")]
-    for name, vals in (("deform", d), ("4dgs", f)):
-        args += ["--baseline", name] + [f"{t}={_theta_runs(tmp_path, f'{name}_{t}', v)}" for t, v in vals.items()]
-    rule(args)
-    res = json.loads((tmp_path / "out.json").read_text())
-    rows = {(r["baseline"], r["theta"]): r for r in res["rows"]}
-    assert rows[("deform", 0.1)]["psnr_cost"] == pytest.approx(0.04)
-    assert rows[("deform", 0.1)]["fps_gain"] == pytest.approx(0.10)
-    assert rows[("4dgs", 0.1)]["fps_gain"] == pytest.approx(0.02) and rows[("4dgs", 0.1)]["skipped_share"] == 0.5
-    assert res["qualifying"] == [0.1] and res["default"] == 0.1  # 0.3 costs deform 0.2 dB
-    assert "**θ = 0.1**" in (tmp_path / "out.md").read_text()
-    # with a stricter cost no θ qualifies: static skipping stays off
-    rule(args[:3] + [str(tmp_path / "strict")] + args[4:] + ["--max-cost", "0.03"])
-    strict = json.loads((tmp_path / "strict.json").read_text())
-    assert strict["qualifying"] == [] and strict["default"] == 0.0
-    with pytest.raises(SystemExit, match="0=FOLDER"):
-        rule(["--baseline", "x", f"0.1={tmp_path}", f"0.3={tmp_path}"])
-    # a θ that skips no row renders what θ = 0 renders: a faster timing there is noise, not a gain
-    nz = tmp_path / "noskip"
-    rule(["--split", "val", "--out", str(tmp_path / "noise"), "--baseline", "spgs", f"0={_theta_runs(nz, 'r0', ref)}",
-          f"0.01={_theta_runs(nz, 'r1', {'a': (30.0, 11.0), 'b': (20.0, 22.0)}, skipped=0)}"])
-    noise = json.loads((tmp_path / "noise.json").read_text())
-    assert noise["rows"][0]["fps_gain"] == pytest.approx(0.10) and not noise["rows"][0]["skips_rows"]
-    assert noise["qualifying"] == [] and noise["default"] == 0.0
-    assert "no row skipped" in (tmp_path / "noise.md").read_text()
-
-
 def test_frame_times_come_from_the_scene_for_runs_that_did_not_record_them(tmp_path):
     """Runs written before metrics.json had per_frame_time: the tool loads the evaluation split
     as the trainer does and takes its frames' times, in the same order."""

@@ -46,7 +46,7 @@ def _metrics_run(folder, psnr, fps, n, active, train_s, cull="eval", scene_split
     folder.mkdir(parents=True)
     entry = {"psnr": psnr, "ssim": 0.9, "lpips": 0.1, "fps": fps, "fps_passes": [fps] * 3, "num_gaussians": n,
              "active_gaussians_mean": active, "active_gaussians_max": active + 10, "model_mb": n * 59 * 4 / 2 ** 20, "train_seconds": train_s,
-             "iterations": 100, "render_cull": cull, "static_skip": 0.0, "conventions": {}}
+             "iterations": 100, "render_cull": cull, "conventions": {}}
     (folder / "metrics.json").write_text(json.dumps({scene_split: entry}))
 
 

@@ -20,8 +20,7 @@ register()
 
 
 def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reevaluate: bool,
-                  out_dir: Path, base: str, device: str | None = None, remeasure: str | None = None,
-                  stdr_cfg=None) -> dict:
+                  out_dir: Path, base: str, device: str | None = None, remeasure: str | None = None) -> dict:
     import json
 
     from ..eval.table import collect, find_run_dirs, markdown, table_row, write_tables
@@ -39,7 +38,6 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
         sp = split or cfg.data.eval_split
         if reevaluate or remeasure:
             apply_overrides(cfg, "render", render_cfg)
-            apply_overrides(cfg, "stdr", stdr_cfg)
             if device is not None:  # e.g. a run trained on a GPU, re-evaluated on a CPU machine
                 cfg.device = device
         if reevaluate:
@@ -163,7 +161,7 @@ def _refresh_fps(entry: dict, timing: dict, model, rd: Path) -> None:
     entry.setdefault("conventions", {}).update(
         {"fps_remeasured": True, "fps_machine": machine_name(), "fps_torch_threads": torch.get_num_threads(),
          "fps_render_backend": model.backend, "fps_device": str(model.device),
-         "fps_render_cull": model.cull_mode(), "fps_static_skip": timing["static_skip"]})
+         "fps_render_cull": model.cull_mode()})
     print(f"[stdr] {rd}: FPS {entry['fps_history'][-1]['fps']} -> {fps:.2f}")
 
 
@@ -174,7 +172,7 @@ def _main(cfg: DictConfig) -> None:
     reproducible_blas()
     out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
     evaluate_dirs(list(cfg.runs), cfg.split, cfg.eval, cfg.render, cfg.reevaluate, out,
-                  hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure, cfg.stdr)
+                  hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure)
 
 
 def main() -> None:

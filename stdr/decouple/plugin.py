@@ -288,16 +288,6 @@ class STDR(Plugin):
         self.last_dynamic = d.detach()
         return torch.cat([z, d], -1), (d if self.cfg.scale_deltas_by_dynamic else None)
 
-    def static_rows(self, params, step: int) -> Optional[Tensor]:
-        """With stdr.static_skip > 0, after the freeze: the Gaussians whose dynamic probability d_i
-        (the motion branch, from the `conditioning` just computed) is below it."""
-        thr = float(self.cfg.get("static_skip", 0.0))
-        d = self.last_dynamic
-        if thr <= 0 or self.field is None or self.phase(step) != Phase.FROZEN or d is None \
-                or d.shape[0] != params["means"].shape[0]:
-            return None
-        return d[:, 0] < thr
-
     def regularizers(self, params, step: int) -> dict[str, Tensor]:
         """Weighted L_temp and L_spatial while the phase is warm-up or regularized."""
         if not self.has_mask(params) or self.phase(step) == Phase.FROZEN:

@@ -253,21 +253,6 @@ def check_precision(p: str) -> str:
     return p
 
 
-def concat_deltas(a: Deltas, b: Deltas, na: int, nb: int) -> Deltas:
-    """Deltas of na rows followed by those of nb rows; a delta one side lacks is zero there."""
-    out = {}
-    for k in vars(a):
-        x, y = getattr(a, k), getattr(b, k)
-        if x is None and y is None:
-            out[k] = None
-            continue
-        like = x if x is not None else y
-        x = like.new_zeros((na, *like.shape[1:])) if x is None else x
-        y = like.new_zeros((nb, *like.shape[1:])) if y is None else y
-        out[k] = torch.cat([x, y], 0)
-    return Deltas(**out)
-
-
 def _scaled(d: Deltas, delta_scale: Optional[Tensor], n: int) -> Deltas:
     """Every delta times delta_scale [n, 1] (STDR's dynamic probability), or d unchanged."""
     if delta_scale is None:

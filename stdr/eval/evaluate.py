@@ -62,12 +62,11 @@ def warm_up(model, frames, step: int, n: int) -> None:
 
 def timed_pass(model, frames, step: int) -> dict[str, Any]:
     """One timed pass over `frames`: frames per second and the rows rendered per frame."""
-    times, active, static = [], [], []
+    times, active = [], []
     for f in frames:
         times.append(timed_render(model, f, step)[1])
         active.append(model.last_active)
-        static.append(model.last_static)
-    return {"fps": float(len(times) / sum(times)), "active": active, "static": static}
+    return {"fps": float(len(times) / sum(times)), "active": active}
 
 
 def fps_summary(passes: list[float]) -> dict[str, Any]:
@@ -75,18 +74,11 @@ def fps_summary(passes: list[float]) -> dict[str, Any]:
     return {"fps": float(np.median(passes)), "fps_passes": [float(p) for p in passes]}
 
 
-def size_summary(model, active: list[int], static: list[int]) -> dict[str, Any]:
+def size_summary(model, active: list[int]) -> dict[str, Any]:
     """Gaussians in the model and rendered per frame (after temporal culling; all rows when off)."""
     return {"num_gaussians": model.num_gaussians,
             "active_gaussians_mean": float(np.mean(active)), "active_gaussians_max": int(max(active)),
-            "render_cull": model.cull_mode(),
-            # of those, rendered with cached static deltas (stdr.static_skip; 0 when off)
-            "static_skipped_mean": float(np.mean(static)), "static_skip": static_skip_of(model)}
-
-
-def static_skip_of(model) -> float:
-    """The stdr.static_skip threshold the model renders with (0: off, or no STDR)."""
-    return float(model.cfg.get("stdr", {}).get("static_skip", 0.0) or 0.0)
+            "render_cull": model.cull_mode()}
 
 
 @torch.no_grad()
@@ -100,7 +92,7 @@ def measure_fps(model, frames, step: Optional[int] = None, fps_warmup: int = 3,
     step = model.step if step is None else step
     warm_up(model, frames, step, fps_warmup)
     passes = [timed_pass(model, frames, step) for _ in range(fps_repeats)]
-    return {**fps_summary([p["fps"] for p in passes]), **size_summary(model, passes[0]["active"], passes[0]["static"])}
+    return {**fps_summary([p["fps"] for p in passes]), **size_summary(model, passes[0]["active"])}
 
 
 def _check_repeats(fps_repeats: int) -> None:
@@ -121,12 +113,11 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
     if save_dir is not None:
         save_dir.mkdir(parents=True, exist_ok=True)
     warm_up(model, frames, step, fps_warmup)
-    active, static = [], []
+    active = []
     for i, f in enumerate(frames):
         out, sec = timed_render(model, f, step)
         times.append(sec)
         active.append(model.last_active)
-        static.append(model.last_static)
         img = out.image.clamp(0, 1)
         ps.append(float(psnr(img, f.image)))
         ss.append(float(ssim(img, f.image)))
@@ -141,7 +132,7 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
     return {
         "psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)),
         "lpips": float(np.mean(ls)) if ls else None,
-        **fps_summary(passes), **size_summary(model, active, static),
+        **fps_summary(passes), **size_summary(model, active),
         "num_frames": len(frames),
         "per_frame_psnr": ps,
         "per_frame_time": [float(f.time) for f in frames],  # normalized times, in per_frame_psnr's order

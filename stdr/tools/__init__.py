@@ -13,5 +13,4 @@ TOOLS = {
     "identity-check": "identity_check",      # bit-identity of training / composed configs between commits
     "variants": "variants",                  # variants of one method side by side (plain, +STDR, +cull, ...)
     "stability": "stability",                # the degradation study: accuracy under each stress and level
-    "static-rule": "static_rule",            # static skipping's default by the protocol's rule (θ scan)
 }

@@ -1,4 +1,4 @@
-"""Variants of one method side by side (e.g. plain, +STDR, +culling, +static skipping), from each run's metrics.json.
+"""Variants of one method side by side (e.g. plain, +STDR, +culling), from each run's metrics.json.
 
 Each `--table NAME LABEL=FOLDER ...` is one table: its rows are the variants, each a folder laid
 out as <folder>/<scene>/metrics.json. The numbers are means over the scenes that every variant of
@@ -42,7 +42,6 @@ def read(run: Path, split: str) -> dict:
         out["profile"] = sec
     out.update({"run": str(run), "iterations": m.get("iterations"),
                 "render_cull": conv.get("fps_render_cull", m.get("render_cull")),
-                "static_skip": conv.get("fps_static_skip", m.get("static_skip", 0.0)),
                 "fps_passes": len(m.get("fps_passes") or [1]), "fps_remeasured": bool(conv.get("fps_remeasured"))})
     return out
 
@@ -72,7 +71,7 @@ def build_table(name: str, variants: list[tuple[str, Path]], split: str) -> dict
         row = {"variant": lb, **{k: _mean([r[k] for r in runs]) for k in KEYS}}
         row["active_share"] = None if row["active_gaussians_mean"] is None or not row["num_gaussians"] \
             else row["active_gaussians_mean"] / row["num_gaussians"]
-        for k in ("render_cull", "static_skip", "fps_passes", "iterations"):
+        for k in ("render_cull", "fps_passes", "iterations"):
             vals = sorted({str(r[k]) for r in runs})
             row[k] = vals[0] if len(vals) == 1 else "/".join(vals)
         profs = [r["profile"] for r in runs]
@@ -109,7 +108,7 @@ def _mean(v):
 
 
 HEAD = ["variant", "PSNR↑", "Δ PSNR", "SSIM↑", "LPIPS↓", "FPS↑", "FPS ×", "Gaussians", "G ×", "active/frame", "active share",
-        "active max", "model MB", "train s", "train ×", "cull", "static θ"]
+        "active max", "model MB", "train s", "train ×", "cull"]
 
 
 def row_cells(r: dict) -> list[str]:
@@ -117,7 +116,7 @@ def row_cells(r: dict) -> list[str]:
             fmt(r["fps"], "{:.1f}"), fmt(r["fps_ratio"], "{:.2f}"), fmt(r["num_gaussians"], "{:,.0f}"),
             fmt(r["num_gaussians_ratio"], "{:.2f}"), fmt(r["active_gaussians_mean"], "{:,.0f}"),
             fmt(r["active_share"], "{:.0%}"), fmt(r["active_gaussians_max"], "{:,.0f}"), fmt(r["model_mb"], "{:.2f}"), fmt(r["train_seconds"], "{:.0f}"),
-            fmt(r["train_seconds_ratio"], "{:.2f}"), str(r["render_cull"]), str(r["static_skip"])]
+            fmt(r["train_seconds_ratio"], "{:.2f}"), str(r["render_cull"])]
 
 
 def markdown(tables: list[dict]) -> str:
