@@ -16,12 +16,14 @@ Collision rules, applied here and nowhere else:
   error.
 * `stdr.freeze_at` resolving to 0 with the mask on is an error (the mask would freeze at its
   initial value); so is a freeze before STDR's warm-up ends.
-* `baseline.warmup` or STDR's freeze at or after `optim.iterations` is an error naming the key
-  (the deformation, or STDR's separated field, would never train). Any other boundary there
-  never fires; the printed schedule says so (e.g. densification until the end).
+* `baseline.warmup` or STDR's freeze at or after `optim.iterations` is a `NeverTrains` warning
+  naming the key, repeated in the printed schedule (the deformation, or STDR's separated field,
+  never trains in that run; not an error, since a run stopped early to be resumed longer is
+  legitimate). Any other boundary there never fires; the schedule marks it "(never reached)".
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
@@ -79,6 +81,17 @@ def place_freeze(freeze_at: int, warmup_end: int, windows: list[tuple[str, int, 
     return freeze_at, None
 
 
+class NeverTrains(UserWarning):
+    """A component of the run would never train (its phase starts at or after the last iteration)."""
+
+
+def _never_trains(s: Schedule, msg: str) -> None:
+    """A warning (and a note in the printed schedule), not an error: a run stopped early on
+    purpose, to be resumed with more iterations (the tests' resume legs), is legitimate."""
+    s.notes.append("WARNING: " + msg)
+    warnings.warn(msg, NeverTrains, stacklevel=3)
+
+
 def resolve_schedule(cfg) -> Schedule:
     """Every boundary of a run from its config (a Config or DictConfig)."""
     from .decouple.plugin import resolve_phases
@@ -87,11 +100,11 @@ def resolve_schedule(cfg) -> Schedule:
     b = cfg.baseline
     total = int(cfg.optim.iterations)
     warm = int(b.warmup)
-    if warm >= total:
-        raise ValueError(f"baseline.warmup={warm} is at or after the run's end (optim.iterations={total}): the "
-                         "deformation would never train. Lower baseline.warmup, or leave it unset in the "
-                         "budget files (it then scales with the run)")
     s = Schedule(iterations=total, static_warmup_end=warm)
+    if warm >= total:
+        _never_trains(s, f"baseline.warmup={warm} is at or after the run's end (optim.iterations={total}): the "
+                         "deformation never trains in this run. Lower baseline.warmup, or leave it unset in the "
+                         "budget files (it then scales with the run)")
     s.events.append(Event(0, "start", "canonical Gaussians rendered without deformation"))
     s.events.append(Event(warm, "baseline.warmup", "static warm-up ends: the deformation network is on"))
     events, windows = get_baseline(b.name).module.stages(b)
@@ -106,9 +119,9 @@ def resolve_schedule(cfg) -> Schedule:
         w, f = resolve_phases(cfg.stdr, warm, total)
         f, moved = place_freeze(f, w, s.windows, explicit=cfg.stdr.freeze_at is not None)
         if f >= total:
-            raise ValueError(f"STDR's freeze resolves to step {f}, at or after the run's end (optim.iterations="
-                             f"{total}): the mask would never freeze and the separated field never feed the "
-                             "network. Set stdr.freeze_at (or stdr.warmup_end) below the end, or use "
+            _never_trains(s, f"STDR's freeze resolves to step {f}, at or after the run's end (optim.iterations="
+                             f"{total}): the mask never freezes and the separated field never feeds the network "
+                             "in this run. Set stdr.freeze_at (or stdr.warmup_end) below the end, or use "
                              "stdr.phase_rule=fraction")
         s.stdr_warmup_end, s.stdr_freeze_at, s.stdr_freeze_moved = w, f, moved
         held = "opacity frozen" if cfg.stdr.freeze_opacity else "opacity trains"

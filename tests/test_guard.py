@@ -94,7 +94,7 @@ def test_recovery_restores_the_snapshot_exactly_and_lowers_every_lr(tmp_path):
     tr.guard.snapshot = tr.guard.best_snapshot = None
     tr2 = _trainer(tmp_path, "tr2", ["optim.iterations=17"])
     tr2.train()  # last snapshot: step 10
-    tr2._recover("a test")
+    tr2.guard.recover(tr2, "a test")
     assert tr2.step == 10 and tr2.guard.lr_scale == 0.5
     _same_params(ref, tr2)
     tr2._update_lrs(tr2.step)
@@ -118,21 +118,21 @@ def test_too_many_recoveries_stop_with_a_clear_error_and_a_good_checkpoint(tmp_p
 
 @pytest.mark.slow
 def test_divergence_restores_the_best_evaluation(tmp_path):
-    tr = _trainer(tmp_path, "div", ["optim.iterations=20", "train.guard.divergence_db=5"])
+    tr = _trainer(tmp_path, "div", ["optim.iterations=20", "baseline.warmup=10", "train.guard.divergence_db=5"])
     tr.train()
-    tr._after_evaluation(20.0)  # the best so far, at step 20
+    tr.guard.after_evaluation(tr, 20.0)  # the best so far, at step 20
     best_params = {k: v.detach().clone() for k, v in tr.model.params.items()}
     tr.cfg.optim.iterations = 30
     tr.train()  # resumes from its own checkpoint (step 20) and goes on to 30
     assert tr.step == 30
-    tr._after_evaluation(16.0)  # 4 dB down: within the tolerance
+    tr.guard.after_evaluation(tr, 16.0)  # 4 dB down: within the tolerance
     assert tr.step == 30 and tr.guard.recoveries == []
-    tr._after_evaluation(14.0)  # 6 dB down: diverged
+    tr.guard.after_evaluation(tr, 14.0)  # 6 dB down: diverged
     assert tr.step == 20 and len(tr.guard.recoveries) == 1
     assert tr.guard.recoveries[0]["reason"].startswith("divergence") and tr.guard.lr_scale == 0.5
     for k, v in best_params.items():
         assert torch.equal(tr.model.params[k], v), k
-    tr._after_evaluation(float("nan"))  # a non-finite evaluation is a recovery too
+    tr.guard.after_evaluation(tr, float("nan"))  # a non-finite evaluation is a recovery too
     assert "non-finite evaluation" in tr.guard.recoveries[-1]["reason"]
 
 
@@ -260,9 +260,9 @@ def test_best_and_last_of_a_curve():
 
 
 def test_peak_memory_follows_an_allocation_and_survives_a_resume():
-    from stdr.train.guard import GuardState
+    from stdr.train.guard import Guard
     cpu = torch.device("cpu")
-    g = GuardState()
+    g = Guard()
     before = g.note_memory(cpu)
     x = mmap.mmap(-1, 256 * 2**20)  # 256 MiB of fresh pages (an allocator would reuse freed ones)
     x[::4096] = b"\1" * (256 * 2**20 // 4096)  # one write a page: all of them resident
@@ -271,6 +271,6 @@ def test_peak_memory_follows_an_allocation_and_survives_a_resume():
     x.close()
     g.note_memory(cpu)
     assert g.peak_memory_mb == pytest.approx(during)  # a peak, not the last sample
-    h = GuardState()
+    h = Guard()
     h.load_state_dict(g.state_dict())
     assert h.peak_memory_mb == g.peak_memory_mb and g.summary(10)["peak_memory_mb"] == g.peak_memory_mb

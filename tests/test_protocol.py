@@ -48,8 +48,8 @@ def test_test_images_cannot_steer_training(tmp_path):
     assert a.monitor == b.monitor == "val" and a.step == b.step == 40
     # recorded: in the checkpoint (so stdr-eval's re-evaluation reports it) and metrics.json's guard
     from stdr.train.checkpoint import load_checkpoint
-    from stdr.train.guard import GuardState
-    g = GuardState()
+    from stdr.train.guard import Guard
+    g = Guard()
     g.load_state_dict(load_checkpoint(tmp_path / "same" / "checkpoints" / "last.pt")["guard"])
     assert g.summary(None)["monitor"] == "val" and a.guard.summary(None)["monitor"] == "val"
     for k in a.model.params:
@@ -83,7 +83,7 @@ def test_the_detector_never_reads_the_test_split():
 def test_a_run_without_periodic_evaluation_has_no_detector(tmp_path):
     """The default (train.eval_every=0): nothing for the detector to compare, no extra split."""
     from stdr.train.trainer import Trainer
-    tr = Trainer(tiny_config(tmp_path, ["optim.iterations=1"]), tmp_path / "run")
+    tr = Trainer(tiny_config(tmp_path, ["optim.iterations=1", "baseline.warmup=0"]), tmp_path / "run")
     assert tr.monitor is None and "val" not in tr.scene.splits
 
 

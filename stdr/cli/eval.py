@@ -63,7 +63,7 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     """Rebuild the run's model from its checkpoint (public API: stdr.model), render `split` and
     merge the numbers into its metrics.json."""
     from ..eval.evaluate import best_and_last, evaluate_model, learning_curve, make_lpips, write_metrics
-    from ..train.guard import GuardState
+    from ..train.guard import Guard
 
     ck, model, scene = _load_for_eval(rd, cfg, split, base)
     dev = model.device
@@ -80,7 +80,7 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     res["curve"] = learning_curve(list(ck.get("history", [])) + [final], split)
     res.update(best_and_last(res["curve"]))
     if "guard" in ck:  # the training's recoveries (checkpoints from before the guard have none)
-        g = GuardState()
+        g = Guard()
         g.load_state_dict(ck["guard"])
         res["guard"] = g.summary(int(cfg.densify.max_gaussians) or None)
     write_metrics(rd, split, res, model, eval_cfg, lp, scene.meta)

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, List, Optional
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -152,8 +153,12 @@ MEMORY_CONVENTION = {"cuda": "torch.cuda.max_memory_allocated since the run bega
 
 
 @dataclass
-class GuardState:
-    """What the guard keeps across recoveries (saved in checkpoints, except the snapshots)."""
+class Guard:
+    """The guard the training loop calls: its state (saved in checkpoints, except the snapshots)
+    and what it does with it. The loop asks it to `check_step` after each backward, to take a
+    `snapshot` every train.guard.snapshot_every steps, to judge each monitor evaluation
+    (`after_evaluation`) and to `recover`. It reaches the run through the trainer it is given:
+    parameters and gradients, `checkpoint_payload` / `load_payload`, `save`, TensorBoard."""
 
     lr_scale: float = 1.0
     recoveries: list[dict[str, Any]] = field(default_factory=list)
@@ -187,3 +192,74 @@ class GuardState:
         return {"recoveries": list(self.recoveries), "n_recoveries": len(self.recoveries),
                 "lr_scale": self.lr_scale, "peak_gaussians": self.peak_gaussians, "max_gaussians": cap,
                 "peak_memory_mb": self.peak_memory_mb, "monitor": self.monitor}
+
+    # ------------------------------------------------------------------ what the loop calls
+    def check_step(self, trainer, loss: Tensor, step: int) -> Optional[str]:
+        """After the backward of step `step`: what is non-finite (the loss, or the gradient of a
+        named parameter), or None. train.guard.inject_nan_grad_at puts a NaN there first."""
+        params = trainer.model.params
+        if step in trainer.cfg.train.guard.inject_nan_grad_at and ("nan", step) not in self.fired:
+            self.fired.add(("nan", step))
+            if params["means"].grad is not None:
+                params["means"].grad[0, 0] = float("nan")
+        nets = trainer.network_params()
+        if all_finite([loss, *(p.grad for p in params.values()), *(p.grad for _, p in nets)]):
+            return None  # the names below are built only on a failure
+        grads = [("loss", loss)] + [(f"grad of {k}", p.grad) for k, p in params.items()] + \
+            [(f"grad of {k}", p.grad) for k, p in nets]
+        return f"non-finite {first_nonfinite(grads)}"
+
+    def take_snapshot(self, trainer) -> None:
+        """Keep the current state as the last good one (after checking the parameters)."""
+        named = [(f"parameter {k}", p) for k, p in trainer.model.params.items()] + \
+            [(f"parameter of {k}", p) for k, p in trainer.network_params()]
+        if not all_finite(t for _, t in named):
+            self.recover(trainer, f"non-finite {first_nonfinite(named)}")
+        else:
+            self.snapshot = clone_tree(trainer.checkpoint_payload())
+
+    def after_evaluation(self, trainer, psnr: float) -> None:
+        """The divergence detector: a new best is kept (with its state); a drop of more than
+        train.guard.divergence_db below the best restores the best one's state."""
+        gc = trainer.cfg.train.guard
+        if not np.isfinite(psnr):
+            self.recover(trainer, f"non-finite evaluation PSNR ({psnr})")
+        elif self.best is None or psnr > self.best["psnr"]:
+            self.best = {"step": trainer.step, "psnr": float(psnr)}
+            self.best_snapshot = clone_tree(trainer.checkpoint_payload())
+        elif gc.divergence_db > 0 and psnr < self.best["psnr"] - gc.divergence_db:
+            self.recover(trainer, f"divergence: evaluation PSNR {psnr:.2f} dB is more than {gc.divergence_db:g} dB "
+                                  f"below the best, {self.best['psnr']:.2f} dB at step {self.best['step']}", best=True)
+
+    def recover(self, trainer, reason: str, best: bool = False) -> None:
+        """Restore the last good state (the best evaluation's with best=True), lower every lr
+        by train.guard.lr_factor and log it; past train.guard.max_recoveries, save the last good
+        state as the checkpoint and stop (TrainingDiverged)."""
+        gc = trainer.cfg.train.guard
+        detected = trainer.step
+        snap = self.best_snapshot if best and self.best_snapshot is not None else self.snapshot
+        if snap is None:
+            raise TrainingDiverged(f"{reason} at step {detected}, before any good state was kept")
+        seconds, history = trainer.train_seconds, trainer.history  # time spent and evaluations made stay
+        trainer.load_payload(clone_tree(snap), "guard snapshot")
+        trainer.train_seconds, trainer.history = seconds, history
+        if best:
+            self.snapshot = clone_tree(snap)  # later states are not good ones
+        stop = len(self.recoveries) >= gc.max_recoveries
+        if not stop:
+            self.lr_scale *= gc.lr_factor
+        rec = {"step": detected, "restored_to": trainer.step, "reason": reason, "lr_scale": self.lr_scale,
+               "train_seconds": trainer.train_seconds, "stopped": stop}
+        self.recoveries.append(rec)
+        tb = trainer._tb()
+        tb.add_scalar("guard/recoveries", len(self.recoveries), detected)
+        tb.add_scalar("guard/lr_scale", self.lr_scale, detected)
+        if stop:
+            trainer.save()
+            raise TrainingDiverged(
+                f"training stopped at step {detected}: {reason}, after {len(self.recoveries) - 1} recoveries "
+                f"(train.guard.max_recoveries={gc.max_recoveries}). The last good state (iteration {trainer.step}) is "
+                f"saved in {trainer.checkpoint_path}; lower the learning rates (optim.*, baseline.lr_init) or raise "
+                "train.guard.max_recoveries, then run again to resume from it")
+        print(f"[stdr] guard: {reason} at step {detected}; restored iteration {trainer.step}, learning rates x "
+              f"{self.lr_scale:g} (recovery {len(self.recoveries)} of at most {gc.max_recoveries})", flush=True)

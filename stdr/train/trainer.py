@@ -24,8 +24,7 @@ from ..scene.gaussians import scene_extent
 from ..scene.ply import save_ply
 from ..scene.strategy import DensifyStrategy
 from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
-from .guard import (GuardState, TrainingDiverged, all_finite, check_guard_config, clone_tree, first_nonfinite,
-                    monitor_split)
+from .guard import Guard, check_guard_config, monitor_split
 from .schedule import exp_lr
 
 CKPT = "checkpoints/last.pt"
@@ -157,7 +156,7 @@ class Trainer:
         self.profile = Profiler()
         self.history: list[dict[str, Any]] = []
         self.writer = None
-        self.guard = GuardState(peak_gaussians=len(pts), monitor=self.monitor)
+        self.guard = Guard(peak_gaussians=len(pts), monitor=self.monitor)
 
     @property
     def step(self) -> int:
@@ -339,9 +338,9 @@ class Trainer:
         prof.backward(loss)
         if cfg.train.guard.enabled:
             with prof("guard"):
-                bad = self._nonfinite_step(loss, it + 1)
+                bad = self.guard.check_step(self, loss, it + 1)
             if bad is not None:  # nothing is applied: the caller restores the last good state
-                self._zero_grads()
+                self.zero_grads()
                 self.step = it + 1
                 return {"rejected": bad, "loss": float(loss.detach())}
         with prof("optimizer"):
@@ -361,88 +360,19 @@ class Trainer:
                 "psnr": float(psnr(out.image.detach(), frame.image)), "densify": info,
                 "losses": {k: v.item() for k, v in terms.items()}, "out": out, "frame": frame}
 
-    # ----------------------------------------------------------------- the guard (stdr.train.guard)
-    def _net_params(self) -> list[tuple[str, Tensor]]:
+    # ----------------------------------------------------------------- for the guard (stdr.train.guard)
+    def network_params(self) -> list[tuple[str, Tensor]]:
+        """(group name, parameter) of every network the run trains (the deformation's, the plug-ins')."""
         return [(g.get("name", "network"), p) for g in self.net_opt.param_groups for p in g["params"]]
 
-    def _nonfinite_step(self, loss: Tensor, step: int) -> Optional[str]:
-        """After the backward of step `step`: what is non-finite (the loss, or the gradient of a
-        named parameter), or None. train.guard.inject_nan_grad_at puts a NaN there first."""
-        params = self.model.params
-        if step in self.cfg.train.guard.inject_nan_grad_at and ("nan", step) not in self.guard.fired:
-            self.guard.fired.add(("nan", step))
-            if params["means"].grad is not None:
-                params["means"].grad[0, 0] = float("nan")
-        nets = self._net_params()
-        if all_finite([loss, *(p.grad for p in params.values()), *(p.grad for _, p in nets)]):
-            return None  # the names below are built only on a failure
-        grads = [("loss", loss)] + [(f"grad of {k}", p.grad) for k, p in params.items()] + \
-            [(f"grad of {k}", p.grad) for k, p in nets]
-        return f"non-finite {first_nonfinite(grads)}"
-
-    def _zero_grads(self) -> None:
+    def zero_grads(self) -> None:
         for o in self.optimizers.values():
             o.zero_grad(set_to_none=True)
         self.net_opt.zero_grad(set_to_none=True)
 
-    def _nonfinite_params(self) -> Optional[str]:
-        named = [(f"parameter {k}", p) for k, p in self.model.params.items()] + \
-            [(f"parameter of {k}", p) for k, p in self._net_params()]
-        return None if all_finite(t for _, t in named) else f"non-finite {first_nonfinite(named)}"
-
-    def _snapshot(self) -> None:
-        """Keep the current state as the last good one (after checking the parameters)."""
-        bad = self._nonfinite_params()
-        if bad is not None:
-            self._recover(bad)
-        else:
-            self.guard.snapshot = clone_tree(self.checkpoint_payload())
-
-    def _after_evaluation(self, psnr: float) -> None:
-        """The divergence detector: a new best is kept (with its state); a drop of more than
-        train.guard.divergence_db below the best restores the best one's state."""
-        g, gc = self.guard, self.cfg.train.guard
-        if not np.isfinite(psnr):
-            self._recover(f"non-finite evaluation PSNR ({psnr})")
-        elif g.best is None or psnr > g.best["psnr"]:
-            g.best = {"step": self.step, "psnr": float(psnr)}
-            g.best_snapshot = clone_tree(self.checkpoint_payload())
-        elif gc.divergence_db > 0 and psnr < g.best["psnr"] - gc.divergence_db:
-            self._recover(f"divergence: evaluation PSNR {psnr:.2f} dB is more than {gc.divergence_db:g} dB below "
-                          f"the best, {g.best['psnr']:.2f} dB at step {g.best['step']}", best=True)
-
-    def _recover(self, reason: str, best: bool = False) -> None:
-        """Restore the last good state (the best evaluation's with best=True), lower every lr
-        by train.guard.lr_factor and log it; past train.guard.max_recoveries, save the last good
-        state as the checkpoint and stop (TrainingDiverged)."""
-        g, gc = self.guard, self.cfg.train.guard
-        detected = self.step
-        snap = g.best_snapshot if best and g.best_snapshot is not None else g.snapshot
-        if snap is None:
-            raise TrainingDiverged(f"{reason} at step {detected}, before any good state was kept")
-        seconds, history = self.train_seconds, self.history  # time spent and evaluations made stay
-        self.load_payload(clone_tree(snap), "guard snapshot")
-        self.train_seconds, self.history = seconds, history
-        if best:
-            g.snapshot = clone_tree(snap)  # later states are not good ones
-        stop = len(g.recoveries) >= gc.max_recoveries
-        if not stop:
-            g.lr_scale *= gc.lr_factor
-        rec = {"step": detected, "restored_to": self.step, "reason": reason, "lr_scale": g.lr_scale,
-               "train_seconds": self.train_seconds, "stopped": stop}
-        g.recoveries.append(rec)
-        tb = self._tb()
-        tb.add_scalar("guard/recoveries", len(g.recoveries), detected)
-        tb.add_scalar("guard/lr_scale", g.lr_scale, detected)
-        if stop:
-            self.save()
-            raise TrainingDiverged(
-                f"training stopped at step {detected}: {reason}, after {len(g.recoveries) - 1} recoveries "
-                f"(train.guard.max_recoveries={gc.max_recoveries}). The last good state (iteration {self.step}) is "
-                f"saved in {self.run_dir / CKPT}; lower the learning rates (optim.*, baseline.lr_init) or raise "
-                "train.guard.max_recoveries, then run again to resume from it")
-        print(f"[stdr] guard: {reason} at step {detected}; restored iteration {self.step}, learning rates x "
-              f"{g.lr_scale:g} (recovery {len(g.recoveries)} of at most {gc.max_recoveries})", flush=True)
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.run_dir / CKPT
 
     def train(self) -> None:
         cfg = self.cfg
@@ -452,7 +382,7 @@ class Trainer:
             print(f"[stdr] resumed from {ckpt} at iteration {self.step}")
         guard = cfg.train.guard
         if guard.enabled:
-            self._snapshot()
+            self.guard.take_snapshot(self)
         if self.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(self.device)  # guard.peak_memory_mb: this run's peak
         total = cfg.optim.iterations
@@ -468,7 +398,7 @@ class Trainer:
             dt = time.perf_counter() - t0
             self.train_seconds += dt
             if "rejected" in logs:
-                self._recover(logs["rejected"])
+                self.guard.recover(self, logs["rejected"])
                 if bar is not None:
                     bar.n = self.step
                     bar.refresh()
@@ -494,7 +424,7 @@ class Trainer:
                 res = self.evaluate(cfg.data.eval_split, tag="periodic", frames=self.curve_frames(cfg.data.eval_split),
                                     lpips_fn=self._curve_lpips())
             if res is not None and self.monitor is not None:
-                self._after_evaluation(self._monitor_psnr(res))
+                self.guard.after_evaluation(self, self._monitor_psnr(res))
                 if self.step != it:  # recovered: go on from the restored step
                     if bar is not None:
                         bar.n = self.step
@@ -503,7 +433,7 @@ class Trainer:
             if cfg.train.checkpoint_every and it % cfg.train.checkpoint_every == 0 and it < total:
                 self.save()
             if guard.enabled and it % guard.snapshot_every == 0 and it < total:
-                self._snapshot()
+                self.guard.take_snapshot(self)
         if bar is not None:
             bar.close()
         self.guard.note_memory(self.device)
