@@ -31,7 +31,8 @@ site=$("$WORK/venv/bin/python" -c "import sysconfig; print(sysconfig.get_paths()
 "$WORK/venv/bin/python" -m pip install -q --no-deps --no-index "$whl"
 
 cd "$WORK"  # outside the checkout from here on
-export XDG_CACHE_HOME=$WORK/cache STDR_EXT_DIR=$WORK/cache/ext
+export XDG_CACHE_HOME=$WORK/cache  # the scene, LPIPS lookup and compiled kernels all go under it
+unset STDR_EXT_DIR
 unset STDR_LPIPS_WEIGHTS
 "$WORK/venv/bin/python" - <<'EOF'
 import stdr, sys

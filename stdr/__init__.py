@@ -3,6 +3,14 @@
 __version__ = "0.1.0"
 
 
+def user_cache():
+    """stdr's folder in the user cache (a pathlib.Path): $XDG_CACHE_HOME/stdr, default
+    ~/.cache/stdr. Installed copies keep their caches here (data, LPIPS weights, kernels)."""
+    import os
+    from pathlib import Path
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "stdr"
+
+
 def source_checkout():
     """The source checkout this package runs from (a pathlib.Path: pyproject.toml beside the
     package), or None for an installed copy (a wheel in site-packages)."""

@@ -16,7 +16,7 @@ from .data.procedural import SceneOptions
 from .data.stress import StressConfig
 # every baseline's config dataclass lives beside its module (stdr.deform.registry)
 from .deform import BASELINES, BaselineConfig, DeformConfig, HexPlaneConfig, ScgsConfig, SpgsConfig  # noqa: F401
-from .deform.registry import BaselineSpec, add_listener, get_baseline
+from .deform.registry import BaselineSpec, add_listener, discover_baselines, get_baseline
 from .scene.strategy import DensifyStrategy
 from .train.guard import GuardConfig
 
@@ -315,7 +315,6 @@ def register() -> None:
         OmegaConf.register_new_resolver("stdr_experiments", _experiments_resolver)
     if not OmegaConf.has_resolver("stdr_scene_path"):
         OmegaConf.register_new_resolver("stdr_scene_path", _scene_path_resolver)
-    from .deform.registry import discover_baselines
     discover_baselines()  # baselines of other installed distributions (entry points)
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)

@@ -88,7 +88,7 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
 
 
 def apply_overrides(cfg, section: str, overrides) -> None:
-    """Set the keys of `section` (render, stdr) given on the command line (non-null) in a run's
+    """Set the keys of `section` (e.g. render) given on the command line (non-null) in a run's
     config; the run keeps its own value of every other key (e.g. render.antialiased)."""
     if overrides is None:
         return

@@ -1,7 +1,6 @@
 """Build a SceneData from the `data` config."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Iterable
 
@@ -14,20 +13,13 @@ from .types import SceneData
 FORMATS = ("procedural", "dnerf", "nerfies")
 
 
-def project_root() -> Path:
-    return Path(__file__).resolve().parents[2]
-
-
 def cache_base() -> Path:
     """Where relative cache paths of the config (data.cache_dir, data.undistort_cache) live: the
     source checkout when stdr runs from one (pyproject.toml beside the package), else the user
     cache ($XDG_CACHE_HOME/stdr, default ~/.cache/stdr), so an installed wheel never writes into
     site-packages."""
-    from .. import source_checkout
-    root = source_checkout()
-    if root is not None:
-        return root
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "stdr"
+    from .. import source_checkout, user_cache
+    return source_checkout() or user_cache()
 
 
 def resolve_data_path(path: str, base: str | Path | None = None) -> Path:

@@ -58,8 +58,8 @@ def default_search_dirs() -> list[Path]:
     dirs = []
     if os.environ.get("STDR_LPIPS_WEIGHTS"):
         dirs.append(Path(os.environ["STDR_LPIPS_WEIGHTS"]))
-    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    dirs += [cache / "stdr" / "lpips", Path(torch.hub.get_dir()) / "checkpoints"]
+    from .. import user_cache
+    dirs += [user_cache() / "lpips", Path(torch.hub.get_dir()) / "checkpoints"]
     spec = importlib.util.find_spec("lpips")  # the pip package ships the linear heads
     if spec is not None and spec.submodule_search_locations:
         dirs.append(Path(list(spec.submodule_search_locations)[0]) / "weights" / "v0.1")

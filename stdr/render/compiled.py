@@ -44,9 +44,11 @@ class BuildError(RuntimeError):
 
 
 def cache_root() -> Path:
-    """Where compiled extensions live: $STDR_EXT_DIR, else ~/.cache/stdr/extensions."""
+    """Where compiled extensions live: $STDR_EXT_DIR, else the user cache's extensions folder
+    (~/.cache/stdr/extensions; $XDG_CACHE_HOME moves it)."""
+    from .. import user_cache
     env = os.environ.get("STDR_EXT_DIR")
-    return Path(env) if env else Path.home() / ".cache" / "stdr" / "extensions"
+    return Path(env) if env else user_cache() / "extensions"
 
 
 def _cpu_id() -> str:
