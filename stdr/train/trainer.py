@@ -260,7 +260,7 @@ class Trainer:
 
     def save(self) -> None:
         """checkpoints/last.pt (atomic, checksummed; the one it replaces is kept as last.previous.pt)."""
-        save_checkpoint(self.run_dir / CKPT, self.checkpoint_payload(), keep_previous=True)
+        save_checkpoint(self.checkpoint_path, self.checkpoint_payload(), keep_previous=True)
 
     def load(self, path: str | Path) -> None:
         """Resume: the model, the optimizers, the strategy, the sampler, every RNG and the guard."""
@@ -376,7 +376,7 @@ class Trainer:
 
     def train(self) -> None:
         cfg = self.cfg
-        ckpt = self.run_dir / CKPT
+        ckpt = self.checkpoint_path
         if cfg.train.resume and ckpt.is_file():
             self.load(ckpt)
             print(f"[stdr] resumed from {ckpt} at iteration {self.step}")
