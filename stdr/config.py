@@ -16,7 +16,8 @@ from .data.procedural import SceneOptions
 from .data.stress import StressConfig
 # every baseline's config dataclass lives beside its module (stdr.deform.registry)
 from .deform import BASELINES, BaselineConfig, DeformConfig, HexPlaneConfig, ScgsConfig, SpgsConfig  # noqa: F401
-from .deform.registry import BaselineSpec, add_listener, discover_baselines, get_baseline
+from .deform.registry import add_listener, discover_baselines, get_baseline
+from .plugins import PLUGINS, add_listener as add_plugin_listener, registered_plugins
 from .scene.strategy import DensifyStrategy
 from .train.guard import GuardConfig
 
@@ -62,55 +63,6 @@ class ModelConfig:
 
 
 @dataclass
-class StdrConfig:
-    """STDR plug-in (docs/stdr.md: what the paper says, what is chosen here, and why)."""
-
-    enabled: bool = False
-    # ablation switches
-    mask: bool = True             # false: no mask (the field, if on, gets a uniform p)
-    temporal_reg: bool = True
-    spatial_reg: bool = True
-    separated_field: bool = True
-    # the mask
-    time_bins: int = 0            # 0: one column per distinct training time; else K evenly spaced bins
-    mask_init: Optional[float] = 2.0  # initial logit; null: sigmoid(o) * sigmoid(m) = model.init_opacity
-    opacity_init: Optional[float] = None  # opacity held during the warm-up; null: model.init_opacity
-    mask_lr: float = 0.05         # Adam lr of the mask logits (that of opacity logits)
-    mask_after_freeze: bool = True  # the frozen sigmoid mask keeps modulating opacity
-    prune_by_mask: bool = True    # prune on sigmoid(o) * max_t mask, the opacity a Gaussian reaches
-    freeze_cleanup: float = 0.0   # at the freeze, switch off mask entries with sigmoid(o) * mask below this
-    # phases: static_warmup = the baseline's static warm-up (baseline.warmup) and twice it;
-    # fraction = warmup_fraction / freeze_fraction of optim.iterations. Explicit steps win.
-    phase_rule: str = "static_warmup"
-    warmup_fraction: float = 0.075  # the paper's 3000 / 40000
-    freeze_fraction: float = 0.15   # the paper's 6000 / 40000
-    warmup_end: Optional[int] = None
-    freeze_at: Optional[int] = None
-    # true: the paper's text, opacity frozen in the warm-up. false (default): opacity trains with
-    # the mask; on the val split it gained +0.83 dB over true (docs/notes/2026-11-24-stdr-measurements.md, fidelity study, candidate 5)
-    freeze_opacity: bool = False
-    # regularizers
-    lambda_temp: float = 0.1      # x L_temp = sum (or mean) over i, t of (mask_t - mask_{t+1})^2
-    temporal_reduction: str = "mean"  # sum: the paper's formula; mean: divided by N(K-1)
-    lambda_spatial: float = 0.2   # x mean KL(p_i || p_j) over sampled Gaussians and their KNN
-    knn_samples: int = 1000
-    knn_candidates: int = 20000
-    knn_k: int = 5
-    knn_every: int = 100          # resample queries and recompute neighbours (and after densification)
-    # separated deformation field
-    field_width: int = 64
-    temporal_dim: int = 16
-    dropout: float = 0.1
-    field_pe_xyz: bool = False    # also feed PE(x) (baseline.xyz_freqs) to the field
-    # the field's own lr schedule: null follows the deformation network's (baseline.lr_*); a value
-    # starts at the freeze (where the field starts training) and decays log-linearly to
-    # field_lr_final (null: constant) at the end of the run
-    field_lr_init: Optional[float] = None
-    field_lr_final: Optional[float] = None
-    scale_deltas_by_dynamic: bool = False  # multiply the deformation deltas by the dynamic probability
-
-
-@dataclass
 class OptimConfig:
     iterations: int = 40_000
     lambda_dssim: float = 0.2
@@ -133,7 +85,7 @@ class RenderConfig:
     antialiased: bool = False
     eps2d: float = 0.3
     near: float = 0.01
-    # temporal culling (docs/stdr.md §6): rows whose opacity at time t (sigmoid(o) x STDR's mask)
+    # temporal culling (docs/stdr.md §6): rows whose opacity at time t (sigmoid(o) x the plug-ins' opacity factors)
     # is below 1/255 skip the deformation, projection and rasterizer; the image is unchanged.
     # off | eval (evaluation, FPS and every render outside training) | train (training too;
     # needs densify.count_invisible=false, since a culled row is not seen by densification)
@@ -189,7 +141,6 @@ class Config:
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     densify: DensifyStrategy = field(default_factory=DensifyStrategy)  # the strategy is its own schema
-    stdr: StdrConfig = field(default_factory=StdrConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -197,15 +148,23 @@ class Config:
     # (stdr.schedule.resolve_schedule); shown by `stdr-train --cfg job` and kept in config.yaml.
     # Setting it changes nothing: the model recomputes it from the keys.
     schedule: Dict[str, Any] = field(default_factory=lambda: "${stdr_schedule:}")
+    # + one node per registered plug-in, `<name>: <its config dataclass>` (root_schema)
 
 
-def _overrides_of(cls, name: str, doc: str):
-    """A dataclass with the fields of `cls`, each Optional and None by default: the keys a
-    command changes in a saved config, the others keeping the config's own values."""
+#: the config's own sections and the groups of stdr-train: names a plug-in may not take
+RESERVED_KEYS = frozenset({f for f in Config.__dataclass_fields__} | {
+    "experiment", "experiment_data", "budget_baseline", "stress", "sweep", "hydra", "defaults", "runs",
+    "split", "out", "reevaluate", "remeasure", "base_config", "base_eval"})
+
+
+def _overrides_of(cls, name: str, doc: str, skip=()):
+    """A dataclass with the fields of `cls` (but `skip`), each Optional and None by default: the
+    keys a command changes in a saved config, the others keeping the config's own values."""
     import dataclasses
     import typing
     hints = typing.get_type_hints(cls)
-    out = dataclasses.make_dataclass(name, [(f.name, Optional[hints[f.name]], None) for f in dataclasses.fields(cls)])
+    out = dataclasses.make_dataclass(name, [(f.name, Optional[hints[f.name]], None) for f in dataclasses.fields(cls)
+                                            if f.name not in skip])
     out.__doc__ = doc
     return out
 
@@ -233,6 +192,42 @@ class EvalAppConfig:
     remeasure: Optional[str] = None
 
 
+_ROOTS: dict[tuple, tuple[type, type]] = {}
+
+
+def _schemas() -> tuple[type, type]:
+    """(run config, stdr-eval config) with one typed node per registered plug-in: `<name>` (its
+    config dataclass) in the run's, `<name>` (the same keys, null = the run's own; `enabled`
+    excluded) in stdr-eval's. Rebuilt when the plug-ins change."""
+    import dataclasses
+    specs = registered_plugins()
+    key = tuple((s.name, s.config) for s in specs)
+    if key not in _ROOTS:
+        run = dataclasses.make_dataclass(
+            "RunConfig", [(s.name, s.config, field(default_factory=s.config)) for s in specs], bases=(Config,))
+        run.__doc__ = Config.__doc__
+        over = []
+        for s in specs:
+            o = _overrides_of(s.config, f"{s.config.__name__}Overrides",
+                              f"stdr-eval: {s.name} keys to change in each run's config (null = the run's own).",
+                              skip=("enabled",))
+            over.append((s.name, o, field(default_factory=o)))
+        ev = dataclasses.make_dataclass("EvalRunsConfig", over, bases=(EvalAppConfig,))
+        ev.__doc__ = EvalAppConfig.__doc__
+        _ROOTS[key] = (run, ev)
+    return _ROOTS[key]
+
+
+def root_schema() -> type:
+    """The run config's schema: Config plus a node per registered plug-in."""
+    return _schemas()[0]
+
+
+def eval_schema() -> type:
+    """stdr-eval's schema: EvalAppConfig plus each plug-in's evaluation-time overrides."""
+    return _schemas()[1]
+
+
 def _schedule_resolver(*, _root_) -> dict:
     from .schedule import resolve_schedule
     return resolve_schedule(_root_).as_dict()
@@ -248,18 +243,21 @@ def _experiment_files() -> set[str]:
 
 
 def derived_experiments(name: str) -> dict[str, dict]:
-    """The experiments baseline `name` gets: `<data>_<name>` and `<data>_<name>_stdr` for every
-    data option, each selecting data, baseline and stdr, plus what every experiment on that
-    data adds (stdr/configs/experiment_data/<data>.yaml, optional: e.g. init from the capture's
-    points). A YAML file stdr/configs/experiment/<same name>.yaml, when present, is used instead."""
+    """The experiments baseline `name` gets, for every data option: `<data>_<name>` (every
+    plug-in off) and `<data>_<name>_<plug-in>` for each registered plug-in (that one on), each
+    selecting data, baseline and plug-ins, plus what every experiment on that data adds
+    (stdr/configs/experiment_data/<data>.yaml, optional: e.g. init from the capture's points).
+    A YAML file stdr/configs/experiment/<same name>.yaml, when present, is used instead."""
     files = _experiment_files()
+    plugins = [s.name for s in registered_plugins()]
     out = {}
     for d in data_options():
-        for suffix, stdr in (("", "off"), ("_stdr", "on")):
-            exp = f"{d}_{name}{suffix}"
+        for on in (None, *plugins):
+            exp = f"{d}_{name}" + (f"_{on}" if on else "")
             if exp not in files:
                 out[exp] = {"defaults": [{"optional /experiment_data": d}, {"override /data": d},
-                                         {"override /baseline": name}, {"override /stdr": stdr}],
+                                         {"override /baseline": name},
+                                         *({f"override /{p}": "on" if p == on else "off"} for p in plugins)],
                             "name": exp}
     return out
 
@@ -269,30 +267,59 @@ def experiment_names() -> list[str]:
     return sorted(_experiment_files() | {e for b in BASELINES for e in derived_experiments(b)})
 
 
-def _sync_baseline(spec: BaselineSpec, added: bool) -> None:
-    """Keep Hydra's ConfigStore in step with the registry: the option baseline=<name> (the
-    registered dataclass: typed defaults) and its derived experiments."""
+_STORED: dict[str, set[str]] = {"baseline": set(), "experiment": set(), "plugin": set()}
+
+
+def _sync_store(*_) -> None:
+    """Keep Hydra's ConfigStore in step with the registries of baselines and plug-ins: the
+    schemas (base_config with a default `<plug-in>: off` for each plug-in, base_eval), the
+    options baseline=<name> (the registered dataclass: typed defaults) and <plug-in>=on|off, and
+    the derived experiments. Called on every (un)registration."""
     cs = ConfigStore.instance()
-    if added:
+    run, ev = _schemas()
+    import dataclasses
+    plugins = [s.name for s in registered_plugins()]
+    # the plug-ins' groups are selected by this defaults list (after the schema's own values)
+    stored = dataclasses.make_dataclass("BaseConfig", [("defaults", List[Any], field(
+        default_factory=lambda: ["_self_", *({p: "off"} for p in plugins)]))], bases=(run,))
+    cs.store(name="base_config", node=stored)
+    cs.store(name="base_eval", node=ev)
+    for group in _STORED["plugin"] - set(plugins):
+        cs.repo.pop(group, None)
+    for p in plugins:
+        cs.store(group=p, name="on", node={"enabled": True})
+        cs.store(group=p, name="off", node={"enabled": False})
+    _STORED["plugin"] = set(plugins)
+    for b in _STORED["baseline"] - set(BASELINES):
+        cs.repo.get("baseline", {}).pop(f"{b}.yaml", None)
+    for spec in BASELINES.values():
         cs.store(group="baseline", name=spec.name, node=spec.config)
-        for exp, node in derived_experiments(spec.name).items():
-            cs.store(group="experiment", name=exp, node=node, package="_global_")
-    else:
-        cs.repo.get("baseline", {}).pop(f"{spec.name}.yaml", None)
-        for exp in derived_experiments(spec.name):
-            cs.repo.get("experiment", {}).pop(f"{exp}.yaml", None)
+    _STORED["baseline"] = set(BASELINES)
+    exps = {}
+    for b in BASELINES:
+        exps.update(derived_experiments(b))
+    for e in _STORED["experiment"] - set(exps):
+        cs.repo.get("experiment", {}).pop(f"{e}.yaml", None)
+    for e, node in exps.items():
+        cs.store(group="experiment", name=e, node=node, package="_global_")
+    _STORED["experiment"] = set(exps)
 
 
 def _experiments_resolver(data: str, *which: str) -> str:
     """`${stdr_experiments:dnerf}`: every experiment on data option `data` (each registered
-    baseline, plain and +STDR) as a comma-separated sweep list; `${stdr_experiments:dnerf,stdr}`
-    (or `plain`) only those."""
-    names = [e for b in sorted(BASELINES) for e in (f"{data}_{b}", f"{data}_{b}_stdr")]
-    if "stdr" in which:
-        names = [n for n in names if n.endswith("_stdr")]
-    elif "plain" in which:
-        names = [n for n in names if not n.endswith("_stdr")]
-    return ",".join(names)
+    baseline, plain and with each plug-in) as a comma-separated sweep list;
+    `${stdr_experiments:dnerf,<plug-in>}` (or `plain`) only those."""
+    plugins = [s.name for s in registered_plugins()]
+    for w in which:
+        if w != "plain" and w not in plugins:
+            raise ValueError(f"stdr_experiments:{data},{w}: {w!r} is neither 'plain' nor a registered plug-in "
+                             f"({plugins})")
+    out = []
+    for b in sorted(BASELINES):
+        for on in (None, *plugins):
+            if not which or (on is None and "plain" in which) or on in which:
+                out.append(f"{data}_{b}" + (f"_{on}" if on else ""))
+    return ",".join(out)
 
 
 def _scene_path_resolver(root, name) -> str:
@@ -307,7 +334,7 @@ def _scene_path_resolver(root, name) -> str:
 
 
 def register() -> None:
-    """Register the structured configs, every baseline (and the ones registered later) and the
+    """Register the structured configs, every baseline and plug-in (and the ones registered later) and the
     `stdr_schedule` / `stdr_experiments` resolvers with Hydra. Idempotent; the entry points call it."""
     if not OmegaConf.has_resolver("stdr_schedule"):
         OmegaConf.register_new_resolver("stdr_schedule", _schedule_resolver)
@@ -316,19 +343,15 @@ def register() -> None:
     if not OmegaConf.has_resolver("stdr_scene_path"):
         OmegaConf.register_new_resolver("stdr_scene_path", _scene_path_resolver)
     discover_baselines()  # baselines of other installed distributions (entry points)
-    cs = ConfigStore.instance()
-    cs.store(name="base_config", node=Config)
-    cs.store(name="base_eval", node=EvalAppConfig)
-    for spec in BASELINES.values():
-        _sync_baseline(spec, True)
-    add_listener(_sync_baseline)
+    registered_plugins()  # built-in plug-ins and those of other distributions
+    _sync_store()
+    add_listener(_sync_store)
+    add_plugin_listener(_sync_store)
 
 
 # keys of other baselines that configs written before per-baseline config classes carried under
 # `baseline` (every run had baseline.scgs, .spgs and .hexplane); dropped when such a config is read
 _LEGACY_BASELINE_KEYS = ("scgs", "spgs", "hexplane")
-# STDR keys of earlier code that no longer exist; configs that carry them still load
-_REMOVED_STDR_KEYS = ("static_skip",)
 
 
 def load_config(raw: Any, where: str = "config"):
@@ -349,9 +372,16 @@ def load_config(raw: Any, where: str = "config"):
         if k in b and k not in fields:
             del b[k]
     raw["baseline"] = b
-    if isinstance(raw.get("stdr"), dict):  # a render-time key removed on 2026-11-26 (docs/stdr.md)
-        raw["stdr"] = {k: v for k, v in raw["stdr"].items() if k not in _REMOVED_STDR_KEYS}
-    schema = OmegaConf.merge(OmegaConf.structured(Config), {"baseline": OmegaConf.structured(spec.config)})
+    root = root_schema()
+    for p in registered_plugins():  # keys a plug-in's earlier versions wrote
+        if isinstance(raw.get(p.name), dict) and p.plugin.removed_keys:
+            raw[p.name] = {k: v for k, v in raw[p.name].items() if k not in p.plugin.removed_keys}
+    unknown = sorted(set(raw) - set(root.__dataclass_fields__))
+    if unknown:
+        raise ValueError(f"{where}: unknown config section(s) {unknown}: a plug-in's keys need the plug-in registered "
+                         f"(registered: {sorted(PLUGINS)}; stdr.plugins.register_plugin, or an installed package "
+                         "with a 'stdr.plugins' entry point)")
+    schema = OmegaConf.merge(OmegaConf.structured(root), {"baseline": OmegaConf.structured(spec.config)})
     try:
         return OmegaConf.merge(schema, raw)
     except Exception as e:  # omegaconf's errors name the key; say which file

@@ -9,12 +9,12 @@ optimized (optimizers, learning rates, densification and the loop live in `stdr.
 Its checkpoint entry holds the resolved config, the training times and the background, so it
 rebuilds without the training data. What a render does depends on the iteration the model was
 trained to (`model.step`): before the baseline's static warm-up ends the Gaussians are not
-deformed, the SH degree grows with the step, and plug-ins have phases (STDR's freeze).
+deformed, the SH degree grows with the step, and plug-ins have phases (stdr.plugins).
 """
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Optional
 
 import numpy as np
 import torch
@@ -41,38 +41,12 @@ def active_rows(opacities: Tensor) -> Tensor:
     return torch.nonzero(opacities >= ALPHA_MIN).squeeze(1)
 
 
-PluginFactory = Callable[[Any, Schedule, Optional[np.ndarray], torch.device], Optional[Plugin]]
-
-
-def _stdr(cfg, schedule: Schedule, train_times: Optional[np.ndarray], device: torch.device) -> Optional[Plugin]:
-    """STDR when stdr.enabled; its phases come from the schedule, its time knots from the
-    training times."""
-    if not cfg.stdr.enabled:
-        return None
-    from .decouple import STDR
-    knots = STDR.knots_for(cfg.stdr, train_times) if train_times is not None else None
-    return STDR(cfg.stdr, schedule, knots, xyz_freqs=cfg.baseline.xyz_freqs, seed=cfg.seed,
-                init_opacity=cfg.model.init_opacity, device=device)
-
-
-#: factories asked in order for each model: factory(cfg, schedule, train_times, device) -> a plug-in
-#: or None (off)
-PLUGIN_FACTORIES: list[PluginFactory] = [_stdr]
-
-
-def register_plugin(factory: PluginFactory) -> PluginFactory:
-    """Add a plug-in factory (after the built-in ones); returns it, so it can decorate."""
-    PLUGIN_FACTORIES.append(factory)
-    return factory
-
-
 def build_plugins(cfg, schedule: Schedule, train_times: Optional[np.ndarray], device: torch.device) -> list[Plugin]:
-    """The plug-ins the config switches on, in factory order. Names must be unique."""
-    plugins = [p for f in PLUGIN_FACTORIES if (p := f(cfg, schedule, train_times, device)) is not None]
-    names = [p.name for p in plugins]
-    if len(set(names)) != len(names):
-        raise ValueError(f"two plug-ins share a name: {names}")
-    return plugins
+    """The registered plug-ins the config switches on (`<name>.enabled`), in registration order,
+    each built by its `from_config`."""
+    from .plugins import enabled_plugins, plugin_node
+    return [s.plugin.from_config(plugin_node(cfg, s.name), cfg, schedule, train_times, device)
+            for s in enabled_plugins(cfg)]
 
 
 def initial_points(model_cfg, scene_points: Optional[np.ndarray], scene_colors: Optional[np.ndarray],
@@ -96,7 +70,7 @@ def initial_points(model_cfg, scene_points: Optional[np.ndarray], scene_colors: 
 
 
 class DynamicGaussians:
-    """Per-Gaussian parameters (one dict, STDR's mask included), the deformation module and the
+    """Per-Gaussian parameters (one dict, plug-ins' tensors included), the deformation module and the
     plug-ins. Renders `deformed(t)` and saves / loads / moves itself."""
 
     def __init__(self, cfg, schedule: Schedule, params: torch.nn.ParameterDict, deform, plugins: list[Plugin],
@@ -168,7 +142,7 @@ class DynamicGaussians:
         """(Gaussians at time t, rows [M] they are of the model, or None for all).
 
         cull: temporal culling. Rows whose opacity at t, sigmoid(o) times the plug-ins' factors
-        (STDR's mask), is below 1/255 cannot change a pixel or get a gradient from the render
+        (a plug-in's opacity factor), is below 1/255 cannot change a pixel or get a gradient from the render
         (the rasterizer's cut-off), so they skip the deformation network, the projection and
         the rasterizer. The image equals the unculled one; the culled rows get zero gradient,
         as they do without culling. Parts a baseline shares between Gaussians (SC-GS's node
@@ -283,7 +257,7 @@ class DynamicGaussians:
         have, want = sorted(p.name for p in self.plugins), sorted(s.get("plugins", {}))
         if have != want:
             raise ValueError(f"{where}: saved with plug-ins {want or 'none'} but this model has {have or 'none'} "
-                             "(e.g. stdr.enabled differs); use the run's own config.yaml")
+                             "(e.g. a plug-in's `enabled` differs); use the run's own config.yaml")
         self.params.clear()
         for k, v in s["params"].items():
             self.params[k] = torch.nn.Parameter(v.to(self.device))
@@ -355,12 +329,14 @@ def model_from_checkpoint(ck: dict[str, Any], device: str | torch.device = "auto
                           train_times: Optional[np.ndarray] = None, path: str = "checkpoint") -> DynamicGaussians:
     """`load_model` of an already loaded checkpoint dict."""
     from .config import load_config
+    from .plugins import registered_plugins
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
     if has_model_entry(ck):
         s = ck["model"]
     elif "params" in ck and cfg is not None and train_times is not None:  # format 1: a trainer payload
         s = {"step": ck["step"], "params": ck["params"], "deform": ck["deform"],
-             "plugins": {} if ck.get("stdr") is None else {"stdr": ck["stdr"]}, "train_times": None,
+             # format 1 kept each plug-in's state at the top, under its name
+             "plugins": {p.name: ck[p.name] for p in registered_plugins() if ck.get(p.name) is not None}, "train_times": None,
              "background": None}
     else:
         s = model_entry(ck, str(path))

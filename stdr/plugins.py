@@ -7,8 +7,13 @@ and its own say in the densification's opacity reset and pruning. The model and 
 loop call the hooks below on every plug-in in order; every default does nothing, so a plug-in
 implements only what it changes.
 
-A plug-in's phase boundaries come from the run's one schedule (stdr.schedule), which its
-factory receives with the config.
+A plug-in is registered like a baseline (`register_plugin`, below): its config dataclass
+becomes the typed node `cfg.<name>` with the options `<name>=on|off`, every baseline gets the
+experiments `<data>_<baseline>_<name>`, its phase boundaries join the run's one schedule
+(`Plugin.stages`), its label follows the baseline's name in tables and charts, and `stdr-eval`
+accepts `<name>.<key>=...` to change a run's plug-in keys at evaluation time. The built-in
+plug-ins register on first use of the registry; other distributions add theirs through the
+entry-point group `stdr.plugins` (docs/extending.md).
 
 Several plug-ins combine as follows: their conditionings are concatenated in order (the
 deformation network is built for the sum of their `cond_dim`), delta scales and opacity factors
@@ -17,8 +22,12 @@ multiply, loss terms are summed (logged as `loss/<plug-in>_<term>`), and the fir
 """
 from __future__ import annotations
 
-from typing import Any, Optional
+import dataclasses
+import re
+from dataclasses import dataclass
+from typing import Any, Callable, Optional
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -27,6 +36,30 @@ class Plugin:
     """Base class; `name` labels the plug-in's state in checkpoints, metrics.json and logs."""
 
     name: str = "plugin"
+    #: keys that earlier versions wrote under the plug-in's config node; a saved config that
+    #: carries them still loads (they are dropped)
+    removed_keys: tuple[str, ...] = ()
+
+    # ---------------------------------------------------------------- registration
+    @classmethod
+    def from_config(cls, pcfg, cfg, schedule, train_times: Optional[np.ndarray], device: torch.device) -> "Plugin":
+        """The plug-in of a run: `pcfg` is its config node (cfg.<name>, enabled), `cfg` the whole
+        config, `schedule` the run's (its values in schedule.plugins[name]), `train_times` the
+        training times (None when a bare model is built), `device` where its tensors live."""
+        raise NotImplementedError(f"{cls.__name__}.from_config")
+
+    @classmethod
+    def stages(cls, pcfg, cfg, schedule) -> dict[str, Any]:
+        """The plug-in's phase boundaries in the run's schedule: add Events (schedule.events) and
+        notes, call schedule.never_trains(msg) for a phase at or after the end, and return the
+        resolved values (kept in schedule.plugins[name], shown in the derived `schedule` node)."""
+        return {}
+
+    @classmethod
+    def row_tags(cls, pcfg: dict) -> list[str]:
+        """Tags after the plug-in's label in table rows, for switches that differ from the
+        default (e.g. 'w/o spatial_reg'), so ablation rows never merge. `pcfg` is a plain dict."""
+        return []
 
     # ---------------------------------------------------------------- construction
     @property
@@ -94,3 +127,135 @@ class Plugin:
     def stats(self, params) -> dict[str, Any]:
         """Numbers for metrics.json, under the plug-in's name."""
         return {}
+
+
+# ==================================================================== the registry
+@dataclass(frozen=True)
+class PluginSpec:
+    name: str      # config node and group (cfg.<name>, <name>=on|off), experiments <data>_<baseline>_<name>
+    plugin: type   # a Plugin subclass whose `name` is `name`
+    config: type   # a dataclass with `enabled: bool = False`
+    label: str     # after the baseline's name in tables and charts (e.g. "+STDR")
+
+
+PLUGINS: dict[str, PluginSpec] = {}
+# called with (spec, added) on every (un)registration; stdr.config.register() adds the one that
+# keeps Hydra's ConfigStore in step
+_LISTENERS: list[Callable[[PluginSpec, bool], None]] = []
+#: modules whose import registers the plug-ins that ship with stdr
+BUILTIN = ("stdr.decouple",)
+#: entry-point group through which another distribution adds plug-ins (stdr.entry_points)
+ENTRY_POINT_GROUP = "stdr.plugins"
+_discovered = False
+
+
+def add_listener(fn: Callable[[PluginSpec, bool], None]) -> None:
+    if fn not in _LISTENERS:
+        _LISTENERS.append(fn)
+
+
+def register_plugin(name: str, plugin: type, config: type, label: Optional[str] = None) -> PluginSpec:
+    """Add a plug-in: `plugin` a Plugin subclass with `name = name` that implements
+    `from_config`; `config` a dataclass whose `enabled` defaults to False (its other fields are
+    the plug-in's typed keys, `<name>.<key>`); `label` (default '+<name>') follows the baseline's
+    name in table rows and chart legends."""
+    from .config import RESERVED_KEYS
+    discover_plugins()  # the built-in and installed ones first, so a clash is seen either way
+    if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
+        raise ValueError(f"register_plugin({name!r}): the name must be lower-case letters, digits and '_' "
+                         "(it is a config key and an experiment suffix)")
+    if name in RESERVED_KEYS:
+        raise ValueError(f"register_plugin({name!r}): {name!r} is a config section of its own; choose another name")
+    if not (isinstance(plugin, type) and issubclass(plugin, Plugin)):
+        raise TypeError(f"register_plugin({name!r}): plugin must be a Plugin subclass, got {plugin!r}")
+    if plugin.from_config.__func__ is Plugin.from_config.__func__:
+        raise TypeError(f"register_plugin({name!r}): {plugin.__name__} must implement the classmethod from_config")
+    if plugin.name != name:
+        raise ValueError(f"register_plugin({name!r}): {plugin.__name__}.name is {plugin.name!r}; set `name = {name!r}`")
+    if not dataclasses.is_dataclass(config) or "enabled" not in {f.name for f in dataclasses.fields(config)} \
+            or config().enabled is not False:
+        raise TypeError(f"register_plugin({name!r}): config must be a dataclass with `enabled: bool = False`, "
+                        f"got {config!r}")
+    if name in PLUGINS and PLUGINS[name].plugin is not plugin:
+        raise ValueError(f"plug-in {name!r} is already registered (by {PLUGINS[name].plugin.__name__})")
+    spec = PluginSpec(name, plugin, config, label if label is not None else f"+{name}")
+    PLUGINS[name] = spec
+    for fn in _LISTENERS:
+        fn(spec, True)
+    return spec
+
+
+def unregister_plugin(name: str) -> None:
+    """Remove a plug-in and its Hydra options (for tests that register a temporary one)."""
+    spec = PLUGINS.pop(name, None)
+    if spec is not None:
+        for fn in _LISTENERS:
+            fn(spec, False)
+
+
+def discover_plugins() -> list[str]:
+    """Register the built-in plug-ins and those that installed distributions provide through
+    ENTRY_POINT_GROUP (once per process). Returns the names added."""
+    global _discovered
+    if _discovered:
+        return []
+    _discovered = True
+    import importlib
+    before = set(PLUGINS)
+    for mod in BUILTIN:
+        importlib.import_module(mod)
+    from .entry_points import load_group
+    load_group(ENTRY_POINT_GROUP, lambda: PLUGINS, "stdr.plugins.register_plugin")
+    return sorted(set(PLUGINS) - before)
+
+
+def registered_plugins() -> list[PluginSpec]:
+    """Every registered plug-in, in registration order (built-in ones first)."""
+    discover_plugins()
+    return list(PLUGINS.values())
+
+
+def get_plugin(name: str) -> PluginSpec:
+    discover_plugins()
+    if name not in PLUGINS:
+        raise ValueError(f"{name!r} is not a registered plug-in; choose one of {sorted(PLUGINS)} "
+                         "(stdr.plugins.register_plugin adds one)")
+    return PLUGINS[name]
+
+
+def plugin_node(cfg, name: str):
+    """cfg.<name> of a config (DictConfig, dataclass or plain dict), or None."""
+    return cfg.get(name) if isinstance(cfg, dict) else getattr(cfg, name, None)
+
+
+def enabled_plugins(cfg) -> list[PluginSpec]:
+    """The registered plug-ins a config switches on (`<name>.enabled`), in registration order."""
+    out = []
+    for spec in registered_plugins():
+        node = plugin_node(cfg, spec.name)
+        if node is not None and bool(node.get("enabled") if isinstance(node, dict) else node.enabled):
+            out.append(spec)
+    return out
+
+
+def method_suffix(cfg: dict) -> str:
+    """What follows the baseline's name in a row label: each enabled plug-in's label and its
+    row tags (e.g. '+STDR w/o spatial_reg'). `cfg` is a run's config as a plain dict; a plug-in
+    node of a plug-in not registered in this process is labelled '+<name>'."""
+    out = ""
+    known = {s.name: s for s in registered_plugins()}
+    for key, node in cfg.items():
+        if not (isinstance(node, dict) and node.get("enabled") is True):
+            continue
+        spec = known.get(key)
+        if spec is None:
+            from .config import RESERVED_KEYS
+            if key in RESERVED_KEYS:
+                continue
+            out += f"+{key}"
+            continue
+        out += spec.label
+        tags = spec.plugin.row_tags(node)
+        if tags:
+            out += " " + ", ".join(tags)
+    return out

@@ -1,6 +1,7 @@
-"""A baseline from another distribution: a throw-away package with a `stdr.baselines` entry
-point, on the path of a fresh process, trains through stdr-train, shows in stdr-eval's table and
-reloads from its checkpoint, with no edit to stdr."""
+"""A baseline and a plug-in from another distribution: a throw-away package with
+`stdr.baselines` and `stdr.plugins` entry points, on the path of a fresh process, trains through
+stdr-train (the plug-in beside STDR), shows in stdr-eval's table and reloads from its checkpoint,
+with no edit to stdr."""
 import json
 import os
 import subprocess
@@ -50,16 +51,49 @@ class Wobble(Deformation):
 
 def register():
     register_baseline("wobble", Wobble, WobbleConfig)
+
+
+from stdr.plugins import Plugin, register_plugin
+
+
+@dataclass
+class GlowConfig:
+    enabled: bool = False
+    weight: float = 0.5
+
+
+class Glow(Plugin):
+    """A loss term pulling every Gaussian's opacity logit up, weighted by `glow.weight`."""
+
+    name = "glow"
+
+    def __init__(self, weight):
+        self.weight = weight
+
+    @classmethod
+    def from_config(cls, pcfg, cfg, schedule, train_times, device):
+        return cls(pcfg.weight)
+
+    def regularizers(self, params, step):
+        return {"pull": -self.weight * params["opacities"].mean()}
+
+    def stats(self, params):
+        return {"weight": self.weight}
+
+
+def register_glow():
+    register_plugin("glow", Glow, GlowConfig, label="+glow")
 '''
 
 
-def _distribution(root: Path, entry: str) -> None:
+def _distribution(root: Path, entry: str, plugin_entry: str = "stdr_wobble:register_glow") -> None:
     (root / "stdr_wobble").mkdir(parents=True)
     (root / "stdr_wobble" / "__init__.py").write_text(TOY)
     info = root / "stdr_wobble-0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: stdr-wobble\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text(f"[stdr.baselines]\nwobble = {entry}\n")
+    (info / "entry_points.txt").write_text(f"[stdr.baselines]\nwobble = {entry}\n\n"
+                                           f"[stdr.plugins]\nglow = {plugin_entry}\n")
 
 
 def _run(args, env):
@@ -67,7 +101,7 @@ def _run(args, env):
 
 
 @pytest.mark.slow
-def test_a_baseline_from_another_distribution_trains_tabulates_and_reloads(tmp_path):
+def test_a_baseline_and_a_plugin_from_another_distribution_train_tabulate_and_reload(tmp_path):
     _distribution(tmp_path / "site", "stdr_wobble:register")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), str(ROOT)])}
     run = tmp_path / "run"
@@ -75,19 +109,20 @@ def test_a_baseline_from_another_distribution_trains_tabulates_and_reloads(tmp_p
             "data.procedural.n_test=4", f"data.cache_dir={tmp_path / 'cache'}", "device=cpu", "model.init_num=1500",
             "eval.lpips=false", "train.progress=false", "eval.save_images=false", "train.image_every=0"]
     p = _run(["-m", "stdr.cli.train", "experiment=embedded_wobble_stdr", "optim.iterations=60", "stdr.warmup_end=10",
-              "stdr.freeze_at=20", "baseline.wobble.amplitude=0.02", *tiny, f"hydra.run.dir={run}"], env)
+              "stdr.freeze_at=20", "baseline.wobble.amplitude=0.02", "glow=on", "glow.weight=0.25", *tiny, f"hydra.run.dir={run}"], env)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     m = json.loads((run / "metrics.json").read_text())["test"]
-    assert m["psnr"] > 5
+    assert m["psnr"] > 5 and m["glow"] == {"weight": 0.25}
     cfg = (run / "config.yaml").read_text()
-    assert "name: wobble" in cfg and "amplitude: 0.02" in cfg
+    assert "name: wobble" in cfg and "amplitude: 0.02" in cfg and "glow:\n  enabled: true\n  weight: 0.25" in cfg
     e = _run(["-m", "stdr.cli.eval", str(run), f"out={tmp_path / 'table'}"], env)
     assert e.returncode == 0, e.stdout[-3000:] + e.stderr[-3000:]
-    assert "| wobble+STDR |" in e.stdout
+    assert "| wobble+STDR+glow |" in e.stdout
     code = textwrap.dedent(f"""
         import torch
         from stdr.model import load_model
         m = load_model({str(run / 'checkpoints' / 'last.pt')!r}, device="cpu")
+        assert sorted(p.name for p in m.plugins) == ["glow", "stdr"] and m.plugin("glow").weight == 0.25
         print(type(m.deform).__module__, type(m.deform).__name__, m.deform.direction.tolist())
     """)
     r = _run(["-c", code], env)
@@ -103,3 +138,12 @@ def test_a_broken_entry_point_is_an_error_that_names_it(tmp_path):
     assert p.returncode != 0
     assert ("entry point 'wobble' = 'stdr_wobble:missing_function' (group 'stdr.baselines', "
             "distribution stdr-wobble 0.1) failed") in p.stderr
+
+
+def test_a_broken_plugin_entry_point_is_an_error_that_names_it(tmp_path):
+    _distribution(tmp_path / "site", "stdr_wobble:register", plugin_entry="stdr_wobble:register")  # registers no plug-in
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), str(ROOT)])}
+    p = _run(["-c", "from stdr.plugins import discover_plugins; discover_plugins()"], env)
+    assert p.returncode != 0
+    assert ("entry point 'glow' = 'stdr_wobble:register' (group 'stdr.plugins', distribution stdr-wobble 0.1) "
+            "registered nothing; it must name a function (or module) that calls stdr.plugins.register_plugin") in p.stderr

@@ -6,8 +6,10 @@ import torch
 
 from stdr.testing import tiny_config as _tiny
 
-from stdr.model import PLUGIN_FACTORIES, load_model, register_plugin
-from stdr.plugins import Plugin
+from dataclasses import dataclass
+
+from stdr.model import load_model
+from stdr.plugins import PLUGINS, Plugin, register_plugin, unregister_plugin
 
 SCHED = ["optim.iterations=40", "baseline.warmup=10", "densify.refine_start=5", "densify.refine_every=5",
          "densify.reset_every=0", "train.checkpoint_every=0", "train.eval_at_warmup_end=false",
@@ -19,10 +21,21 @@ class Tagger(Plugin):
     on its own lr schedule, an opacity factor of sigmoid(tag), and a loss pulling tags to 1."""
 
     name = "tagger"
+    made: list = []  # every instance, for the tests
 
-    def __init__(self, warmup: int, iterations: int):
+    @classmethod
+    def from_config(cls, pcfg, cfg, schedule, train_times, device):
+        p = cls(cfg.baseline.warmup, cfg.optim.iterations, pcfg.lr)
+        cls.made.append(p)
+        return p
+
+    @classmethod
+    def row_tags(cls, pcfg):
+        return [f"lr {pcfg['lr']}"] if pcfg["lr"] != 0.01 else []
+
+    def __init__(self, warmup: int, iterations: int, lr: float = 0.01):
         self.net = torch.nn.Linear(1, 2)
-        self.warmup, self.iterations = warmup, iterations
+        self.warmup, self.iterations, self.lr = warmup, iterations, lr
         self.calls: dict[str, int] = {}
 
     def _count(self, k):
@@ -36,7 +49,7 @@ class Tagger(Plugin):
         params["tag"] = torch.nn.Parameter(torch.zeros(params["means"].shape[0], 1))
 
     def gaussian_lr(self, key):
-        return 0.01 if key == "tag" else None
+        return self.lr if key == "tag" else None
 
     def param_groups(self):
         return [{"params": list(self.net.parameters()), "name": "tagger_net", "lr_init": 1e-2, "lr_final": 1e-4,
@@ -72,29 +85,31 @@ class Tagger(Plugin):
         return {"tag_mean": float(params["tag"].detach().mean())}
 
 
+@dataclass
+class TaggerConfig:
+    enabled: bool = False
+    lr: float = 0.01   # of the per-Gaussian tags
+
+
 @pytest.fixture
 def tagger():
-    """Registers Tagger for the test; state["on"] = False switches it off, state["made"] lists them."""
-    state = {"on": True, "made": []}
-
-    def factory(cfg, schedule, train_times, device):
-        if not state["on"]:
-            return None
-        p = Tagger(cfg.baseline.warmup, cfg.optim.iterations)
-        state["made"].append(p)
-        return p
-    register_plugin(factory)
-    yield state
-    PLUGIN_FACTORIES.remove(factory)
+    """Tagger registered for the test (`tagger=on`, experiments `<data>_<baseline>_tagger`)."""
+    Tagger.made.clear()
+    spec = register_plugin("tagger", Tagger, TaggerConfig, label="+tag")
+    yield spec
+    unregister_plugin("tagger")
+    from stdr.config import experiment_names
+    assert "tagger" not in PLUGINS and not any("tagger" in e for e in experiment_names())
 
 
 @pytest.mark.slow
 def test_a_plugin_trains_through_the_hooks_alone(tmp_path, tagger):
     from stdr.eval.evaluate import evaluate_run
     from stdr.train.trainer import Trainer
-    t = Trainer(_tiny(tmp_path, SCHED + ["experiment=embedded_deform"]), tmp_path / "run", splits=("train", "test"))
+    t = Trainer(_tiny(tmp_path, SCHED + ["experiment=embedded_deform", "tagger=on"]), tmp_path / "run",
+                splits=("train", "test"))
     p = t.model.plugin("tagger")
-    assert p is tagger["made"][-1] and t.model.deform.cond_dim == 2   # the network is built for its conditioning
+    assert p is Tagger.made[-1] and t.model.deform.cond_dim == 2   # the network is built for its conditioning
     n0 = t.model.num_gaussians
     logs = None
     for _ in range(40):
@@ -120,7 +135,7 @@ def test_a_plugin_trains_through_the_hooks_alone(tmp_path, tagger):
 @pytest.mark.slow
 def test_the_model_reloads_alone_and_renders_what_training_rendered(tmp_path, tagger):
     from stdr.train.trainer import Trainer
-    t = Trainer(_tiny(tmp_path, SCHED + ["experiment=embedded_4dgs", "baseline.hexplane.base_res=16"]),
+    t = Trainer(_tiny(tmp_path, SCHED + ["experiment=embedded_4dgs_tagger", "baseline.hexplane.base_res=16"]),
                 tmp_path / "run", splits=("train", "test"))
     t.train()
     ck = tmp_path / "run" / "checkpoints" / "last.pt"
@@ -134,9 +149,15 @@ def test_the_model_reloads_alone_and_renders_what_training_rendered(tmp_path, ta
     # the same file after DynamicGaussians.save (no optimizer state)
     m.save(tmp_path / "model.pt")
     assert torch.equal(load_model(tmp_path / "model.pt", device="cpu").render(f.camera, f.time).image, a)
-    # a model without the plug-in refuses the checkpoint, naming why
-    tagger["on"] = False
-    with pytest.raises(ValueError, match="plug-ins"):
+    # a model built without the plug-in refuses the checkpoint, naming why
+    from stdr.config import load_config
+    off = load_config(t.cfg)
+    off.tagger.enabled = False
+    with pytest.raises(ValueError, match="saved with plug-ins \\['tagger'\\] but this model has none"):
+        load_model(ck, device="cpu", cfg=off)
+    # and with the plug-in unregistered, its config section is an error that says what to do
+    unregister_plugin("tagger")
+    with pytest.raises(ValueError, match=r"unknown config section\(s\) \['tagger'\].*register"):
         load_model(ck, device="cpu")
 
 
@@ -145,3 +166,34 @@ def test_model_without_training_times_is_refused_for_4dgs(tmp_path):
     cfg = _tiny(tmp_path, ["experiment=embedded_4dgs"])
     with pytest.raises(ValueError, match="time_res"):
         build_model(cfg, None, torch.ones(3), torch.device("cpu"))
+
+
+@pytest.mark.slow
+def test_a_plugin_registered_here_trains_through_stdr_train_shows_in_stdr_eval_and_reloads(
+        tmp_path, tagger, monkeypatch, capsys):
+    """No edit to stdr: the test registers the plug-in and its config dataclass, and the CLIs
+    take it from there (typed keys, derived experiment, label with its row tag, checkpoint)."""
+    import sys
+    from stdr.cli import eval as eval_cli, train as train_cli
+    from stdr.testing import TINY_SCENE
+    run = tmp_path / "run"
+    monkeypatch.setattr(sys, "argv", ["stdr-train", "experiment=embedded_deform_tagger", "tagger.lr=0.02",
+                                      *SCHED, *TINY_SCENE, f"data.cache_dir={tmp_path / 'cache'}", "device=cpu",
+                                      "model.init_num=1500", "eval.lpips=false", "train.progress=false",
+                                      "eval.save_images=false", "train.image_every=0", f"hydra.run.dir={run}"])
+    train_cli.main()
+    out = capsys.readouterr().out
+    assert "| deform+tag lr 0.02 |" in out  # stdr-train's own one-row table
+    m = json.loads((run / "metrics.json").read_text())["test"]
+    assert m["tagger"]["tag_mean"] > 0.0  # pulled towards 1 from 0
+    assert Tagger.made[0].lr == 0.02  # the typed key reached the plug-in
+    monkeypatch.setattr(sys, "argv", ["stdr-eval", str(run), f"out={tmp_path / 'table'}", "eval.lpips=false",
+                                      "eval.save_images=false"])
+    eval_cli.main()
+    out = capsys.readouterr().out
+    assert "| deform+tag lr 0.02 |" in out
+    table = json.loads((tmp_path / "table" / "table.json").read_text())
+    assert table["methods"] == ["deform+tag lr 0.02"]
+    assert table["cells"]["deform+tag lr 0.02"]["embedded"]["psnr"] == pytest.approx(m["psnr"], abs=1e-4)
+    model = load_model(run / "checkpoints" / "last.pt", device="cpu")
+    assert model.plugin("tagger").lr == 0.02 and "tag" in model.params

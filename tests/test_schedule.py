@@ -16,25 +16,25 @@ from stdr.schedule import resolve_schedule
 def test_schedule_of_each_baseline_with_and_without_stdr(name):
     plain = resolve_schedule(make_cfg([f"experiment=dnerf_{name}", "data.path=/x"]))
     s = resolve_schedule(make_cfg([f"experiment=dnerf_{name}_stdr", "data.path=/x"]))
-    assert plain.static_warmup_end == s.static_warmup_end == 500 and plain.stdr_freeze_at is None
+    assert plain.static_warmup_end == s.static_warmup_end == 500 and plain.plugins == {}
     steps = [e.step for e in s.sorted_events()]
     assert steps == sorted(steps) and steps[0] == 0
     keys = {e.key for e in s.events}
     assert {"baseline.warmup", "stdr.warmup_end", "densify.refine_start"} <= keys
-    assert s.stdr_warmup_end == 500
+    assert s.plugins["stdr"]["warmup_end"] == 500
     # the freeze (2 x 500 = 1000) moves by rule only out of a baseline's switch window: SC-GS's
     # node->skinning switch spans [1000, 1100] at budget=cpu, so its freeze lands halfway
     # between the warm-up's end and the window, at 750; the others keep 1000
     expected = {"deform": 1000, "scgs": 750, "spgs": 1000, "4dgs": 1000}
     if name not in expected:
         pytest.skip(f"{name}: a baseline registered outside stdr; its freeze is not pinned here")
-    assert s.stdr_freeze_at == expected[name]
+    assert s.plugins["stdr"]["freeze_at"] == expected[name]
     assert ("moved" in s.describe()) == (name == "scgs")
     if name == "scgs":
         assert "baseline.scgs.node_stage_end" in keys and s.windows == [(s.windows[0][0], 1000, 1100)]
     # an explicit freeze away from any window is kept as given
     assert resolve_schedule(make_cfg([f"experiment=dnerf_{name}_stdr", "data.path=/x",
-                                      "stdr.freeze_at=1300"])).stdr_freeze_at == 1300
+                                      "stdr.freeze_at=1300"])).plugins["stdr"]["freeze_at"] == 1300
 
 
 def test_a_component_that_would_never_train_is_a_named_warning_other_late_boundaries_are_marked():
@@ -59,8 +59,9 @@ def test_components_read_their_boundaries_from_the_schedule(tmp_path):
     s, m = t.model.schedule, t.model
     assert m.warmup == s.static_warmup_end == 30 == m.deform.start_step
     st = m.plugin("stdr")
-    assert (st.warmup_end, st.freeze_at) == (s.stdr_warmup_end, s.stdr_freeze_at) == (30, 45)  # moved off [60, 70]
-    assert st.stats(m.params)["freeze_moved"] == s.stdr_freeze_moved
+    ph = s.plugins["stdr"]
+    assert (st.warmup_end, st.freeze_at) == (ph["warmup_end"], ph["freeze_at"]) == (30, 45)  # moved off [60, 70]
+    assert st.stats(m.params)["freeze_moved"] == ph["freeze_moved"] == "60 -> 45: " + s.windows[0][0] + " at [60, 70]"
     # the config's derived node holds the same numbers (and config.yaml keeps them)
     node = OmegaConf.to_container(t.cfg, resolve=True)["schedule"]
     assert (node["static_warmup_end"], node["stdr_warmup_end"], node["stdr_freeze_at"]) == (30, 30, 45)

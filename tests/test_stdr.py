@@ -7,7 +7,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from stdr.config import StdrConfig
+from stdr.decouple import StdrConfig
 from stdr.decouple import (MASK_KEY, Phase, SeparatedField, interp_weights, knot_times, mask_at,
                            phase_at, resolve_phases, sample_neighbours, spatial_kl, temporal_entropy,
                            temporal_loss)
@@ -330,7 +330,8 @@ def _plugin(**over):
     from stdr.decouple import resolve_phases
     from stdr.schedule import Schedule
     w, f = resolve_phases(cfg, 10, 100)
-    sched = Schedule(iterations=100, static_warmup_end=10, stdr_warmup_end=w, stdr_freeze_at=f)
+    sched = Schedule(iterations=100, static_warmup_end=10, plugins={"stdr": {"warmup_end": w, "freeze_at": f,
+                                                                          "freeze_moved": None}})
     return STDR(cfg, sched, knots=torch.linspace(0, 1, 5, dtype=torch.float64), xyz_freqs=2, seed=0,
                 init_opacity=0.1)
 
@@ -461,7 +462,10 @@ def test_freeze_colliding_with_a_stage_switch_is_moved_by_rule_or_rejected_when_
     The default freeze (2 x 500 = 1000) lands on it and moves to the midpoint 750; an explicit
     freeze_at inside the window is an error; one outside is kept."""
     from stdr.deform.control_nodes import ControlNodeDeformation
-    from stdr.schedule import place_freeze
+    from stdr.schedule import keep_out_of_windows
+
+    def place_freeze(step, floor, windows, explicit):
+        return keep_out_of_windows(step, floor, windows, "stdr.freeze_at", explicit)
     base = make_cfg(["experiment=dnerf_scgs_stdr", "budget=cpu", "data.path=/x"]).baseline
     _, switches = ControlNodeDeformation.stages(base)
     assert [(a, b) for _, a, b in switches] == [(1000, 1100)]
@@ -472,7 +476,8 @@ def test_freeze_colliding_with_a_stage_switch_is_moved_by_rule_or_rejected_when_
         place_freeze(1050, 500, switches, explicit=True)
     # the same through the run's schedule, which the plug-in reads
     s = resolve_schedule(make_cfg(["experiment=dnerf_scgs_stdr", "budget=cpu", "data.path=/x"]))
-    assert (s.stdr_warmup_end, s.stdr_freeze_at) == (500, 750) and "1000 -> 750" in s.stdr_freeze_moved
+    ph = s.plugins["stdr"]
+    assert (ph["warmup_end"], ph["freeze_at"]) == (500, 750) and "1000 -> 750" in ph["freeze_moved"]
     with pytest.raises(ValueError, match="stdr.freeze_at=1050"):
         resolve_schedule(make_cfg(["experiment=dnerf_scgs_stdr", "budget=cpu", "data.path=/x", "stdr.freeze_at=1050"]))
     cfg = make_cfg(["experiment=dnerf_scgs_stdr", "budget=cpu", "data.path=/x"])

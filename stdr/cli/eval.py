@@ -2,7 +2,8 @@
 
 reevaluate=false tabulates the runs' metrics.json as they are; remeasure=fps re-times only the
 render FPS (quality numbers untouched, the old value kept in `fps_history`); remeasure=size adds
-model_mb to runs evaluated before it was recorded."""
+model_mb to runs evaluated before it was recorded. `render.<key>=...` and `<plug-in>.<key>=...`
+change those keys of each run's config for the evaluation."""
 from __future__ import annotations
 
 import sys
@@ -20,7 +21,9 @@ register()
 
 
 def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reevaluate: bool,
-                  out_dir: Path, base: str, device: str | None = None, remeasure: str | None = None) -> dict:
+                  out_dir: Path, base: str, device: str | None = None, remeasure: str | None = None,
+                  plugin_overrides: dict | None = None) -> dict:
+    """plugin_overrides: {plug-in name: its keys to change in each run's config (null: keep)}."""
     import json
 
     from ..eval.table import collect, find_run_dirs, markdown, table_row, write_tables
@@ -38,6 +41,8 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
         sp = split or cfg.data.eval_split
         if reevaluate or remeasure:
             apply_overrides(cfg, "render", render_cfg)
+            for name, ov in (plugin_overrides or {}).items():
+                apply_overrides(cfg, name, ov)
             if device is not None:  # e.g. a run trained on a GPU, re-evaluated on a CPU machine
                 cfg.device = device
         if reevaluate:
@@ -171,8 +176,10 @@ def _main(cfg: DictConfig) -> None:
         raise SystemExit("usage: stdr-eval RUN_DIR [RUN_DIR ...] [key=value ...]")
     reproducible_blas()
     out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
+    from ..plugins import registered_plugins
     evaluate_dirs(list(cfg.runs), cfg.split, cfg.eval, cfg.render, cfg.reevaluate, out,
-                  hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure)
+                  hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure,
+                  {s.name: cfg.get(s.name) for s in registered_plugins()})
 
 
 def main() -> None:

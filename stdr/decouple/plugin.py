@@ -101,6 +101,51 @@ class STDR(Plugin):
     """State and rules of the plug-in. `cfg` is the `stdr` config node (StdrConfig)."""
 
     name = "stdr"
+    removed_keys = ("static_skip",)  # a render-time key removed on 2026-11-26 (docs/stdr.md)
+
+    # ----------------------------------------------------------------- registration
+    @classmethod
+    def from_config(cls, pcfg, cfg, schedule, train_times, device) -> "STDR":
+        """Its phases from the schedule, its time knots from the training times."""
+        knots = cls.knots_for(pcfg, train_times) if train_times is not None else None
+        return cls(pcfg, schedule, knots, xyz_freqs=cfg.baseline.xyz_freqs, seed=cfg.seed,
+                   init_opacity=cfg.model.init_opacity, device=device)
+
+    @classmethod
+    def stages(cls, pcfg, cfg, schedule) -> dict:
+        """Mask warm-up, regularized phase and freeze (resolve_phases), the freeze kept out of the
+        baseline's switch windows (stdr.schedule.keep_out_of_windows)."""
+        from ..schedule import Event, keep_out_of_windows
+        total = schedule.iterations
+        w, f = resolve_phases(pcfg, schedule.static_warmup_end, total)
+        f, moved = keep_out_of_windows(f, w, schedule.windows, "stdr.freeze_at", explicit=pcfg.freeze_at is not None)
+        if f >= total:
+            schedule.never_trains(f"STDR's freeze resolves to step {f}, at or after the run's end (optim.iterations="
+                                  f"{total}): the mask never freezes and the separated field never feeds the "
+                                  "network in this run. Set stdr.freeze_at (or stdr.warmup_end) below the end, or "
+                                  "use stdr.phase_rule=fraction")
+        held = "opacity frozen" if pcfg.freeze_opacity else "opacity trains"
+        schedule.events.append(Event(0, "stdr", f"STDR mask warm-up ({held}), L_temp and L_spatial on"))
+        schedule.events.append(Event(w, "stdr.warmup_end", "STDR warm-up ends" + (
+            ": opacity trains again, mask still regularized" if pcfg.freeze_opacity else
+            " (no change: stdr.freeze_opacity=false)")))
+        schedule.events.append(Event(f, "stdr.freeze_at" + (" (moved)" if moved else ""),
+                                     "STDR mask frozen, regularizers off, separated field feeds the network"))
+        if moved:
+            schedule.notes.append(f"STDR freeze moved {moved}")
+        return {"warmup_end": w, "freeze_at": f, "freeze_moved": moved}
+
+    #: ablation switches and options whose non-default value tags the table row
+    ABLATION_SWITCHES = ("mask", "temporal_reg", "spatial_reg", "separated_field")
+    NON_DEFAULT_OPTIONS = {"mask_after_freeze": (False, "no mask after freeze"),
+                           "scale_deltas_by_dynamic": (True, "deltas x dynamic")}
+
+    @classmethod
+    def row_tags(cls, pcfg: dict) -> list[str]:
+        """'w/o <switch>' for each ablation switch that is off, and the label of each option at
+        its non-default value (e.g. 'deform+STDR w/o spatial_reg')."""
+        tags = [f"w/o {k}" for k in cls.ABLATION_SWITCHES if pcfg.get(k) is False]
+        return tags + [label for k, (val, label) in cls.NON_DEFAULT_OPTIONS.items() if pcfg.get(k) == val]
 
     def __init__(self, cfg, schedule, knots: Optional[Tensor], xyz_freqs: int, seed: int,
                  init_opacity: float = 0.1, device: torch.device | str = "cpu"):
@@ -109,8 +154,9 @@ class STDR(Plugin):
         self.cfg = cfg
         self.device = torch.device(device)  # of the separated field; the knots stay on the CPU (host-side lookups)
         self.iterations = int(schedule.iterations)
-        self.warmup_end, self.freeze_at = int(schedule.stdr_warmup_end), int(schedule.stdr_freeze_at)
-        self.freeze_moved: Optional[str] = schedule.stdr_freeze_moved
+        phases = schedule.plugins[self.name]  # STDR.stages
+        self.warmup_end, self.freeze_at = int(phases["warmup_end"]), int(phases["freeze_at"])
+        self.freeze_moved: Optional[str] = phases["freeze_moved"]
         self.opacity_init, self.mask_init = resolve_init(cfg, init_opacity)
         self._cleaned = False
         self.cleaned_entries: Optional[int] = None  # set at the freeze

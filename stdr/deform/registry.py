@@ -91,24 +91,8 @@ def discover_baselines() -> list[str]:
     if _discovered:
         return []
     _discovered = True
-    from importlib.metadata import entry_points
-    added: list[str] = []
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        where = f"entry point {ep.name!r} = {ep.value!r} (group {ENTRY_POINT_GROUP!r}" + (
-            f", distribution {ep.dist.name} {ep.dist.version})" if getattr(ep, "dist", None) else ")")
-        before = set(BASELINES)
-        try:
-            obj = ep.load()
-            if callable(obj) and not isinstance(obj, type):
-                obj()
-        except Exception as e:
-            raise RuntimeError(f"{where} failed: {type(e).__name__}: {e}") from e
-        new = sorted(set(BASELINES) - before)
-        if not new and ep.name not in BASELINES:
-            raise RuntimeError(f"{where} registered no baseline; it must name a function (or module) that calls "
-                               "stdr.deform.register_baseline")
-        added += new
-    return added
+    from ..entry_points import load_group
+    return load_group(ENTRY_POINT_GROUP, lambda: BASELINES, "stdr.deform.register_baseline")
 
 
 def get_baseline(name: str) -> BaselineSpec:

@@ -2,8 +2,9 @@
 
 Charts (each written as PNG and SVG, with the plotted numbers as CSV):
 * `speed_accuracy`: the metric against render FPS (log axis), one marker per method: colour
-  per baseline, hollow for plain and filled for +STDR, an arrow from each plain point to its
-  +STDR point, the Pareto frontier; a panel for the mean over scenes, then one per scene;
+  per baseline, hollow for plain and filled with a plug-in, an arrow from each plain point to
+  the same baseline with a plug-in at its defaults (the plug-in's label), the Pareto frontier;
+  a panel for the mean over scenes, then one per scene;
 * `learning_curves`: the metric against training seconds from each run's curve
   (metrics.json `curve`, train.eval_every), one line per method, mean over scenes;
 * `size_accuracy`: the metric against the number of Gaussians and against the model's
@@ -19,6 +20,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from ..plugins import method_suffix, registered_plugins
 from .table import collect, find_run_dirs as find_runs, load_run, table_row
 
 METRIC_LABELS = {"psnr": "PSNR (dB) ↑", "ssim": "SSIM ↑", "lpips": "LPIPS ↓"}
@@ -59,7 +61,7 @@ def read_runs(runs: list, split: str, metric: str) -> list[dict[str, Any]]:
                                  + (" (LPIPS weights were not found when it was evaluated)" if k == "lpips" else ""))
         cfg = x["config"]
         row = {**table_row(cfg, split, m, str(r)), "baseline": cfg["baseline"]["name"],
-               "stdr": bool((cfg.get("stdr") or {}).get("enabled"))}
+               "variant": method_suffix(cfg)}  # "" (plain), or the plug-ins' labels and tags
         if label is not None:
             row["method"] = label
         rows.append(row)
@@ -82,8 +84,8 @@ def caption(rows: list[dict[str, Any]]) -> str:
 
 # ------------------------------------------------------------------ data behind each chart
 def _kinds(rows) -> dict[str, dict[str, Any]]:
-    """method -> {baseline, stdr} (one config per method: collect refuses mixed ones)."""
-    return {r["method"]: {"baseline": r["baseline"], "stdr": r["stdr"]} for r in rows}
+    """method -> {baseline, variant} (one config per method: collect refuses mixed ones)."""
+    return {r["method"]: {"baseline": r["baseline"], "variant": r["variant"]} for r in rows}
 
 
 def speed_points(rows: list[dict[str, Any]], metric: str) -> list[dict[str, Any]]:
@@ -161,15 +163,15 @@ def _marker(ax, x, y, color, filled, size=60):
 def _methods_panel(ax, pts, metric, colors, xkey, logx):
     higher = HIGHER_IS_BETTER[metric]
     for p in pts:
-        _marker(ax, p[xkey], p[metric], colors[p["baseline"]], p["stdr"])
-    for p in pts:  # arrow plain -> +STDR of the same baseline (only the default STDR row)
-        if p["stdr"]:
+        _marker(ax, p[xkey], p[metric], colors[p["baseline"]], bool(p["variant"]))
+    labels = {s.label for s in registered_plugins()}
+    for p in pts:  # an arrow from each plain point to the same baseline with one plug-in at its defaults
+        if p["variant"]:
             continue
-        q = next((q for q in pts if q["stdr"] and q["baseline"] == p["baseline"] and q["method"] == p["method"] + "+STDR"),
-                 None)
-        if q is not None:
-            ax.annotate("", xy=(q[xkey], q[metric]), xytext=(p[xkey], p[metric]),
-                        arrowprops=dict(arrowstyle="->", color=colors[p["baseline"]], lw=1.0, alpha=0.8))
+        for q in pts:
+            if q["variant"] in labels and q["baseline"] == p["baseline"] and q["method"] == p["method"] + q["variant"]:
+                ax.annotate("", xy=(q[xkey], q[metric]), xytext=(p[xkey], p[metric]),
+                            arrowprops=dict(arrowstyle="->", color=colors[p["baseline"]], lw=1.0, alpha=0.8))
     front = pareto([(p[xkey], p[metric]) for p in pts], higher)
     if len(front) > 1:
         ax.plot(*zip(*front), ls="--", color="0.5", lw=1.0, zorder=1, label="Pareto frontier")
@@ -182,12 +184,18 @@ def _methods_panel(ax, pts, metric, colors, xkey, logx):
     ax.grid(True, which="both", alpha=0.3)
 
 
-def _legend(fig, colors, pareto_line=True):
+def _variants(pts) -> str:
+    """The plug-in labels among the points, for legends."""
+    labels = {s.label for s in registered_plugins()}
+    return ", ".join(sorted({p["variant"] for p in pts if p["variant"] in labels})) or "with plug-in"
+
+
+def _legend(fig, colors, pts, pareto_line=True):
     from matplotlib.lines import Line2D
     handles = [Line2D([], [], marker="o", ls="", markerfacecolor=c, markeredgecolor=c, label=b)
                for b, c in colors.items()]
     handles += [Line2D([], [], marker="o", ls="", markerfacecolor="none", markeredgecolor="k", label="plain"),
-                Line2D([], [], marker="o", ls="", markerfacecolor="k", markeredgecolor="k", label="+STDR")]
+                Line2D([], [], marker="o", ls="", markerfacecolor="k", markeredgecolor="k", label=_variants(pts))]
     if pareto_line:
         handles.append(Line2D([], [], ls="--", color="0.5", label="Pareto frontier"))
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False, fontsize=8)
@@ -222,7 +230,7 @@ def draw_speed_accuracy(pts, metric, cap, out: Path) -> dict[str, Path]:
     for ax in list(axes.flat)[len(scenes):]:
         ax.set_visible(False)
     fig.suptitle(f"{METRIC_LABELS[metric].split(' ')[0]} against render speed\n{cap}", fontsize=9)
-    _legend(fig, colors)
+    _legend(fig, colors, pts)
     fig.tight_layout(rect=(0, 0.05, 1, 1))
     data = [[p["method"], p["scene"], p["fps"], p[metric], p[f"{metric}_std"], p["num_gaussians"], p["model_mb"]]
             for p in pts]
@@ -247,7 +255,7 @@ def draw_size_accuracy(pts, metric, cap, out: Path) -> dict[str, Path]:
         ax.set_ylabel(METRIC_LABELS[metric])
         ax.set_title("mean over scenes", fontsize=10)
     fig.suptitle(f"{METRIC_LABELS[metric].split(' ')[0]} against model size\n{cap}", fontsize=9)
-    _legend(fig, colors)
+    _legend(fig, colors, mean)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
     data = [[p["method"], p["num_gaussians"], p["model_mb"], p[metric]] for p in mean]
     return _save(fig, out, f"size_accuracy_{metric}", ["method", "num_gaussians", "model_mb", metric], data)
@@ -263,7 +271,7 @@ def draw_learning_curves(pts, metric, cap, out: Path) -> dict[str, Path]:
     import matplotlib.pyplot as plt
     colors = _style([p["baseline"] for p in pts])
     methods = list(dict.fromkeys(p["method"] for p in pts))
-    kinds = {(p["baseline"], p["stdr"]) for p in pts}
+    kinds = {(p["baseline"], p["variant"]) for p in pts}
     # labelled runs of one baseline (e.g. training lengths) get a colour each, not the baseline's
     own = len(methods) > len(kinds)
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
@@ -271,11 +279,11 @@ def draw_learning_curves(pts, metric, cap, out: Path) -> dict[str, Path]:
         ps = [p for p in pts if p["method"] == m]
         col = matplotlib.colormaps["tab10"](i % 10) if own else colors[ps[0]["baseline"]]
         ax.plot([p["train_seconds"] for p in ps], [p[metric] for p in ps], marker="o", ms=3,
-                color=col, ls="-" if ps[0]["stdr"] else "--", label=m)
+                color=col, ls="-" if ps[0]["variant"] else "--", label=m)
     ax.set_xlabel("training time (s, evaluation excluded)")
     ax.set_ylabel(METRIC_LABELS[metric])
     ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8, title="solid: +STDR, dashed: plain", title_fontsize=8)
+    ax.legend(fontsize=8, title=f"solid: {_variants(pts)}, dashed: plain", title_fontsize=8)
     n = sorted({p["scenes"] for p in pts})
     fig.suptitle(f"{METRIC_LABELS[metric].split(' ')[0]} against training time (mean over {', '.join(map(str, n))} "
                  f"scenes)\n{cap}", fontsize=9)

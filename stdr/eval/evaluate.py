@@ -272,7 +272,7 @@ def code_version() -> dict[str, Any]:
 def write_metrics(run_dir: Path, split: str, res: dict[str, Any], model, eval_cfg, lpips_fn,
                   data_meta: dict[str, Any]) -> None:
     """Add the conventions, the data's description and each plug-in's statistics (under its
-    name: STDR's mask memory, KNN time, mask/field statistics) to `res`, and merge it into
+    name: memory, timings, statistics of its state) to `res`, and merge it into
     run_dir/metrics.json under `split` (atomically)."""
     conv = metric_conventions(eval_cfg, lpips_fn, model.backend, model.device)
     compiled = use_compiled_projection(model.backend, model.cfg.render.get("compiled_projection"))

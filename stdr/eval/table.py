@@ -20,11 +20,6 @@ FORMATS = {"psnr": "{:.2f}", "ssim": "{:.4f}", "lpips": "{:.4f}", "fps": "{:.1f}
            "num_gaussians": "{:,.0f}", "train_seconds": "{:.0f}"}
 
 
-ABLATION_SWITCHES = ("mask", "temporal_reg", "spatial_reg", "separated_field")
-NON_DEFAULT_OPTIONS = {"mask_after_freeze": (False, "no mask after freeze"),
-                       "scale_deltas_by_dynamic": (True, "deltas x dynamic")}
-
-
 def fmt_value(v, f: str) -> str:
     """A cell: `f.format(v)`, or an en dash for a missing value."""
     return "–" if v is None else f.format(v)
@@ -106,17 +101,11 @@ def load_run(run: str | Path, split: str) -> dict[str, Any]:
 
 
 def method_name(cfg) -> str:
-    """Row label: the baseline, '+STDR', and any ablation switch or option that differs from
-    the default (e.g. 'deform+STDR w/o spatial_reg'), so ablation rows never merge."""
-    name = cfg["baseline"]["name"]
-    stdr = cfg.get("stdr")
-    if isinstance(stdr, dict) and stdr.get("enabled"):
-        name += "+STDR"
-        tags = [f"w/o {k}" for k in ABLATION_SWITCHES if stdr.get(k) is False]
-        tags += [label for k, (val, label) in NON_DEFAULT_OPTIONS.items() if stdr.get(k) == val]
-        if tags:
-            name += " " + ", ".join(tags)
-    return name
+    """Row label: the baseline, then each enabled plug-in's label and the tags it gives its
+    non-default switches (stdr.plugins.method_suffix; e.g. 'deform+<label> w/o <switch>'), so
+    ablation rows never merge."""
+    from ..plugins import method_suffix
+    return cfg["baseline"]["name"] + method_suffix(cfg)
 
 
 def table_row(cfg: dict[str, Any], split: str, metrics: dict[str, Any], run_dir: str) -> dict[str, Any]:

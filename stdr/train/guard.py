@@ -33,8 +33,8 @@ from torch import Tensor
 class GuardConfig:
     """train.guard: non-finite and divergence recovery."""
 
-    # on by default: without a fault it changes nothing (tests/test_guard.py: bit-identical to
-    # enabled=false for deform and every baseline with STDR) and costs 0.2-0.6 % of a step
+    # on by default: without a fault it changes nothing (bit-identical to enabled=false in the
+    # runs of tests/test_guard.py) and costs 0.2-0.6 % of a step
     enabled: bool = True
     snapshot_every: int = 100    # steps between in-memory snapshots of the last good state
     lr_factor: float = 0.5       # every learning rate x this at each recovery

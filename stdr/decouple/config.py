@@ -1,0 +1,54 @@
+"""STDR's config: the typed `stdr.*` keys (registered with the plug-in: stdr/decouple/__init__.py)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+
+@dataclass
+class StdrConfig:
+    """The `stdr.*` keys (docs/stdr.md: what the paper says, what is chosen here, and why)."""
+
+    enabled: bool = False
+    # ablation switches
+    mask: bool = True             # false: no mask (the field, if on, gets a uniform p)
+    temporal_reg: bool = True
+    spatial_reg: bool = True
+    separated_field: bool = True
+    # the mask
+    time_bins: int = 0            # 0: one column per distinct training time; else K evenly spaced bins
+    mask_init: Optional[float] = 2.0  # initial logit; null: sigmoid(o) * sigmoid(m) = model.init_opacity
+    opacity_init: Optional[float] = None  # opacity held during the warm-up; null: model.init_opacity
+    mask_lr: float = 0.05         # Adam lr of the mask logits (that of opacity logits)
+    mask_after_freeze: bool = True  # the frozen sigmoid mask keeps modulating opacity
+    prune_by_mask: bool = True    # prune on sigmoid(o) * max_t mask, the opacity a Gaussian reaches
+    freeze_cleanup: float = 0.0   # at the freeze, switch off mask entries with sigmoid(o) * mask below this
+    # phases: static_warmup = the baseline's static warm-up (baseline.warmup) and twice it;
+    # fraction = warmup_fraction / freeze_fraction of optim.iterations. Explicit steps win.
+    phase_rule: str = "static_warmup"
+    warmup_fraction: float = 0.075  # the paper's 3000 / 40000
+    freeze_fraction: float = 0.15   # the paper's 6000 / 40000
+    warmup_end: Optional[int] = None
+    freeze_at: Optional[int] = None
+    # true: the paper's text, opacity frozen in the warm-up. false (default): opacity trains with
+    # the mask; on the val split it gained +0.83 dB over true (docs/notes/2026-11-24-stdr-measurements.md, fidelity study, candidate 5)
+    freeze_opacity: bool = False
+    # regularizers
+    lambda_temp: float = 0.1      # x L_temp = sum (or mean) over i, t of (mask_t - mask_{t+1})^2
+    temporal_reduction: str = "mean"  # sum: the paper's formula; mean: divided by N(K-1)
+    lambda_spatial: float = 0.2   # x mean KL(p_i || p_j) over sampled Gaussians and their KNN
+    knn_samples: int = 1000
+    knn_candidates: int = 20000
+    knn_k: int = 5
+    knn_every: int = 100          # resample queries and recompute neighbours (and after densification)
+    # separated deformation field
+    field_width: int = 64
+    temporal_dim: int = 16
+    dropout: float = 0.1
+    field_pe_xyz: bool = False    # also feed PE(x) (baseline.xyz_freqs) to the field
+    # the field's own lr schedule: null follows the deformation network's (baseline.lr_*); a value
+    # starts at the freeze (where the field starts training) and decays log-linearly to
+    # field_lr_final (null: constant) at the end of the run
+    field_lr_init: Optional[float] = None
+    field_lr_final: Optional[float] = None
+    scale_deltas_by_dynamic: bool = False  # multiply the deformation deltas by the dynamic probability

@@ -1,0 +1,172 @@
+"""The plug-in registry (stdr.plugins): checks at registration, what registering gives a plug-in
+(config group, typed keys, experiments, sweep list, schedule, row label, evaluation-time keys),
+and a core that names no plug-in. Training a registered plug-in end to end: tests/test_model.py
+(in-process) and tests/test_entry_points.py (from another distribution)."""
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from stdr.plugins import PLUGINS, Plugin, enabled_plugins, method_suffix, register_plugin, unregister_plugin
+from stdr.schedule import Event, resolve_schedule
+from stdr.testing import make_cfg
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclass
+class PulseConfig:
+    enabled: bool = False
+    start: int = 100
+    strength: float = 1.0
+
+
+class Pulse(Plugin):
+    name = "pulse"
+
+    @classmethod
+    def from_config(cls, pcfg, cfg, schedule, train_times, device):
+        return cls()
+
+    @classmethod
+    def stages(cls, pcfg, cfg, schedule):
+        schedule.events.append(Event(int(pcfg.start), "pulse.start", "pulse on"))
+        if int(pcfg.start) >= schedule.iterations:
+            schedule.never_trains(f"pulse.start={pcfg.start} is at or after the run's end")
+        return {"start": int(pcfg.start)}
+
+    @classmethod
+    def row_tags(cls, pcfg):
+        return ["strong"] if pcfg["strength"] > 1 else []
+
+
+@pytest.fixture
+def pulse():
+    spec = register_plugin("pulse", Pulse, PulseConfig, label="+P")
+    yield spec
+    unregister_plugin("pulse")
+
+
+def test_registration_is_checked():
+    class NoFactory(Plugin):
+        name = "nofactory"
+
+    class Named(Pulse):
+        name = "other"
+
+    @dataclass
+    class NoSwitch:
+        strength: float = 1.0
+
+    @dataclass
+    class OnByDefault:
+        enabled: bool = True
+
+    with pytest.raises(ValueError, match="lower-case letters"):
+        register_plugin("Pulse", Pulse, PulseConfig)
+    with pytest.raises(ValueError, match="'render' is a config section of its own"):
+        register_plugin("render", Pulse, PulseConfig)
+    with pytest.raises(TypeError, match="must be a Plugin subclass"):
+        register_plugin("pulse", object, PulseConfig)
+    with pytest.raises(TypeError, match="must implement the classmethod from_config"):
+        register_plugin("nofactory", NoFactory, PulseConfig)
+    with pytest.raises(ValueError, match=r"Named.name is 'other'; set `name = 'pulse'`"):
+        register_plugin("pulse", Named, PulseConfig)
+    for bad in (NoSwitch, OnByDefault):
+        with pytest.raises(TypeError, match="`enabled: bool = False`"):
+            register_plugin("pulse", Pulse, bad)
+    with pytest.raises(ValueError, match="'stdr' is already registered"):
+        register_plugin("stdr", type("Stdr2", (Pulse,), {"name": "stdr"}), PulseConfig)
+    assert "pulse" not in PLUGINS and "nofactory" not in PLUGINS
+
+
+def test_registering_gives_group_keys_experiments_sweep_schedule_and_label(pulse):
+    from stdr.config import experiment_names
+    cfg = make_cfg(["experiment=dnerf_deform_pulse", "data.path=/x", "pulse.strength=2.5"])
+    assert cfg.pulse.enabled and cfg.pulse.strength == 2.5 and not cfg.stdr.enabled
+    assert [s.name for s in enabled_plugins(cfg)] == ["pulse"]
+    with pytest.raises(Exception, match="strength"):  # typed: a float key refuses text
+        make_cfg(["pulse.strength=strong"])
+    assert not make_cfg([]).pulse.enabled and make_cfg(["pulse=on"]).pulse.enabled
+    # every baseline gets the experiment, on every data option; plain experiments switch it off
+    assert {"dnerf_scgs_pulse", "embedded_4dgs_pulse", "nerfies_spgs_pulse"} <= set(experiment_names())
+    assert not make_cfg(["experiment=dnerf_deform", "data.path=/x"]).pulse.enabled
+    assert make_cfg(["experiment=dnerf_deform", "data.path=/x", "pulse=on"]).pulse.enabled  # the command line wins
+    # both plug-ins at once
+    both = make_cfg(["experiment=dnerf_deform_stdr", "data.path=/x", "pulse=on"])
+    assert [s.name for s in enabled_plugins(both)] == ["stdr", "pulse"]
+    # its phase joins the one schedule, and its values the derived node
+    s = resolve_schedule(cfg)
+    assert s.plugins == {"pulse": {"start": 100}} and "100  pulse on  [pulse.start]" in s.describe()
+    node = OmegaConf.to_container(cfg, resolve=True)["schedule"]
+    assert node["pulse_start"] == 100 and "stdr_freeze_at" not in node
+    from stdr.schedule import NeverTrains
+    with pytest.warns(NeverTrains, match="pulse.start=5000"):
+        resolve_schedule(make_cfg(["pulse=on", "pulse.start=5000", "optim.iterations=2000"]))
+    # the sweep list of the grids
+    from stdr.config import _experiments_resolver
+    assert _experiments_resolver("dnerf", "pulse").split(",") == [f"dnerf_{b}_pulse" for b in
+                                                                   ("4dgs", "deform", "scgs", "spgs")]
+    with pytest.raises(ValueError, match="'glow' is neither 'plain' nor a registered plug-in"):
+        _experiments_resolver("dnerf", "glow")
+    # the row label: baseline, each enabled plug-in's label, its tags
+    flat = OmegaConf.to_container(both, resolve=True)
+    assert method_suffix(flat) == "+STDR+P"
+    flat["pulse"]["strength"] = 3.0
+    flat["stdr"]["spatial_reg"] = False
+    assert method_suffix(flat) == "+STDR w/o spatial_reg+P strong"
+
+
+def test_unregistering_removes_the_group_and_experiments(pulse):
+    from stdr.config import experiment_names
+    assert "dnerf_deform_pulse" in experiment_names()
+    unregister_plugin("pulse")
+    assert "dnerf_deform_pulse" not in experiment_names()
+    with pytest.raises(Exception, match="pulse"):
+        make_cfg(["pulse=on"])
+    register_plugin("pulse", Pulse, PulseConfig, label="+P")  # for the fixture's teardown
+
+
+def test_stdr_eval_takes_plugin_keys_but_not_the_switch():
+    from stdr.cli.common import compose_config
+    e = compose_config(["runs=[a]", "stdr.mask_after_freeze=false"], config_name="eval")
+    assert e.stdr.mask_after_freeze is False and e.stdr.lambda_temp is None  # null: the run's own
+    with pytest.raises(Exception, match="enabled"):
+        compose_config(["runs=[a]", "stdr.enabled=true"], config_name="eval")
+    from stdr.cli.eval import apply_overrides
+    run = make_cfg(["experiment=embedded_deform_stdr"])
+    apply_overrides(run, "stdr", e.stdr)
+    assert run.stdr.mask_after_freeze is False and run.stdr.lambda_temp == make_cfg([]).stdr.lambda_temp
+
+
+def test_a_saved_config_with_an_unregistered_plugin_is_refused_by_name(tmp_path):
+    from stdr.config import load_config
+    raw = OmegaConf.to_container(make_cfg([]), resolve=True)
+    raw["sparkle"] = {"enabled": True}
+    with pytest.raises(ValueError, match=r"run.yaml: unknown config section\(s\) \['sparkle'\]: a plug-in's keys "
+                                         r"need the plug-in registered"):
+        load_config(raw, "run.yaml")
+
+
+# the core modules: outside stdr/decouple/ and the registries, no module names the plug-in
+CORE = ["stdr/config.py", "stdr/model.py", "stdr/schedule.py", "stdr/cli/eval.py", "stdr/eval", "stdr/train"]
+# what "stdr" may be there: the package (its module paths but the plug-in's, CLIs, log prefix, resolvers, cache folder,
+# environment variables, file formats, prose naming the package)
+_MODULES = "|".join(sorted(p.stem for p in (ROOT / "stdr").iterdir()
+                           if (p.suffix == ".py" or (p / "__init__.py").is_file()) and p.stem != "decouple"))
+ALLOWED = re.compile(rf"(?<![\w.])stdr\.({_MODULES})\b|stdr-[a-z0-9-]+|\[stdr\]|stdr_(schedule|experiments|scene_path|share)"
+                     r"|\bstdr/[\w/.]+|/stdr\b|STDR_[A-Z_]+|\bstdr (run|checkpoint|package)\b|stdr/configs|\$\{stdr_|docs/stdr\.md")
+
+
+def test_the_core_names_no_plugin():
+    files = [p for c in CORE for p in ((ROOT / c).rglob("*.py") if (ROOT / c).is_dir() else [ROOT / c])]
+    assert len(files) >= 10
+    found = []
+    for f in files:
+        for i, line in enumerate(f.read_text().splitlines(), 1):
+            rest = ALLOWED.sub("", line)
+            if re.search(r"stdr", rest, re.IGNORECASE):
+                found.append(f"{f.relative_to(ROOT)}:{i}: {line.strip()}")
+    assert found == []
