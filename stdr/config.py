@@ -107,6 +107,9 @@ class TrainConfig:
     log_every: int = 50
     image_every: int = 1000
     resume: bool = True         # resume from run_dir/checkpoints/last.pt when present
+    # stop after this iteration, as an interrupted run would (checkpoint written, no final
+    # evaluation); every schedule still follows optim.iterations, and a run without it resumes
+    stop_at: Optional[int] = None
     skip_finished: bool = True  # in a sweep (-m): a run whose metrics.json exists is skipped, not retrained
     threads: int = 0            # torch threads (0 = torch default)
     progress: bool = True

@@ -15,13 +15,12 @@ Collision rules:
   `keep_out_of_windows`: resolved by rule, it moves before the window; set explicitly inside
   one, it is an error naming the key.
 * `baseline.warmup` (or a plug-in phase that starts training something) at or after
-  `optim.iterations` is a `NeverTrains` warning naming the key, repeated in the printed
-  schedule (not an error, since a run stopped early to be resumed longer is legitimate). Any
+  `optim.iterations` is a `NeverTrains` error naming the key: that component would never train.
+  A run stopped early on purpose keeps its `optim.iterations` and sets `train.stop_at`. Any
   other boundary there never fires; the schedule marks it "(never reached)".
 """
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
@@ -56,11 +55,9 @@ class Schedule:
         return "\n".join(lines)
 
     def never_trains(self, msg: str) -> None:
-        """A component would never train in this run: a NeverTrains warning and a note in the
-        printed schedule. Not an error: a run stopped early on purpose, to be resumed with more
-        iterations (the tests' resume legs), is legitimate."""
-        self.notes.append("WARNING: " + msg)
-        warnings.warn(msg, NeverTrains, stacklevel=3)
+        """A component would never train in this run: a NeverTrains error (msg names the key).
+        To stop a run early on purpose and resume it, keep optim.iterations and set train.stop_at."""
+        raise NeverTrains(msg + " (to stop early and resume later, keep optim.iterations and set train.stop_at)")
 
     def as_dict(self) -> dict[str, Any]:
         """Plain values for the config's derived `schedule` node and for metrics."""
@@ -87,7 +84,7 @@ def keep_out_of_windows(step: int, floor: int, windows: list[tuple[str, int, int
     return step, None
 
 
-class NeverTrains(UserWarning):
+class NeverTrains(ValueError):
     """A component of the run would never train (its phase starts at or after the last iteration)."""
 
 

@@ -366,7 +366,7 @@ def test_resume_is_exact_across_the_baseline_stages(tmp_path, name):
              "baseline.spgs.num_superpoints=50", "baseline.hexplane.base_res=16"]
     a = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "a")
     a.train()
-    Trainer(_tiny(tmp_path, sched + ["optim.iterations=30"]), tmp_path / "b").train()
+    Trainer(_tiny(tmp_path, sched + ["optim.iterations=60", "train.stop_at=30"]), tmp_path / "b").train()
     b = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "b")
     b.train()  # resumes at 30
     assert a.step == b.step == 60

@@ -64,7 +64,7 @@ def test_no_step_creates_a_tensor_on_a_hard_coded_device(tmp_path, name):
     sched = SCHEDULE + [f"experiment=embedded_{name}_stdr", "device=cpu"]
     a = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "a", splits=("train", "test"))
     a.train()
-    Trainer(_tiny(tmp_path, sched + ["optim.iterations=35"]), tmp_path / "b").train()
+    Trainer(_tiny(tmp_path, sched + ["optim.iterations=60", "train.stop_at=35"]), tmp_path / "b").train()
     b = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "b", splits=("train", "test"))
     with _DefaultDevice("meta"):
         b.train()  # resumes at 35 from the checkpoint
@@ -103,7 +103,7 @@ def test_training_on_cuda_keeps_every_tensor_there_and_resumes(tmp_path, name):
     assert all(p.device.type == "cuda" for p in a.model.deform.parameters())
     assert all(p.device.type == "cuda" for p in a.model.plugin("stdr").field.parameters())
     assert a.scene.frames("train")[0].image.device.type == "cuda"
-    Trainer(_tiny(tmp_path, sched + ["optim.iterations=35"]), tmp_path / "b").train()
+    Trainer(_tiny(tmp_path, sched + ["optim.iterations=60", "train.stop_at=35"]), tmp_path / "b").train()
     b = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "b", splits=("train", "test"))
     b.train()
     assert b.step == 60

@@ -141,7 +141,7 @@ def test_a_run_with_a_recovery_resumes_exactly(tmp_path):
     nan = ["train.guard.inject_nan_grad_at=[15]"]
     a = _trainer(tmp_path, "a", nan)
     a.train()
-    b1 = _trainer(tmp_path, "b", nan + ["train.checkpoint_every=10", "optim.iterations=35"])
+    b1 = _trainer(tmp_path, "b", nan + ["train.checkpoint_every=10", "train.stop_at=35"])
     b1.train()  # recovers at 15, stops at 35 (checkpoints at 10, 20, 30 and 35)
     b2 = _trainer(tmp_path, "b", nan + ["train.checkpoint_every=10"])
     b2.train()

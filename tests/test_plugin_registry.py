@@ -103,7 +103,7 @@ def test_registering_gives_group_keys_experiments_sweep_schedule_and_label(pulse
     node = OmegaConf.to_container(cfg, resolve=True)["schedule"]
     assert node["pulse_start"] == 100 and "stdr_freeze_at" not in node
     from stdr.schedule import NeverTrains
-    with pytest.warns(NeverTrains, match="pulse.start=5000"):
+    with pytest.raises(NeverTrains, match="pulse.start=5000"):
         resolve_schedule(make_cfg(["pulse=on", "pulse.start=5000", "optim.iterations=2000"]))
     # the sweep list of the grids
     from stdr.config import _experiments_resolver

@@ -37,13 +37,13 @@ def test_schedule_of_each_baseline_with_and_without_stdr(name):
                                       "stdr.freeze_at=1300"])).plugins["stdr"]["freeze_at"] == 1300
 
 
-def test_a_component_that_would_never_train_is_a_named_warning_other_late_boundaries_are_marked():
+def test_a_component_that_would_never_train_is_a_named_error_other_late_boundaries_are_marked():
     from stdr.schedule import NeverTrains
     base = ["experiment=dnerf_deform_stdr", "data.path=/x", "budget=cpu"]  # warm-up 500, STDR freeze 1000
-    with pytest.warns(NeverTrains, match=r"STDR's freeze resolves to step 1000.*optim.iterations=800.*stdr.freeze_at"):
-        s = resolve_schedule(make_cfg(base + ["optim.iterations=800"]))
-    assert any(n.startswith("WARNING: STDR's freeze") for n in s.notes)
-    with pytest.warns(NeverTrains, match=r"baseline.warmup=900 is at or after the run's end \(optim.iterations=800\)"):
+    with pytest.raises(NeverTrains, match=r"STDR's freeze resolves to step 1000.*optim.iterations=800.*stdr.freeze_at"
+                                          r".*train.stop_at"):
+        resolve_schedule(make_cfg(base + ["optim.iterations=800"]))
+    with pytest.raises(NeverTrains, match=r"baseline.warmup=900 is at or after the run's end \(optim.iterations=800\)"):
         resolve_schedule(make_cfg(["experiment=dnerf_deform", "data.path=/x", "budget=cpu", "optim.iterations=800",
                                    "baseline.warmup=900"]))
     s = resolve_schedule(make_cfg(base + ["densify.refine_stop=5000"]))  # densify until the end: allowed

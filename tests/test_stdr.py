@@ -260,7 +260,7 @@ def test_resume_with_stdr_matches_an_uninterrupted_run(tmp_path):
     assert st["mask_bytes"] == 4 * n * K and st["mask_adam_bytes"] == 8 * n * K
     assert st["knn_refreshes"] >= 3 and st["knn_seconds"] > 0 and 0 <= st["fraction_time_gated"] <= 1
     assert 0 < st["dynamic_probability_mean"] < 1
-    b1 = Trainer(_stdr_cfg(tmp_path, sched[1:] + ["optim.iterations=9"]), tmp_path / "b")
+    b1 = Trainer(_stdr_cfg(tmp_path, sched + ["train.stop_at=9"]), tmp_path / "b")
     b1.train()  # stops inside the regularized phase, with a cached neighbour sample
     b2 = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / "b")
     b2.train()

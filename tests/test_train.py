@@ -49,7 +49,7 @@ def test_resume_gives_the_same_result_as_an_uninterrupted_run(tmp_path):
     # the interrupted run also evaluates every 10 steps (a learning curve): evaluation must not
     # change training either
     curve = ["train.eval_every=10", "train.eval_frames=2"]
-    b1 = Trainer(_tiny(tmp_path, sched[1:] + curve + ["optim.iterations=35"]), tmp_path / "b")
+    b1 = Trainer(_tiny(tmp_path, sched + curve + ["train.stop_at=35"]), tmp_path / "b")
     b1.train()  # stops at 35 (after densification, warm-up end and an opacity reset)
     b2 = Trainer(_tiny(tmp_path, sched + curve), tmp_path / "b")
     b2.train()  # resumes from b/checkpoints/last.pt

@@ -13,7 +13,7 @@ from .common import CONFIG_DIR, reproducible_blas, use_fast_allocator_hint
 register()
 
 
-def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict:
+def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict | None:
     from ..eval.evaluate import evaluate_run
     from ..train.trainer import Trainer
 
@@ -31,6 +31,8 @@ def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict:
     print(f"[stdr] TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
     print(trainer.model.schedule.describe())
     trainer.train()
+    if trainer.step < cfg.optim.iterations:  # train.stop_at: an unfinished run is not evaluated
+        return None
     res = evaluate_run(trainer, split, cfg.eval)
     warm = [h for h in trainer.history if h["tag"] == "static_warmup"]
     lp = "n/a" if res["lpips"] is None else f"{res['lpips']:.4f}"

@@ -392,7 +392,10 @@ class Trainer:
             from tqdm import tqdm
             bar = tqdm(total=total, initial=self.step, dynamic_ncols=True, desc="train")
         warmup = cfg.baseline.warmup
-        while self.step < total:
+        end = total if cfg.train.get("stop_at") is None else min(total, int(cfg.train.stop_at))
+        if end < 1:
+            raise ValueError(f"train.stop_at={cfg.train.stop_at}: must be a step >= 1 (null: train to optim.iterations)")
+        while self.step < end:
             t0 = time.perf_counter()
             logs = self.train_step()
             dt = time.perf_counter() - t0
@@ -436,6 +439,9 @@ class Trainer:
                 self.guard.take_snapshot(self)
         if bar is not None:
             bar.close()
+        if self.step < total:
+            print(f"[stdr] stopped at iteration {self.step} of {total} (train.stop_at); the same command without "
+                  "train.stop_at resumes from the checkpoint")
         self.guard.note_memory(self.device)
         self.save()
         save_ply(self.model.params, self.run_dir / "point_cloud.ply")
