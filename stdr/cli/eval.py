@@ -67,7 +67,7 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
 def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     """Rebuild the run's model from its checkpoint (public API: stdr.model), render `split` and
     merge the numbers into its metrics.json."""
-    from ..eval.evaluate import best_and_last, evaluate_model, learning_curve, make_lpips, write_metrics
+    from ..eval.evaluate import evaluate_model, final_entry, history_record, make_lpips, write_metrics
     from ..train.guard import Guard
 
     ck, model, scene = _load_for_eval(rd, cfg, split, base)
@@ -78,16 +78,15 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     save_dir = rd / "renders" / split if eval_cfg.save_images else None
     res = evaluate_model(model, scene.frames(split), lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup,
                          fps_repeats=eval_cfg.fps_repeats)
-    res.update({"train_seconds": float(ck["train_seconds"]), "iterations": model.step})
-    # the learning curve: the training's own evaluations (kept in the checkpoint), then this one
-    final = {"tag": "final", "iteration": model.step, "split": split, "train_seconds": res["train_seconds"],
-             "frames": res["num_frames"], **{k: res[k] for k in ("psnr", "ssim", "lpips", "num_gaussians")}}
-    res["curve"] = learning_curve(list(ck.get("history", [])) + [final], split)
-    res.update(best_and_last(res["curve"]))
+    seconds = float(ck["train_seconds"])
+    guard = None
     if "guard" in ck:  # the training's recoveries (checkpoints from before the guard have none)
         g = Guard()
         g.load_state_dict(ck["guard"])
-        res["guard"] = g.summary(int(cfg.densify.max_gaussians) or None)
+        guard = g.summary(int(cfg.densify.max_gaussians) or None)
+    # the learning curve: the training's own evaluations (kept in the checkpoint), then this one
+    history = list(ck.get("history", [])) + [history_record("final", model.step, split, seconds, res)]
+    final_entry(res, split, history, seconds, model.step, guard)
     write_metrics(rd, split, res, model, eval_cfg, lp, scene.meta)
     return res
 

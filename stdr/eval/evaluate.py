@@ -200,6 +200,27 @@ def metric_conventions(eval_cfg, lpips_fn, backend: str, device: torch.device) -
     }
 
 
+def history_record(tag: str, iteration: int, split: str, train_seconds: float, res: dict[str, Any]) -> dict[str, Any]:
+    """One evaluation as a point of the run's learning curve (the trainer's `history`, kept in
+    checkpoints and history.json): tag (static_warmup | periodic | final), iteration, split,
+    training seconds so far (evaluation excluded), frames rendered and the metrics."""
+    return {"tag": tag, "iteration": iteration, "split": split, "train_seconds": train_seconds,
+            "frames": res["num_frames"], **{k: res[k] for k in ("psnr", "ssim", "lpips", "num_gaussians")}}
+
+
+def final_entry(res: dict[str, Any], split: str, history: list[dict[str, Any]], train_seconds: float,
+                iterations: int, guard: Optional[dict[str, Any]]) -> dict[str, Any]:
+    """The metrics.json entry of a run's final evaluation `res` (evaluate_model's result), the one
+    builder for stdr-train and stdr-eval: adds the training seconds and iterations, the learning
+    curve of `history` (which ends with this evaluation's record), its best and last points, and
+    the guard's summary (None: a run from before the guard)."""
+    curve = learning_curve(history, split)
+    res.update({"train_seconds": train_seconds, "iterations": iterations, "curve": curve, **best_and_last(curve)})
+    if guard is not None:
+        res["guard"] = guard
+    return res
+
+
 def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
     """Final evaluation of a trained run; merges the result into run_dir/metrics.json."""
     lp = make_lpips(eval_cfg)
@@ -208,10 +229,8 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
     save_dir = trainer.run_dir / "renders" / split if eval_cfg.save_images else None
     res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup,
                            fps_repeats=eval_cfg.fps_repeats)
-    curve = learning_curve(trainer.history, split)
-    res.update({"train_seconds": trainer.train_seconds, "iterations": trainer.step, "curve": curve,
-                **best_and_last(curve),
-                "guard": trainer.guard.summary(int(trainer.strategy.max_gaussians) or None)})
+    final_entry(res, split, trainer.history, trainer.train_seconds, trainer.step,
+                trainer.guard.summary(int(trainer.strategy.max_gaussians) or None))
     write_metrics(trainer.run_dir, split, res, trainer.model, eval_cfg, lp, trainer.scene.meta)
     (trainer.run_dir / "history.json").write_text(json.dumps(trainer.history, indent=1))
     return res

@@ -521,15 +521,14 @@ class Trainer:
         """Render `split` (or the frames at indices `frames` of it) at the model's state and
         compute metrics (see stdr.eval.evaluate). Each evaluation is a point of the run's
         learning curve (`history`), with the training seconds so far (evaluation excluded)."""
-        from ..eval.evaluate import evaluate_model
+        from ..eval.evaluate import evaluate_model, history_record
         fr = self.scene.frames(split)
         if frames is not None:
             fr = [fr[i] for i in frames]
         res = evaluate_model(self.model, fr, step=self.step if step is None else step,
                              lpips_fn=lpips_fn, save_dir=save_dir, fps_warmup=fps_warmup,
                              fps_repeats=fps_repeats)
-        rec = {"tag": tag, "iteration": self.step, "split": split, "train_seconds": self.train_seconds,
-               "frames": len(fr), **{k: res[k] for k in ("psnr", "ssim", "lpips", "num_gaussians")}}
+        rec = history_record(tag, self.step, split, self.train_seconds, res)
         self.history.append(rec)
         if self.writer is not None:
             for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds"):
