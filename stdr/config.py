@@ -18,7 +18,7 @@ from .data.stress import StressConfig
 from .deform import BASELINES, BaselineConfig, DeformConfig, HexPlaneConfig, ScgsConfig, SpgsConfig  # noqa: F401
 from .deform.registry import add_listener, discover_baselines, get_baseline
 from .plugins import PLUGINS, add_listener as add_plugin_listener, registered_plugins
-from .scene.strategy import DensifyStrategy
+from .scene.strategy import STRATEGIES, DensifyStrategy, add_listener as add_strategy_listener, get_strategy
 from .train.guard import GuardConfig
 
 #: the YAML config groups; they ship inside the package, so an installed wheel has them too
@@ -143,7 +143,8 @@ class Config:
     # registered dataclass (a subclass), which adds its own keys
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
-    densify: DensifyStrategy = field(default_factory=DensifyStrategy)  # the strategy is its own schema
+    # the option densify=<name> (default `default`) types it as that registered strategy (a subclass)
+    densify: DensifyStrategy = field(default_factory=DensifyStrategy)
     render: RenderConfig = field(default_factory=RenderConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -270,7 +271,7 @@ def experiment_names() -> list[str]:
     return sorted(_experiment_files() | {e for b in BASELINES for e in derived_experiments(b)})
 
 
-_STORED: dict[str, set[str]] = {"baseline": set(), "experiment": set(), "plugin": set()}
+_STORED: dict[str, set[str]] = {"baseline": set(), "experiment": set(), "plugin": set(), "densify": set()}
 
 
 def _sync_store(*_) -> None:
@@ -282,11 +283,17 @@ def _sync_store(*_) -> None:
     run, ev = _schemas()
     import dataclasses
     plugins = [s.name for s in registered_plugins()]
-    # the plug-ins' groups are selected by this defaults list (after the schema's own values)
+    # the strategy's and the plug-ins' groups are selected by this defaults list (after the
+    # schema's own values)
     stored = dataclasses.make_dataclass("BaseConfig", [("defaults", List[Any], field(
-        default_factory=lambda: ["_self_", *({p: "off"} for p in plugins)]))], bases=(run,))
+        default_factory=lambda: ["_self_", {"densify": "default"}, *({p: "off"} for p in plugins)]))], bases=(run,))
     cs.store(name="base_config", node=stored)
     cs.store(name="base_eval", node=ev)
+    for name in _STORED["densify"] - set(STRATEGIES):
+        cs.repo.get("densify", {}).pop(f"{name}.yaml", None)
+    for name, cls in STRATEGIES.items():
+        cs.store(group="densify", name=name, node=cls)
+    _STORED["densify"] = set(STRATEGIES)
     for group in _STORED["plugin"] - set(plugins):
         cs.repo.pop(group, None)
     for p in plugins:
@@ -350,6 +357,7 @@ def register() -> None:
     _sync_store()
     add_listener(_sync_store)
     add_plugin_listener(_sync_store)
+    add_strategy_listener(_sync_store)
 
 
 # keys of other baselines that configs written before per-baseline config classes carried under
@@ -384,7 +392,13 @@ def load_config(raw: Any, where: str = "config"):
         raise ValueError(f"{where}: unknown config section(s) {unknown}: a plug-in's keys need the plug-in registered "
                          f"(registered: {sorted(PLUGINS)}; stdr.plugins.register_plugin, or an installed package "
                          "with a 'stdr.plugins' entry point)")
-    schema = OmegaConf.merge(OmegaConf.structured(root), {"baseline": OmegaConf.structured(spec.config)})
+    d = dict(raw.get("densify") or {})
+    try:
+        strategy = get_strategy(d.get("name"))
+    except ValueError as e:
+        raise ValueError(f"{where}: {e}") from None
+    schema = OmegaConf.merge(OmegaConf.structured(root), {"baseline": OmegaConf.structured(spec.config),
+                                                           "densify": OmegaConf.structured(strategy)})
     try:
         return OmegaConf.merge(schema, raw)
     except Exception as e:  # omegaconf's errors name the key; say which file

@@ -92,6 +92,7 @@ def resolve_schedule(cfg) -> Schedule:
     """Every boundary of a run from its config (a Config or DictConfig)."""
     from .deform import get_baseline
     from .plugins import enabled_plugins, plugin_node
+    from .scene.strategy import get_strategy
 
     b = cfg.baseline
     total = int(cfg.optim.iterations)
@@ -106,11 +107,9 @@ def resolve_schedule(cfg) -> Schedule:
     events, windows = get_baseline(b.name).module.stages(b)
     s.events += [Event(*e) for e in events]
     s.windows = list(windows)
-    d = cfg.densify
-    s.events.append(Event(int(d.refine_start), "densify.refine_start", "densification starts (clone, split, prune)"))
-    s.events.append(Event(int(d.refine_stop), "densify.refine_stop", "densification stops"))
-    if int(d.reset_every) > 0:
-        s.notes.append(f"opacity reset every {int(d.reset_every)} steps while densifying (densify.reset_every)")
+    events, notes = get_strategy(getattr(cfg.densify, "name", None)).stages(cfg.densify)
+    s.events += [Event(*e) for e in events]
+    s.notes += notes
     for spec in enabled_plugins(cfg):  # their phases, kept out of the windows above
         s.plugins[spec.name] = dict(spec.plugin.stages(plugin_node(cfg, spec.name), cfg, s))
     return s

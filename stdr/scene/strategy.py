@@ -1,4 +1,13 @@
-"""Densification, kept separate from the model (the gsplat pattern).
+"""Densification, kept separate from the model (the gsplat pattern), as registered strategies.
+
+A strategy is a dataclass whose fields are the `densify.*` keys, selected with `densify=<name>`
+(default: `default`, 3DGS's adaptive density control, `DensifyStrategy`). The loop calls it
+through a small protocol: `initialize_state` (its per-Gaussian statistics), `step_post_backward`
+after each optimizer step (accumulate, refine, reset; it edits rows with `duplicate`, `split`,
+`remove` below, which keep every tensor aligned) and, before any run exists, the classmethod
+`stages(d)` (its boundaries for the run's one schedule). A second strategy subclasses
+`DensifyStrategy` (so the budgets' shared `densify.*` keys stay valid; it may ignore the ones it
+does not use), overrides what differs and calls `register_strategy(name, cls)`.
 
 The strategy never names Gaussian attributes except where the method needs them (means and
 scales when splitting, opacities when pruning/resetting). Every row operation is applied to
@@ -10,7 +19,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Optional
 
 import torch
 from torch import Tensor, nn
@@ -128,6 +137,7 @@ class DensifyStrategy:
     already above the schedule does not grow (the target is never met by pruning).
     """
 
+    name: str = "default"  # the registered strategy (densify=<name>)
     grow_grad2d: float = 2e-4
     grow_scale3d: float = 0.01
     prune_opa: float = 0.005
@@ -153,6 +163,15 @@ class DensifyStrategy:
         if self.target_gaussians and self.max_gaussians and self.target_gaussians > self.max_gaussians:
             raise ValueError(f"densify.target_gaussians={self.target_gaussians} is above densify.max_gaussians="
                              f"{self.max_gaussians}: raise the cap or lower the target")
+
+    @classmethod
+    def stages(cls, d) -> tuple[list[tuple[int, str, str]], list[str]]:
+        """(events (step, key, what), notes) of config node `d` for the run's schedule."""
+        events = [(int(d.refine_start), "densify.refine_start", "densification starts (clone, split, prune)"),
+                  (int(d.refine_stop), "densify.refine_stop", "densification stops")]
+        notes = [f"opacity reset every {int(d.reset_every)} steps while densifying (densify.reset_every)"
+                 ] if int(d.reset_every) > 0 else []
+        return events, notes
 
     def initialize_state(self, n: int, scene_extent: float, white_background: bool = False,
                          device: torch.device | str | None = None) -> dict[str, Any]:
@@ -263,3 +282,53 @@ class DensifyStrategy:
         for k in ("grad2d", "count", "max_radii"):
             state[k].zero_()
         return {"cloned": n_dup, "split": n_split, "pruned": n_prune}
+
+
+# ==================================================================== the registry
+STRATEGIES: dict[str, type] = {"default": DensifyStrategy}
+# called with (name, added) on every (un)registration; stdr.config keeps Hydra's options in step
+_LISTENERS: list[Callable[[str, bool], None]] = []
+
+
+def add_listener(fn: Callable[[str, bool], None]) -> None:
+    if fn not in _LISTENERS:
+        _LISTENERS.append(fn)
+
+
+def register_strategy(name: str, cls: type) -> type:
+    """Add a densification strategy: `cls` a dataclass subclassing DensifyStrategy whose `name`
+    defaults to `name` (its fields are the `densify.*` keys of `densify=<name>`)."""
+    import dataclasses
+    if not (isinstance(cls, type) and issubclass(cls, DensifyStrategy) and dataclasses.is_dataclass(cls)):
+        raise TypeError(f"register_strategy({name!r}): the strategy must be a dataclass subclassing "
+                        f"stdr.scene.strategy.DensifyStrategy, got {cls!r}")
+    if cls().name != name:
+        raise ValueError(f"register_strategy({name!r}): {cls.__name__}.name defaults to {cls().name!r}; "
+                         f"set `name: str = {name!r}`")
+    if name in STRATEGIES and STRATEGIES[name] is not cls:
+        raise ValueError(f"densification strategy {name!r} is already registered (by {STRATEGIES[name].__name__})")
+    STRATEGIES[name] = cls
+    for fn in _LISTENERS:
+        fn(name, True)
+    return cls
+
+
+def unregister_strategy(name: str) -> None:
+    if name != "default" and STRATEGIES.pop(name, None) is not None:
+        for fn in _LISTENERS:
+            fn(name, False)
+
+
+def get_strategy(name: Optional[str]) -> type:
+    name = name or "default"
+    if name not in STRATEGIES:
+        raise ValueError(f"densify.name={name!r} is not a registered densification strategy; choose one of "
+                         f"{sorted(STRATEGIES)} (stdr.scene.strategy.register_strategy adds one)")
+    return STRATEGIES[name]
+
+
+def build_strategy(d) -> DensifyStrategy:
+    """The strategy of config node `d` (a DictConfig or dict of `densify.*`)."""
+    from omegaconf import OmegaConf
+    kw = OmegaConf.to_container(d) if OmegaConf.is_config(d) else dict(d)
+    return get_strategy(kw.get("name"))(**kw)

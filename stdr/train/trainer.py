@@ -13,7 +13,6 @@ from typing import Any, Optional
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 from torch import Tensor
 
 from ..data.load import load_scene
@@ -22,7 +21,7 @@ from ..metrics import l1, psnr, ssim
 from ..model import build_model, initial_points, model_entry
 from ..scene.gaussians import scene_extent
 from ..scene.ply import save_ply
-from ..scene.strategy import DensifyStrategy
+from ..scene.strategy import build_strategy
 from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from .guard import Guard, check_guard_config, monitor_split
 from .schedule import exp_lr
@@ -141,7 +140,7 @@ class Trainer:
         self.net_opt = torch.optim.Adam([{k: v for k, v in g.items() if k == "params" or k == "name"}
                                          for g in self.net_groups], lr=cfg.baseline.lr_init, eps=1e-15,
                                         fused=self._fused_adam)
-        self.strategy = DensifyStrategy(**OmegaConf.to_container(cfg.densify))
+        self.strategy = build_strategy(cfg.densify)  # densify=<name> (stdr.scene.strategy)
         self.cull_train = self.model.cull_mode() == "train"
         if self.cull_train and self.strategy.count_invisible:
             raise ValueError("render.cull=train renders only the rows that can reach opacity 1/255, so "
