@@ -1,4 +1,4 @@
-"""stdr-tool stability: the degradation table and chart from fixture runs (config.yaml +
+"""studies/stability.py: the degradation table and chart from fixture runs (config.yaml +
 metrics.json, a failures.jsonl), and the sweep that produces such runs composes."""
 import csv
 import json
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from stdr.tools.stability import main as stability
+from studies.stability import main as stability
 
 
 TIMES = [0.1, 0.4, 0.6, 0.9]  # evaluation frames' times in the fixture; window [0.3, 0.7] holds two
@@ -209,7 +209,7 @@ def test_the_stability_sweep_composes_every_preset():
 def _study_table(tmp_path, lacking=()):
     """A committed table.json of the study grid (every method of the sweep on its scenes) that holds
     `none:0`, `window_1:0` and `fraction_1:0`, less the (method, scene) pairs of fraction_1 in `lacking`."""
-    from stdr.tools.stability import study_grid
+    from studies.stability import study_grid
     exps, scenes = study_grid()
     runs = tmp_path / "study_runs"
     for stress, level in (("none", 0), ("window", 1), ("fraction", 1)):
@@ -248,7 +248,7 @@ def test_the_study_script_runs_the_whole_grid_breadth_first_and_keeps_the_commit
     import os
     import subprocess
     from stdr.config import CONFIG_DIR
-    script = Path(__file__).resolve().parents[1] / "scripts" / "stability_study.sh"
+    script = Path(__file__).resolve().parents[1] / "studies" / "stability_study.sh"
     table, exps, scenes = _study_table(tmp_path, lacking={("spgs", "standup"), ("spgs+STDR", "standup")})
     out = table.parent
     code = tmp_path / "frozen"  # STDR_STUDY_CODE: another checkout runs stdr-train
@@ -278,9 +278,9 @@ def test_the_study_script_runs_the_whole_grid_breadth_first_and_keeps_the_commit
     assert arg(frac[0], "data.name") == "standup"
     pose = next(w for w in lines if arg(w, "stress") == "pose_1")
     assert arg(pose, "experiment") == ",".join(e for e, _ in exps) and arg(pose, "data.name") == ",".join(scenes)
-    tool = [ln for ln in r.stdout.splitlines() if " stdr-tool " in ln]
-    assert tool == [f"{script.parents[1]}/scripts/run.sh stdr-tool stability {out}/table.json --split val "
-                    f"--out {out}"]  # no sweep folder yet
+    tool = [ln for ln in r.stdout.splitlines() if "studies/stability.py " in ln]
+    assert tool == [f"{script.parents[1]}/scripts/run.sh python {script.parents[1]}/studies/stability.py "
+                    f"{out}/table.json --split val --out {out}"]  # no sweep folder yet
     # without a committed table every preset runs whole, with the sweep's own lists
     fresh = subprocess.run(["bash", str(script), "/data/dnerf", str(tmp_path / "none_yet")], cwd=tmp_path,
                            env={**env, "STDR_STUDY_PRESETS": "window_1:0"}, capture_output=True, text=True,
@@ -301,7 +301,7 @@ def test_frame_times_come_from_the_scene_for_runs_that_did_not_record_them(tmp_p
     from omegaconf import OmegaConf
     from stdr.data.load import load_scene
     from stdr.testing import tiny_config
-    from stdr.tools.stability import _frame_times
+    from studies.stability import _frame_times
     cfg = tiny_config(tmp_path, ["stress=window_2"])
     want = [f.time for f in load_scene(cfg.data, ["val"]).splits["val"]]
     container = OmegaConf.to_container(cfg, resolve=True)

@@ -288,11 +288,11 @@ def test_configs_and_table_labels():
 
 @pytest.mark.slow
 def test_ghosting_scene_masks_separate_the_two_places(tmp_path):
-    """An object that jumps between two places (stdr-tool ghosting). With the paper's
+    """An object that jumps between two places (studies/ghosting.py). With the paper's
     frozen-opacity warm-up the mask alone must do the time-gating: the Gaussians at A are on at
     A's times and off at B's, and the other way round. (With opacity training too, the mask
     separates the two places less sharply, measured: on 0.94, off 0.64 at A.) Whether STDR then
-    beats deform's PSNR on this scene is a measurement, not a unit test: `stdr-tool ghosting`
+    beats deform's PSNR on this scene is a measurement, not a unit test: `python studies/ghosting.py`
     (its margin differs between CPUs, +0.38 to +0.5 dB)."""
     from stdr.tools import ghosting
     from stdr.train.trainer import Trainer

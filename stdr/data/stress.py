@@ -62,7 +62,7 @@ def _window(value, key: str) -> Optional[tuple[float, float]]:
 def thinned_window(stress) -> Optional[tuple[float, float]]:
     """The time window a stress thins out of the training set: drop_times (no frame kept there)
     or sparse_times (a few kept); None for the other stresses. `stress` is a data.stress config
-    or the plain mapping of a run's config.yaml (stdr-tool stability)."""
+    or the plain mapping of a run's config.yaml (studies/stability.py)."""
     for key in ("drop_times", "sparse_times"):
         if stress.get(key):
             return _window(stress.get(key), key)

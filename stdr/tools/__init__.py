@@ -1,16 +1,13 @@
 """Measurement and reporting tools behind `stdr-tool NAME` (each module also runs as
-`python -m stdr.tools.<module>`). Every table they write comes from stdr.eval.table."""
+`python -m stdr.tools.<module>`): what users of the framework need. Every table they write comes
+from stdr.eval.table. The code of one study each lives in the checkout's studies/ folder."""
 
 #: stdr-tool subcommand -> module in this package
 TOOLS = {
     "runs": "runs",                          # per-run table: metrics, STDR statistics, groups, screening rule
-    "gap": "gap",                            # STDR's gap to its baseline at several training lengths
     "densify-trace": "densify_trace",        # where a run's Gaussians come from, how opaque they end
-    "ghosting": "ghosting",                  # the ghosting scene: deform vs deform+STDR
-    "cost-probe": "cost_probe",              # seconds per training step at large Gaussian counts
     "bench-rasterizer": "bench_rasterizer",  # rasterizer backends: time, memory, share of peak
     "bench-train": "bench_train",            # ms per training step by section at fixed counts and sizes
     "identity-check": "identity_check",      # bit-identity of training / composed configs between commits
     "variants": "variants",                  # variants of one method side by side (plain, +STDR, +cull, ...)
-    "stability": "stability",                # the degradation study: accuracy under each stress and level
 }

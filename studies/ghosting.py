@@ -4,7 +4,7 @@ Trains the baseline and the baseline + STDR on the same tiny scene, then prints 
 and, for STDR, the mean activated mask of the Gaussians near each place at that place's times
 and at the other place's times. JSON goes to --out. About a minute on 2 CPU cores.
 
-    stdr-tool ghosting --out outputs/ghosting.json [--iterations 600]
+    python -m studies.ghosting --out outputs/ghosting.json [--iterations 600]
 """
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def mask_by_place(t: Trainer) -> dict:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog="stdr-tool ghosting", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m studies.ghosting", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--iterations", type=int, default=600)
     ap.add_argument("--seed", type=int, default=0)

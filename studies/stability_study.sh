@@ -4,12 +4,12 @@
 # in the order that gives a readable table soonest: the unstressed runs, level 3 of every stress,
 # seeds 1-2 of the unstressed runs, level 1, then level 2. Finished runs are skipped: those whose
 # folder is here (train.skip_finished) and those already recorded in OUT_DIR/table.json (runs of
-# earlier machines: `stdr-tool stability --todo` names what the table lacks, and only that runs),
+# earlier machines: `studies/stability.py --todo` names what the table lacks, and only that runs),
 # so stopping and starting again, here or on another machine, loses only the run in progress.
 # Then the table and chart, with the runs already committed in OUT_DIR/table.json kept
-# (stdr-tool stability reads its own table), so a study spread over machines adds up:
+# (studies/stability.py reads its own table), so a study spread over machines adds up:
 #
-#   bash scripts/stability_study.sh DNERF_ROOT [OUT_DIR]       # OUT_DIR: docs/measurements/stability
+#   bash studies/stability_study.sh DNERF_ROOT [OUT_DIR]       # OUT_DIR: docs/measurements/stability
 #
 # Runs land in multirun/stability_cpu/ under the current folder. STDR_STUDY_PRESETS picks the
 # presets, as preset:seed words (default: the whole grid below); STDR_STUDY_DRY=1 prints the
@@ -38,7 +38,7 @@ planned="" planned_from=""
 if [ -f "$OUT/table.json" ]; then   # what the committed table lacks, per preset: "preset:seed overrides"
   todo_args=()
   for p in $PRESETS; do todo_args+=(--todo "$p"); done
-  planned=$("$here/scripts/run.sh" stdr-tool stability "${todo_args[@]}" "$OUT/table.json") || exit 2
+  planned=$("$here/scripts/run.sh" python "$here/studies/stability.py" "${todo_args[@]}" "$OUT/table.json") || exit 2
   planned_from=$OUT/table.json
 fi
 status=0
@@ -62,6 +62,6 @@ inputs=()
 [ -f "$OUT/table.json" ] && inputs+=("$OUT/table.json")
 [ -d multirun/stability_cpu ] && inputs+=(multirun/stability_cpu)
 if [ ${#inputs[@]} -gt 0 ]; then
-  do_run "$here/scripts/run.sh" stdr-tool stability "${inputs[@]}" --split val --out "$OUT" || status=1
+  do_run "$here/scripts/run.sh" python "$here/studies/stability.py" "${inputs[@]}" --split val --out "$OUT" || status=1
 fi
 exit $status

@@ -25,17 +25,17 @@ an error. Writes OUT/table.md and table.json, and OUT/degradation_<metric>.{png,
   conventions.machine, code.commit; kept in each run's record). The same seed gives other
   numbers on another machine, so runs from two machines compare as two seeds do.
 
-    stdr-tool stability multirun/stability_cpu --split val --out docs/measurements/stability
-    stdr-tool stability docs/measurements/stability/table.json multirun/stability_cpu \
+    python -m studies.stability multirun/stability_cpu --split val --out docs/measurements/stability
+    python -m studies.stability docs/measurements/stability/table.json multirun/stability_cpu \
         --split val --out docs/measurements/stability        # add new runs to the committed ones
-    stdr-tool stability --todo fraction_1:0 --todo sparse_1:0 docs/measurements/stability/table.json
+    python -m studies.stability --todo fraction_1:0 --todo sparse_1:0 docs/measurements/stability/table.json
         # the sweep overrides that run what the table lacks of each preset and seed
 
 `--todo PRESET:SEED` (repeatable) plans, it writes nothing: for the study sweep
 (stdr/configs/sweep/stability.yaml: every registered baseline, plain and +STDR, on its scenes) it
 prints `PRESET:SEED experiment=a,b data.name=x`, a line per group of scenes lacking the same
 experiments, and nothing for a preset whose runs the given tables all hold.
-scripts/stability_study.sh uses it, so a study resumed on another machine runs only what its
+studies/stability_study.sh uses it, so a study resumed on another machine runs only what its
 committed table lacks.
 """
 from __future__ import annotations
@@ -51,9 +51,9 @@ from typing import Any
 
 import yaml
 
-from ..data.stress import thinned_window
-from ..eval.table import fmt_value as fmt
-from ..eval.table import markdown_table, method_name, write_outputs
+from stdr.data.stress import thinned_window
+from stdr.eval.table import fmt_value as fmt
+from stdr.eval.table import markdown_table, method_name, write_outputs
 
 REFERENCE = ("none", 0)
 
@@ -77,7 +77,7 @@ def _frame_times(cfg: dict, split: str, m: dict, cache: dict) -> list[float] | N
     data = OmegaConf.create(cfg["data"])
     key = (str(data.get("path")), str(data.get("name")), split)
     if key not in cache:
-        from ..data.load import load_scene
+        from stdr.data.load import load_scene
         try:
             cache[key] = [f.time for f in load_scene(data, [split]).splits[split]]
         except (OSError, ValueError, KeyError, AttributeError) as e:
@@ -96,19 +96,19 @@ def load_records(path: Path, split: str) -> list[dict[str, Any]]:
     try:
         t = json.loads(path.read_text())
     except (OSError, ValueError) as e:
-        raise SystemExit(f"stdr-tool stability: {path} is not a readable table.json ({e})") from None
+        raise SystemExit(f"python -m studies.stability: {path} is not a readable table.json ({e})") from None
     if not isinstance(t, dict) or not isinstance(t.get("runs"), list):
-        raise SystemExit(f"stdr-tool stability: {path} has no 'runs' list; pass a table.json written by "
-                         "stdr-tool stability (or a sweep or run folder)")
+        raise SystemExit(f"python -m studies.stability: {path} has no 'runs' list; pass a table.json written by "
+                         "python -m studies.stability (or a sweep or run folder)")
     if t.get("split") != split:
-        raise SystemExit(f"stdr-tool stability: {path} holds the {t.get('split')!r} split, not {split!r}; "
+        raise SystemExit(f"python -m studies.stability: {path} holds the {t.get('split')!r} split, not {split!r}; "
                          f"pass --split {t.get('split')} or leave this table out")
     for i, r in enumerate(t["runs"]):
         missing = [k for k in RECORD_FIELDS if not isinstance(r, dict) or k not in r]
         finished = isinstance(r, dict) and not r.get("crashed")
         missing += [k for k in ("psnr", "ssim", "lpips", "nonfinite", "cap_held") if finished and k not in r]
         if missing:
-            raise SystemExit(f"stdr-tool stability: {path}: runs[{i}] lacks {', '.join(missing)}; "
+            raise SystemExit(f"python -m studies.stability: {path}: runs[{i}] lacks {', '.join(missing)}; "
                              "regenerate that table from its run folders")
     return t["runs"]
 
@@ -122,7 +122,7 @@ def _merge(folder_runs: list[dict[str, Any]], unfinished: list[str],
         for r in recs:
             prev = by_path.get(r["run"])
             if prev is not None and prev[1] != r:
-                raise SystemExit(f"stdr-tool stability: run {r['run']} differs between {prev[0]} and {path}; "
+                raise SystemExit(f"python -m studies.stability: run {r['run']} differs between {prev[0]} and {path}; "
                                  "pass one of them")
             by_path[r["run"]] = (str(path), r)
     for d in unfinished:
@@ -134,7 +134,7 @@ def _merge(folder_runs: list[dict[str, Any]], unfinished: list[str],
         key = tuple(r[k] for k in RUN_KEY)
         if key in seen:
             other_src, other_run = seen[key]
-            raise SystemExit("stdr-tool stability: " + ", ".join(f"{k}={v}" for k, v in zip(RUN_KEY, key))
+            raise SystemExit("python -m studies.stability: " + ", ".join(f"{k}={v}" for k, v in zip(RUN_KEY, key))
                              + f" comes twice: {other_run} ({other_src}) and {r['run']} ({src}); "
                              "leave one of them out")
         seen[key] = (src, r["run"])
@@ -150,7 +150,7 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
     tables: list[tuple[Path, list[dict[str, Any]]]] = []
     for p in map(Path, paths):
         if not p.exists():
-            raise SystemExit(f"stdr-tool stability: {p} does not exist")
+            raise SystemExit(f"python -m studies.stability: {p} does not exist")
         if p.is_file():
             tables.append((p, load_records(p, split)))
             continue
@@ -164,7 +164,7 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
                     rec = json.loads(line)
                     failures[str(Path(rec["run_dir"]).resolve())] = rec.get("error", "?")
     if not folders and not tables:
-        raise SystemExit(f"stdr-tool stability: no run folders (config.yaml) under {', '.join(map(str, paths))}")
+        raise SystemExit(f"python -m studies.stability: no run folders (config.yaml) under {', '.join(map(str, paths))}")
     runs, unfinished, times_cache = [], [], {}
     for d in dict.fromkeys(f.resolve() for f in folders):  # absolute: a table's records name runs so
         cfg = yaml.safe_load((d / "config.yaml").read_text())
@@ -203,7 +203,7 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
         runs.append(row)
     runs = _merge(runs, unfinished, tables)
     if not runs:
-        raise SystemExit(f"stdr-tool stability: no finished or crashed run with a {split!r} entry "
+        raise SystemExit(f"python -m studies.stability: no finished or crashed run with a {split!r} entry "
                          f"({len(unfinished)} unfinished)")
     return runs, unfinished
 
@@ -324,10 +324,10 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
     from matplotlib.lines import Line2D
     from matplotlib.ticker import MaxNLocator
 
-    from ..eval.chart import _save, _style
+    from stdr.eval.chart import _save, _style
     stresses = sorted({r["stress"] for r in rows if r["stress"] != "none"})
     if not stresses:
-        raise SystemExit("stdr-tool stability: no stressed runs to chart")
+        raise SystemExit("python -m studies.stability: no stressed runs to chart")
     # one panel per stress over all evaluation frames; a stress with a time window (window,
     # sparse) gets a second panel over the frames inside it, where the mean over all frames
     # hides the loss (frames outside the window often gain)
@@ -370,7 +370,7 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
 def study_grid(data: str = "dnerf") -> tuple[list[tuple[str, str]], list[str]]:
     """The study sweep's methods as (experiment, method name) pairs, every registered baseline
     plain and +STDR, and its scenes (stdr/configs/sweep/stability.yaml)."""
-    from ..config import CONFIG_DIR, _experiments_resolver
+    from stdr.config import CONFIG_DIR, _experiments_resolver
     exps = []
     for e in _experiments_resolver(data).split(","):
         base = e[len(data) + 1:]
@@ -387,10 +387,10 @@ def todo_overrides(have: set[tuple], grid: tuple[list[tuple[str, str]], list[str
     (study_grid) whose RUN_KEY is not in `have` (a crashed run counts as held: it is a result).
     One line per group of scenes that lack the same experiments, e.g.
     'experiment=dnerf_spgs,dnerf_spgs_stdr data.name=standup'."""
-    from ..config import CONFIG_DIR
+    from stdr.config import CONFIG_DIR
     f = CONFIG_DIR / "stress" / f"{preset}.yaml"
     if not f.is_file():
-        raise SystemExit(f"stdr-tool stability: --todo {preset}:{seed}: no stress preset {f}")
+        raise SystemExit(f"python -m studies.stability: --todo {preset}:{seed}: no stress preset {f}")
     # `# @package data.stress`: the preset's keys sit at the top of its file
     label, level = _stress({"data": {"stress": yaml.safe_load(f.read_text()) or {}}})
     exps, scenes = grid
@@ -403,7 +403,7 @@ def todo_overrides(have: set[tuple], grid: tuple[list[tuple[str, str]], list[str
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(prog="stdr-tool stability", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m studies.stability", description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="*", help="sweep folders, run folders or table.json files of this tool "
                     "(with --todo: table.json files only)")
     ap.add_argument("--split", default="val")

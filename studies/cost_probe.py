@@ -11,7 +11,7 @@ The estimate is then iterations x seconds per iteration at the count the schedul
 It assumes that count is known (pass it). Densification, evaluation and checkpointing are not
 included.
 
-    stdr-tool cost-probe outputs/toy/deform_2x --gaussians 50000 150000 \\
+    python -m studies.cost_probe outputs/toy/deform_2x --gaussians 50000 150000 \\
         --iters 10 --out docs/measurements/x.json -- experiment=nerfds_deform budget=paper data.path=...
 """
 from __future__ import annotations
@@ -55,7 +55,7 @@ def replicate(params: dict, n: int, gen: torch.Generator) -> dict:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog="stdr-tool cost-probe", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m studies.cost_probe", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog="the target config's Hydra overrides follow --")
     ap.add_argument("run", type=Path, help="a finished run whose checkpoint supplies the Gaussians")
