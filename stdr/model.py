@@ -141,9 +141,9 @@ class DynamicGaussians:
                       cull: bool = False) -> tuple[Gaussians, Optional[Tensor]]:
         """(Gaussians at time t, rows [M] they are of the model, or None for all).
 
-        cull: temporal culling. Rows whose opacity at t, sigmoid(o) times the plug-ins' factors
-        (a plug-in's opacity factor), is below 1/255 cannot change a pixel or get a gradient from the render
-        (the rasterizer's cut-off), so they skip the deformation network, the projection and
+        cull: temporal culling. Rows whose opacity at t, sigmoid(o) times the plug-ins' factors,
+        is below 1/255 cannot change a pixel or get a gradient from the render (the rasterizer's
+        cut-off), so they skip the deformation network, the projection and
         the rasterizer. The image equals the unculled one; the culled rows get zero gradient,
         as they do without culling. Parts a baseline shares between Gaussians (SC-GS's node
         conditioning, SP-GS's superpoints) are still computed from every row
