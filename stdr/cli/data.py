@@ -1,0 +1,179 @@
+"""stdr-data: the public datasets (list, download, verify) and their prepared copies.
+
+    stdr-data list
+    stdr-data download dnerf --dest data/dnerf [--scenes standup jumpingjacks]
+    stdr-data download hypernerf --scenes vrig_broom --dest data/hypernerf
+    stdr-data verify data/dnerf
+    stdr-data prepare dnerf-400 data/dnerf data/dnerf_400      # the 400x400 copies the budgets assume
+
+Sources, mirrors and the checks: stdr.data.fetch and docs/data.md ("Getting the datasets").
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ..data import fetch
+
+
+def _list() -> None:
+    for d in fetch.CATALOG.values():
+        print(f"{d.name:10s} {d.title}  [format {d.format}]")
+        if d.scene_archives:
+            print(f"{'':10s} scenes (one archive each, --scenes): {', '.join(a.name[:-4] for a in d.archives)}")
+        else:
+            for a in d.archives:
+                print(f"{'':10s} scenes: {', '.join(a.scenes)}")
+        if d.note:
+            print(f"{'':10s} {d.note}")
+        print(f"{'':10s} sources: {', '.join(a.urls[0] for a in d.archives[:1])}"
+              + (f" (+{len(d.archives[0].urls) - 1} mirrors)" if len(d.archives[0].urls) > 1 else "")
+              + (" ..." if len(d.archives) > 1 else ""))
+
+
+def _download(args) -> list[Path]:
+    d = fetch.CATALOG.get(args.name)
+    if d is None:
+        raise SystemExit(f"stdr-data: no dataset {args.name!r}; `stdr-data list` names them: {sorted(fetch.CATALOG)}")
+    dest = Path(args.dest or f"data/{d.name}")
+    wanted = set(args.scenes or [])
+    archives = list(d.archives)
+    keep = None
+    if d.scene_archives:
+        if wanted:
+            names = {a.name[:-4] for a in archives}
+            unknown = sorted(wanted - names)
+            if unknown:
+                raise SystemExit(f"stdr-data: {d.name} has no scene(s) {unknown}; choose from {sorted(names)}")
+            archives = [a for a in archives if a.name[:-4] in wanted]
+    elif wanted:
+        keep = wanted.__contains__
+    if args.archive and len(archives) != 1:
+        raise SystemExit("stdr-data: --archive names one downloaded file; pick one scene with --scenes")
+    lock = fetch.Lock(dest)
+    placed: list[Path] = []
+    for a in archives:
+        if args.archive:
+            path, url = Path(args.archive), f"file:{Path(args.archive).resolve()}"
+        else:
+            path = dest / ".downloads" / a.name
+            url = fetch.download(args.urls or a.urls, path)
+        fetch.check_archive(path)  # before the lock: a damaged transfer is never recorded
+        state = lock.check_or_record(a.name, path, url)
+        print(f"[stdr-data] {a.name}: {path.stat().st_size:,} bytes, CRC ok, SHA-256 {state} ({lock.path})")
+        counts: dict[str, int] = {}
+
+        def check(sc: Path, counts=counts) -> None:
+            counts[sc.name] = fetch.verify_scene(sc, d.format)
+        got = fetch.safe_extract(path, dest, keep=keep, check=check)
+        for s in got:
+            print(f"[stdr-data] {s}: {d.format} layout ok ({counts.get(s.name, '?')} images)")
+        placed += got
+        if not args.keep_archive and not args.archive:
+            path.unlink()
+    if wanted and not d.scene_archives:
+        missing = sorted(wanted - {p.name for p in placed})
+        if missing:
+            raise SystemExit(f"stdr-data: the archive holds no scene(s) {missing}")
+    if placed:
+        exp = {"dnerf": "dnerf", "nerfies": d.name}[d.format]
+        print(f"[stdr-data] done: {len(placed)} scene(s) in {dest}; e.g. stdr-train experiment={exp}_deform "
+              f"data.path={placed[0]}")
+    return placed
+
+
+def _verify(folder: Path, fmt: str | None) -> int:
+    folder = Path(folder)
+    scenes = [folder] if fetch.detect_format(folder) else sorted(p for p in folder.iterdir()
+                                                                  if p.is_dir() and fetch.detect_format(p))
+    if not scenes:
+        raise SystemExit(f"stdr-data verify: {folder} is neither a scene folder (transforms_train.json or "
+                         "dataset.json) nor a folder of scenes")
+    bad = 0
+    for s in scenes:
+        try:
+            n = fetch.verify_scene(s, fmt or fetch.detect_format(s))
+            print(f"ok   {s} ({n} images)")
+        except fetch.DataError as e:
+            print(f"FAIL {s}: {e}")
+            bad += 1
+    return bad
+
+
+def prepare_dnerf(src: Path, dest: Path, size: int = 400) -> list[Path]:
+    """D-NeRF scenes resized to size x size: RGBA resampled with premultiplied alpha (PIL's RGBa)
+    and Lanczos, so edges do not pick up the colour of transparent pixels; transforms copied (the
+    field of view does not change). This is how the 400x400 copies in ../shared were made, and
+    SC-GS's "resolution 2" setting of the 800x800 originals."""
+    import json
+    import shutil
+
+    from PIL import Image
+    src, dest = Path(src), Path(dest)
+    scenes = [src] if fetch.detect_format(src) == "dnerf" else sorted(
+        p for p in src.iterdir() if p.is_dir() and fetch.detect_format(p) == "dnerf")
+    if not scenes:
+        raise SystemExit(f"stdr-data prepare: no D-NeRF scene (transforms_train.json) in {src}")
+    out = []
+    for s in scenes:
+        fetch.verify_scene(s, "dnerf")
+        t = dest / s.name
+        if t.exists():
+            raise SystemExit(f"stdr-data prepare: {t} exists already; remove it or choose another destination")
+        tmp = dest / f".{s.name}.partial"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        for split in ("train", "val", "test"):
+            jp = s / f"transforms_{split}.json"
+            shutil.copy2(jp, tmp / jp.name)
+            for i, fr in enumerate(json.loads(jp.read_text())["frames"]):
+                from ..data.dnerf import _resolve_image
+                img = _resolve_image(s, fr["file_path"], jp, i)
+                rel = img.relative_to(s)
+                (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+                with Image.open(img) as im:
+                    im = im.convert("RGBA").convert("RGBa").resize((size, size), Image.Resampling.LANCZOS)
+                    im.convert("RGBA").save(tmp / rel)
+        tmp.replace(t)
+        print(f"[stdr-data] {t}: {size}x{size}")
+        out.append(t)
+    return out
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(prog="stdr-data", description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    sub.add_parser("list", help="the datasets, their scenes and sources")
+    d = sub.add_parser("download", help="download, check and unpack a dataset (resumable)")
+    d.add_argument("name", help="dnerf | nerfds | hypernerf")
+    d.add_argument("--dest", default=None, help="folder for the scenes (default data/<name>)")
+    d.add_argument("--scenes", nargs="*", default=None, help="only these scenes")
+    d.add_argument("--archive", default=None, help="an archive downloaded by hand (checked and unpacked)")
+    d.add_argument("--keep-archive", action="store_true", help="keep the downloaded archive (in DEST/.downloads)")
+    d.add_argument("--urls", nargs="*", default=None, help=argparse.SUPPRESS)  # other sources (tests, mirrors)
+    v = sub.add_parser("verify", help="check scene folders against the loaders' needs")
+    v.add_argument("folder", type=Path)
+    v.add_argument("--format", choices=("dnerf", "nerfies"), default=None)
+    p = sub.add_parser("prepare", help="prepared copies: dnerf-400 (400x400, premultiplied-alpha Lanczos)")
+    p.add_argument("what", choices=("dnerf-400",))
+    p.add_argument("src", type=Path)
+    p.add_argument("dest", type=Path)
+    args = ap.parse_args(argv)
+    try:
+        if args.cmd == "list":
+            _list()
+        elif args.cmd == "download":
+            _download(args)
+        elif args.cmd == "verify":
+            if _verify(args.folder, args.format):
+                raise SystemExit(1)
+        elif args.cmd == "prepare":
+            prepare_dnerf(args.src, args.dest)
+    except fetch.DataError as e:
+        print(f"stdr-data: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+if __name__ == "__main__":
+    main()

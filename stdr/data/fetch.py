@@ -1,0 +1,299 @@
+"""Public datasets: where they are, resumable downloads, safe unpacking, layout checks (`stdr-data`).
+
+Small stateless functions:
+
+* `download(urls, dest)`: the first URL that answers, resumed from `dest.part` with an HTTP Range
+  request when a transfer was cut, with a progress bar; the bytes land in `dest` only when whole.
+* `check_archive(path)`: a zip's CRC of every member (`zipfile.testzip`).
+* `Lock`: no checksums are published for these archives, so the first download records size and
+  SHA-256 in `<dest>/stdr-data.lock.json`, and later downloads of the same archive must match it.
+* `safe_extract(archive, dest)`: unpacks into a temporary folder beside `dest`, refuses members
+  that would leave it (absolute paths, `..`, symbolic links), detects the top-level folder
+  instead of assuming it, and renames into place, so a failure leaves no half-written dataset.
+* `verify_scene(folder, fmt)`: the layout the loaders need (D-NeRF: transforms and images;
+  Nerfies format: dataset, metadata, scene, cameras and images of every listed id).
+
+Sources and their mirrors: ../shared/reference/data-sources.md (kept in the catalog below).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import stat
+import tempfile
+import urllib.error
+import urllib.request
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+from typing import Callable, Optional
+
+CHUNK = 1 << 20
+LOCK_NAME = "stdr-data.lock.json"
+
+
+@dataclass(frozen=True)
+class Archive:
+    name: str               # file name of the download (and its key in the lock file)
+    urls: tuple[str, ...]   # tried in order
+    scenes: tuple[str, ...] = ()  # scene folders it holds (informative; the layout is checked, not assumed)
+
+
+@dataclass(frozen=True)
+class Dataset:
+    name: str
+    title: str
+    format: str                       # dnerf | nerfies (the loader that reads its scenes)
+    archives: tuple[Archive, ...]
+    note: str = ""
+    scene_archives: bool = False      # one archive per scene (pick with --scenes)
+    aliases: dict = field(default_factory=dict)
+
+
+_HF = "https://huggingface.co/camenduru/4DGaussians/resolve/main/data/data.zip"
+_HN = "https://github.com/google/hypernerf/releases/download/v0.1/"
+CATALOG: dict[str, Dataset] = {
+    "dnerf": Dataset(
+        "dnerf", "D-NeRF synthetic (8 scenes, 800x800 RGBA)", "dnerf",
+        (Archive("dnerf-data.zip", (_HF, "https://www.dropbox.com/s/raw/0bf6fl0ye2vz3vr/data.zip",
+                                    "https://www.dropbox.com/scl/fi/cdcmkufncwcikk1dzbgb4/data.zip"
+                                    "?rlkey=n5m21i84v2b2xk6h7qgiu8nkg&dl=1"),
+                 ("bouncingballs", "hellwarrior", "hook", "jumpingjacks", "lego", "mutant", "standup", "trex")),),
+        note="~700 MB unpacked; `stdr-data prepare dnerf-400` makes the 400x400 copies the budgets assume"),
+    "nerfds": Dataset(
+        "nerfds", "NeRF-DS (7 real scenes, specular objects; Nerfies format)", "nerfies",
+        (Archive("NeRF-DS.dataset.zip",
+                 ("https://github.com/JokerYan/NeRF-DS/releases/download/v0.1-pre-release/NeRF-DS.dataset.zip",),
+                 ("as_novel_view", "basin_novel_view", "bell_novel_view", "cup_novel_view", "plate_novel_view",
+                  "press_novel_view", "sieve_novel_view")),),
+        note="~2.1 GB; train with experiment=nerfds_<baseline> data.path=<dest>/<scene>"),
+    "hypernerf": Dataset(
+        "hypernerf", "HyperNeRF (17 real scenes in vrig / interp / misc; Nerfies format)", "nerfies",
+        tuple(Archive(f"{a}.zip", (f"{_HN}{a}.zip",), (a,)) for a in (
+            "vrig_3dprinter", "vrig_broom", "vrig_chicken", "vrig_peel-banana",
+            "interp_aleks-teapot", "interp_chickchicken", "interp_cut-lemon", "interp_hand", "interp_slice-banana",
+            "interp_torchocolate", "misc_americano", "misc_cross-hands", "misc_espresso", "misc_keyboard",
+            "misc_oven-mitts", "misc_split-cookie", "misc_tamping")),
+        note="one archive per scene (~1.5 GB each); vrig: experiment=hypernerf_<baseline>, interp: data=hypernerf_interp",
+        scene_archives=True),
+}
+
+
+class DataError(RuntimeError):
+    """A download, archive or layout that cannot be used; the message says what to do."""
+
+
+# ------------------------------------------------------------------ download
+def _progress(total: Optional[int], initial: int, desc: str):
+    from tqdm import tqdm
+    return tqdm(total=total, initial=initial, unit="B", unit_scale=True, desc=desc, dynamic_ncols=True,
+                disable=os.environ.get("STDR_DATA_QUIET") == "1")
+
+
+def _fetch_one(url: str, dest: Path, timeout: float) -> None:
+    part = dest.with_name(dest.name + ".part")
+    have = part.stat().st_size if part.is_file() else 0
+    req = urllib.request.Request(url, headers={"User-Agent": "stdr-data"})
+    if have:
+        req.add_header("Range", f"bytes={have}-")
+    with urllib.request.urlopen(req, timeout=timeout) as r:
+        status = getattr(r, "status", 200)
+        if have and status != 206:  # the server ignored the range: start over
+            have = 0
+        length = r.headers.get("Content-Length")
+        total = (int(length) + have) if length is not None else None
+        with open(part, "ab" if have else "wb") as f, _progress(total, have, dest.name) as bar:
+            while True:
+                chunk = r.read(CHUNK)
+                if not chunk:
+                    break
+                f.write(chunk)
+                bar.update(len(chunk))
+    got = part.stat().st_size
+    if total is not None and got != total:
+        raise DataError(f"{url}: the transfer stopped at {got} of {total} bytes; run the command again to resume "
+                        f"from {part}")
+    part.replace(dest)
+
+
+def download(urls: tuple[str, ...] | list[str], dest: Path, timeout: float = 60.0,
+             log: Callable[[str], None] = print) -> str:
+    """Fetch the first of `urls` that works into `dest` (resuming `dest.part`); returns the URL."""
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    errors = []
+    for url in urls:
+        try:
+            _fetch_one(url, dest, timeout)
+            return url
+        except (urllib.error.URLError, OSError, DataError) as e:
+            errors.append(f"{url}: {e}")
+            log(f"[stdr-data] {url} failed ({e}); trying the next source" if url != urls[-1] else
+                f"[stdr-data] {url} failed ({e})")
+    raise DataError(f"no source of {dest.name} worked:\n  " + "\n  ".join(errors) +
+                    "\nCheck the network, or download one of these URLs by hand and pass it with --archive")
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(CHUNK), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+class Lock:
+    """<folder>/stdr-data.lock.json: {archive name: {size, sha256, url}} of the first download."""
+
+    def __init__(self, folder: Path):
+        self.path = Path(folder) / LOCK_NAME
+        self.entries: dict = json.loads(self.path.read_text()) if self.path.is_file() else {}
+
+    def check_or_record(self, name: str, archive: Path, url: str) -> str:
+        """'recorded' (first time) or 'matches'; a different size or SHA-256 is a DataError."""
+        size, digest = archive.stat().st_size, sha256(archive)
+        old = self.entries.get(name)
+        if old is None:
+            self.entries[name] = {"size": size, "sha256": digest, "url": url}
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.path.write_text(json.dumps(self.entries, indent=1, sort_keys=True) + "\n")
+            return "recorded"
+        if (old["size"], old["sha256"]) != (size, digest):
+            raise DataError(f"{archive}: {size} bytes, SHA-256 {digest}, but {self.path} recorded {old['size']} bytes, "
+                            f"SHA-256 {old['sha256']} (from {old.get('url')}). The source changed or the file is "
+                            f"damaged: delete {archive} and download again; if the new archive is right, remove its "
+                            f"entry from {self.path}")
+        return "matches"
+
+
+# ------------------------------------------------------------------ archives
+def check_archive(path: Path) -> None:
+    """Every member's CRC (a truncated or corrupted zip is a DataError naming the file)."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            bad = z.testzip()
+    except (zipfile.BadZipFile, OSError) as e:
+        raise DataError(f"{path}: not a readable zip archive ({e}); delete it and download again") from None
+    if bad is not None:
+        raise DataError(f"{path}: member {bad!r} fails its CRC check; delete the archive and download again")
+
+
+def _member_problem(info: zipfile.ZipInfo) -> Optional[str]:
+    name = info.filename
+    p = PurePosixPath(name.replace("\\", "/"))
+    if p.is_absolute() or (len(name) > 1 and name[1] == ":"):
+        return "an absolute path"
+    if ".." in p.parts:
+        return "a '..' component"
+    if stat.S_ISLNK(info.external_attr >> 16):
+        return "a symbolic link"
+    return None
+
+
+def safe_extract(archive: Path, dest: Path, keep: Optional[Callable[[str], bool]] = None,
+                 check: Optional[Callable[[Path], object]] = None) -> list[Path]:
+    """Unpack `archive` and move its scene folders into `dest`; returns the folders placed.
+
+    The archive's top level is detected: its one top-level folder is descended into when the
+    scenes lie under it (D-NeRF's `data/`), else the top-level folders are the scenes. `keep(name)`
+    picks scene folders by name; `check(folder)` (e.g. verify_scene) runs on every scene before
+    any is moved. Members that would leave the destination are refused before anything is
+    written; the unpacking goes to a temporary folder inside `dest` and the scenes are renamed
+    into place only when all passed, so a failure leaves no partial dataset. An existing scene
+    folder is an error."""
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    with zipfile.ZipFile(archive) as z:
+        infos = z.infolist()
+        for info in infos:
+            why = _member_problem(info)
+            if why is not None:
+                raise DataError(f"{archive}: member {info.filename!r} is {why}; refusing to unpack an archive that "
+                                "could write outside its destination")
+        tmp = Path(tempfile.mkdtemp(prefix=".stdr-data-", dir=dest))
+        try:
+            z.extractall(tmp)
+            root = tmp
+            while True:  # descend through single wrapper folders (e.g. data/)
+                kids = [k for k in root.iterdir() if not k.name.startswith(("__MACOSX", "."))]
+                if len(kids) == 1 and kids[0].is_dir() and not _looks_like_scene(kids[0]):
+                    root = kids[0]
+                else:
+                    break
+            scenes = [k for k in sorted(root.iterdir()) if k.is_dir() and not k.name.startswith(("__MACOSX", "."))]
+            if _looks_like_scene(root):
+                scenes = [root]
+            if keep is not None:
+                scenes = [s for s in scenes if keep(s.name)]
+            targets = [dest / (Path(archive).stem if sc == tmp else sc.name) for sc in scenes]
+            for t in targets:
+                if t.exists():
+                    raise DataError(f"{t} exists already; remove it (or pass another --dest) to unpack it again")
+            if check is not None:
+                for sc, t in zip(scenes, targets):
+                    try:
+                        check(sc)
+                    except DataError as e:
+                        raise DataError(f"{archive}: scene {t.name}: {str(e).replace(str(sc), t.name)}; nothing "
+                                        f"was unpacked into {dest}") from None
+            for sc, t in zip(scenes, targets):
+                sc.replace(t)
+            return targets
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _looks_like_scene(folder: Path) -> bool:
+    return (folder / "transforms_train.json").is_file() or (folder / "dataset.json").is_file()
+
+
+# ------------------------------------------------------------------ layout
+def verify_scene(folder: Path, fmt: str) -> int:
+    """Check a scene folder against its loader's needs; returns the number of images checked.
+    Raises DataError naming the first missing piece."""
+    folder = Path(folder)
+    if fmt == "dnerf":
+        from .dnerf import _read_json, _resolve_image
+        n = 0
+        for split in ("train", "val", "test"):
+            jp = folder / f"transforms_{split}.json"
+            try:
+                frames = _read_json(jp).get("frames")
+                if not frames:
+                    raise DataError(f"{jp}: no frames")
+                for i, fr in enumerate(frames):
+                    _resolve_image(folder, fr["file_path"], jp, i)
+                    n += 1
+            except (FileNotFoundError, ValueError, KeyError) as e:
+                raise DataError(f"{folder} is not a complete D-NeRF scene: {e}") from None
+        return n
+    if fmt == "nerfies":
+        need = ["dataset.json", "metadata.json", "scene.json"]
+        missing = [f for f in need if not (folder / f).is_file()]
+        if missing:
+            raise DataError(f"{folder} is not a Nerfies-format scene: missing {', '.join(missing)}")
+        try:
+            ids = json.loads((folder / "dataset.json").read_text())["ids"]
+        except (json.JSONDecodeError, KeyError) as e:
+            raise DataError(f"{folder / 'dataset.json'}: no readable 'ids' list ({e})") from None
+        scales = sorted(p for p in (folder / "rgb").glob("*x") if p.is_dir())
+        if not scales:
+            raise DataError(f"{folder}: no rgb/<N>x image folder")
+        n = 0
+        for i in ids:
+            if not (folder / "camera" / f"{i}.json").is_file():
+                raise DataError(f"{folder}: camera/{i}.json missing (id listed in dataset.json)")
+            if not any((s / f"{i}.png").is_file() or (s / f"{i}.jpg").is_file() for s in scales):
+                raise DataError(f"{folder}: no image of id {i} under rgb/*x/")
+            n += 1
+        return n
+    raise ValueError(f"unknown format {fmt!r}: dnerf or nerfies")
+
+
+def detect_format(folder: Path) -> Optional[str]:
+    if (Path(folder) / "transforms_train.json").is_file():
+        return "dnerf"
+    if (Path(folder) / "dataset.json").is_file():
+        return "nerfies"
+    return None

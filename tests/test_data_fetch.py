@@ -1,0 +1,217 @@
+"""stdr-data against a local HTTP server on 127.0.0.1 serving fixture archives: a download that
+succeeds, one cut off and resumed, a corrupted archive, a wrong layout, a path-traversal member,
+sources tried in order, the lock file, and the 400x400 preparation."""
+import io
+import json
+import threading
+import zipfile
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from stdr.cli.data import main as stdr_data, prepare_dnerf
+from stdr.data import fetch
+
+
+def _png(size=8, color=(255, 0, 0, 255)) -> bytes:
+    b = io.BytesIO()
+    Image.new("RGBA", (size, size), color).save(b, format="PNG")
+    return b.getvalue()
+
+
+def _dnerf_scene(prefix: str, z: zipfile.ZipFile, size=8, missing_val=False) -> None:
+    for split in ("train", "val", "test"):
+        frames = [{"file_path": f"./{split}/r_{i:03d}", "time": i / 2, "transform_matrix": np.eye(4).tolist()}
+                  for i in range(3)]
+        if missing_val and split == "val":
+            frames[0]["file_path"] = "./val/nope"
+        z.writestr(f"{prefix}transforms_{split}.json", json.dumps({"camera_angle_x": 0.69, "frames": frames}))
+        for i in range(3):
+            z.writestr(f"{prefix}{split}/r_{i:03d}.png", _png(size))
+
+
+def _zip(build) -> bytes:
+    b = io.BytesIO()
+    with zipfile.ZipFile(b, "w", zipfile.ZIP_DEFLATED) as z:
+        build(z)
+    return b.getvalue()
+
+
+DNERF = _zip(lambda z: (_dnerf_scene("data/standup/", z), _dnerf_scene("data/lego/", z)))
+
+
+class Server:
+    """Files by path; `cut[path] = n` serves only the first n bytes once (announcing the full
+    length), as a dropped connection would; Range requests are honoured; every request's Range
+    header is recorded."""
+
+    def __init__(self):
+        self.files: dict[str, bytes] = {}
+        self.cut: dict[str, int] = {}
+        self.ranges: list = []
+        srv = self
+
+        class H(BaseHTTPRequestHandler):
+            def log_message(self, *a):
+                pass
+
+            def do_GET(self):
+                data = srv.files.get(self.path)
+                srv.ranges.append((self.path, self.headers.get("Range")))
+                if data is None:
+                    self.send_error(404)
+                    return
+                start = 0
+                rng = self.headers.get("Range")
+                if rng:
+                    start = int(rng.split("=")[1].split("-")[0])
+                    self.send_response(206)
+                    self.send_header("Content-Range", f"bytes {start}-{len(data) - 1}/{len(data)}")
+                else:
+                    self.send_response(200)
+                body = data[start:]
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                n = srv.cut.pop(self.path, None)
+                self.wfile.write(body if n is None else body[:n])
+                if n is not None:
+                    self.close_connection = True
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), H)
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+
+@pytest.fixture
+def server(monkeypatch):
+    monkeypatch.setenv("STDR_DATA_QUIET", "1")
+    s = Server()
+    yield s
+    s.httpd.shutdown()
+
+
+def test_a_download_is_checked_unpacked_and_verified(tmp_path, server, capsys):
+    server.files["/data.zip"] = DNERF
+    dest = tmp_path / "dnerf"
+    stdr_data(["download", "dnerf", "--dest", str(dest), "--urls", f"{server.url}/missing.zip",
+               f"{server.url}/data.zip", "--scenes", "standup"])
+    out = capsys.readouterr().out
+    assert sorted(p.name for p in dest.iterdir() if not p.name.startswith(".")) == ["standup",
+                                                                                      "stdr-data.lock.json"]
+    assert "standup: dnerf layout ok (9 images)" in out and "SHA-256 recorded" in out
+    lock = json.loads((dest / "stdr-data.lock.json").read_text())["dnerf-data.zip"]
+    assert lock["size"] == len(DNERF) and lock["url"].endswith("/data.zip")  # the second source, after a 404
+    assert not (dest / ".downloads" / "dnerf-data.zip").exists()  # removed once unpacked
+    assert not [p for p in dest.iterdir() if p.name.startswith(".stdr-data-")]  # no temporary folder left
+    # the same archive again, into another folder that shares the lock: it matches
+    (tmp_path / "again").mkdir()
+    (tmp_path / "again" / "stdr-data.lock.json").write_text((dest / "stdr-data.lock.json").read_text())
+    stdr_data(["download", "dnerf", "--dest", str(tmp_path / "again"), "--urls", f"{server.url}/data.zip"])
+    assert "SHA-256 matches" in capsys.readouterr().out
+    assert (tmp_path / "again" / "lego").is_dir() and (tmp_path / "again" / "standup").is_dir()
+
+
+def test_a_cut_transfer_resumes_with_a_range_request(tmp_path, server):
+    server.files["/data.zip"] = DNERF
+    server.cut["/data.zip"] = len(DNERF) // 3
+    dest = tmp_path / "a.zip"
+    with pytest.raises(fetch.DataError, match="resume"):
+        fetch.download([f"{server.url}/data.zip"], dest)
+    part = tmp_path / "a.zip.part"
+    assert part.stat().st_size == len(DNERF) // 3 and not dest.exists()
+    fetch.download([f"{server.url}/data.zip"], dest)
+    assert dest.read_bytes() == DNERF and not part.exists()
+    assert server.ranges[-1] == ("/data.zip", f"bytes={len(DNERF) // 3}-")
+
+
+def test_a_corrupted_archive_and_a_changed_source_are_refused(tmp_path):
+    bad = bytearray(DNERF)
+    with zipfile.ZipFile(io.BytesIO(DNERF)) as z:  # flip a byte inside the first member's data
+        info = z.infolist()[0]
+    bad[info.header_offset + 30 + len(info.filename) + 2] ^= 0xFF
+    (tmp_path / "bad.zip").write_bytes(bytes(bad))
+    with pytest.raises(fetch.DataError, match="fails its CRC check|not a readable zip"):
+        fetch.check_archive(tmp_path / "bad.zip")
+    (tmp_path / "trunc.zip").write_bytes(DNERF[: len(DNERF) // 2])
+    with pytest.raises(fetch.DataError, match="not a readable zip archive"):
+        fetch.check_archive(tmp_path / "trunc.zip")
+    # through the command: the damaged archive is refused before the lock records it
+    with pytest.raises(SystemExit):
+        stdr_data(["download", "dnerf", "--dest", str(tmp_path / "c"), "--archive", str(tmp_path / "trunc.zip")])
+    assert not (tmp_path / "c" / "stdr-data.lock.json").exists()
+    lock = fetch.Lock(tmp_path / "d")
+    (tmp_path / "good.zip").write_bytes(DNERF)
+    assert lock.check_or_record("x.zip", tmp_path / "good.zip", "u") == "recorded"
+    with pytest.raises(fetch.DataError, match="recorded .* bytes, SHA-256"):
+        fetch.Lock(tmp_path / "d").check_or_record("x.zip", tmp_path / "bad.zip", "u")
+
+
+def test_a_wrong_layout_is_reported_by_name_and_nothing_is_unpacked(tmp_path, capsys):
+    (tmp_path / "w.zip").write_bytes(_zip(lambda z: (_dnerf_scene("data/standup/", z),
+                                                    _dnerf_scene("data/lego/", z, missing_val=True))))
+    with pytest.raises(SystemExit) as e:
+        stdr_data(["download", "dnerf", "--dest", str(tmp_path / "d"), "--archive", str(tmp_path / "w.zip")])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "scene lego: lego is not a complete D-NeRF scene" in err and "./val/nope' not found" in err
+    assert "nothing was unpacked" in err
+    assert [p.name for p in (tmp_path / "d").iterdir()] == ["stdr-data.lock.json"]  # not even the good scene
+    (tmp_path / "n.zip").write_bytes(_zip(lambda z: z.writestr("scene/dataset.json", "{}")))
+    with pytest.raises(fetch.DataError, match="missing metadata.json, scene.json"):
+        fetch.safe_extract(tmp_path / "n.zip", tmp_path / "e", check=lambda f: fetch.verify_scene(f, "nerfies"))
+
+
+@pytest.mark.parametrize("member", ["../evil.txt", "/tmp/evil.txt", "data/../../evil.txt", "link"])
+def test_a_member_that_leaves_the_destination_is_refused(tmp_path, member):
+    def build(z):
+        _dnerf_scene("data/standup/", z)
+        if member == "link":
+            info = zipfile.ZipInfo("data/standup/link")
+            info.external_attr = (0o120777 << 16)  # a symbolic link
+            z.writestr(info, "../../../etc/passwd")
+        else:
+            z.writestr(member, "x")
+    (tmp_path / "evil.zip").write_bytes(_zip(build))
+    dest = tmp_path / "d"
+    with pytest.raises(fetch.DataError, match="refusing to unpack"):
+        fetch.safe_extract(tmp_path / "evil.zip", dest)
+    assert not (tmp_path / "evil.txt").exists() and list(dest.iterdir()) == []
+
+
+def test_the_top_level_folder_is_detected_and_an_existing_scene_is_kept(tmp_path):
+    one = _zip(lambda z: _dnerf_scene("vrig-broom/", z))  # a per-scene archive: its one folder is the scene
+    (tmp_path / "one.zip").write_bytes(one)
+    assert [p.name for p in fetch.safe_extract(tmp_path / "one.zip", tmp_path / "d")] == ["vrig-broom"]
+    with pytest.raises(fetch.DataError, match="exists already"):
+        fetch.safe_extract(tmp_path / "one.zip", tmp_path / "d")
+    flat = _zip(lambda z: _dnerf_scene("", z))  # the scene's files at the top
+    (tmp_path / "flat.zip").write_bytes(flat)
+    assert [p.name for p in fetch.safe_extract(tmp_path / "flat.zip", tmp_path / "e")] == ["flat"]
+
+
+def test_prepare_makes_400_copies_with_premultiplied_alpha(tmp_path):
+    (tmp_path / "s.zip").write_bytes(_zip(lambda z: _dnerf_scene("data/standup/", z)))
+    fetch.safe_extract(tmp_path / "s.zip", tmp_path / "src")
+    img = tmp_path / "src" / "standup" / "train" / "r_000.png"
+    a = np.zeros((8, 8, 4), np.uint8)
+    a[:, :4] = (255, 0, 0, 255)  # opaque red on the left, transparent green on the right
+    a[:, 4:] = (0, 255, 0, 0)
+    Image.fromarray(a, "RGBA").save(img)
+    [out] = prepare_dnerf(tmp_path / "src" / "standup", tmp_path / "out", size=4)
+    got = np.asarray(Image.open(out / "train" / "r_000.png").convert("RGBA")).astype(int)
+    assert got.shape == (4, 4, 4)
+    seen = got[..., 3] > 0
+    assert seen.any() and (got[seen][:, 1] <= 2).all()  # no green bleeds into visible pixels
+    assert json.loads((out / "transforms_train.json").read_text()) == json.loads(
+        (tmp_path / "src" / "standup" / "transforms_train.json").read_text())
+    assert fetch.verify_scene(out, "dnerf") == 9
+
+
+def test_list_names_every_dataset(capsys):
+    stdr_data(["list"])
+    out = capsys.readouterr().out
+    for name in ("dnerf", "nerfds", "hypernerf"):
+        assert f"{name} " in out
+    assert "vrig_broom" in out and "huggingface.co" in out
