@@ -86,3 +86,24 @@ def render_main(argv=None) -> None:
     how = "MP4 (imageio-ffmpeg)" if any(p.suffix == ".mp4" for p in paths.values()) else \
         "GIF (no ffmpeg writer: pip install imageio-ffmpeg for MP4)"
     print(f"[stdr] wrote {how}: " + ", ".join(str(p) for p in paths.values()))
+
+
+def export_main(argv=None) -> None:
+    """stdr-export RUN --times 0 0.5 1 --out DIR: the model at each time as a 3DGS PLY."""
+    from ..model import load_model
+    from ..scene.export import export_times
+    ap = argparse.ArgumentParser(prog="stdr-export", description="A trained run at given times as standard 3DGS "
+                                 "PLY files (deformed, opacity with the plug-ins' factors), for splat viewers.")
+    ap.add_argument("run", type=Path, help="a run directory (checkpoints/last.pt) or a checkpoint file")
+    ap.add_argument("--times", type=float, nargs="+", required=True, help="times in [0, 1]")
+    ap.add_argument("--out", type=Path, default=None, help="folder (default: RUN/export)")
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args(argv)
+    ck = args.run if args.run.is_file() else args.run / "checkpoints" / "last.pt"
+    if not ck.is_file():
+        raise SystemExit(f"stdr-export: {ck} not found: pass a run directory with checkpoints/last.pt or a checkpoint")
+    model = load_model(ck, device=args.device)
+    model.eval()
+    out = args.out or (args.run if args.run.is_dir() else args.run.parent) / "export"
+    for p in export_times(model, args.times, out):
+        print(f"[stdr] {p}")
