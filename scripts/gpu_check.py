@@ -52,7 +52,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # the embedded scene at test size (stdr.testing.TINY_SCENE), for --dry-run
 TINY = ["data.procedural.resolution=64", "data.procedural.n_train=40", "data.procedural.n_val=2",
-        "data.procedural.n_test=4", "model.init_num=1500", "optim.iterations=30"]
+        "data.procedural.n_test=4", "model.init_num=1500", "optim.iterations=30",
+        "baseline.warmup=10"]  # the deformation (and STDR's phases, 10 / 20) inside the 30 steps
 SANITIZE_PROBE = "--sanitize-probe"
 
 

@@ -44,7 +44,7 @@ assert (CONFIG_DIR / "train.yaml").is_file() and (CONFIG_DIR / "budget" / "demo.
 print(f"[wheel] stdr {stdr.__version__} from {Path(stdr.__file__).parent}, configs in {CONFIG_DIR}")
 EOF
 echo "[wheel] stdr-train: the embedded demo, 300 steps"
-"$WORK/venv/bin/stdr-train" experiment=embedded_deform_stdr budget=demo optim.iterations=300 train.progress=false \
+"$WORK/venv/bin/stdr-train" experiment=embedded_deform_stdr budget=demo optim.iterations=300 baseline.warmup=100 train.progress=false \
   eval.save_images=false hydra.run.dir="$WORK/run" > "$WORK/train.log" 2>&1 || { tail -30 "$WORK/train.log"; exit 1; }
 grep "\[stdr\] test: PSNR" "$WORK/train.log"
 echo "[wheel] stdr-eval"

@@ -86,13 +86,13 @@ def test_nan_gradient_is_recovered_and_logged(tmp_path):
 
 @pytest.mark.slow
 def test_recovery_restores_the_snapshot_exactly_and_lowers_every_lr(tmp_path):
-    ref = _trainer(tmp_path, "ref", ["optim.iterations=10"])
+    ref = _trainer(tmp_path, "ref", ["train.stop_at=10"])
     ref.train()  # the state after 10 steps
-    tr = _trainer(tmp_path, "tr", ["optim.iterations=25"])
+    tr = _trainer(tmp_path, "tr", ["train.stop_at=25"])
     tr.train()  # snapshots at 0, 10, 20
     assert tr.guard.snapshot["model"]["step"] == 20
     tr.guard.snapshot = tr.guard.best_snapshot = None
-    tr2 = _trainer(tmp_path, "tr2", ["optim.iterations=17"])
+    tr2 = _trainer(tmp_path, "tr2", ["train.stop_at=17"])
     tr2.train()  # last snapshot: step 10
     tr2.guard.recover(tr2, "a test")
     assert tr2.step == 10 and tr2.guard.lr_scale == 0.5
