@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import statistics
 import sys
 import tempfile
@@ -31,27 +30,8 @@ from hydra import compose, initialize_config_dir
 
 from stdr.cli.common import CONFIG_DIR
 from stdr.config import register
-from stdr.scene.gaussians import GAUSSIAN_KEYS
-from stdr.train.checkpoint import load_checkpoint
+from stdr.tools.bench_train import replicate, run_gaussians
 from stdr.train.trainer import Trainer
-
-
-def run_gaussians(run: Path) -> dict:
-    """A finished run's Gaussian parameters (CPU tensors) from its checkpoint (format 1 or 2)."""
-    ck = load_checkpoint(Path(run) / "checkpoints" / "last.pt")
-    return {k: v.cpu() for k, v in (ck["model"]["params"] if "model" in ck else ck["params"]).items()}
-
-
-def replicate(params: dict, n: int, gen: torch.Generator) -> dict:
-    """Resample the Gaussians of `params` to n: copies jittered by half their scale."""
-    n0 = params["means"].shape[0]
-    idx = torch.randint(0, n0, (n,), generator=gen) if n < n0 else torch.arange(n) % n0
-    copies = max(1.0, n / n0)
-    out = {k: params[k][idx].clone() for k in GAUSSIAN_KEYS}
-    sigma = out["scales"].exp()
-    out["means"] += 0.5 * sigma * torch.randn(n, 3, generator=gen)
-    out["scales"] -= 0.5 * math.log(copies)
-    return out
 
 
 def main(argv=None):

@@ -43,11 +43,32 @@ from ..eval.table import fmt_value as fmt
 from ..eval.table import markdown_table, write_outputs
 from ..scene.gaussians import GAUSSIAN_KEYS
 from ..train.trainer import Profiler, Trainer
-from .cost_probe import replicate, run_gaussians
 
 SECTIONS = ("deform", "render_fwd", "loss", "stdr_reg", "deform_reg", "backward", "optimizer", "densify")
 PARTS = ("loss+rasterizer", "projection+sh", "deformation+reg")
 
+
+
+def run_gaussians(run: Path) -> dict:
+    """A finished run's Gaussian parameters (CPU tensors) from its checkpoint (format 1 or 2)."""
+    from ..train.checkpoint import load_checkpoint
+    ck = load_checkpoint(Path(run) / "checkpoints" / "last.pt")
+    return {k: v.cpu() for k, v in (ck["model"]["params"] if "model" in ck else ck["params"]).items()}
+
+
+def replicate(params: dict, n: int, gen: torch.Generator) -> dict:
+    """Resample the Gaussians of `params` to n: copies jittered by half their scale."""
+    import math
+
+    from ..scene.gaussians import GAUSSIAN_KEYS
+    n0 = params["means"].shape[0]
+    idx = torch.randint(0, n0, (n,), generator=gen) if n < n0 else torch.arange(n) % n0
+    copies = max(1.0, n / n0)
+    out = {k: params[k][idx].clone() for k in GAUSSIAN_KEYS}
+    sigma = out["scales"].exp()
+    out["means"] += 0.5 * sigma * torch.randn(n, 3, generator=gen)
+    out["scales"] -= 0.5 * math.log(copies)
+    return out
 
 def mm_reference(device: torch.device, n: int = 2048, repeats: int = 5) -> float:
     """Median milliseconds of one n x n fp32 torch.mm on `device` (the machine's yardstick)."""
