@@ -54,7 +54,7 @@ def _gap_run(folder, scene, psnr, lpips, n, iterations=2000):
 
 
 def test_stdr_gap_pairs_scenes_and_refuses_mixed_lengths(tmp_path):
-    from stdr.tools import gap
+    from studies import gap
     _gap_run(tmp_path / "p", "a", 30.0, 0.10, 1000)
     _gap_run(tmp_path / "p", "b", 20.0, 0.20, 3000)
     _gap_run(tmp_path / "s", "a", 31.0, 0.12, 500)
