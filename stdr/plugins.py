@@ -242,6 +242,7 @@ def method_suffix(cfg: dict) -> str:
     """What follows the baseline's name in a row label: each enabled plug-in's label and its
     row tags (e.g. '+STDR w/o spatial_reg'). `cfg` is a run's config as a plain dict; a plug-in
     node of a plug-in not registered in this process is labelled '+<name>'."""
+    from .config import RESERVED_KEYS
     out = ""
     known = {s.name: s for s in registered_plugins()}
     for key, node in cfg.items():
@@ -249,7 +250,6 @@ def method_suffix(cfg: dict) -> str:
             continue
         spec = known.get(key)
         if spec is None:
-            from .config import RESERVED_KEYS
             if key in RESERVED_KEYS:
                 continue
             out += f"+{key}"

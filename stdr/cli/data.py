@@ -104,12 +104,15 @@ def _verify(folder: Path, fmt: str | None) -> int:
 def prepare_dnerf(src: Path, dest: Path, size: int = 400) -> list[Path]:
     """D-NeRF scenes resized to size x size: RGBA resampled with premultiplied alpha (PIL's RGBa)
     and Lanczos, so edges do not pick up the colour of transparent pixels; transforms copied (the
-    field of view does not change). This is how the 400x400 copies in ../shared were made, and
-    SC-GS's "resolution 2" setting of the 800x800 originals."""
+    field of view does not change): the method the 400x400 copies in ../shared are described
+    with, and SC-GS's "resolution 2" setting of the 800x800 originals (not compared pixel by
+    pixel with those copies: the originals are not on this machine)."""
     import json
     import shutil
 
     from PIL import Image
+
+    from ..data.dnerf import _resolve_image
     src, dest = Path(src), Path(dest)
     scenes = [src] if fetch.detect_format(src) == "dnerf" else sorted(
         p for p in src.iterdir() if p.is_dir() and fetch.detect_format(p) == "dnerf")
@@ -128,7 +131,6 @@ def prepare_dnerf(src: Path, dest: Path, size: int = 400) -> list[Path]:
             jp = s / f"transforms_{split}.json"
             shutil.copy2(jp, tmp / jp.name)
             for i, fr in enumerate(json.loads(jp.read_text())["frames"]):
-                from ..data.dnerf import _resolve_image
                 img = _resolve_image(s, fr["file_path"], jp, i)
                 rel = img.relative_to(s)
                 (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
