@@ -234,7 +234,7 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
                     "--warmup-iters", "1", "--", "device=cpu", "render.backend=cpu", *TINY[:4], f"data.cache_dir={args.work / 'cache'}"]
         sanitize = [py, str(Path(__file__).resolve()), SANITIZE_PROBE, "cpu"]
     else:
-        kernels = pyt + junit("kernels") + ["tests/test_compiled.py", "-k",
+        kernels = pyt + junit("kernels") + ["tests/test_compiled.py", "tests/test_contribution.py", "-k",
                                             "cuda and not nvcc and not torch_headers and not training_scale and not benchmark_row and not at_scale"]
         scale = pyt + junit("proj_scale") + ["tests/test_compiled.py", "-k", "cuda_projection_matches_the_cpu_extension_at_scale"]
         ttests = pyt + junit("train_tests") + ["tests/test_compiled.py", "tests/test_device.py", "-k",

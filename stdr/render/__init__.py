@@ -11,7 +11,7 @@ from torch import Tensor
 from ..cameras import Camera
 from .projection import Projection, project_and_shade
 from . import compiled
-from .reference import rasterize_reference
+from .reference import contribution_reference, rasterize_reference
 
 BACKENDS = ("cuda", "cpu", "reference")  # compiled CUDA, compiled C++ (CPU), pure torch
 # Tile size per backend when `tile_size` is 0 (auto). Measured in docs/rasterizer.md.
@@ -60,6 +60,22 @@ def rasterize(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tens
                                    height, tile_size=tile)
     return compiled.rasterize_compiled(means2d, conics, opacities, features, depths, radii,
                                        width, height, tile_size=tile, kind=backend)
+
+
+def contribution(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor,
+                 width: int, height: int, tile_size: int = 0, backend: str = "reference") -> Tensor:
+    """Each projected Gaussian's blending weight alpha * T summed over the pixels of the image [N]
+    (0 where not rendered): the significance contribution pruning ranks by. The compiled
+    backends' score pass (C++, CUDA) or its torch twin; no autograd.
+
+    means2d [N, 2], conics [N, 3], opacities [N], depths [N], radii [N] (a Projection's fields).
+    """
+    tile = tile_size or DEFAULT_TILE[backend]
+    if backend == "reference":
+        with torch.no_grad():
+            return contribution_reference(means2d, conics, opacities, depths, radii, width, height, tile_size=tile)
+    return compiled.contribution_compiled(means2d, conics, opacities, depths, radii, width, height,
+                                          tile_size=tile, kind=backend)
 
 
 @dataclass

@@ -281,6 +281,21 @@ def rasterize_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, featu
                             int(tile_size), ext)
 
 
+def contribution_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor,
+                          width: int, height: int, tile_size: int = 16, kind: str = "cpu") -> Tensor:
+    """The score pass [N]: each Gaussian's blending weight alpha * T summed over the image, from
+    the extension's forward compositing (same contract and values as `contribution_reference`;
+    no autograd). CPU: deterministic for a thread count; CUDA: atomic adds, so the last bits of a
+    sum may vary from run to run."""
+    n = means2d.shape[0] if means2d.dim() >= 1 else -1
+    ones = means2d.new_ones(max(n, 0), 1)
+    check_inputs(means2d, conics, opacities, ones, depths, radii, int(width), int(height), int(tile_size), kind)
+    ext = load_extension(kind)
+    with torch.no_grad():
+        return ext.score(means2d.detach(), conics.detach(), opacities.detach(), depths.detach(),
+                         radii.to(torch.int32).contiguous(), int(width), int(height), int(tile_size))
+
+
 # ---------------------------------------------------------------- projection and SH shading
 
 def camera_values(camera) -> list[float]:

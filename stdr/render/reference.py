@@ -65,6 +65,28 @@ def rasterize_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, feat
     means2d [N, 2], conics [N, 3], opacities [N], features [N, F], depths [N], radii [N].
     Returns (feature image [H, W, F] without background, transmittance [H, W]).
     """
+    return _composite(means2d, conics, opacities, features, depths, radii, width, height, tile_size, chunk)
+
+
+def contribution_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor,
+                           radii: Tensor, width: int, height: int, tile_size: int = 8,
+                           chunk: int = 32) -> Tensor:
+    """Each Gaussian's blending weight alpha_i T_i summed over the pixels of the image [N] (0 for
+    Gaussians not rendered): the torch twin of the compiled backends' score pass
+    (`stdr.render.contribution`). Same compositing as `rasterize_reference`.
+
+    means2d [N, 2], conics [N, 3], opacities [N], depths [N], radii [N]."""
+    score = torch.zeros(means2d.shape[0], dtype=means2d.dtype, device=means2d.device)
+    _composite(means2d.detach(), conics.detach(), opacities.detach(), means2d.new_ones(means2d.shape[0], 1),
+               depths.detach(), radii, width, height, tile_size, chunk, score=score)
+    return score
+
+
+def _composite(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, depths: Tensor,
+               radii: Tensor, width: int, height: int, tile_size: int, chunk: int,
+               score: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """rasterize_reference's compositing; with `score` [N], also adds each Gaussian's blending
+    weights (summed over the pixels) to score."""
     dev, dt = means2d.device, means2d.dtype
     F = features.shape[1]
     ntx, nty = -(-width // tile_size), -(-height // tile_size)
@@ -89,6 +111,10 @@ def rasterize_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, feat
     basis = torch.stack([u_ * u_, u_ * v_, v_ * v_, u_, v_, torch.ones_like(u_)])  # [6, Pt]
     ty, tx = tiles // ntx, tiles % ntx
     centre = torch.stack([tx, ty], -1).to(dt) * tile_size + half  # [n_tiles, 2]
+    if score is not None:
+        px = tx[:, None] * tile_size + (u_ + half - 0.5).long()[None]  # [n_tiles, Pt] pixel columns
+        py = ty[:, None] * tile_size + (v_ + half - 0.5).long()[None]
+        inside = ((px < width) & (py < height)).to(dt)
     log_op = torch.log(opacities.clamp_min(1e-30))
     # per-Gaussian cut-off on the exponent: inside the 3-sigma ellipse and alpha >= 1/255
     cut = torch.maximum(log_op - 0.5 * SIGMA_EXTENT ** 2, torch.full_like(log_op, math.log(ALPHA_MIN)))
@@ -128,6 +154,10 @@ def rasterize_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, feat
         T_excl = torch.cat([T[:, None, :], T_incl[:, :-1]], 1)
         keep = (T_incl >= T_MIN) & ~done[:, None, :]
         w = torch.where(keep, alpha * T_excl, torch.zeros_like(alpha))
+        if score is not None:  # padding entries (not valid) have alpha 0, so w 0; pixels past the
+            # image's right and bottom edges (in partial tiles) are composited but cropped: not counted
+            px_in = inside[ids]  # [n, Pt]
+            score.index_add_(0, g.reshape(-1), (w * px_in[:, None, :]).sum(-1).reshape(-1))
         acc = acc + torch.bmm(w.transpose(1, 2), features[g])
         T = torch.where(keep, T_incl, T[:, None, :]).amin(1)
         done = done | (T_incl[:, -1] < T_MIN)

@@ -380,6 +380,40 @@ template <typename Fn> void dispatch_channels(int64_t F, Fn fn) {
   }
 }
 
+// The visible Gaussians (radius > 0) sorted front to back, packed one row each (packed [V, 6+F],
+// order [V] int64: packed row v is Gaussian order[v]) and their Gaussian-tile pairs (pair_ids [P]
+// int32 by tile then depth, tile_offsets [n_tiles + 1]): what forward() and score() composite.
+template <typename scalar_t>
+void pack_and_bin(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac,
+                  const at::Tensor& feats, const at::Tensor& depths, const at::Tensor& radii,
+                  const Grid& gr, int slots, at::Tensor& packed, at::Tensor& order,
+                  at::Tensor& pair_ids, at::Tensor& tile_offsets) {
+  const int64_t N = means2d.size(0), F = feats.size(1), D = PACK_BASE + F;
+  const std::vector<int64_t> ord = depth_order(depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), N);
+  const int64_t V = (int64_t)ord.size();
+  order = at::empty({V}, at::kLong);
+  std::copy(ord.begin(), ord.end(), order.data_ptr<int64_t>());
+  packed = at::empty({V, D}, means2d.options());
+  at::Tensor vradii = at::empty({V}, at::kInt);
+  const scalar_t *m = means2d.data_ptr<scalar_t>(), *c = conics.data_ptr<scalar_t>(),
+                 *o = opac.data_ptr<scalar_t>(), *f = feats.data_ptr<scalar_t>();
+  const int32_t* r = radii.data_ptr<int32_t>();
+  scalar_t* P = packed.data_ptr<scalar_t>();
+  int32_t* vr = vradii.data_ptr<int32_t>();
+  at::parallel_for(0, V, 4096, [&](int64_t b, int64_t e) {
+    for (int64_t v = b; v < e; ++v) {
+      const int64_t g = ord[v];
+      scalar_t* row = P + v * D;
+      row[0] = m[2 * g]; row[1] = m[2 * g + 1];
+      row[2] = c[3 * g]; row[3] = c[3 * g + 1]; row[4] = c[3 * g + 2];
+      row[5] = o[g];
+      for (int64_t j = 0; j < F; ++j) row[PACK_BASE + j] = f[g * F + j];
+      vr[v] = r[g];
+    }
+  });
+  bin_pairs<scalar_t>(P, vr, V, D, gr, slots, pair_ids, tile_offsets);
+}
+
 // Returns (acc [H, W, F], T [H, W], last [H, W] int32, pair_ids [P] int32, tile_offsets [n+1],
 // packed [V, 6+F], order [V] int64): the last four are what the backward needs.
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
@@ -389,38 +423,17 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
   feats = feats.contiguous(); depths = depths.contiguous(); radii = radii.contiguous();
   const Grid gr(width, height, tile);
-  const int64_t N = means2d.size(0), F = feats.size(1), D = PACK_BASE + F;
+  const int64_t F = feats.size(1), D = PACK_BASE + F;
   const int slots = std::max(1, at::get_num_threads());
   // every pixel is written by the tile loops (tiles with empty lists too): no fill needed
   auto acc = at::empty({height, width, F}, means2d.options());
   auto T_img = at::empty({height, width}, means2d.options());
   auto last = at::empty({height, width}, means2d.options().dtype(at::kInt));
-  at::Tensor pair_ids, tile_offsets, packed, order, vradii;
+  at::Tensor pair_ids, tile_offsets, packed, order;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "stdr_forward", [&] {
-    const std::vector<int64_t> ord = depth_order(depths.data_ptr<scalar_t>(),
-                                                 radii.data_ptr<int32_t>(), N);
-    const int64_t V = (int64_t)ord.size();
-    order = at::empty({V}, at::kLong);
-    std::copy(ord.begin(), ord.end(), order.data_ptr<int64_t>());
-    packed = at::empty({V, D}, means2d.options());
-    vradii = at::empty({V}, at::kInt);
-    const scalar_t *m = means2d.data_ptr<scalar_t>(), *c = conics.data_ptr<scalar_t>(),
-                   *o = opac.data_ptr<scalar_t>(), *f = feats.data_ptr<scalar_t>();
-    const int32_t* r = radii.data_ptr<int32_t>();
-    scalar_t* P = packed.data_ptr<scalar_t>();
-    int32_t* vr = vradii.data_ptr<int32_t>();
-    at::parallel_for(0, V, 4096, [&](int64_t b, int64_t e) {
-      for (int64_t v = b; v < e; ++v) {
-        const int64_t g = ord[v];
-        scalar_t* row = P + v * D;
-        row[0] = m[2 * g]; row[1] = m[2 * g + 1];
-        row[2] = c[3 * g]; row[3] = c[3 * g + 1]; row[4] = c[3 * g + 2];
-        row[5] = o[g];
-        for (int64_t j = 0; j < F; ++j) row[PACK_BASE + j] = f[g * F + j];
-        vr[v] = r[g];
-      }
-    });
-    bin_pairs<scalar_t>(P, vr, V, D, gr, slots, pair_ids, tile_offsets);
+    pack_and_bin<scalar_t>(means2d, conics, opac, feats, depths, radii, gr, slots, packed, order, pair_ids,
+                           tile_offsets);
+    const scalar_t* P = packed.data_ptr<scalar_t>();
     dispatch_channels(F, [&](auto fc) {
       constexpr int FC = decltype(fc)::value;
 #ifdef STDR_SIMD
@@ -437,6 +450,87 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
     });
   });
   return {acc, T_img, last, pair_ids, tile_offsets, packed, order};
+}
+
+// The contribution score pass: the forward's compositing (same lists, same per-pixel arithmetic,
+// raster_math.h's forward_pixel with one feature channel of ones, so the "accumulated feature" of
+// a Gaussian at a pixel is its blending weight alpha * T) summed over the pixels of each Gaussian.
+// Each slot sums into its own row of `sums` [slots, V]; the rows are added in slot order, so the
+// result is deterministic for a thread count.
+template <typename T>
+void score_tiles(const T* packed, const int32_t* ids, const int64_t* off, const Grid& gr, int slots,
+                 T* sums, int64_t V) {
+  constexpr int64_t D = PACK_BASE + 1;
+  for_each_slot(slots, [&](int s) {
+    const int Pt = gr.pt;
+    TileLayout<T> tl(gr, Pt);
+    std::vector<T> Tb(Pt), w(Pt);
+    std::vector<int32_t> done(Pt), last(Pt);
+    T* mine = sums + (int64_t)s * V;
+    std::fill(mine, mine + V, T(0));
+    for (int t = s; t < gr.n_tiles; t += slots) {
+      if (off[t] == off[t + 1]) continue;
+      tl.set(t);
+      int live = 0;
+      for (int p = 0; p < Pt; ++p) {
+        Tb[p] = T(1);
+        done[p] = tl.inside[p] ? 0 : 1;
+        last[p] = 0;
+        live += tl.inside[p];
+      }
+      T *W = w.data(), *Tp = Tb.data();
+      int32_t *dn = done.data(), *ls = last.data();
+      const T *X = tl.px.data(), *Y = tl.py.data();
+      for (int64_t k = off[t]; k < off[t + 1] && live > 0; ++k) {
+        const int32_t v = ids[k];
+        const T* g = packed + (int64_t)v * D;
+        const int idx = (int)(k - off[t]);
+        int stops = 0;
+        T sum = T(0);
+#pragma omp simd reduction(+ : stops)
+        for (int p = 0; p < Pt; ++p) {
+          W[p] = T(0);
+          stops += stdr::forward_pixel<T, 1>(g, X[p], Y[p], idx, Tp[p], dn[p], ls[p], W + p, Pt);
+        }
+#pragma omp simd reduction(+ : sum)
+        for (int p = 0; p < Pt; ++p) sum += W[p];
+        mine[v] += sum;
+        live -= stops;
+      }
+    }
+  });
+}
+
+// score [N]: each Gaussian's blending weight alpha * T summed over the image's pixels (0 for the
+// ones not rendered), what compositing gives it in this view: LightGaussian's global significance
+// for one view, the contribution pruning ranks by (stdr/scene/prune.py).
+at::Tensor score(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor depths, at::Tensor radii,
+                 int64_t width, int64_t height, int64_t tile) {
+  auto ones = at::ones({means2d.size(0), 1}, means2d.options());
+  check_inputs(means2d, conics, opac, ones, depths, radii, width, height, tile);
+  means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
+  depths = depths.contiguous(); radii = radii.contiguous();
+  const Grid gr(width, height, tile);
+  const int64_t N = means2d.size(0);
+  const int slots = std::max(1, at::get_num_threads());
+  auto out = at::zeros({N}, means2d.options());
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "stdr_score", [&] {
+    at::Tensor pair_ids, tile_offsets, packed, order;
+    pack_and_bin<scalar_t>(means2d, conics, opac, ones, depths, radii, gr, slots, packed, order, pair_ids,
+                           tile_offsets);
+    const int64_t V = packed.size(0);
+    std::vector<scalar_t> sums((size_t)slots * V);
+    score_tiles<scalar_t>(packed.data_ptr<scalar_t>(), pair_ids.data_ptr<int32_t>(),
+                          tile_offsets.data_ptr<int64_t>(), gr, slots, sums.data(), V);
+    const int64_t* ord = order.data_ptr<int64_t>();
+    scalar_t* o = out.data_ptr<scalar_t>();
+    for (int64_t v = 0; v < V; ++v) {
+      scalar_t total = 0;
+      for (int s = 0; s < slots; ++s) total += sums[(size_t)s * V + v];
+      o[ord[v]] = total;
+    }
+  });
+  return out;
 }
 
 // Gradients for (means2d [N, 2], conics [N, 3], opacities [N], features [N, F]); rows of
@@ -589,6 +683,7 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "tile rasterizer forward (CPU)");
   m.def("backward", &backward, "tile rasterizer backward (CPU)");
+  m.def("score", &score, "contribution score: blending weight summed per Gaussian (CPU)");
   m.def("project_forward", &project_forward, "projection and SH forward (CPU)");
   m.def("project_backward", &project_backward, "projection and SH backward (CPU)");
 }

@@ -11,6 +11,46 @@
 
 namespace {
 
+// The visible Gaussians front to back, packed one row each (packed [V, 6+F], order [V]: packed row
+// v is Gaussian order[v]), and their Gaussian-tile pairs by tile then depth (pair_ids [P] int32,
+// tile_offsets [n_tiles + 1]): what forward() and score() composite.
+void pack_and_bin(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac,
+                  const at::Tensor& feats, const at::Tensor& depths, const at::Tensor& radii, int64_t width,
+                  int64_t height, int64_t tile, cudaStream_t stream, at::Tensor& packed, at::Tensor& order,
+                  at::Tensor& pair_ids, at::Tensor& tile_offsets) {
+  const int64_t F = feats.size(1);
+  const int D = stdr::PACK_BASE + (int)F;
+  const int ntx = (int)((width + tile - 1) / tile), nty = (int)((height + tile - 1) / tile);
+  const int64_t n_tiles = (int64_t)ntx * nty;
+
+  auto vis = at::nonzero(radii > 0).squeeze(1);
+  order = vis.index_select(0, at::argsort(depths.index_select(0, vis), /*stable=*/true));
+  const int64_t V = order.size(0);
+  packed = at::empty({V, D}, means2d.options());
+  auto vradii = at::empty({V}, radii.options());
+  stdr_cuda::pack_rows(means2d.data_ptr<float>(), conics.data_ptr<float>(),
+                       opac.data_ptr<float>(), feats.data_ptr<float>(),
+                       radii.data_ptr<int32_t>(), order.data_ptr<int64_t>(), V, (int)F,
+                       packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
+  auto counts = at::zeros({V}, radii.options());
+  stdr_cuda::count_tiles(packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D,
+                         (int)width, (int)height, (int)tile, counts.data_ptr<int32_t>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
+  auto ends = at::cumsum(counts, 0, at::kLong);
+  const int64_t P = V > 0 ? ends[-1].item<int64_t>() : 0;
+  auto offsets = ends - counts.to(at::kLong);
+  auto keys = at::empty({P}, means2d.options().dtype(at::kLong));
+  stdr_cuda::emit_pairs(packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D, (int)width,
+                        (int)height, (int)tile, offsets.data_ptr<int64_t>(),
+                        keys.data_ptr<int64_t>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
+  auto sorted = std::get<0>(at::sort(keys));  // (tile, depth rank): radix sort on the GPU
+  pair_ids = at::bitwise_and(sorted, 0xffffffffLL).to(at::kInt);
+  auto tiles = at::bitwise_right_shift(sorted, 32);
+  auto bounds = at::arange(n_tiles + 1, tiles.options());
+  tile_offsets = at::searchsorted(tiles, bounds);  // first pair of each tile, and P
+}
 
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
                                 at::Tensor feats, at::Tensor depths, at::Tensor radii,
@@ -32,38 +72,9 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   auto stream = c10::cuda::getCurrentCUDAStream().stream();
   means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
   feats = feats.contiguous(); depths = depths.contiguous(); radii = radii.contiguous();
-  const int D = stdr::PACK_BASE + (int)F;
-  const int ntx = (int)((width + tile - 1) / tile), nty = (int)((height + tile - 1) / tile);
-  const int64_t n_tiles = (int64_t)ntx * nty;
-
-  auto vis = at::nonzero(radii > 0).squeeze(1);
-  auto order = vis.index_select(0, at::argsort(depths.index_select(0, vis), /*stable=*/true));
-  const int64_t V = order.size(0);
-  auto packed = at::empty({V, D}, means2d.options());
-  auto vradii = at::empty({V}, radii.options());
-  stdr_cuda::pack_rows(means2d.data_ptr<float>(), conics.data_ptr<float>(),
-                       opac.data_ptr<float>(), feats.data_ptr<float>(),
-                       radii.data_ptr<int32_t>(), order.data_ptr<int64_t>(), V, (int)F,
-                       packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), stream);
-  C10_CUDA_CHECK(cudaGetLastError());
-  auto counts = at::zeros({V}, radii.options());
-  stdr_cuda::count_tiles(packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D,
-                         (int)width, (int)height, (int)tile, counts.data_ptr<int32_t>(), stream);
-  C10_CUDA_CHECK(cudaGetLastError());
-  auto ends = at::cumsum(counts, 0, at::kLong);
-  const int64_t P = V > 0 ? ends[-1].item<int64_t>() : 0;
-  auto offsets = ends - counts.to(at::kLong);
-  auto keys = at::empty({P}, means2d.options().dtype(at::kLong));
-  stdr_cuda::emit_pairs(packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D, (int)width,
-                        (int)height, (int)tile, offsets.data_ptr<int64_t>(),
-                        keys.data_ptr<int64_t>(), stream);
-  C10_CUDA_CHECK(cudaGetLastError());
-  auto sorted = std::get<0>(at::sort(keys));  // (tile, depth rank): radix sort on the GPU
-  auto pair_ids = at::bitwise_and(sorted, 0xffffffffLL).to(at::kInt);
-  auto tiles = at::bitwise_right_shift(sorted, 32);
-  auto bounds = at::arange(n_tiles + 1, tiles.options());
-  auto tile_offsets = at::searchsorted(tiles, bounds);  // first pair of each tile, and P
-
+  at::Tensor packed, order, pair_ids, tile_offsets;
+  pack_and_bin(means2d, conics, opac, feats, depths, radii, width, height, tile, stream, packed, order, pair_ids,
+               tile_offsets);
   auto acc = at::zeros({height, width, F}, means2d.options());
   auto T_img = at::ones({height, width}, means2d.options());
   auto last = at::zeros({height, width}, radii.options());
@@ -96,6 +107,34 @@ std::vector<at::Tensor> backward(at::Tensor packed, at::Tensor order, int64_t N,
   full.index_copy_(0, order, grad_packed);
   return {full.slice(1, 0, 2).contiguous(), full.slice(1, 2, 5).contiguous(),
           full.select(1, 5).contiguous(), full.slice(1, stdr::PACK_BASE, D).contiguous()};
+}
+
+// score [N]: each Gaussian's blending weight alpha * T summed over the image (0 where not rendered);
+// the same contract as the CPU backend's score().
+at::Tensor score(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor depths, at::Tensor radii,
+                 int64_t width, int64_t height, int64_t tile) {
+  const int64_t N = means2d.size(0);
+  for (auto* p : {&means2d, &conics, &opac, &depths, &radii})
+    TORCH_CHECK(p->is_cuda(), "stdr CUDA score: every input must be a CUDA tensor");
+  TORCH_CHECK(conics.size(0) == N && opac.size(0) == N && depths.size(0) == N && radii.size(0) == N,
+              "stdr CUDA score: every input must have one row per Gaussian");
+  TORCH_CHECK(means2d.scalar_type() == at::kFloat, "stdr CUDA score: float32 inputs only");
+  TORCH_CHECK(tile == 8 || tile == 16, "stdr CUDA score: render.tile_size must be 8 or 16");
+  const at::cuda::CUDAGuard guard(means2d.device());
+  auto stream = c10::cuda::getCurrentCUDAStream().stream();
+  means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
+  depths = depths.contiguous(); radii = radii.contiguous();
+  auto ones = at::ones({N, 1}, means2d.options());
+  at::Tensor packed, order, pair_ids, tile_offsets;
+  pack_and_bin(means2d, conics, opac, ones, depths, radii, width, height, tile, stream, packed, order, pair_ids,
+               tile_offsets);
+  auto sums = at::zeros({packed.size(0)}, means2d.options());
+  stdr_cuda::score(packed.data_ptr<float>(), pair_ids.data_ptr<int32_t>(), tile_offsets.data_ptr<int64_t>(),
+                   (int)width, (int)height, (int)tile, sums.data_ptr<float>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
+  auto out = at::zeros({N}, means2d.options());
+  out.index_copy_(0, order, sums);
+  return out;
 }
 
 // ---------------------------------------------------------------- projection and SH (project_math.h)
@@ -157,6 +196,7 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "tile rasterizer forward (CUDA)");
   m.def("backward", &backward, "tile rasterizer backward (CUDA)");
+  m.def("score", &score, "contribution score: blending weight summed per Gaussian (CUDA)");
   m.def("project_forward", &project_forward, "projection and SH forward (CUDA)");
   m.def("project_backward", &project_backward, "projection and SH backward (CUDA)");
 }

@@ -180,6 +180,45 @@ __global__ void backward_kernel(const float* __restrict__ packed,
   }
 }
 
+// The contribution score pass: forward_kernel's compositing with one feature channel of ones
+// (packed rows [.., 1]), so a pixel's "accumulated feature" from a Gaussian is its blending weight
+// alpha * T; a warp sums its pixels' weights and one lane adds the sum to the Gaussian's score.
+// Every thread walks the whole batch (a stopped pixel adds 0), so the warp sums see full warps.
+// The atomic adds make the float sum order, and so the last bits, vary from run to run.
+__global__ void score_kernel(const float* __restrict__ packed, const int32_t* __restrict__ pair_ids,
+                             const int64_t* __restrict__ tile_offsets, int width, int height, int tile,
+                             float* __restrict__ score) {
+  constexpr int D = stdr::PACK_BASE + 1;
+  extern __shared__ float smem[];
+  float* rows = smem;                                // [block, D]
+  int32_t* ids = (int32_t*)(smem + blockDim.x * D);  // [block]
+  const TilePixel me(width, height, tile);
+  const float px = me.px, py = me.py;
+  const int block = blockDim.x;
+  const int64_t start = tile_offsets[blockIdx.x], end = tile_offsets[blockIdx.x + 1];
+  float Tp = 1.0f;
+  int done = me.inside ? 0 : 1, last = 0;
+  for (int64_t base = start; base < end; base += block) {
+    if (__syncthreads_count(done) == block) break;
+    const int64_t k = base + threadIdx.x;
+    if (k < end) {
+      const int32_t v = pair_ids[k];
+      ids[threadIdx.x] = v;
+      const float* src = packed + (int64_t)v * D;
+#pragma unroll
+      for (int j = 0; j < D; ++j) rows[threadIdx.x * D + j] = src[j];
+    }
+    __syncthreads();
+    const int n = (int)min((int64_t)block, end - base);
+    for (int i = 0; i < n; ++i) {
+      float w = 0.0f;
+      stdr::forward_pixel<float, 1>(rows + i * D, px, py, (int)(base - start) + i, Tp, done, last, &w, 1);
+      const float s = warp_sum(w);
+      if ((threadIdx.x & (WARP - 1)) == 0 && s != 0.0f) atomicAdd(score + ids[i], s);
+    }
+  }
+}
+
 template <int F> void launch_forward(const float* packed, const int32_t* pair_ids,
                                      const int64_t* tile_offsets, int width, int height,
                                      int tile, float* out_acc, float* out_T, int32_t* out_last,
@@ -259,6 +298,14 @@ void backward(const float* packed, int F, const int32_t* pair_ids, const int64_t
                                         g_acc, g_T, T_img, last_img, grad_packed, stream)
   STDR_DISPATCH_F(F, STDR_CALL)
 #undef STDR_CALL
+}
+
+void score(const float* packed, const int32_t* pair_ids, const int64_t* tile_offsets, int width, int height,
+           int tile, float* score_out, cudaStream_t stream) {
+  const int ntiles = ((width + tile - 1) / tile) * ((height + tile - 1) / tile);
+  const int block = tile * tile;
+  const size_t shm = (size_t)block * ((stdr::PACK_BASE + 1) * sizeof(float) + sizeof(int32_t));
+  score_kernel<<<ntiles, block, shm, stream>>>(packed, pair_ids, tile_offsets, width, height, tile, score_out);
 }
 
 // ---------------------------------------------------------------- projection and SH

@@ -35,6 +35,12 @@ void backward(const float* packed, int F, const int32_t* pair_ids, const int64_t
               const float* T_img, const int32_t* last_img, float* grad_packed,
               cudaStream_t stream);
 
+// One block per tile: the forward's compositing with packed rows [V, 7] whose feature is 1;
+// score_out[v] += the blending weight alpha * T of packed row v summed over the tile's pixels
+// (score_out zeroed by the caller).
+void score(const float* packed, const int32_t* pair_ids, const int64_t* tile_offsets, int width, int height,
+           int tile, float* score_out, cudaStream_t stream);
+
 // One thread per Gaussian: projection and SH shading (project_math.h), forward.
 void project_forward(const stdr::ProjCam<float>& cam, int64_t N, const float* means, const float* quats,
                      const float* scales, const float* opac, const float* sh, float* means2d, float* depths,
