@@ -18,6 +18,7 @@ from .data.stress import StressConfig
 from .deform import BASELINES, BaselineConfig, DeformConfig, HexPlaneConfig, ScgsConfig, SpgsConfig  # noqa: F401
 from .deform.registry import add_listener, discover_baselines, get_baseline
 from .plugins import PLUGINS, add_listener as add_plugin_listener, registered_plugins
+from .scene.prune import PruneConfig
 from .scene.strategy import STRATEGIES, DensifyStrategy, add_listener as add_strategy_listener, get_strategy
 from .train.guard import GuardConfig
 
@@ -145,6 +146,8 @@ class Config:
     optim: OptimConfig = field(default_factory=OptimConfig)
     # the option densify=<name> (default `default`) types it as that registered strategy (a subclass)
     densify: DensifyStrategy = field(default_factory=DensifyStrategy)
+    # contribution pruning at scheduled steps (stdr/scene/prune.py; off while prune.share=0)
+    prune: PruneConfig = field(default_factory=PruneConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)

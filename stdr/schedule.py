@@ -41,6 +41,7 @@ class Schedule:
     events: list[Event] = field(default_factory=list)
     windows: list[tuple[str, int, int]] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    prune_steps: list[int] = field(default_factory=list)  # contribution pruning (prune.at), empty when off
 
     def sorted_events(self) -> list[Event]:
         return sorted(self.events, key=lambda e: e.step)
@@ -62,6 +63,7 @@ class Schedule:
     def as_dict(self) -> dict[str, Any]:
         """Plain values for the config's derived `schedule` node and for metrics."""
         return {"iterations": self.iterations, "static_warmup_end": self.static_warmup_end,
+                "prune_steps": list(self.prune_steps),
                 **{f"{name}_{k}": v for name, vals in self.plugins.items() for k, v in vals.items()},
                 "events": [f"{e.step}: {e.what} [{e.key}]" for e in self.sorted_events()],
                 "notes": list(self.notes)}
@@ -110,6 +112,11 @@ def resolve_schedule(cfg) -> Schedule:
     events, notes = get_strategy(getattr(cfg.densify, "name", None)).stages(cfg.densify)
     s.events += [Event(*e) for e in events]
     s.notes += notes
+    if getattr(cfg, "prune", None) is not None:  # configs saved before contribution pruning have no node
+        from .scene.prune import prune_steps
+        s.prune_steps = prune_steps(cfg.prune, total, int(cfg.densify.refine_stop))
+        s.events += [Event(k, "prune.at", f"contribution pruning: the {float(cfg.prune.share):.0%} least "
+                                          "significant Gaussians removed") for k in s.prune_steps]
     for spec in enabled_plugins(cfg):  # their phases, kept out of the windows above
         s.plugins[spec.name] = dict(spec.plugin.stages(plugin_node(cfg, spec.name), cfg, s))
     return s

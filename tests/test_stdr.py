@@ -527,3 +527,44 @@ def test_separated_field_has_its_own_group_and_optional_schedule(tmp_path):
         lr = {g["name"]: g["lr"] for g in t.net_opt.param_groups}
         assert lr["stdr_field"] == pytest.approx(want, rel=1e-9), step
     assert lr["deform"] == pytest.approx(1e-5)
+
+
+def test_conditioning_is_computed_once_outside_training_and_follows_every_change():
+    """After the freeze, outside training (eval mode, no autograd), the separated field's output is
+    the same for every frame: one computation serves them all, and any change of what it depends
+    on (the mask, the means under the xyz encoding, a field weight) computes it afresh."""
+    st = _plugin(field_pe_xyz=True)
+    params = init_params(torch.rand(40, 3), sh_degree=1)
+    st.init_gaussians(params)
+    with torch.no_grad():
+        params["stdr_mask"].normal_()
+    step = st.freeze_at
+    assert st.xyz_freqs == 2
+    st.field.eval()
+
+    def fresh():
+        st._cond_cache = None
+        return st.conditioning(params, step)[0]
+    with torch.no_grad():
+        a = st.conditioning(params, step)[0]
+        assert st.conditioning(params, step)[0] is a  # reused
+        assert torch.equal(a, fresh())
+        for change in (lambda: params["stdr_mask"][:, 0].add_(2.0),  # the mask
+                       lambda: params["means"].add_(0.1),        # the xyz encoding's input (xyz_freqs=2)
+                       lambda: st.field.shared[0].weight.mul_(1.5)):
+            before = st.conditioning(params, step)[0]
+            change()
+            after = st.conditioning(params, step)[0]
+            assert after is not before and not torch.equal(after, before)
+            assert torch.equal(after, fresh())
+        # without the xyz encoding the means are no input: moving them keeps the result
+        st_plain = _plugin()
+        st_plain.init_gaussians(params)
+        st_plain.field.eval()
+        c = st_plain.conditioning(params, step)[0]
+        params["means"].add_(0.1)
+        assert st_plain.conditioning(params, step)[0] is c
+    # in training (the field trains after the freeze) nothing is reused
+    st.field.train()
+    x, y = st.conditioning(params, step)[0], st.conditioning(params, step)[0]
+    assert x is not y and x.requires_grad

@@ -33,6 +33,11 @@ from .mask import (faint_fraction, knot_times, mask_at, sample_neighbours, spati
 MASK_KEY = "stdr_mask"
 
 
+def _same_key(a: tuple, b: tuple) -> bool:
+    """Two conditioning keys ((tensor, version), ...) name the same tensors at the same versions."""
+    return len(a) == len(b) and all(x is y and vx == vy for (x, vx), (y, vy) in zip(a, b))
+
+
 class Phase(IntEnum):
     WARMUP = 0       # [0, warmup_end): opacity frozen (stdr.freeze_opacity), mask trains, regularized
     REGULARIZED = 1  # [warmup_end, freeze_at): opacity and mask train, regularized
@@ -167,9 +172,10 @@ class STDR(Plugin):
         self._knn: Optional[tuple[Tensor, Tensor]] = None
         self._knn_for: Optional[Tensor] = None   # mask tensor the neighbour cache was built for
         self._knn_step = -1
-        self._p_for: Optional[Tensor] = None
+        self._p_for: Optional[tuple] = None  # (mask tensor, its version) the softmax cache was built from
         self._p: Optional[Tensor] = None
         self.last_dynamic: Optional[Tensor] = None
+        self._cond_cache: Optional[tuple] = None  # (key, (cond, d)) of the last conditioning outside training
         self.knots: Optional[Tensor] = None
         self.field: Optional[SeparatedField] = None
         if knots is not None:
@@ -233,6 +239,7 @@ class STDR(Plugin):
         if self._knn is not None:
             self._knn = tuple(x.to(self.device) for x in self._knn)
         self._p_for = None
+        self._cond_cache = None
         return self
 
     def prune_factor(self, params, step: int) -> Optional[Tensor]:
@@ -306,14 +313,14 @@ class STDR(Plugin):
         return mask_at(params[MASK_KEY], t, self.knots)
 
     def probabilities(self, params) -> Tensor:
-        """p = softmax_t(m) [N, K], computed once per mask tensor (uniform without a mask)."""
+        """p = softmax_t(m) [N, K], computed once per mask tensor and version (uniform without a mask)."""
         if not self.has_mask(params):
             n = params["means"].shape[0]
             return torch.full((n, self.K), 1.0 / self.K, device=params["means"].device)
         m = params[MASK_KEY]
-        if self._p_for is not m:
+        if self._p_for is None or self._p_for[0] is not m or self._p_for[1] != m._version:
             self._p = torch.softmax(m.detach(), -1)
-            self._p_for = m
+            self._p_for = (m, m._version)  # recomputed when the tensor is replaced or changed in place
         return self._p
 
     def conditioning(self, params, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
@@ -327,12 +334,32 @@ class STDR(Plugin):
         n = params["means"].shape[0]
         if self.phase(step) != Phase.FROZEN:
             return torch.zeros(n, self.cond_dim, device=params["means"].device), None
+        # outside training (eval mode, no autograd) the conditioning is the same for every frame:
+        # computed once and reused until the mask, the means (with the xyz encoding) or a field
+        # weight changes (tensor identity and in-place version)
+        frozen = not self.field.training and not torch.is_grad_enabled()
+        key = self._conditioning_key(params) if frozen else None
+        if key is not None and self._cond_cache is not None and _same_key(self._cond_cache[0], key):
+            cond, d = self._cond_cache[1]
+            self.last_dynamic = d
+            return cond, (d if self.cfg.scale_deltas_by_dynamic else None)
         x = self.probabilities(params)
         if self.xyz_freqs >= 0:
             x = torch.cat([x, positional_encoding(params["means"].detach(), self.xyz_freqs)], -1)
         z, d = self.field(x)
         self.last_dynamic = d.detach()
-        return torch.cat([z, d], -1), (d if self.cfg.scale_deltas_by_dynamic else None)
+        cond = torch.cat([z, d], -1)
+        self._cond_cache = (key, (cond, d)) if key is not None else None
+        return cond, (d if self.cfg.scale_deltas_by_dynamic else None)
+
+    def _conditioning_key(self, params) -> tuple:
+        """What the conditioning is a function of: the mask (or the row count without one), the
+        means with the xyz encoding, and the field's weights and BatchNorm statistics."""
+        ts = [params[MASK_KEY] if self.has_mask(params) else params["means"]]
+        if self.xyz_freqs >= 0:
+            ts.append(params["means"])
+        ts += list(self.field.parameters()) + list(self.field.buffers())
+        return tuple((t, t._version) for t in ts)
 
     def regularizers(self, params, step: int) -> dict[str, Tensor]:
         """Weighted L_temp and L_spatial while the phase is warm-up or regularized."""
@@ -383,6 +410,7 @@ class STDR(Plugin):
         self.knn_refreshes = int(s["knn_refreshes"])
         self._cleaned = bool(s.get("cleaned", False))
         self.cleaned_entries = s.get("cleaned_entries")
+        self._cond_cache = None
 
     # ----------------------------------------------------------------- monitoring
     def log(self, tb, params, step: int, images: bool, x: Optional[int] = None) -> None:

@@ -231,6 +231,8 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
                            fps_repeats=eval_cfg.fps_repeats)
     final_entry(res, split, trainer.history, trainer.train_seconds, trainer.step,
                 trainer.guard.summary(int(trainer.strategy.max_gaussians) or None))
+    if trainer.prune_log:  # contribution pruning events: counts, seen per frame, cost (stdr.scene.prune)
+        res["prune"] = list(trainer.prune_log)
     write_metrics(trainer.run_dir, split, res, trainer.model, eval_cfg, lp, trainer.scene.meta)
     (trainer.run_dir / "history.json").write_text(json.dumps(trainer.history, indent=1))
     return res

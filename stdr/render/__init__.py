@@ -105,6 +105,27 @@ def use_compiled_projection(backend: str, compiled_projection: Optional[bool] = 
     return backend in VERIFIED_PROJECTION if compiled_projection is None else bool(compiled_projection)
 
 
+def _project(means, quats, scales, opacities, sh, camera, sh_degree, backend, near, eps2d, antialiased,
+             compiled_projection):
+    if use_compiled_projection(backend, compiled_projection):
+        return compiled.project_sh_compiled(means, quats, scales, opacities, sh, camera, sh_degree, near=near,
+                                            eps2d=eps2d, antialiased=antialiased, kind=backend)
+    return project_and_shade(means, quats, scales, opacities, sh, camera, sh_degree, near=near, eps2d=eps2d,
+                             antialiased=antialiased)
+
+
+def project_for_render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor,
+                       camera: Camera, sh_degree: int, backend: str = "reference", near: float = 0.01,
+                       eps2d: float = 0.3, antialiased: bool = False,
+                       compiled_projection: Optional[bool] = None) -> Projection:
+    """The Projection `render` rasterizes (same arguments, same path: compiled or torch), without
+    rasterizing: e.g. for `contribution`."""
+    if backend not in BACKENDS:
+        backend = resolve_backend(backend, means.device)
+    return _project(means, quats, scales, opacities, sh, camera, sh_degree, backend, near, eps2d, antialiased,
+                    compiled_projection)[0]
+
+
 def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor,
            camera: Camera, sh_degree: int, background: Optional[Tensor] = None,
            backend: str = "reference", near: float = 0.01, eps2d: float = 0.3,
@@ -127,12 +148,8 @@ def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: 
             raise ValueError(f"render: {name} must have shape {shape}, got {tuple(x.shape)}")
     if backend not in BACKENDS:
         backend = resolve_backend(backend, means.device)
-    if use_compiled_projection(backend, compiled_projection):
-        proj, colors = compiled.project_sh_compiled(means, quats, scales, opacities, sh, camera, sh_degree,
-                                                    near=near, eps2d=eps2d, antialiased=antialiased, kind=backend)
-    else:
-        proj, colors = project_and_shade(means, quats, scales, opacities, sh, camera, sh_degree, near=near,
-                                         eps2d=eps2d, antialiased=antialiased)
+    proj, colors = _project(means, quats, scales, opacities, sh, camera, sh_degree, backend, near, eps2d,
+                            antialiased, compiled_projection)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()

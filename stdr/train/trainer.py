@@ -21,6 +21,7 @@ from ..metrics import l1, psnr, ssim
 from ..model import build_model, initial_points, model_entry
 from ..scene.gaussians import scene_extent
 from ..scene.ply import save_ply
+from ..scene.prune import prune_event
 from ..scene.strategy import build_strategy
 from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from .guard import Guard, check_guard_config, monitor_split
@@ -154,6 +155,7 @@ class Trainer:
         self.train_seconds = 0.0
         self.profile = Profiler()
         self.history: list[dict[str, Any]] = []
+        self.prune_log: list[dict[str, Any]] = []  # contribution pruning events (stdr.scene.prune.prune_event)
         self.writer = None
         self.guard = Guard(peak_gaussians=len(pts), monitor=self.monitor)
 
@@ -255,6 +257,7 @@ class Trainer:
             "train_seconds": self.train_seconds,
             "history": self.history,
             "guard": self.guard.state_dict(),
+            "prune_log": self.prune_log,
         }
 
     def save(self) -> None:
@@ -273,6 +276,7 @@ class Trainer:
         self.model.load_state_dict(model_entry(ck, where), where)
         self.train_seconds = float(ck["train_seconds"])
         self.history = list(ck.get("history", []))
+        self.prune_log = list(ck.get("prune_log", []))
         self.optimizers = self._make_optimizers()
         for k, o in self.optimizers.items():
             o.load_state_dict(ck["optimizers"][k])
@@ -354,6 +358,14 @@ class Trainer:
                 params, self.optimizers, self.strategy_state, it + 1, out.means2d, out.radii,
                 frame.camera.width, frame.camera.height, opacity_fn=model.prune_opacity_fn(it),
                 reset_fn=model.reset_opacity_fn(it), rows=rows, opacities=out.projection.opacities)
+        if it + 1 in model.schedule.prune_steps:
+            with prof("prune"):
+                ev = prune_event(self, it + 1)
+            self.prune_log.append(ev)
+            info = {**info, "pruned_by_score": ev["before"] - ev["after"]}
+            print(f"[stdr] step {it + 1}: contribution pruning removed {ev['before'] - ev['after']} of "
+                  f"{ev['before']} Gaussians (seen per frame {ev['seen_before']:.1%} -> {ev['seen_after']:.1%}; "
+                  f"score pass over {ev['frames']} frames {ev['score_seconds']:.2f} s)")
         self.step = it + 1
         return {"loss": loss.item(), "l1": loss_l1.item(), "dssim": loss_dssim.item(), "active": g.means.shape[0],
                 "psnr": float(psnr(out.image.detach(), frame.image)), "densify": info,
