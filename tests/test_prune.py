@@ -81,8 +81,9 @@ def test_an_event_removes_the_least_significant_rows_and_keeps_state_aligned(tmp
     score, remove = prune_mod.significance, strategy_mod.remove
 
     def spy_score(*a, **k):
-        seen["S"] = score(*a, **k)[0].clone()
-        return seen["S"], score(*a, **k)[1]
+        S, times = score(*a, **k)
+        seen["S"] = S.clone()
+        return S, times
 
     def spy_remove(params, optimizers, state, mask):
         seen["params"] = {k: v.detach().clone() for k, v in params.items()}
@@ -90,13 +91,12 @@ def test_an_event_removes_the_least_significant_rows_and_keeps_state_aligned(tmp
         return remove(params, optimizers, state, mask)
     monkeypatch.setattr(prune_mod, "significance", spy_score)
     monkeypatch.setattr(strategy_mod, "remove", spy_remove)
-    tr = Trainer(tiny_config(tmp_path, SCHED + ["prune.share=0.25", "prune.at=[30]", "train.stop_at=29"]),
+    tr = Trainer(tiny_config(tmp_path, SCHED + ["prune.share=0.25", "prune.at=[30]", "train.stop_at=30"]),
                  tmp_path / "r")
     tr.train()
-    assert tr.model.schedule.prune_steps == [30] and not tr.prune_log
-    logs = tr.train_step()  # step 30: optimizer, densification, then the pruning event
-    ev = tr.prune_log[-1]
-    assert ev["step"] == 30 and logs["densify"]["pruned_by_score"] == ev["before"] - ev["after"]
+    assert tr.model.schedule.prune_steps == [30] and not tr.prune_log  # due once 30 steps are done
+    ev = prune_mod.prune_event(tr, 30)
+    assert ev["step"] == 30
     assert ev["after"] == ev["before"] - int(0.25 * ev["before"])
     S, mask = seen["S"], seen["mask"]
     total = S.sum(1)
@@ -113,7 +113,21 @@ def test_an_event_removes_the_least_significant_rows_and_keeps_state_aligned(tmp
     for k in ("grad2d", "count", "max_radii"):
         assert tr.strategy_state[k].shape[0] == n, k
     assert ev["seen_after"] == pytest.approx(seen_per_frame(S[~mask]))
-    tr.train_step()  # and training goes on with the smaller model
+
+
+def test_the_loop_prunes_once_the_steps_are_done_and_logs_it(tmp_path):
+    from stdr.train.trainer import Trainer
+    tr = Trainer(tiny_config(tmp_path, SCHED + ["prune.share=0.25", "prune.at=[30]", "train.stop_at=30"]),
+                 tmp_path / "r")
+    tr.train()
+    n = tr.model.num_gaussians
+    logs = tr.train_step()  # the 31st step: the event first, then the step on the smaller model
+    assert [e["step"] for e in tr.prune_log] == [30] and tr.prune_log[0]["before"] == n
+    assert logs["densify"]["pruned_by_score"] == n - tr.prune_log[0]["after"]
+    assert tr.model.num_gaussians == tr.prune_log[0]["after"]  # (no refinement at step 31)
+    assert "prune" in tr.profile_summary()["seconds"]
+    tr.train_step()
+    assert len(tr.prune_log) == 1  # once
 
 
 def test_resume_across_a_pruning_event_is_exact(tmp_path):
@@ -130,3 +144,22 @@ def test_resume_across_a_pruning_event_is_exact(tmp_path):
     assert a.model.num_gaussians == b2.model.num_gaussians
     for k in a.model.params:
         assert torch.equal(a.model.params[k], b2.model.params[k]), k
+
+
+def test_a_run_branched_from_a_checkpoint_at_the_event_prunes_as_an_uninterrupted_one(tmp_path):
+    """The compactness study's shortcut: a run without pruning, checkpointed at the event's step,
+    continued with prune.* keys, gives the run trained with them from the start."""
+    import shutil
+
+    from stdr.train.trainer import Trainer
+    extra = ["prune.share=0.3", "prune.at=[40]"]
+    a = Trainer(tiny_config(tmp_path, SCHED + extra), tmp_path / "a")
+    a.train()
+    base = Trainer(tiny_config(tmp_path, SCHED + ["train.stop_at=40"]), tmp_path / "base")
+    base.train()
+    shutil.copytree(tmp_path / "base" / "checkpoints", tmp_path / "b" / "checkpoints")
+    b = Trainer(tiny_config(tmp_path, SCHED + extra), tmp_path / "b")
+    b.train()
+    assert [e["step"] for e in b.prune_log] == [40] and a.model.num_gaussians == b.model.num_gaussians
+    for k in a.model.params:
+        assert torch.equal(a.model.params[k], b.model.params[k]), k

@@ -45,8 +45,8 @@ def check_prune_config(p) -> None:
 
 
 def prune_steps(p, iterations: int, refine_stop: int) -> list[int]:
-    """The steps (counted from 1, after that many optimizer steps) at which pruning runs, sorted and
-    unique; empty when prune.share is 0. Each entry of prune.at is a step, a fraction of the run in
+    """The steps at which pruning runs (once that many optimizer steps are done, before the next),
+    sorted and unique; empty when prune.share is 0. Each entry of prune.at is a step, a fraction of the run in
     (0, 1) or 'refine_stop'."""
     check_prune_config(p)
     if float(p.share) == 0.0:
@@ -68,7 +68,7 @@ def prune_steps(p, iterations: int, refine_stop: int) -> list[int]:
                 step = int(v)
             else:
                 raise ValueError(f"prune.at entry {raw!r}: a step must be a whole number >= 1, a fraction in (0, 1)")
-        if not 1 <= step < iterations:
+        if not 1 <= step < iterations:  # (a step at or after the end would never be followed by training)
             raise ValueError(f"prune.at entry {raw!r} resolves to step {step}, outside [1, optim.iterations="
                              f"{iterations}): pruning there would never be followed by training")
         out.append(step)

@@ -298,6 +298,18 @@ class Trainer:
         strategy's counts), `losses` (each regularizer's weighted value: plug-in terms as
         `<plug-in>_<term>`, the baseline's by name) and the step's render `out` and `frame`."""
         cfg, it, prof, model = self.cfg, self.step, self.profile, self.model
+        pruned = None
+        if it in model.schedule.prune_steps and all(e["step"] != it for e in self.prune_log):
+            # once `it` steps are done, before the next one: a checkpoint at `it` is from before
+            # the event, so a run resumed from it (or branched from it with other prune.* keys)
+            # prunes exactly as an uninterrupted one
+            with prof("prune"):
+                pruned = prune_event(self, it)
+            self.prune_log.append(pruned)
+            print(f"[stdr] step {it}: contribution pruning removed {pruned['before'] - pruned['after']} of "
+                  f"{pruned['before']} Gaussians (seen per frame {pruned['seen_before']:.1%} -> "
+                  f"{pruned['seen_after']:.1%}; score pass over {pruned['frames']} frames "
+                  f"{pruned['score_seconds']:.2f} s)")
         params = model.params
         self._update_lrs(it)
         frame = self.scene.frames("train")[self.sampler.next()]
@@ -358,14 +370,8 @@ class Trainer:
                 params, self.optimizers, self.strategy_state, it + 1, out.means2d, out.radii,
                 frame.camera.width, frame.camera.height, opacity_fn=model.prune_opacity_fn(it),
                 reset_fn=model.reset_opacity_fn(it), rows=rows, opacities=out.projection.opacities)
-        if it + 1 in model.schedule.prune_steps:
-            with prof("prune"):
-                ev = prune_event(self, it + 1)
-            self.prune_log.append(ev)
-            info = {**info, "pruned_by_score": ev["before"] - ev["after"]}
-            print(f"[stdr] step {it + 1}: contribution pruning removed {ev['before'] - ev['after']} of "
-                  f"{ev['before']} Gaussians (seen per frame {ev['seen_before']:.1%} -> {ev['seen_after']:.1%}; "
-                  f"score pass over {ev['frames']} frames {ev['score_seconds']:.2f} s)")
+        if pruned is not None:
+            info = {**info, "pruned_by_score": pruned["before"] - pruned["after"]}
         self.step = it + 1
         return {"loss": loss.item(), "l1": loss_l1.item(), "dssim": loss_dssim.item(), "active": g.means.shape[0],
                 "psnr": float(psnr(out.image.detach(), frame.image)), "densify": info,
