@@ -77,7 +77,9 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
         lp = lp.to(dev)
     save_dir = rd / "renders" / split if eval_cfg.save_images else None
     res = evaluate_model(model, scene.frames(split), lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup,
-                         fps_repeats=eval_cfg.fps_repeats)
+                         fps_repeats=eval_cfg.fps_repeats, seen=True)
+    if ck.get("prune_log"):  # the training's contribution pruning events
+        res["prune"] = list(ck["prune_log"])
     seconds = float(ck["train_seconds"])
     guard = None
     if "guard" in ck:  # the training's recoveries (checkpoints from before the guard have none)

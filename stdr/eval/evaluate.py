@@ -102,10 +102,12 @@ def _check_repeats(fps_repeats: int) -> None:
 
 @torch.no_grad()
 def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, save_dir: Optional[Path] = None,
-                   fps_warmup: int = 3, fps_repeats: int = 1) -> dict[str, Any]:
+                   fps_warmup: int = 3, fps_repeats: int = 1, seen: bool = False) -> dict[str, Any]:
     """Render each frame with `model` (a stdr.model.DynamicGaussians, in eval mode) at the
     iteration `step` (default: the model's), and measure PSNR/SSIM/LPIPS and the render FPS
-    (the quality pass and `fps_repeats` - 1 timing-only passes; see the module docstring)."""
+    (the quality pass and `fps_repeats` - 1 timing-only passes; see the module docstring).
+    seen: also `seen_per_frame`, the mean share of the model that contributes to a frame
+    (a score pass per frame after the timed passes; stdr.scene.prune.seen_per_frame)."""
     _check_repeats(fps_repeats)
     model.eval()
     step = model.step if step is None else step
@@ -129,7 +131,12 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
             cv2.imwrite(str(save_dir / f"{i:03d}.png"), (both[..., ::-1] * 255 + 0.5).astype(np.uint8))
     passes = [float(len(times) / sum(times))]
     passes += [timed_pass(model, frames, step)["fps"] for _ in range(int(fps_repeats) - 1)]
+    seen_frac = None
+    if seen:
+        from ..scene.prune import seen_per_frame, significance
+        seen_frac = seen_per_frame(significance(model, frames, step)[0])
     return {
+        "seen_per_frame": seen_frac,
         "psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)),
         "lpips": float(np.mean(ls)) if ls else None,
         **fps_summary(passes), **size_summary(model, active),
@@ -228,7 +235,7 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
         lp = lp.to(trainer.device)
     save_dir = trainer.run_dir / "renders" / split if eval_cfg.save_images else None
     res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup,
-                           fps_repeats=eval_cfg.fps_repeats)
+                           fps_repeats=eval_cfg.fps_repeats, seen=True)
     final_entry(res, split, trainer.history, trainer.train_seconds, trainer.step,
                 trainer.guard.summary(int(trainer.strategy.max_gaussians) or None))
     if trainer.prune_log:  # contribution pruning events: counts, seen per frame, cost (stdr.scene.prune)

@@ -534,7 +534,7 @@ class Trainer:
     @torch.no_grad()
     def evaluate(self, split: str, tag: str = "final", step: Optional[int] = None,
                  lpips_fn=None, save_dir: Optional[Path] = None, fps_warmup: int = 3,
-                 frames: Optional[list[int]] = None, fps_repeats: int = 1) -> dict[str, Any]:
+                 frames: Optional[list[int]] = None, fps_repeats: int = 1, seen: bool = False) -> dict[str, Any]:
         """Render `split` (or the frames at indices `frames` of it) at the model's state and
         compute metrics (see stdr.eval.evaluate). Each evaluation is a point of the run's
         learning curve (`history`), with the training seconds so far (evaluation excluded)."""
@@ -544,7 +544,7 @@ class Trainer:
             fr = [fr[i] for i in frames]
         res = evaluate_model(self.model, fr, step=self.step if step is None else step,
                              lpips_fn=lpips_fn, save_dir=save_dir, fps_warmup=fps_warmup,
-                             fps_repeats=fps_repeats)
+                             fps_repeats=fps_repeats, seen=seen)
         rec = history_record(tag, self.step, split, self.train_seconds, res)
         self.history.append(rec)
         if self.writer is not None:

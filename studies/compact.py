@@ -1,0 +1,189 @@
+"""Contribution pruning study (docs/measurements/compact_prune/protocol.md): branch every
+headline seed-0 run at its step-1500 checkpoint into the protocol's variants, train the last 500
+steps, evaluate on val; then tabulate and apply the protocol's rule.
+
+    python studies/compact.py run DNERF_ROOT --headline WORK [--work DIR] [--code CHECKOUT]
+    python studies/compact.py table [--records DIR]
+
+`run` is a resumable queue: a (method, scene, variant) whose records are committed is skipped;
+`touch WORK/pause` (its --work folder) makes it wait between runs. Records (config.yaml,
+metrics.json, history.json, train_profile.json; `identity.json` for the control) go to
+docs/measurements/compact_prune/runs/<experiment>/<scene>/<variant>/.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORDS = ROOT / "docs" / "measurements" / "compact_prune" / "runs"
+SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
+EXPERIMENTS = tuple(f"dnerf_{b}{s}" for b in ("deform", "scgs", "spgs", "4dgs") for s in ("", "_stdr"))
+VARIANTS = {  # name: prune.* overrides (the protocol's table)
+    "control": ["prune.share=0"],
+    "s30": ["prune.share=0.3", "prune.time_weight=0"],
+    "s30_tw1": ["prune.share=0.3", "prune.time_weight=1"],
+    "s50": ["prune.share=0.5", "prune.time_weight=0"],
+    "s50_tw1": ["prune.share=0.5", "prune.time_weight=1"],
+}
+AT = "prune.at=[refine_stop,0.9]"
+BRANCH_STEP = 1500
+KEEP = ("config.yaml", "metrics.json", "history.json", "train_profile.json")
+
+
+def same_parameters(a: Path, b: Path) -> dict:
+    """Whether two checkpoints hold bit-identical model parameters and deformation weights."""
+    import torch
+
+    from stdr.train.checkpoint import load_checkpoint
+    ma, mb = load_checkpoint(a)["model"], load_checkpoint(b)["model"]
+    diff = [k for k in ma["params"] if k not in mb["params"] or not torch.equal(ma["params"][k], mb["params"][k])]
+    diff += [f"deform.{k}" for k, v in ma["deform"].items() if not torch.equal(v, mb["deform"][k])]
+    return {"identical": not diff and ma["step"] == mb["step"], "differing": diff, "steps": [ma["step"], mb["step"]]}
+
+
+def run_queue(args) -> int:
+    code = Path(args.code).resolve()
+    failed = 0
+    for exp in EXPERIMENTS:
+        for scene in SCENES:
+            src = Path(args.headline) / exp / scene / "s0" / "checkpoints"
+            for name, keys in VARIANTS.items():
+                rec = RECORDS / exp / scene / name
+                if (rec / "metrics.json").is_file():
+                    continue
+                if not (src / "last.previous.pt").is_file() or not (src / "last.pt").is_file():
+                    continue  # the headline run is not there yet
+                while (Path(args.work) / "pause").exists():
+                    time.sleep(10)
+                run = Path(args.work) / exp / scene / name
+                if run.exists():
+                    shutil.rmtree(run)  # a branch killed midway starts again from the checkpoint
+                (run / "checkpoints").mkdir(parents=True)
+                shutil.copy2(src / "last.previous.pt", run / "checkpoints" / "last.pt")
+                cmd = [str(code / "scripts" / "run.sh"), "stdr-train", f"experiment={exp}", "budget=cpu", "seed=0",
+                       f"data.path={Path(args.dnerf) / scene}", f"data.name={scene}", "data.eval_split=val",
+                       "train.progress=false", f"hydra.run.dir={run}", AT, *keys]
+                print(f"[compact] {time.strftime('%T')} {exp} {scene} {name}", flush=True)
+                with open(str(run) + ".log", "w") as log:
+                    rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode
+                if rc != 0 or not (run / "metrics.json").is_file():
+                    print(f"[compact] FAILED {exp} {scene} {name} (log: {run}.log)", file=sys.stderr, flush=True)
+                    failed += 1
+                    continue
+                rec.mkdir(parents=True, exist_ok=True)
+                for f in KEEP:
+                    if (run / f).is_file():
+                        shutil.copy2(run / f, rec / f)
+                if name == "control":
+                    ident = same_parameters(run / "checkpoints" / "last.pt", src / "last.pt")
+                    (rec / "identity.json").write_text(json.dumps(ident, indent=1))
+    print(f"[compact] done; {failed} failed")
+    return 1 if failed else 0
+
+
+def load_records(root: Path) -> dict:
+    """{(experiment, scene, variant): the val entry of metrics.json, with train_profile seconds}."""
+    out = {}
+    for m in sorted(root.glob("*/*/*/metrics.json")):
+        variant, scene, exp = m.parent.name, m.parent.parent.name, m.parent.parent.parent.name
+        entry = json.loads(m.read_text())["val"]
+        ident = m.parent / "identity.json"
+        entry["identity"] = json.loads(ident.read_text()) if ident.is_file() else None
+        out[(exp, scene, variant)] = entry
+    return out
+
+
+def _mean(xs):
+    xs = [x for x in xs if x is not None]
+    return sum(xs) / len(xs) if xs else None
+
+
+def decide(recs: dict) -> dict:
+    """The protocol's rule over complete records: per variant, each method's mean ΔPSNR against its
+    control, admissibility (every method >= -0.1 dB), and the choice."""
+    delta = {}
+    for v in VARIANTS:
+        if v == "control":
+            continue
+        per = {}
+        for exp in EXPERIMENTS:
+            ds = [recs[(exp, s, v)]["psnr"] - recs[(exp, s, "control")]["psnr"]
+                  for s in SCENES if (exp, s, v) in recs and (exp, s, "control") in recs]
+            per[exp] = sum(ds) / len(ds) if len(ds) == len(SCENES) else None
+        delta[v] = per
+    complete = {v: all(x is not None for x in per.values()) for v, per in delta.items()}
+    if not all(complete.values()):
+        return {"delta_psnr": delta, "complete": False, "choice": None}
+    admissible = {v: min(per.values()) >= -0.1 for v, per in delta.items()}
+    avg = {v: _mean(per.values()) for v, per in delta.items()}
+    choice, why = None, ""
+    for share in ("s50", "s30"):
+        if admissible[share] or admissible[f"{share}_tw1"]:
+            tw1 = admissible[f"{share}_tw1"] and (not admissible[share] or avg[f"{share}_tw1"] > avg[share] + 0.05)
+            choice = f"{share}_tw1" if tw1 else share
+            why = f"rule 2: the largest admissible share ({share})"
+            break
+    if choice is None:
+        choice = "s30_tw1" if avg["s30_tw1"] > avg["s30"] else "s30"
+        why = "rule 3: no variant admissible; the better of s30 / s30_tw1 on the eight-method mean"
+    return {"delta_psnr": delta, "admissible": admissible, "mean_delta_psnr": avg, "complete": True,
+            "choice": choice, "why": why}
+
+
+def table(args) -> int:
+    from stdr.eval.evaluate import code_version, machine_name
+    recs = load_records(Path(args.records))
+    lines = ["# Contribution pruning on val (budget=cpu, seed 0, four shared D-NeRF scenes)", "",
+             f"Generated by `python studies/compact.py table` from {len(recs)} records at commit "
+             f"{code_version().get('commit', '?')[:10]} on {machine_name()}, {time.strftime('%Y-%m-%d')}. "
+             "Rule: protocol.md. Means over the scenes present (n).", "",
+             "| method | variant | n | PSNR | SSIM | LPIPS | FPS | Gaussians | seen/frame | model MB | train s | "
+             "score pass s/event | identical control |", "|" + "---|" * 13]
+    for exp in EXPERIMENTS:
+        for v in VARIANTS:
+            rows = [recs[(exp, s, v)] for s in SCENES if (exp, s, v) in recs]
+            if not rows:
+                continue
+            ev = [e["score_seconds"] for r in rows for e in r.get("prune", [])]
+            ident = "" if v != "control" else "/".join("yes" if (r["identity"] or {}).get("identical") else "NO"
+                                                       for r in rows)
+
+            def f(k, fmt):
+                x = _mean(r.get(k) for r in rows)
+                return "–" if x is None else format(x, fmt)
+            lines.append(f"| {exp} | {v} | {len(rows)} | {f('psnr', '.2f')} | {f('ssim', '.4f')} | {f('lpips', '.4f')} | "
+                         f"{f('fps', '.1f')} | {f('num_gaussians', ',.0f')} | {f('seen_per_frame', '.1%')} | "
+                         f"{f('model_mb', '.2f')} | {f('train_seconds', '.0f')} | "
+                         f"{(sum(ev) / len(ev)) if ev else 0:.2f} | {ident} |")
+    d = decide(recs)
+    lines += ["", f"Decision: {d['choice'] or 'not yet (records incomplete)'}" + (f" ({d['why']})" if d.get('why') else "")]
+    out = Path(args.records).parent
+    (out / "table_val.md").write_text("\n".join(lines) + "\n")
+    (out / "table_val.json").write_text(json.dumps({"decision": d, "records": {"/".join(k): v for k, v in recs.items()}},
+                                                   indent=1, default=str))
+    print("\n".join(lines))
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run")
+    r.add_argument("dnerf", help="folder with the D-NeRF scenes")
+    r.add_argument("--headline", required=True, help="the headline queue's WORK_DIR (its run folders)")
+    r.add_argument("--work", default=str(ROOT / "outputs" / "compact"))
+    r.add_argument("--code", default=str(ROOT), help="checkout whose scripts/run.sh trains (frozen at one commit)")
+    t = sub.add_parser("table")
+    t.add_argument("--records", default=str(RECORDS))
+    args = ap.parse_args(argv)
+    return run_queue(args) if args.cmd == "run" else table(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
