@@ -163,3 +163,28 @@ def test_a_run_branched_from_a_checkpoint_at_the_event_prunes_as_an_uninterrupte
     assert [e["step"] for e in b.prune_log] == [40] and a.model.num_gaussians == b.model.num_gaussians
     for k in a.model.params:
         assert torch.equal(a.model.params[k], b.model.params[k]), k
+
+
+def test_stdr_tool_compact_prunes_a_trained_run_into_a_new_one(tmp_path):
+    import json
+
+    from stdr.cli.train import run
+    from stdr.tools.compact import compact, main
+    cfg = tiny_config(tmp_path, SCHED + ["stdr=on", "eval.fps_repeats=1"])
+    run(cfg, tmp_path / "run")
+    before = json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]
+    res = compact(tmp_path / "run", share=0.4, steps=10)
+    out = tmp_path / "run_compact"
+    m = json.loads((out / "metrics.json").read_text())["test"]
+    assert m["iterations"] == 70 and m["prune"][0]["step"] == 60
+    assert m["num_gaussians"] == before["num_gaussians"] - int(0.4 * before["num_gaussians"]) == res["num_gaussians"]
+    assert m["seen_per_frame"] is not None and 0 < m["seen_per_frame"] <= 1
+    saved = (out / "config.yaml").read_text()
+    assert "prune:" in saved and "share: 0.4" in saved and "name: embedded_deform_compact" in saved
+    # the original run is untouched, and the phases it crossed stayed where they were
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["test"] == before
+    assert m["stdr"]["freeze_at"] == before["stdr"]["freeze_at"]
+    with pytest.raises(FileExistsError, match="run_compact exists"):
+        compact(tmp_path / "run", share=0.4, steps=10)
+    with pytest.raises(SystemExit, match="--share 1.5"):
+        main([str(tmp_path / "run"), "--share", "1.5"])

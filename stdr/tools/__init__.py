@@ -10,4 +10,5 @@ TOOLS = {
     "bench-train": "bench_train",            # ms per training step by section at fixed counts and sizes
     "identity-check": "identity_check",      # bit-identity of training / composed configs between commits
     "variants": "variants",                  # variants of one method side by side (plain, +STDR, +cull, ...)
+    "compact": "compact",                    # prune a trained run by contribution, fine-tune, save as a new run
 }

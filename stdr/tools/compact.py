@@ -1,0 +1,98 @@
+"""Compact a trained run: prune its least significant Gaussians by contribution, fine-tune, save.
+
+    stdr-tool compact RUN_DIR --share 0.5 [--steps 300] [--time-weight 0] [--out DIR] [--split val]
+
+The run's checkpoint is copied to the new run folder (default RUN_DIR_compact) and training goes
+on from it for --steps more iterations with `prune.share=SHARE prune.at=[<its step>]`: the
+contribution pruning of a run trained with those keys (stdr/scene/prune.py), then a short
+fine-tune at the learning rates the schedules give past the old end. The phase boundaries the
+run already crossed are pinned to their values (a boundary that scales with optim.iterations
+would move otherwise); the new folder is a complete run (config.yaml, checkpoint, metrics.json
+with both the prune event and the final evaluation), and the original stays untouched.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import shutil
+from pathlib import Path
+from typing import Optional
+
+
+
+def compact_config(cfg, step: int, share: float, steps: int, time_weight: float = 0.0):
+    """`cfg` (a run's loaded config) continued for `steps` iterations past `step` with one pruning
+    event at `step`; every schedule boundary at or before `step` kept where it was. An error names
+    the boundary when that cannot be done by pinning."""
+    from ..plugins import enabled_plugins
+    from ..schedule import resolve_schedule
+    if steps < 1:
+        raise ValueError(f"--steps {steps}: the fine-tune needs at least one step")
+    old = resolve_schedule(cfg)
+    new = copy.deepcopy(cfg)
+    new.schedule = "${stdr_schedule:}"  # derived again from the new keys (the loaded one is the old run's)
+    new.optim.iterations = int(step + steps)
+    new.train.stop_at = None
+    new.train.resume = True
+    new.prune.share = float(share)
+    new.prune.at = [str(int(step))]
+    new.prune.time_weight = float(time_weight)
+    new.baseline.warmup = int(old.static_warmup_end)
+    for spec in enabled_plugins(cfg):  # plug-in phases resolved from the old run's length
+        node = new[spec.name]
+        for k, v in old.plugins.get(spec.name, {}).items():
+            if k in node and isinstance(v, int) and not isinstance(v, bool):
+                node[k] = v
+    sched = resolve_schedule(new)
+
+    def crossed(s):
+        return sorted((e.step, e.key.replace(" (moved)", "")) for e in s.events
+                      if e.step <= step and not e.key.startswith("prune"))
+    if crossed(sched) != crossed(old):
+        raise ValueError(f"compacting at step {step}: the run's schedule before it would change "
+                         f"({crossed(old)} -> {crossed(sched)}); pin the moved keys in RUN_DIR/config.yaml")
+    return new
+
+
+def compact(run_dir: Path, share: float, steps: int = 300, time_weight: float = 0.0, out: Optional[Path] = None,
+            split: Optional[str] = None, data_base: Optional[str] = None) -> dict:
+    """Prune run_dir's model by contribution, fine-tune `steps` iterations into `out`, evaluate."""
+    from ..cli.train import run
+    from ..config import load_config
+    from ..train.checkpoint import load_checkpoint
+    from ..train.trainer import CKPT
+    run_dir = Path(run_dir)
+    out = Path(out) if out is not None else run_dir.with_name(run_dir.name + "_compact")
+    src = run_dir / CKPT
+    if not (run_dir / "config.yaml").is_file() or not src.is_file():
+        raise FileNotFoundError(f"{run_dir}: not a trained run (config.yaml and {CKPT} are needed)")
+    if out.exists():
+        raise FileExistsError(f"{out} exists: choose another --out or remove it")
+    cfg = load_config(run_dir / "config.yaml")
+    step = int(load_checkpoint(src)["model"]["step"])
+    new = compact_config(cfg, step, share, steps, time_weight)
+    if split:
+        new.data.eval_split = split
+    new.name = f"{cfg.name}_compact"
+    (out / CKPT).parent.mkdir(parents=True)
+    shutil.copy2(src, out / CKPT)
+    return run(new, out, data_base)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(prog="stdr-tool compact", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("run", type=Path, help="a trained run folder")
+    ap.add_argument("--share", type=float, required=True, help="fraction of the Gaussians removed, in (0, 1)")
+    ap.add_argument("--steps", type=int, default=300, help="fine-tuning iterations after the pruning")
+    ap.add_argument("--time-weight", type=float, default=0.0, help="prune.time_weight (stdr/scene/prune.py)")
+    ap.add_argument("--out", type=Path, default=None, help="the new run folder (default RUN_compact)")
+    ap.add_argument("--split", default=None, help="evaluation split (default: the run's data.eval_split)")
+    a = ap.parse_args(argv)
+    if not 0.0 < a.share < 1.0:
+        raise SystemExit(f"stdr-tool compact: --share {a.share}: use a fraction in (0, 1)")
+    compact(a.run, a.share, a.steps, a.time_weight, a.out, a.split)
+
+
+if __name__ == "__main__":
+    main()
