@@ -259,8 +259,8 @@ class DynamicGaussians:
             raise ValueError(f"{where}: saved with plug-ins {want or 'none'} but this model has {have or 'none'} "
                              "(e.g. a plug-in's `enabled` differs); use the run's own config.yaml")
         self.params.clear()
-        for k, v in s["params"].items():
-            self.params[k] = torch.nn.Parameter(v.to(self.device))
+        for k, v in s["params"].items():  # (an integer tensor, e.g. an 8-bit mask, takes no gradient)
+            self.params[k] = torch.nn.Parameter(v.to(self.device), requires_grad=v.is_floating_point())
         self.deform.load_state_dict(s["deform"])
         for p in self.plugins:
             p.load_state_dict(s["plugins"][p.name], self.params)

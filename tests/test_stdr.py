@@ -260,14 +260,18 @@ def test_resume_with_stdr_matches_an_uninterrupted_run(tmp_path):
     assert st["mask_bytes"] == 4 * n * K and st["mask_adam_bytes"] == 8 * n * K
     assert st["knn_refreshes"] >= 3 and st["knn_seconds"] > 0 and 0 <= st["fraction_time_gated"] <= 1
     assert 0 < st["dynamic_probability_mean"] < 1
-    b1 = Trainer(_stdr_cfg(tmp_path, sched + ["train.stop_at=9"]), tmp_path / "b")
-    b1.train()  # stops inside the regularized phase, with a cached neighbour sample
-    b2 = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / "b")
-    b2.train()
-    for k in a.model.params:
-        assert torch.equal(a.model.params[k], b2.model.params[k]), k
-    for (ka, va), (kb, vb) in zip(a.model.plugin("stdr").field.state_dict().items(), b2.model.plugin("stdr").field.state_dict().items()):
-        assert torch.equal(va, vb), ka
+    # 9: inside the regularized phase, with a cached neighbour sample; 10: right after a
+    # densification replaced the rows the cached sample indexes (the next step must resample)
+    for stop in (9, 10):
+        b1 = Trainer(_stdr_cfg(tmp_path, sched + [f"train.stop_at={stop}"]), tmp_path / f"b{stop}")
+        b1.train()
+        b2 = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / f"b{stop}")
+        b2.train()
+        for k in a.model.params:
+            assert torch.equal(a.model.params[k], b2.model.params[k]), (stop, k)
+        for (ka, va), (kb, vb) in zip(a.model.plugin("stdr").field.state_dict().items(),
+                                      b2.model.plugin("stdr").field.state_dict().items()):
+            assert torch.equal(va, vb), (stop, ka)
     # a checkpoint with STDR cannot be loaded into a run without it
     c = Trainer(make_cfg(TINY_SCENE + [f"data.cache_dir={tmp_path / 'cache'}", "model.init_num=800"]),
                 tmp_path / "c")
@@ -568,3 +572,56 @@ def test_conditioning_is_computed_once_outside_training_and_follows_every_change
     st.field.train()
     x, y = st.conditioning(params, step)[0], st.conditioning(params, step)[0]
     assert x is not y and x.requires_grad
+
+
+def test_8bit_mask_round_trip():
+    from stdr.decouple.mask import OFF_LOGIT, activated, logits_of, quantize
+    m = torch.cat([torch.linspace(-12, 12, 1001), torch.tensor([OFF_LOGIT, -30.0, 30.0])])[:, None]
+    q = quantize(m)
+    assert q.dtype == torch.uint8
+    assert (activated(q) - torch.sigmoid(m)).abs().max() <= 0.5 / 255 + 1e-7  # rounding to the nearest level
+    assert activated(q)[-3:, 0].tolist() == [0.0, 0.0, 1.0]  # switched-off entries read back as exactly 0
+    assert torch.equal(quantize(logits_of(q)), q)  # logits_of reads back the stored levels
+    assert torch.equal(activated(logits_of(q)) > 0.5, activated(q) > 0.5)
+
+
+def test_mask_bits_8_stores_the_frozen_mask_in_8_bits_and_resumes_exactly(tmp_path):
+    from stdr.testing import tiny_config
+    """After the freeze: uint8 in the parameter dict, no optimizer, a quarter of the bytes in
+    model_mb; densification after the freeze keeps its rows; resume across the freeze and
+    load_model give exactly what the uninterrupted run has."""
+    from stdr.decouple.mask import logits_of
+    from stdr.eval.evaluate import model_bytes
+    from stdr.model import load_model
+    from stdr.train.trainer import Trainer
+    sched = ["stdr=on", "optim.iterations=60", "baseline.warmup=10", "stdr.freeze_at=25", "densify.refine_start=10",
+             "densify.refine_every=10", "densify.refine_stop=50", "densify.reset_every=0", "densify.prune_big_after=30",
+             "train.checkpoint_every=0", "train.eval_at_warmup_end=false"]
+    a = Trainer(tiny_config(tmp_path, sched + ["stdr.mask_bits=8"]), tmp_path / "a", splits=("train", "test"))
+    a.train()
+    m = a.model.params["stdr_mask"]
+    assert m.dtype == torch.uint8 and not m.requires_grad and "stdr_mask" not in a.optimizers
+    assert m.shape[0] == a.model.num_gaussians  # rows kept through the densification at 30 and 40
+    st = a.model.plugins[0].stats(a.model.params)
+    assert st["mask_bits"] == 8 and st["mask_bytes"] == m.numel() and st["mask_adam_bytes"] == 0
+    n8 = model_bytes(a.model)
+    a.model.params["stdr_mask"] = torch.nn.Parameter(logits_of(m), requires_grad=False)  # the same, as float32
+    assert n8 == model_bytes(a.model) - 3 * m.numel()
+    a.model.params["stdr_mask"] = m
+    b1 = Trainer(tiny_config(tmp_path, sched + ["stdr.mask_bits=8", "train.stop_at=20"]), tmp_path / "b")
+    b1.train()
+    assert b1.model.params["stdr_mask"].dtype == torch.float32  # before the freeze
+    b2 = Trainer(tiny_config(tmp_path, sched + ["stdr.mask_bits=8", "train.stop_at=40"]), tmp_path / "b")
+    b2.train()
+    b3 = Trainer(tiny_config(tmp_path, sched + ["stdr.mask_bits=8"]), tmp_path / "b")
+    b3.train()  # resumed from a checkpoint holding the 8-bit mask
+    for k in a.model.params:
+        assert torch.equal(a.model.params[k], b3.model.params[k]), k
+    loaded = load_model(tmp_path / "a" / "checkpoints" / "last.pt", device="cpu")
+    assert loaded.params["stdr_mask"].dtype == torch.uint8
+    fr = a.scene.frames("test")[0]
+    with torch.no_grad():
+        a.model.eval()
+        want = a.model.render(fr.camera, fr.time).image
+        got = loaded.eval().render(fr.camera, fr.time).image
+    assert torch.equal(want, got)

@@ -23,6 +23,9 @@ class StdrConfig:
     mask_after_freeze: bool = True  # the frozen sigmoid mask keeps modulating opacity
     prune_by_mask: bool = True    # prune on sigmoid(o) * max_t mask, the opacity a Gaussian reaches
     freeze_cleanup: float = 0.0   # at the freeze, switch off mask entries with sigmoid(o) * mask below this
+    # 32: the mask stays float32 logits; 8: at the freeze it becomes uint8 round(255 sigmoid(m)) in memory,
+    # checkpoints and model_mb, and renders read it directly (docs/compactness.md)
+    mask_bits: int = 32
     # phases: static_warmup = the baseline's static warm-up (baseline.warmup) and twice it;
     # fraction = warmup_fraction / freeze_fraction of optim.iterations. Explicit steps win.
     phase_rule: str = "static_warmup"

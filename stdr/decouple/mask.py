@@ -46,13 +46,44 @@ def interp_weights(t: float, knots: Tensor) -> tuple[int, int, float]:
     return j0, j1, w
 
 
+#: the logit an 8-bit entry of 0 reads back as (an entry switched off: sigmoid ~ 1e-13), and of 255
+OFF_LOGIT = -30.0
+
+
+def activated(mask: Tensor) -> Tensor:
+    """The activated mask in [0, 1], same shape: sigmoid of float logits, or q / 255 for a mask
+    stored in 8 bits (uint8 q, `quantize`), read directly from that form."""
+    if mask.dtype == torch.uint8:
+        return mask.float() / 255.0
+    return torch.sigmoid(mask)
+
+
+def quantize(logits: Tensor) -> Tensor:
+    """uint8 q = round(255 * sigmoid(m)): the frozen mask in 8 bits (a quarter of float32). An entry
+    switched off (sigmoid below 1/510) becomes 0 and reads back as exactly 0."""
+    return torch.round(torch.sigmoid(logits.detach().float()) * 255.0).to(torch.uint8)
+
+
+def logits_of(mask: Tensor) -> Tensor:
+    """Float logits of a mask: the logits themselves, or for an 8-bit mask the logit of q / 255
+    (0 -> OFF_LOGIT, 255 -> -OFF_LOGIT): what the softmax over time (the field's input, the
+    entropy) reads."""
+    if mask.dtype != torch.uint8:
+        return mask
+    a = mask.float() / 255.0
+    lo = math.exp(OFF_LOGIT) / (1.0 + math.exp(OFF_LOGIT))
+    a = a.clamp(lo, 1.0 - lo)
+    return torch.log(a) - torch.log1p(-a)
+
+
 def mask_at(logits: Tensor, t: float, knots: Tensor) -> Tensor:
-    """Activated mask [N] at time t from logits [N, K] (linear interpolation of sigmoids)."""
+    """Activated mask [N] at time t from logits [N, K] (or an 8-bit mask): linear interpolation of
+    the activated knot columns."""
     j0, j1, w = interp_weights(t, knots)
-    a = torch.sigmoid(logits[:, j0])
+    a = activated(logits[:, j0])
     if w == 0.0:
         return a
-    return (1.0 - w) * a + w * torch.sigmoid(logits[:, j1])
+    return (1.0 - w) * a + w * activated(logits[:, j1])
 
 
 def temporal_loss(logits: Tensor, reduction: str = "mean") -> Tensor:
@@ -87,13 +118,14 @@ def faint_fraction(opacities: Tensor, logits: Tensor, lo: float = 1.0 / 255.0, h
     faint copies that can reappear as ghosts when opacity grows. opacities [N] (activated)."""
     if logits.numel() == 0:
         return 0.0
-    e = torch.sigmoid(logits) * opacities[:, None]
+    e = activated(logits) * opacities[:, None]
     return float(((e >= lo) & (e <= hi)).float().mean())
 
 
 def temporal_entropy(logits: Tensor) -> Tensor:
     """Entropy of p_i = softmax_t(m_i) divided by log K: [N] in [0, 1] (1 = spread over all times)."""
     K = logits.shape[1]
+    logits = logits_of(logits)
     if K < 2:
         return torch.zeros(logits.shape[0], dtype=logits.dtype, device=logits.device)
     logp = torch.log_softmax(logits, -1)

@@ -27,8 +27,8 @@ from torch import Tensor
 from ..encoding import positional_encoding, positional_encoding_dim
 from ..plugins import Plugin
 from .field import SeparatedField
-from .mask import (faint_fraction, knot_times, mask_at, sample_neighbours, spatial_kl, temporal_entropy,
-                   temporal_loss)
+from .mask import (activated, faint_fraction, knot_times, logits_of, mask_at, quantize, sample_neighbours,
+                   spatial_kl, temporal_entropy, temporal_loss)
 
 MASK_KEY = "stdr_mask"
 
@@ -156,6 +156,8 @@ class STDR(Plugin):
                  init_opacity: float = 0.1, device: torch.device | str = "cpu"):
         """schedule: the run's stdr.schedule.Schedule (STDR's phases, already kept out of the
         baseline's switch windows)."""
+        if int(cfg.mask_bits) not in (8, 32):
+            raise ValueError(f"stdr.mask_bits={cfg.mask_bits}: use 32 (float logits) or 8 (uint8 after the freeze)")
         self.cfg = cfg
         self.device = torch.device(device)  # of the separated field; the knots stay on the CPU (host-side lookups)
         self.iterations = int(schedule.iterations)
@@ -171,6 +173,7 @@ class STDR(Plugin):
         self.knn_refreshes = 0
         self._knn: Optional[tuple[Tensor, Tensor]] = None
         self._knn_for: Optional[Tensor] = None   # mask tensor the neighbour cache was built for
+        self._params = None  # the model's parameter dict (init_gaussians / load_state_dict): for state_dict
         self._knn_step = -1
         self._p_for: Optional[tuple] = None  # (mask tensor, its version) the softmax cache was built from
         self._p: Optional[Tensor] = None
@@ -204,6 +207,7 @@ class STDR(Plugin):
     def init_gaussians(self, params) -> None:
         """Add the mask logits [N, K] to the parameter dict (no-op with stdr.mask=false), and set
         the opacities to stdr.opacity_init when it is given."""
+        self._params = params
         if self.cfg.mask:
             n = params["means"].shape[0]
             params[MASK_KEY] = torch.nn.Parameter(torch.full((n, self.K), self.mask_init,
@@ -247,7 +251,7 @@ class STDR(Plugin):
         the largest opacity a Gaussian reaches."""
         if not self.cfg.prune_by_mask or not self.has_mask(params) or not self.mask_modulates(step):
             return None
-        return torch.sigmoid(params[MASK_KEY].detach()).amax(1)
+        return activated(params[MASK_KEY].detach()).amax(1)
 
     def phase(self, step: int) -> Phase:
         return phase_at(step, self.warmup_end, self.freeze_at)
@@ -266,6 +270,8 @@ class STDR(Plugin):
         if self.has_mask(params):
             if ph == Phase.FROZEN and not self._cleaned:
                 self.cleanup(params)
+                if self.cfg.mask_bits == 8:
+                    self.store_mask_8bit(params)
             params["opacities"].requires_grad_(not self.opacity_frozen(step))
             params[MASK_KEY].requires_grad_(ph != Phase.FROZEN)
 
@@ -287,6 +293,17 @@ class STDR(Plugin):
         self._p_for = None  # the softmax cache was built from the old values
         self.cleaned_entries = int(off.sum())
         return self.cleaned_entries
+
+    @torch.no_grad()
+    def store_mask_8bit(self, params) -> None:
+        """stdr.mask_bits=8, at the freeze: the mask becomes uint8 q = round(255 sigmoid(m)) in the
+        parameter dict (no gradient, no optimizer), a quarter of its float32 bytes in memory, in
+        checkpoints and in model_mb; renders read q / 255 directly (mask.activated), the field's
+        softmax reads logit(q / 255) (mask.logits_of). From here on the run trains with exactly what
+        is stored, so resume and load_model are exact."""
+        params[MASK_KEY] = torch.nn.Parameter(quantize(params[MASK_KEY]), requires_grad=False)
+        self._p_for = None
+        self._cond_cache = None
 
     @torch.no_grad()
     def reset_opacity(self, params, value: float, step: int) -> bool:
@@ -319,7 +336,7 @@ class STDR(Plugin):
             return torch.full((n, self.K), 1.0 / self.K, device=params["means"].device)
         m = params[MASK_KEY]
         if self._p_for is None or self._p_for[0] is not m or self._p_for[1] != m._version:
-            self._p = torch.softmax(m.detach(), -1)
+            self._p = torch.softmax(logits_of(m.detach()), -1)
             self._p_for = (m, m._version)  # recomputed when the tensor is replaced or changed in place
         return self._p
 
@@ -392,6 +409,11 @@ class STDR(Plugin):
     def state_dict(self) -> dict[str, Any]:
         return {"knots": self.knots, "field": None if self.field is None else self.field.state_dict(),
                 "gen": self.gen.get_state(), "knn": self._knn, "knn_step": self._knn_step,
+                # whether the neighbour cache is of the current rows: densification replaces the mask
+                # tensor, and the next regularized step recomputes the cache; a run resumed from a
+                # checkpoint written in between must do the same
+                "knn_valid": self._knn is not None and self._params is not None
+                and self._knn_for is self._params.get(MASK_KEY),
                 "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes,
                 "cleaned": self._cleaned, "cleaned_entries": self.cleaned_entries}
 
@@ -405,7 +427,8 @@ class STDR(Plugin):
         self.gen.set_state(s["gen"])
         self._knn = None if s["knn"] is None else tuple(x.to(self.device) for x in s["knn"])
         self._knn_step = int(s["knn_step"])
-        self._knn_for = params.get(MASK_KEY) if self._knn is not None else None
+        self._params = params
+        self._knn_for = params.get(MASK_KEY) if self._knn is not None and s.get("knn_valid", True) else None
         self.knn_seconds = float(s["knn_seconds"])
         self.knn_refreshes = int(s["knn_refreshes"])
         self._cleaned = bool(s.get("cleaned", False))
@@ -421,7 +444,7 @@ class STDR(Plugin):
         if not self.has_mask(params):
             return
         m = params[MASK_KEY].detach()
-        a = torch.sigmoid(m)
+        a = activated(m)
         tb.add_scalar("stdr/mask_mean", float(a.mean()), x)
         tb.add_scalar("stdr/mask_min_over_time_mean", float(a.amin(1).mean()), x)
         if images:
@@ -452,11 +475,14 @@ class STDR(Plugin):
             m = params[MASK_KEY].detach()
             n = m.shape[0]
             b = m.numel() * m.element_size()
-            a = torch.sigmoid(m)
+            a = activated(m)
             ent = temporal_entropy(m)
             out.update({
                 "num_gaussians": n,
-                "mask_bytes": b, "mask_adam_bytes": 2 * b, "mask_total_mib": 3 * b / 2 ** 20,
+                # an 8-bit mask (stdr.mask_bits=8, after the freeze) has no optimizer state
+                "mask_bits": 8 * m.element_size(),
+                "mask_bytes": b, "mask_adam_bytes": 2 * b if m.is_floating_point() else 0,
+                "mask_total_mib": (3 if m.is_floating_point() else 1) * b / 2 ** 20,
                 "mask_mean": float(a.mean()),
                 "mask_min_over_time_mean": float(a.amin(1).mean()),
                 "fraction_time_gated": float((a.amin(1) < 0.5).float().mean()),  # off at some time

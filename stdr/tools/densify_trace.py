@@ -60,8 +60,9 @@ def peak_opacity(run: Path) -> dict:
     # the model's entry (checkpoint format 2), or the parameters at the top (format 1)
     p = payload["model"]["params"] if "model" in payload else payload["params"]
     peak = torch.sigmoid(p["opacities"].float())
-    if "stdr_mask" in p:
-        peak = peak * torch.sigmoid(p["stdr_mask"].float()).amax(1)
+    if "stdr_mask" in p:  # float logits, or the 8-bit form (stdr.mask_bits=8)
+        from ..decouple.mask import activated
+        peak = peak * activated(p["stdr_mask"]).float().amax(1)
     q = torch.quantile(peak, torch.tensor(QUANTILES))
     return {"n": int(peak.numel()), "quantiles": {str(k): float(v) for k, v in zip(QUANTILES, q)},
             "fraction_below": float((peak < FAINT).float().mean()),

@@ -211,7 +211,7 @@ class Trainer:
         optimizer set does not depend on the step; a parameter without a gradient is not updated."""
         return {k: torch.optim.Adam([{"params": [p], "lr": self._lr(k, 0), "name": k}], eps=1e-15,
                                     fused=self._fused_adam)
-                for k, p in self.model.params.items()}
+                for k, p in self.model.params.items() if p.is_floating_point()}  # (not an 8-bit mask)
 
     @property
     def _fused_adam(self) -> bool:
@@ -316,6 +316,8 @@ class Trainer:
         model.train(True)
         for p in model.plugins:
             p.configure_step(params, it)
+        for k in [k for k in self.optimizers if k not in params or not params[k].is_floating_point()]:
+            del self.optimizers[k]  # a plug-in stored a tensor in integer form (STDR's 8-bit mask): no more updates
         with prof("deform"):
             # one conditioning per step: the render, SC-GS's node resampling and its ARAP see the same
             cs = model.conditioning(it)
