@@ -31,6 +31,8 @@ VARIANTS = {  # name: prune.* overrides (the protocol's table)
     "s50": ["prune.share=0.5", "prune.time_weight=0"],
     "s50_tw1": ["prune.share=0.5", "prune.time_weight=1"],
 }
+#: variants only for the +STDR methods
+STDR_VARIANTS = {"m8": ["prune.share=0", "stdr.mask_bits=8"]}
 AT = "prune.at=[refine_stop,0.9]"
 BRANCH_STEP = 1500
 KEEP = ("config.yaml", "metrics.json", "history.json", "train_profile.json")
@@ -53,7 +55,8 @@ def run_queue(args) -> int:
     for exp in EXPERIMENTS:
         for scene in SCENES:
             src = Path(args.headline) / exp / scene / "s0" / "checkpoints"
-            for name, keys in VARIANTS.items():
+            variants = {**VARIANTS, **(STDR_VARIANTS if exp.endswith("_stdr") else {})}
+            for name, keys in variants.items():
                 rec = RECORDS / exp / scene / name
                 if (rec / "metrics.json").is_file():
                     continue
@@ -132,8 +135,14 @@ def decide(recs: dict) -> dict:
     if choice is None:
         choice = "s30_tw1" if avg["s30_tw1"] > avg["s30"] else "s30"
         why = "rule 3: no variant admissible; the better of s30 / s30_tw1 on the eight-method mean"
+    m8 = {}
+    for exp in (e for e in EXPERIMENTS if e.endswith("_stdr")):
+        ds = [recs[(exp, s, "m8")]["psnr"] - recs[(exp, s, "control")]["psnr"]
+              for s in SCENES if (exp, s, "m8") in recs and (exp, s, "control") in recs]
+        m8[exp] = sum(ds) / len(ds) if len(ds) == len(SCENES) else None
+    mask8 = None if None in m8.values() else min(m8.values()) >= -0.05  # rule 5
     return {"delta_psnr": delta, "admissible": admissible, "mean_delta_psnr": avg, "complete": True,
-            "choice": choice, "why": why}
+            "choice": choice, "why": why, "m8_delta_psnr": m8, "mask_bits_8": mask8}
 
 
 def table(args) -> int:
@@ -146,7 +155,7 @@ def table(args) -> int:
              "| method | variant | n | PSNR | SSIM | LPIPS | FPS | Gaussians | seen/frame | model MB | train s | "
              "score pass s/event | identical control |", "|" + "---|" * 13]
     for exp in EXPERIMENTS:
-        for v in VARIANTS:
+        for v in [*VARIANTS, *(STDR_VARIANTS if exp.endswith("_stdr") else {})]:
             rows = [recs[(exp, s, v)] for s in SCENES if (exp, s, v) in recs]
             if not rows:
                 continue

@@ -5,7 +5,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from studies.compact import EXPERIMENTS, SCENES, VARIANTS, decide  # noqa: E402
+from studies.compact import EXPERIMENTS, SCENES, STDR_VARIANTS, VARIANTS, decide  # noqa: E402
 
 
 def _recs(delta):
@@ -14,9 +14,9 @@ def _recs(delta):
     for exp in EXPERIMENTS:
         for s in SCENES:
             out[(exp, s, "control")] = {"psnr": 30.0}
-            for v in VARIANTS:
+            for v in [*VARIANTS, *(STDR_VARIANTS if exp.endswith("_stdr") else {})]:
                 if v != "control":
-                    out[(exp, s, v)] = {"psnr": 30.0 + delta[v](exp)}
+                    out[(exp, s, v)] = {"psnr": 30.0 + delta.get(v, lambda e: 0.0)(exp)}
     return out
 
 
@@ -46,3 +46,9 @@ def test_incomplete_records_decide_nothing():
     recs = _recs({v: (lambda e: 0.0) for v in VARIANTS})
     del recs[(EXPERIMENTS[0], SCENES[0], "s50")]
     assert decide(recs)["choice"] is None
+
+
+def test_the_8bit_mask_joins_only_without_a_measurable_loss():
+    base = {"s30": lambda e: 0.0, "s30_tw1": lambda e: 0.0, "s50": lambda e: 0.0, "s50_tw1": lambda e: 0.0}
+    assert decide(_recs({**base, "m8": lambda e: -0.01}))["mask_bits_8"] is True
+    assert decide(_recs({**base, "m8": lambda e: -0.2 if e == "dnerf_4dgs_stdr" else 0.0}))["mask_bits_8"] is False

@@ -173,7 +173,7 @@ def test_stdr_tool_compact_prunes_a_trained_run_into_a_new_one(tmp_path):
     cfg = tiny_config(tmp_path, SCHED + ["stdr=on", "eval.fps_repeats=1"])
     run(cfg, tmp_path / "run")
     before = json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]
-    res = compact(tmp_path / "run", share=0.4, steps=10)
+    res = compact(tmp_path / "run", share=0.4, steps=10, mask_bits=8)
     out = tmp_path / "run_compact"
     m = json.loads((out / "metrics.json").read_text())["test"]
     assert m["iterations"] == 70 and m["prune"][0]["step"] == 60
@@ -184,6 +184,7 @@ def test_stdr_tool_compact_prunes_a_trained_run_into_a_new_one(tmp_path):
     # the original run is untouched, and the phases it crossed stayed where they were
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["test"] == before
     assert m["stdr"]["freeze_at"] == before["stdr"]["freeze_at"]
+    assert before["stdr"]["mask_bits"] == 32 and m["stdr"]["mask_bits"] == 8  # quantized at the first fine-tuning step
     with pytest.raises(FileExistsError, match="run_compact exists"):
         compact(tmp_path / "run", share=0.4, steps=10)
     with pytest.raises(SystemExit, match="--share 1.5"):

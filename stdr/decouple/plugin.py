@@ -270,8 +270,8 @@ class STDR(Plugin):
         if self.has_mask(params):
             if ph == Phase.FROZEN and not self._cleaned:
                 self.cleanup(params)
-                if self.cfg.mask_bits == 8:
-                    self.store_mask_8bit(params)
+            if ph == Phase.FROZEN and self.cfg.mask_bits == 8 and params[MASK_KEY].is_floating_point():
+                self.store_mask_8bit(params)  # at the freeze; a run continued past it with the key: at once
             params["opacities"].requires_grad_(not self.opacity_frozen(step))
             params[MASK_KEY].requires_grad_(ph != Phase.FROZEN)
 
@@ -296,7 +296,8 @@ class STDR(Plugin):
 
     @torch.no_grad()
     def store_mask_8bit(self, params) -> None:
-        """stdr.mask_bits=8, at the freeze: the mask becomes uint8 q = round(255 sigmoid(m)) in the
+        """stdr.mask_bits=8, at the freeze (or, for a run continued past its freeze with the key, e.g.
+        by `stdr-tool compact`, at its first step): the mask becomes uint8 q = round(255 sigmoid(m)) in the
         parameter dict (no gradient, no optimizer), a quarter of its float32 bytes in memory, in
         checkpoints and in model_mb; renders read q / 255 directly (mask.activated), the field's
         softmax reads logit(q / 255) (mask.logits_of). From here on the run trains with exactly what

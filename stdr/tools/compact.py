@@ -1,6 +1,6 @@
 """Compact a trained run: prune its least significant Gaussians by contribution, fine-tune, save.
 
-    stdr-tool compact RUN_DIR --share 0.5 [--steps 300] [--time-weight 0] [--out DIR] [--split val]
+    stdr-tool compact RUN_DIR --share 0.5 [--steps 300] [--time-weight 0] [--mask-bits 8] [--out DIR] [--split val]
 
 The run's checkpoint is copied to the new run folder (default RUN_DIR_compact) and training goes
 on from it for --steps more iterations with `prune.share=SHARE prune.at=[<its step>]`: the
@@ -20,7 +20,7 @@ from typing import Optional
 
 
 
-def compact_config(cfg, step: int, share: float, steps: int, time_weight: float = 0.0):
+def compact_config(cfg, step: int, share: float, steps: int, time_weight: float = 0.0, mask_bits: int = 0):
     """`cfg` (a run's loaded config) continued for `steps` iterations past `step` with one pruning
     event at `step`; every schedule boundary at or before `step` kept where it was. An error names
     the boundary when that cannot be done by pinning."""
@@ -38,6 +38,10 @@ def compact_config(cfg, step: int, share: float, steps: int, time_weight: float 
     new.prune.at = [str(int(step))]
     new.prune.time_weight = float(time_weight)
     new.baseline.warmup = int(old.static_warmup_end)
+    if mask_bits:
+        if "stdr" not in [p.name for p in enabled_plugins(cfg)]:
+            raise ValueError("--mask-bits: the run has no STDR mask (stdr.enabled=false)")
+        new.stdr.mask_bits = int(mask_bits)
     for spec in enabled_plugins(cfg):  # plug-in phases resolved from the old run's length
         node = new[spec.name]
         for k, v in old.plugins.get(spec.name, {}).items():
@@ -55,7 +59,7 @@ def compact_config(cfg, step: int, share: float, steps: int, time_weight: float 
 
 
 def compact(run_dir: Path, share: float, steps: int = 300, time_weight: float = 0.0, out: Optional[Path] = None,
-            split: Optional[str] = None, data_base: Optional[str] = None) -> dict:
+            split: Optional[str] = None, data_base: Optional[str] = None, mask_bits: int = 0) -> dict:
     """Prune run_dir's model by contribution, fine-tune `steps` iterations into `out`, evaluate."""
     from ..cli.train import run
     from ..config import load_config
@@ -70,7 +74,7 @@ def compact(run_dir: Path, share: float, steps: int = 300, time_weight: float = 
         raise FileExistsError(f"{out} exists: choose another --out or remove it")
     cfg = load_config(run_dir / "config.yaml")
     step = int(load_checkpoint(src)["model"]["step"])
-    new = compact_config(cfg, step, share, steps, time_weight)
+    new = compact_config(cfg, step, share, steps, time_weight, mask_bits)
     if split:
         new.data.eval_split = split
     new.name = f"{cfg.name}_compact"
@@ -88,10 +92,12 @@ def main(argv=None) -> None:
     ap.add_argument("--time-weight", type=float, default=0.0, help="prune.time_weight (stdr/scene/prune.py)")
     ap.add_argument("--out", type=Path, default=None, help="the new run folder (default RUN_compact)")
     ap.add_argument("--split", default=None, help="evaluation split (default: the run's data.eval_split)")
+    ap.add_argument("--mask-bits", type=int, default=0, choices=(0, 8, 32),
+                    help="STDR runs: store the frozen mask in 8 bits from the first fine-tuning step (0: keep)")
     a = ap.parse_args(argv)
     if not 0.0 < a.share < 1.0:
         raise SystemExit(f"stdr-tool compact: --share {a.share}: use a fraction in (0, 1)")
-    compact(a.run, a.share, a.steps, a.time_weight, a.out, a.split)
+    compact(a.run, a.share, a.steps, a.time_weight, a.out, a.split, mask_bits=a.mask_bits)
 
 
 if __name__ == "__main__":
