@@ -69,12 +69,14 @@ def run_queue(args) -> int:
                     shutil.rmtree(run)  # a branch killed midway starts again from the checkpoint
                 (run / "checkpoints").mkdir(parents=True)
                 shutil.copy2(src / "last.previous.pt", run / "checkpoints" / "last.pt")
-                cmd = [str(code / "scripts" / "run.sh"), "stdr-train", f"experiment={exp}", "budget=cpu", "seed=0",
+                # `python -m` from the checkout imports its own stdr, whatever the environment's install
+                cmd = [str(code / "scripts" / "run.sh"), "python", "-m", "stdr.cli.train", f"experiment={exp}",
+                       "budget=cpu", "seed=0",
                        f"data.path={Path(args.dnerf) / scene}", f"data.name={scene}", "data.eval_split=val",
                        "train.progress=false", f"hydra.run.dir={run}", AT, *keys]
                 print(f"[compact] {time.strftime('%T')} {exp} {scene} {name}", flush=True)
                 with open(str(run) + ".log", "w") as log:
-                    rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode
+                    rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=code).returncode
                 if rc != 0 or not (run / "metrics.json").is_file():
                     print(f"[compact] FAILED {exp} {scene} {name} (log: {run}.log)", file=sys.stderr, flush=True)
                     failed += 1
