@@ -317,7 +317,7 @@ class Trainer:
         for p in model.plugins:
             p.configure_step(params, it)
         for k in [k for k in self.optimizers if k not in params or not params[k].is_floating_point()]:
-            del self.optimizers[k]  # a plug-in stored a tensor in integer form (STDR's 8-bit mask): no more updates
+            del self.optimizers[k]  # a plug-in stored a tensor in integer form (e.g. an 8-bit mask): no more updates
         with prof("deform"):
             # one conditioning per step: the render, SC-GS's node resampling and its ARAP see the same
             cs = model.conditioning(it)
