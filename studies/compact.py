@@ -52,7 +52,7 @@ def same_parameters(a: Path, b: Path) -> dict:
 def run_queue(args) -> int:
     code = Path(args.code).resolve()
     failed = 0
-    for exp in EXPERIMENTS:
+    for exp in (args.experiments or EXPERIMENTS):
         for scene in SCENES:
             src = Path(args.headline) / exp / scene / "s0" / "checkpoints"
             variants = {**VARIANTS, **(STDR_VARIANTS if exp.endswith("_stdr") else {})}
@@ -190,6 +190,7 @@ def main(argv=None) -> int:
     r.add_argument("--headline", required=True, help="the headline queue's WORK_DIR (its run folders)")
     r.add_argument("--work", default=str(ROOT / "outputs" / "compact"))
     r.add_argument("--code", default=str(ROOT), help="checkout whose scripts/run.sh trains (frozen at one commit)")
+    r.add_argument("--experiments", nargs="*", choices=EXPERIMENTS, help="only these methods (default: all)")
     t = sub.add_parser("table")
     t.add_argument("--records", default=str(RECORDS))
     args = ap.parse_args(argv)
