@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Optional
 
 
-
 def compact_config(cfg, step: int, share: float, steps: int, time_weight: float = 0.0, mask_bits: int = 0):
     """`cfg` (a run's loaded config) continued for `steps` iterations past `step` with one pruning
     event at `step`; every schedule boundary at or before `step` kept where it was. An error names
