@@ -163,6 +163,20 @@ int load_tile(const TileLayout<T>& tl, const T* g_acc, const T* g_T, const T* Tf
   return max_last;
 }
 
+// A tile's per-pixel compositing state at the start (T = 1, nothing composited; pixels outside
+// the image done from the start). Returns the number of pixels still compositing.
+template <typename T>
+int start_tile(const TileLayout<T>& tl, T* Tb, int32_t* done, int32_t* last) {
+  int live = 0;
+  for (int p = 0; p < tl.gr.pt; ++p) {
+    Tb[p] = T(1);
+    done[p] = tl.inside[p] ? 0 : 1;
+    last[p] = 0;
+    live += tl.inside[p];
+  }
+  return live;
+}
+
 template <typename T, int F>
 void forward_tiles(const T* packed, int64_t D, const int32_t* ids, const int64_t* off,
                    const Grid& gr, int slots, T* out_acc, T* out_T, int32_t* out_last) {
@@ -173,13 +187,7 @@ void forward_tiles(const T* packed, int64_t D, const int32_t* ids, const int64_t
     std::vector<int32_t> done(Pt), last(Pt);
     for (int t = s; t < gr.n_tiles; t += slots) {
       tl.set(t);
-      int live = 0;
-      for (int p = 0; p < Pt; ++p) {
-        Tb[p] = T(1);
-        done[p] = tl.inside[p] ? 0 : 1;
-        last[p] = 0;
-        live += tl.inside[p];
-      }
+      int live = start_tile(tl, Tb.data(), done.data(), last.data());
       std::fill(acc.begin(), acc.end(), T(0));
       T* A = acc.data();
       T* Tp = Tb.data();
@@ -471,13 +479,7 @@ void score_tiles(const T* packed, const int32_t* ids, const int64_t* off, const 
     for (int t = s; t < gr.n_tiles; t += slots) {
       if (off[t] == off[t + 1]) continue;
       tl.set(t);
-      int live = 0;
-      for (int p = 0; p < Pt; ++p) {
-        Tb[p] = T(1);
-        done[p] = tl.inside[p] ? 0 : 1;
-        last[p] = 0;
-        live += tl.inside[p];
-      }
+      int live = start_tile(tl, Tb.data(), done.data(), last.data());
       T *W = w.data(), *Tp = Tb.data();
       int32_t *dn = done.data(), *ls = last.data();
       const T *X = tl.px.data(), *Y = tl.py.data();
