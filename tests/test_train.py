@@ -104,6 +104,9 @@ def test_training_beats_static_warmup_and_writes_its_outputs(trained):
     # the model's size: every float32 tensor of the model (Gaussians, network, plug-ins), at least
     # the Gaussians' own 59 floats each
     assert test["model_mb"] * 2 ** 20 >= test["num_gaussians"] * 59 * 4
+    # the training's CPU seconds next to its wall seconds: how much of the machine it had
+    assert 0 < test["train_cpu_seconds"] and 0 < test["train_cpu_utilization"] <= 1.2
+    assert test["seen_per_frame"] is not None and 0 < test["seen_per_frame"] <= 1
 
 
 @pytest.mark.slow

@@ -238,6 +238,13 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
                            fps_repeats=eval_cfg.fps_repeats, seen=True)
     final_entry(res, split, trainer.history, trainer.train_seconds, trainer.step,
                 trainer.guard.summary(int(trainer.strategy.max_gaussians) or None))
+    # whether the training had the cores to itself: CPU seconds of the process over the training
+    # seconds x threads (near 1: yes; e.g. 0.5: another job took half the machine). None: unknown
+    # (resumed from a checkpoint that did not record it)
+    cpu = getattr(trainer, "train_cpu_seconds", None)
+    res["train_cpu_seconds"] = cpu
+    res["train_cpu_utilization"] = (cpu / (trainer.train_seconds * torch.get_num_threads())
+                                    if cpu is not None and trainer.train_seconds > 0 else None)
     if trainer.prune_log:  # contribution pruning events: counts, seen per frame, cost (stdr.scene.prune)
         res["prune"] = list(trainer.prune_log)
     write_metrics(trainer.run_dir, split, res, trainer.model, eval_cfg, lp, trainer.scene.meta)

@@ -153,6 +153,9 @@ class Trainer:
                                                              device=self.device)
         self.sampler = CameraSampler(len(self.scene.splits.get("train", [])), cfg.seed)
         self.train_seconds = 0.0
+        # the process's CPU seconds over the same steps (every thread): train_cpu_seconds / (train_seconds x
+        # threads) near 1 says the steps had the cores to themselves; well below, the machine was shared
+        self.train_cpu_seconds: Optional[float] = 0.0
         self.profile = Profiler()
         self.history: list[dict[str, Any]] = []
         self.prune_log: list[dict[str, Any]] = []  # contribution pruning events (stdr.scene.prune.prune_event)
@@ -255,6 +258,7 @@ class Trainer:
             "sampler": self.sampler.state_dict(),
             "rng": rng_state(),
             "train_seconds": self.train_seconds,
+            "train_cpu_seconds": self.train_cpu_seconds,
             "history": self.history,
             "guard": self.guard.state_dict(),
             "prune_log": self.prune_log,
@@ -275,6 +279,8 @@ class Trainer:
         """The optimization state of a checkpoint payload (a file's, or a guard snapshot's)."""
         self.model.load_state_dict(model_entry(ck, where), where)
         self.train_seconds = float(ck["train_seconds"])
+        cpu = ck.get("train_cpu_seconds")  # None: a checkpoint from before it was recorded (unknown from then on)
+        self.train_cpu_seconds = None if cpu is None else float(cpu)
         self.history = list(ck.get("history", []))
         self.prune_log = list(ck.get("prune_log", []))
         self.optimizers = self._make_optimizers()
@@ -415,10 +421,12 @@ class Trainer:
         if end < 1:
             raise ValueError(f"train.stop_at={cfg.train.stop_at}: must be a step >= 1 (null: train to optim.iterations)")
         while self.step < end:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             logs = self.train_step()
             dt = time.perf_counter() - t0
             self.train_seconds += dt
+            if self.train_cpu_seconds is not None:
+                self.train_cpu_seconds += time.process_time() - c0
             if "rejected" in logs:
                 self.guard.recover(self, logs["rejected"])
                 if bar is not None:
