@@ -87,14 +87,22 @@ def run_queue(args) -> int:
                        f"data.path={Path(args.dnerf) / scene}", f"data.name={scene}", "data.eval_split=val",
                        "train.progress=false", f"hydra.run.dir={run}", AT, *keys]
                 print(f"[compact] {time.strftime('%T')} {exp} {scene} {name}", flush=True)
+                load = Path(str(run) + ".load.json")  # scripts/idle_run.py: did it have the machine to itself?
                 with open(str(run) + ".log", "w") as log:
-                    rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=code).returncode
+                    rc = subprocess.run([sys.executable, str(ROOT / "scripts" / "idle_run.py"), "--out", str(load),
+                                         "--", *cmd], stdout=log, stderr=subprocess.STDOUT, cwd=code).returncode
                 if rc != 0 or not (run / "metrics.json").is_file():
                     print(f"[compact] FAILED {exp} {scene} {name} (log: {run}.log)", file=sys.stderr, flush=True)
                     failed += 1
                     continue
+                if not json.loads(load.read_text())["idle"]:
+                    print(f"[compact] SHARED {exp} {scene} {name}: other jobs used the machine ({load}); not "
+                          "recorded, run the queue again", file=sys.stderr, flush=True)
+                    failed += 1
+                    continue
                 rec.mkdir(parents=True, exist_ok=True)
                 write_branch(src / "last.previous.pt", rec)
+                shutil.copy2(load, rec / "load.json")
                 for f in KEEP:
                     if (run / f).is_file():
                         shutil.copy2(run / f, rec / f)

@@ -1,0 +1,26 @@
+"""scripts/idle_run.py: a command's CPU time against the whole machine's, and its exit status."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "scripts" / "idle_run.py"
+
+
+def test_records_the_commands_cpu_and_the_machines_and_passes_the_exit_status(tmp_path):
+    out = tmp_path / "load.json"
+    busy = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.3: pass\nraise SystemExit(3)"
+    rc = subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), "--", sys.executable, "-c", busy]).returncode
+    assert rc == 3
+    rec = json.loads(out.read_text())
+    assert rec["returncode"] == 3 and rec["child_cpu_s"] >= 0.3  # the command's own CPU time
+    assert rec["machine_busy_cpu_s"] >= rec["child_cpu_s"] - 0.05  # the machine's includes it (tick rounding)
+    assert rec["foreign_cpu_s"] >= 0 and rec["foreign_share"] == rec["foreign_cpu_s"] / (rec["wall_s"] * rec["cpus"])
+    assert rec["idle"] == (rec["foreign_share"] <= rec["max_foreign"])
+
+
+def test_a_missing_command_is_an_error(tmp_path):
+    proc = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "x.json")], capture_output=True,
+                          text=True)
+    assert proc.returncode != 0 and "no command" in proc.stderr
