@@ -288,6 +288,11 @@ def test_configs_and_table_labels():
     assert method_name(c) == "deform+STDR w/o spatial_reg, no mask after freeze"
     assert method_name(OmegaConf.to_container(make_cfg(["stdr=on"]))) == "deform+STDR"
     assert method_name(OmegaConf.to_container(make_cfg([]))) == "deform"
+    # a compact run gets its own row beside the full one
+    c = OmegaConf.to_container(make_cfg(["stdr=on", "stdr.mask_bits=8", "prune.share=0.3"]))
+    assert method_name(c) == "deform+STDR 8-bit mask pruned 0.3x2"
+    c = OmegaConf.to_container(make_cfg(["prune.share=0.5", "prune.at=[refine_stop]", "prune.time_weight=1"]))
+    assert method_name(c) == "deform pruned 0.5x1 tw1"
 
 
 @pytest.mark.slow

@@ -143,7 +143,8 @@ class STDR(Plugin):
     #: ablation switches and options whose non-default value tags the table row
     ABLATION_SWITCHES = ("mask", "temporal_reg", "spatial_reg", "separated_field")
     NON_DEFAULT_OPTIONS = {"mask_after_freeze": (False, "no mask after freeze"),
-                           "scale_deltas_by_dynamic": (True, "deltas x dynamic")}
+                           "scale_deltas_by_dynamic": (True, "deltas x dynamic"),
+                           "mask_bits": (8, "8-bit mask")}
 
     @classmethod
     def row_tags(cls, pcfg: dict) -> list[str]:

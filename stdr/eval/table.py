@@ -102,10 +102,21 @@ def load_run(run: str | Path, split: str) -> dict[str, Any]:
 
 def method_name(cfg) -> str:
     """Row label: the baseline, then each enabled plug-in's label and the tags it gives its
-    non-default switches (stdr.plugins.method_suffix; e.g. 'deform+<label> w/o <switch>'), so
-    ablation rows never merge."""
+    non-default switches (stdr.plugins.method_suffix; e.g. 'deform+<label> w/o <switch>'), then
+    the contribution pruning when on ('pruned 0.3x2': share x events; ' tw1': its time weight),
+    so ablation rows, and a compact run beside its full one, never merge."""
     from ..plugins import method_suffix
-    return cfg["baseline"]["name"] + method_suffix(cfg)
+    return cfg["baseline"]["name"] + method_suffix(cfg) + prune_tag(cfg)
+
+
+def prune_tag(cfg) -> str:
+    """' pruned <share>x<events>[ tw<w>]' for a run with contribution pruning, else ''."""
+    p = cfg.get("prune") or {}
+    share = float(p.get("share") or 0.0)
+    if share <= 0:
+        return ""
+    tw = float(p.get("time_weight") or 0.0)
+    return f" pruned {share:g}x{len(p.get('at') or [])}" + (f" tw{tw:g}" if tw else "")
 
 
 def table_row(cfg: dict[str, Any], split: str, metrics: dict[str, Any], run_dir: str) -> dict[str, Any]:
