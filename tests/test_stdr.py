@@ -586,6 +586,9 @@ def test_8bit_mask_round_trip():
     assert q.dtype == torch.uint8
     assert (activated(q) - torch.sigmoid(m)).abs().max() <= 0.5 / 255 + 1e-7  # rounding to the nearest level
     assert activated(q)[-3:, 0].tolist() == [0.0, 0.0, 1.0]  # switched-off entries read back as exactly 0
+    lg = logits_of(q)
+    assert torch.isfinite(lg).all() and lg.min() == OFF_LOGIT and lg.max() == -OFF_LOGIT  # both ends finite
+    assert torch.isfinite(torch.softmax(lg.reshape(1, -1), -1)).all()  # what the separated field reads
     assert torch.equal(quantize(logits_of(q)), q)  # logits_of reads back the stored levels
     assert torch.equal(activated(logits_of(q)) > 0.5, activated(q) > 0.5)
 

@@ -70,10 +70,10 @@ def logits_of(mask: Tensor) -> Tensor:
     entropy) reads."""
     if mask.dtype != torch.uint8:
         return mask
-    a = mask.float() / 255.0
-    lo = math.exp(OFF_LOGIT) / (1.0 + math.exp(OFF_LOGIT))
-    a = a.clamp(lo, 1.0 - lo)
-    return torch.log(a) - torch.log1p(-a)
+    q = mask.float()
+    # logit(q / 255) = log q - log(255 - q), from the integers (1 - a would round to 0 in float32
+    # near a = 1); the ends, +-inf, are clamped to +-30
+    return (torch.log(q) - torch.log(255.0 - q)).clamp(OFF_LOGIT, -OFF_LOGIT)
 
 
 def mask_at(logits: Tensor, t: float, knots: Tensor) -> Tensor:
