@@ -241,7 +241,7 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
     # whether the training had the cores to itself: CPU seconds of the process over the training
     # seconds x threads (near 1: yes; e.g. 0.5: another job took half the machine). None: unknown
     # (resumed from a checkpoint that did not record it)
-    cpu = getattr(trainer, "train_cpu_seconds", None)
+    cpu = trainer.train_cpu_seconds
     res["train_cpu_seconds"] = cpu
     res["train_cpu_utilization"] = (cpu / (trainer.train_seconds * torch.get_num_threads())
                                     if cpu is not None and trainer.train_seconds > 0 else None)

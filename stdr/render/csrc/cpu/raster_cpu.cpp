@@ -524,13 +524,16 @@ at::Tensor score(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Ten
     std::vector<scalar_t> sums((size_t)slots * V);
     score_tiles<scalar_t>(packed.data_ptr<scalar_t>(), pair_ids.data_ptr<int32_t>(),
                           tile_offsets.data_ptr<int64_t>(), gr, slots, sums.data(), V);
+    // the slots' sums in slot order (deterministic), scattered to input order, as backward() does
     const int64_t* ord = order.data_ptr<int64_t>();
     scalar_t* o = out.data_ptr<scalar_t>();
-    for (int64_t v = 0; v < V; ++v) {
-      scalar_t total = 0;
-      for (int s = 0; s < slots; ++s) total += sums[(size_t)s * V + v];
-      o[ord[v]] = total;
-    }
+    at::parallel_for(0, V, 4096, [&](int64_t b, int64_t e) {
+      for (int64_t v = b; v < e; ++v) {
+        scalar_t total = 0;
+        for (int s = 0; s < slots; ++s) total += sums[(size_t)s * V + v];
+        o[ord[v]] = total;
+      }
+    });
   });
   return out;
 }
