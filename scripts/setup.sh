@@ -76,7 +76,7 @@ if has_gpu && ! .venv/bin/python -c "import torch,sys; sys.exit(0 if torch.cuda.
        "re-run with STDR_TORCH_INDEX=https://download.pytorch.org/whl/cuXYZ" >&2
 fi
 
-pip install -q -e ".[test]"
+pip install -q -e ".[test,capture]"
 
 if [ "${STDR_NO_APT:-0}" != 1 ] && [ ! -f /usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4 ] \
    && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then

@@ -191,7 +191,7 @@ def table(args) -> int:
             ident = "" if v != "control" else "/".join("yes" if (r["identity"] or {}).get("identical") else "NO"
                                                        for r in rows)
 
-            def f(k, fmt):
+            def f(k, fmt, rows=rows):
                 x = _mean(r.get(k) for r in rows)
                 return "–" if x is None else format(x, fmt)
             lines.append(f"| {exp} | {v} | {len(rows)} | {f('psnr', '.2f')} | {f('ssim', '.4f')} | {f('lpips', '.4f')} | "

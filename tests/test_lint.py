@@ -8,7 +8,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_ruff_is_clean():
-    p = subprocess.run([sys.executable, "-m", "ruff", "check", "stdr", "tests", "scripts"], cwd=ROOT,
+    p = subprocess.run([sys.executable, "-m", "ruff", "check", "stdr", "tests", "scripts", "studies"], cwd=ROOT,
                        capture_output=True, text=True)
     assert "No module named ruff" not in p.stderr, "ruff is part of the test extra: pip install -e '.[test]'"
     assert p.returncode == 0, p.stdout[-4000:] + p.stderr[-2000:]

@@ -5,6 +5,7 @@
     stdr-data download hypernerf --scenes vrig_broom --dest data/hypernerf
     stdr-data verify data/dnerf
     stdr-data prepare dnerf-400 data/dnerf data/dnerf_400      # the 400x400 copies the budgets assume
+    stdr-data capture my_video.mp4 --out data/my_scene          # a phone video to a dataset (pycolmap)
 
 Sources, mirrors and the checks: stdr.data.fetch and docs/data.md ("Getting the datasets").
 """
@@ -14,6 +15,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..data import capture as capture_mod
 from ..data import fetch
 
 
@@ -161,6 +163,28 @@ def main(argv=None) -> None:
     p.add_argument("what", choices=("dnerf-400",))
     p.add_argument("src", type=Path)
     p.add_argument("dest", type=Path)
+    c = sub.add_parser("capture", help="a video or a folder of images to a Nerfies-format dataset (pycolmap SfM)",
+                       description="Frames, camera poses by SfM (pycolmap, CPU), undistortion and a dataset "
+                       "`stdr-train experiment=nerfies_deform data.path=OUT` trains on (docs/data.md).")
+    c.add_argument("source", type=Path, help="a video file (.mp4, .mov, ...) or a folder of images")
+    c.add_argument("--out", type=Path, required=True, help="the dataset folder to create")
+    cd = capture_mod.CaptureConfig()
+    c.add_argument("--frames", type=int, default=cd.frames, help=f"about this many frames kept (default {cd.frames}; "
+                   "0 keeps every frame)")
+    c.add_argument("--select", choices=capture_mod.SELECT_MODES, default=cd.select,
+                   help="which frame of each stride window is kept (default: the sharpest)")
+    c.add_argument("--max-size", type=int, default=cd.max_size, help=f"long side in pixels (default {cd.max_size}; 0 keeps)")
+    c.add_argument("--val-every", type=int, default=cd.val_every, help=f"every k-th frame is held out (default {cd.val_every})")
+    c.add_argument("--matcher", choices=capture_mod.MATCHERS, default=cd.matcher,
+                   help=f"auto: exhaustive up to {cd.exhaustive_max} frames, else sequential")
+    c.add_argument("--vocab-tree", default=None, help="COLMAP vocabulary tree file: loop detection in sequential matching")
+    c.add_argument("--min-registered", type=float, default=cd.min_registered,
+                   help=f"fail when SfM registers a smaller share of the frames (default {cd.min_registered})")
+    c.add_argument("--camera-model", default=cd.camera_model, help=f"COLMAP camera model (default {cd.camera_model})")
+    c.add_argument("--seed", type=int, default=cd.seed)
+    c.add_argument("--threads", type=int, default=cd.threads, help="pycolmap threads (default: all cores)")
+    c.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
+    c.add_argument("--keep-work", action="store_true", help="keep COLMAP's database and raw models (colmap/work)")
     args = ap.parse_args(argv)
     try:
         if args.cmd == "list":
@@ -172,7 +196,13 @@ def main(argv=None) -> None:
                 raise SystemExit(1)
         elif args.cmd == "prepare":
             prepare_dnerf(args.src, args.dest)
-    except fetch.DataError as e:
+        elif args.cmd == "capture":
+            cfg = capture_mod.CaptureConfig(
+                frames=args.frames or None, select=args.select, max_size=args.max_size, val_every=args.val_every,
+                matcher=args.matcher, vocab_tree=args.vocab_tree, min_registered=args.min_registered,
+                camera_model=args.camera_model, seed=args.seed, threads=args.threads)
+            capture_mod.capture(args.source, args.out, cfg, overwrite=args.overwrite, keep_work=args.keep_work)
+    except (fetch.DataError, capture_mod.CaptureError) as e:
         print(f"stdr-data: {e}", file=sys.stderr)
         raise SystemExit(2) from None
 

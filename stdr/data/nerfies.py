@@ -60,6 +60,23 @@ def _choice(name: str, value, allowed) -> None:
         raise ValueError(f"data.{name}={value!r}: use one of {', '.join(map(str, allowed))}")
 
 
+def capture_defaults(root: Path) -> dict:
+    """The loader settings a scene made by `stdr-data capture` names in its capture.json
+    ({"loader": {"split_mode": ..., "image_scale": ...}}); {} for any other scene. They fill
+    data.split_mode and data.image_scale only where those are null, and the run's data meta
+    records that they did (`settings_from_capture_json`)."""
+    path = root / "capture.json"
+    if not path.is_file():
+        return {}
+    loader = _read_json(path, "").get("loader", {})
+    if not isinstance(loader, dict):
+        raise ValueError(f"{path}: 'loader' must be a mapping {{split_mode, image_scale}}")
+    bad = sorted(set(loader) - {"split_mode", "image_scale"})
+    if bad:
+        raise ValueError(f"{path}: unknown loader setting(s) {bad}; capture.json names split_mode and image_scale")
+    return dict(loader)
+
+
 # ----------------------------------------------------------------------------- splits and time
 def split_ids(dataset: dict, path: Path, mode: str) -> tuple[list[str], list[str]]:
     """(train ids, held-out ids) under `split_mode`.
@@ -269,6 +286,12 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"Nerfies scene folder not found: {root} (set data.path)")
+    defaults = capture_defaults(root)
+    defaults_used = {}
+    if split_mode is None and "split_mode" in defaults:
+        split_mode = defaults_used["split_mode"] = defaults["split_mode"]
+    if image_scale is None and "image_scale" in defaults:
+        image_scale = defaults_used["image_scale"] = defaults["image_scale"]
     if split_mode is None:
         raise ValueError("data.split_mode is not set: use 'ids' (dataset.json train_ids/val_ids: NeRF-DS, "
                          "HyperNeRF vrig) or 'interp' (every 4th frame trains, +2 tests: HyperNeRF interp)")
@@ -379,6 +402,8 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
     pts, cols, psrc = load_points(root, points_source, model)
     if pts is not None:
         pts = (pts - center) * scale
+    if defaults_used:
+        notes["settings_from_capture_json"] = defaults_used
     meta = {"format": "nerfies", "split_mode": split_mode, "image_scale": image_scale, "time_key": used_key,
             "normalize_scene": normalize_scene, "scene_center": center.tolist(), "scene_scale": scale,
             "distortion": distortion, "intrinsics": intrinsics, "points_source": psrc,
