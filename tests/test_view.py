@@ -154,15 +154,20 @@ def test_stdr_render_writes_videos_of_the_expected_size(runs, tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.skipif(find_chromium() is None, reason="no Chromium: `apt-get install -y chromium` runs this test")
-def test_a_real_browser_shows_a_render(runs, tmp_path, capsys):
+def test_a_real_browser_shows_a_render(runs, tmp_path):
+    import subprocess
+    import sys
+
     from PIL import Image
-    from stdr.cli.view import view_main
     from stdr.view.server import free_port
-    # stdr-view --screenshot: headless Chromium opens the page, connects, sends its camera and
-    # gets a frame rendered for it (else the command fails on its timeout), then a PNG is saved
-    view_main([str(runs / "stdr"), "--port", str(free_port()), "--view", "mask", "--screenshot",
-               str(tmp_path / "shot.png")])
-    assert "frame time" in capsys.readouterr().out
+    # stdr-view --screenshot as a user runs it (its own process: the exit status counts; it was 134,
+    # an abort at shutdown, after the PNG was saved): headless Chromium opens the page, connects,
+    # sends its camera and gets a frame rendered for it (else the command fails on its timeout)
+    p = subprocess.run([sys.executable, "-c", "from stdr.cli.view import view_main; view_main()", str(runs / "stdr"),
+                        "--port", str(free_port()), "--view", "mask", "--screenshot", str(tmp_path / "shot.png")],
+                       capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "frame time" in p.stdout
     img = np.asarray(Image.open(tmp_path / "shot.png").convert("RGB")).astype(float)
     assert img.shape[0] > 100 and img.std() > 5  # not a blank page
     h, w = img.shape[:2]
@@ -200,3 +205,129 @@ def _live_group_members(pgid: int) -> list[int]:
             if int(fields[2]) == pgid and fields[0] != "Z":
                 live.append(int(d))
     return live
+
+
+# ----------------------------------------------------------------------------- camera paths (nerfstudio's format)
+def _path_file(tmp_path, entries, **top):
+    import json
+    d = {"camera_type": "perspective", "render_width": 80, "render_height": 60, "fps": 12.0, "seconds": 1.0,
+         "camera_path": entries, **top}
+    p = tmp_path / "camera_path.json"
+    p.write_text(json.dumps(d))
+    return p
+
+
+def test_camera_path_axes_follow_nerfstudio():
+    """A hand-made path entry: OpenGL camera-to-world (identity rotation: looking down -z with y
+    up) at (0, 0, 5), vertical fov 90 deg at 80x60. By hand: f = 30 / tan(45 deg) = 30 px, the
+    origin projects to the centre (40, 30) at depth 5; world +y (up) lands above the centre at
+    v = 30 - 30 * 1 / 5 = 24, world +x right of it at u = 40 + 30 / 5 = 46."""
+    import tempfile
+    from pathlib import Path
+
+    from stdr.view.camera_path import read_camera_path
+    m = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 5, 0, 0, 0, 1]
+    with tempfile.TemporaryDirectory() as d:
+        cp = read_camera_path(_path_file(Path(d), [{"camera_to_world": m, "fov": 90.0, "aspect": 4 / 3,
+                                                    "render_time": 0.25}]))
+    c = cp.cameras[0]
+    assert (c.width, c.height, c.fx, c.fy, c.cx, c.cy) == (80, 60, pytest.approx(30.0), pytest.approx(30.0), 40.0, 30.0)
+    assert cp.times == [0.25] and cp.fps == 12.0
+
+    def project(p):
+        x = c.R.double().numpy() @ np.asarray(p, float) + c.t.double().numpy()
+        return c.fx * x[0] / x[2] + c.cx, c.fy * x[1] / x[2] + c.cy, x[2]
+    assert project([0, 0, 0]) == pytest.approx((40.0, 30.0, 5.0))
+    assert project([0, 1, 0]) == pytest.approx((40.0, 24.0, 5.0))
+    assert project([1, 0, 0]) == pytest.approx((46.0, 30.0, 5.0))
+
+
+def test_camera_path_round_trip_and_defaults(tmp_path):
+    """Cameras written by write_camera_path read back equal (pose, intrinsics, times, fps); a path
+    without render_time on every entry runs evenly from 0 to 1 (nerfstudio ignores partial times)."""
+    import json
+
+    from stdr.view.camera_path import read_camera_path, write_camera_path
+    from stdr.view.core import camera_from_viser
+    g = np.random.default_rng(0)
+    cams, times = [], [0.0, 0.3, 0.9]
+    for _ in times:
+        q = g.normal(size=4)
+        cams.append(camera_from_viser(q / np.linalg.norm(q), g.normal(size=3), 0.8, 64, 48))
+    p = write_camera_path(tmp_path / "p.json", cams, times, fps=24.0)
+    back = read_camera_path(p)
+    assert back.times == pytest.approx(times) and back.fps == 24.0
+    for a, b in zip(cams, back.cameras):
+        assert torch.allclose(a.R, b.R, atol=1e-6) and torch.allclose(a.t, b.t, atol=1e-5)
+        assert (b.fx, b.fy, b.cx, b.cy, b.width, b.height) == pytest.approx((a.fx, a.fy, a.cx, a.cy, 64, 48))
+    half = read_camera_path(p, width=32)
+    assert (half.cameras[0].width, half.cameras[0].height) == (32, 24)
+    d = json.loads(p.read_text())
+    del d["camera_path"][1]["render_time"]
+    p.write_text(json.dumps(d))
+    assert read_camera_path(p).times == pytest.approx([0.0, 0.5, 1.0])
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"camera_type": "fisheye"}, "camera_type 'fisheye'"),
+    ({"camera_path": []}, "non-empty 'camera_path'"),
+    ({"render_width": None}, "render_width: expected a number"),
+    ({"entry": {"fov": 200.0}}, "fov 200.0 is not a vertical field of view"),
+    ({"entry": {"camera_to_world": [2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 5, 0, 0, 0, 1]}}, "not a rotation"),
+    ({"entry": {"camera_to_world": [1, 0, 0]}}, "has 3 numbers"),
+    ({"entry": {"render_time": 1.5}}, "render_time 1.5 outside"),
+])
+def test_bad_camera_paths_are_named(tmp_path, change, message):
+    from stdr.view.camera_path import read_camera_path
+    e = {"camera_to_world": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 5, 0, 0, 0, 1], "fov": 50.0, "render_time": 0.0}
+    e.update(change.pop("entry", {}))
+    p = _path_file(tmp_path, [e], **change)
+    with pytest.raises(ValueError, match=message) as err:
+        read_camera_path(p)
+    assert str(p) in str(err.value)
+
+
+def test_keyframes_interpolate_through_their_poses_and_times():
+    from stdr.view.camera_path import interpolate
+    from stdr.view.core import camera_from_viser
+    a = camera_from_viser([1, 0, 0, 0], [0, 0, 0], 0.8, 40, 30)
+    b = camera_from_viser([np.cos(0.5), 0, np.sin(0.5), 0], [2, 0, 0], 0.8, 40, 30)  # turned 1 rad about y
+    cams, times = interpolate([(a, 0.0), (b, 1.0)], 5)
+    assert times == pytest.approx([0, 0.25, 0.5, 0.75, 1])
+    assert torch.allclose(cams[0].R, a.R, atol=1e-6) and torch.allclose(cams[-1].R, b.R, atol=1e-6)
+    mid = cams[2]
+    assert np.allclose(mid.center.numpy(), [1, 0, 0], atol=1e-6)
+    # half-way orientation: turned 0.5 rad about y
+    ang = np.degrees(np.arccos((np.trace(a.R.double().numpy().T @ mid.R.double().numpy()) - 1) / 2))
+    assert ang == pytest.approx(np.degrees(0.5), abs=1e-3)
+
+
+@pytest.mark.slow
+def test_stdr_render_follows_a_camera_path_as_mp4(runs, tmp_path):
+    """stdr-render --path: one MP4 frame per path entry, each the render of that camera at its
+    time (the viewer's save button writes such a file: Viewer.save_path)."""
+    import imageio.v3 as iio
+    from stdr.cli.view import render_main
+    from stdr.view.camera_path import read_camera_path
+    from stdr.view.server import Viewer, free_port
+    r = open_run(runs / "stdr", device="cpu")
+    v = Viewer(r, port=free_port())
+    try:
+        for f, t in ((r.frames["test"][0], 0.1), (r.frames["train"][3], 0.9)):
+            wxyz, pos, fov = camera_to_viser(f.camera)
+            v.gui_time.value = t
+            v.add_keyframe(_Client(_Cam(wxyz, pos, fov, 64, 48)))
+        v.gui_path_seconds.value, v.gui_path_fps.value, v.gui_path_name.value = 1.0, 6.0, "sweep"
+        path = v.save_path()
+    finally:
+        v.stop()
+    assert path == runs / "stdr" / "camera_paths" / "sweep.json"
+    cp = read_camera_path(path)
+    assert len(cp.cameras) == 6 and cp.times[0] == pytest.approx(0.1) and cp.times[-1] == pytest.approx(0.9)
+    render_main([str(runs / "stdr"), "--path", str(path), "--out", str(tmp_path / "v")])
+    video = iio.imread(tmp_path / "v" / "sweep_rgb.mp4", index=None)
+    assert video.shape[:3] == (6, 48, 64)
+    for k in (0, 5):
+        want = to_uint8(r.model.render(cp.cameras[k], cp.times[k]).image).astype(float)
+        assert np.abs(video[k].astype(float) - want).mean() < 6  # H.264 at quality 8
+    assert np.abs(video[0].astype(float) - video[5].astype(float)).mean() > 6  # the path moves

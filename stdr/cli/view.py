@@ -3,6 +3,7 @@ STDR's mask and static/dynamic split), served on localhost; stdr-render RUN_DIR:
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -73,18 +74,30 @@ def render_main(argv=None) -> None:
     ap.add_argument("--fps", type=float, default=15.0)
     ap.add_argument("--split", default="test", help="the split the comparison walks through")
     ap.add_argument("--format", default="auto", choices=("auto", "mp4", "gif"))
+    ap.add_argument("--path", type=Path, default=None,
+                    help="a camera path (nerfstudio's camera_path.json, e.g. saved by stdr-view): render it "
+                    "instead of --kinds, at its size (or --width) and fps (or --fps when given)")
     ap.add_argument("--device", default=None)
     a = ap.parse_args(argv)
+    fps_given = any(x == "--fps" or x.startswith("--fps=") for x in (argv if argv is not None else sys.argv[1:]))
     from ..view.core import open_run
-    from ..view.video import render_videos
+    from ..view.video import path_frames, render_videos, write_video
     try:
+        if a.path is not None:
+            from ..view.camera_path import read_camera_path
+            cp = read_camera_path(a.path, width=a.width)  # before loading the model: fail fast
         run = open_run(a.run, device=a.device)
-        paths = render_videos(run, a.out or a.run / "videos", [k for k in a.kinds.split(",") if k], a.width,
-                              a.frames, a.fps, a.view, a.split, a.format)
+        if a.path is not None:
+            imgs = path_frames(run, cp.cameras, cp.times, a.view)
+            paths = {"path": write_video(imgs, (a.out or a.run / "videos") / f"{a.path.stem}_{a.view}",
+                                         a.fps if fps_given else cp.fps, a.format)}
+        else:
+            paths = render_videos(run, a.out or a.run / "videos", [k for k in a.kinds.split(",") if k], a.width,
+                                  a.frames, a.fps, a.view, a.split, a.format)
     except (FileNotFoundError, RuntimeError, ValueError) as e:
         raise SystemExit(f"stdr-render: {e}") from None
     how = "MP4 (imageio-ffmpeg)" if any(p.suffix == ".mp4" for p in paths.values()) else \
-        "GIF (no ffmpeg writer: pip install imageio-ffmpeg for MP4)"
+        "GIF (--format gif, or no ffmpeg writer: pip install imageio-ffmpeg for MP4)"
     print(f"[stdr] wrote {how}: " + ", ".join(str(p) for p in paths.values()))
 
 

@@ -11,11 +11,13 @@ import errno
 import socket
 import threading
 import time
+from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from .core import ViewRun, available_views, camera_from_viser, camera_to_viser, look_at_point, render_view
+from .core import (ViewRun, available_views, camera_from_viser, camera_to_viser, look_at_point, render_view,
+                   with_size)
 
 MAX_FRUSTA = 200
 
@@ -108,6 +110,7 @@ class Viewer:
         self.gui_frusta = gui.add_checkbox("training cameras", True)
         self.gui_info = gui.add_markdown(self._info())
         self.gui_status = gui.add_markdown(run.data_note or "")
+        self._add_path_panel(gui)
         for h in (self.gui_view, self.gui_time, self.gui_width):
             h.on_update(lambda _: self.request_all())
         self.gui_camera.on_update(lambda _: self.jump_all())
@@ -145,6 +148,52 @@ class Viewer:
     def _show_frusta(self, on: bool) -> None:
         for h in self.frusta:
             h.visible = on
+
+    # ------------------------------------------------------------------ camera path
+    def _add_path_panel(self, gui) -> None:
+        """Keyframes (the current camera and time) interpolated into a camera path saved as
+        RUN/camera_paths/<name>.json (nerfstudio's format; `stdr-render RUN --path FILE`)."""
+        self.keyframes: list = []
+        with gui.add_folder("camera path", expand_by_default=False):
+            add = gui.add_button("add keyframe (camera + time)")
+            clear = gui.add_button("clear keyframes")
+            self.gui_path_seconds = gui.add_number("seconds", initial_value=4.0, min=0.1, step=0.5)
+            self.gui_path_fps = gui.add_number("fps", initial_value=30.0, min=1.0, step=1.0)
+            self.gui_path_name = gui.add_text("name", initial_value="path")
+            save = gui.add_button("save camera path")
+        add.on_click(lambda ev: self.add_keyframe(ev.client))
+        clear.on_click(lambda _: self.clear_keyframes())
+        save.on_click(lambda _: self.save_path())
+
+    def add_keyframe(self, client=None) -> None:
+        clients = list(self.server.get_clients().values())
+        client = client or (clients[0] if clients else None)
+        if client is None or client.camera.image_width <= 0:
+            self.set_status("no browser camera to record")
+            return
+        c = client.camera
+        self.keyframes.append((self.camera_for(c.wxyz, c.position, c.fov, c.image_width, c.image_height),
+                               float(self.gui_time.value)))
+        self.set_status(f"{len(self.keyframes)} keyframe(s)")
+
+    def clear_keyframes(self) -> None:
+        self.keyframes = []
+        self.set_status("keyframes cleared")
+
+    def save_path(self) -> Optional[Path]:
+        from .camera_path import interpolate, write_camera_path
+        if len(self.keyframes) < 2:
+            self.set_status("a camera path needs at least two keyframes")
+            return None
+        name = "".join(ch for ch in str(self.gui_path_name.value) if ch.isalnum() or ch in "-_") or "path"
+        fps = float(self.gui_path_fps.value)
+        frames = max(2, int(round(fps * float(self.gui_path_seconds.value))))
+        W, H = self.keyframes[0][0].width, self.keyframes[0][0].height
+        kf = [(with_size(c, W, H), t) for c, t in self.keyframes]
+        cams, times = interpolate(kf, frames)
+        path = write_camera_path(self.run.run_dir / "camera_paths" / f"{name}.json", cams, times, fps, keyframes=kf)
+        self.set_status(f"saved {path} ({frames} frames); render it with `stdr-render {self.run.run_dir} --path {path}`")
+        return path
 
     # ------------------------------------------------------------------ clients
     def _connect(self, client) -> None:
@@ -222,10 +271,18 @@ class Viewer:
                 self.gui_time.value = float((self.gui_time.value + dt) % 1.0)
             last = now
 
-    def stop(self) -> None:
+    def stop(self, timeout: float = 30.0) -> None:
+        """Stop the server and wait for the player and every render thread to end: a daemon thread
+        still inside a render (torch, the JPEG encoder) while the interpreter shuts down aborted
+        the process (exit 134 after `stdr-view --screenshot` had saved its PNG)."""
         self.stopped.set()
-        for r in self.renderers.values():
+        renderers = list(self.renderers.values())
+        for r in renderers:
             r.alive = False
             r.wake.set()
         self.server.stop()
+        deadline = time.perf_counter() + timeout
+        for th in [self.player] + [r.thread for r in renderers]:
+            if th is not threading.current_thread():
+                th.join(max(0.0, deadline - time.perf_counter()))
 

@@ -1,11 +1,14 @@
-"""stdr-render: videos of a trained run (imageio: MP4 when an ffmpeg writer is installed, e.g.
-`pip install imageio-ffmpeg`, else GIF; the file's suffix and the printed line say which).
+"""stdr-render: videos of a trained run (imageio: MP4 with the ffmpeg writer of imageio-ffmpeg, a
+dependency; GIF with --format gif or where that writer is missing; the file's suffix and the
+printed line say which).
 
 * time: a time sweep t = 0 ... 1 from a fixed camera (the first test camera);
 * orbit: the camera turns about the scene while time advances, around the point the first test
   camera looks at (at the Gaussians' depth), about that camera's up axis;
 * compare: ground truth | render | error (|difference| x 4) side by side along a split's frames,
-  in time order.
+  in time order;
+* a camera path (`--path camera_path.json`, nerfstudio's format: stdr.view.camera_path): its
+  cameras at their times, at the path's fps.
 Every frame is `stdr.view.core.render_view` of the chosen view (rgb, depth, alpha, mask, dynamic).
 """
 from __future__ import annotations
@@ -105,6 +108,11 @@ def compare(run: ViewRun, width: int, split: str = "test", view: str = "rgb") ->
         err = np.clip(np.abs(img.astype(np.int16) - gt8.astype(np.int16)) * 4, 0, 255).astype(np.uint8)
         out.append(np.concatenate([gt8, img, err], 1))
     return out
+
+
+def path_frames(run: ViewRun, cameras, times, view: str = "rgb") -> list[np.ndarray]:
+    """One frame per camera of a camera path (stdr.view.camera_path), each at its time."""
+    return [render_view(run.model, c.to(run.model.device), float(t), view) for c, t in zip(cameras, times)]
 
 
 def render_videos(run: ViewRun, out: Path, kinds=KINDS, width: int | None = None, frames: int = 60,
