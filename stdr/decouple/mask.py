@@ -8,6 +8,7 @@ and multiplies the Gaussian's opacity.
 """
 from __future__ import annotations
 
+import bisect
 import math
 
 import numpy as np
@@ -29,17 +30,20 @@ def knot_times(train_times, time_bins: int = 0) -> Tensor:
     return torch.from_numpy(t)
 
 
-def interp_weights(t: float, knots: Tensor) -> tuple[int, int, float]:
-    """(j0, j1, w): the mask at t is (1 - w) * col j0 + w * col j1. Exact (w = 0) at knots."""
-    K = knots.numel()
+def interp_weights(t: float, knots) -> tuple[int, int, float]:
+    """(j0, j1, w): the mask at t is (1 - w) * col j0 + w * col j1. Exact (w = 0) at knots.
+    `knots`: the sorted knot times, a float64 tensor or a sequence of floats (the plug-in passes
+    its host copy, so a training step does not read a tensor here)."""
+    ks = tuple(knots.tolist()) if isinstance(knots, Tensor) else knots
+    K = len(ks)
     t = float(t)
-    if K == 1 or t <= float(knots[0]):
+    if K == 1 or t <= ks[0]:
         return 0, 0, 0.0
-    if t >= float(knots[-1]):
+    if t >= ks[-1]:
         return K - 1, K - 1, 0.0
-    j1 = int(torch.searchsorted(knots, torch.tensor([t], dtype=knots.dtype, device=knots.device), right=True)[0])
+    j1 = bisect.bisect_right(ks, t)  # = torch.searchsorted(knots, t, right=True)
     j0 = j1 - 1
-    t0, t1 = float(knots[j0]), float(knots[j1])
+    t0, t1 = ks[j0], ks[j1]
     w = (t - t0) / (t1 - t0)
     if w == 0.0:
         return j0, j0, 0.0
@@ -76,7 +80,7 @@ def logits_of(mask: Tensor) -> Tensor:
     return (torch.log(q) - torch.log(255.0 - q)).clamp(OFF_LOGIT, -OFF_LOGIT)
 
 
-def mask_at(logits: Tensor, t: float, knots: Tensor) -> Tensor:
+def mask_at(logits: Tensor, t: float, knots) -> Tensor:
     """Activated mask [N] at time t from logits [N, K] (or an 8-bit mask): linear interpolation of
     the activated knot columns."""
     j0, j1, w = interp_weights(t, knots)
@@ -157,5 +161,7 @@ def sample_neighbours(means: Tensor, n_query: int, n_candidates: int, k: int,
     # drop the query itself (distance 0, but ties with duplicates are possible): remove its index
     is_self = nbr_local == q_local[:, None]
     keep = torch.where(is_self.any(1, keepdim=True), ~is_self, torch.arange(k + 1, device=dev) < k)
-    nbr_local = nbr_local[keep].reshape(-1, k)
+    # the k kept entries of each row, in order (a stable sort puts them first; no boolean
+    # indexing, which would wait for the device)
+    nbr_local = nbr_local.gather(1, torch.sort((~keep).to(torch.uint8), dim=1, stable=True).indices[:, :k])
     return cand[q_local], cand[nbr_local]

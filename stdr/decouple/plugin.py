@@ -192,6 +192,7 @@ class STDR(Plugin):
 
     def _set_knots(self, knots: Tensor) -> None:
         self.knots = knots.double().cpu()
+        self.knot_values = tuple(self.knots.tolist())  # host floats: time lookups in a step read no tensor
         if self.cfg.separated_field:
             pe = 0 if self.xyz_freqs < 0 else positional_encoding_dim(3, self.xyz_freqs)
             self.field = SeparatedField(self.K + pe, self.cfg.field_width, self.cfg.temporal_dim,
@@ -329,7 +330,7 @@ class STDR(Plugin):
         """Activated mask [N] at time t, or None when the mask does not modulate opacity now."""
         if not self.has_mask(params) or not self.mask_modulates(step):
             return None
-        return mask_at(params[MASK_KEY], t, self.knots)
+        return mask_at(params[MASK_KEY], t, self.knot_values)
 
     def probabilities(self, params) -> Tensor:
         """p = softmax_t(m) [N, K], computed once per mask tensor and version (uniform without a mask)."""

@@ -28,6 +28,30 @@ from ..scene.gaussians import Gaussians
 WARMUP_SHARE = 0.075
 
 
+def flag_value(module: nn.Module, name: str):
+    """A 0-d buffer of `module` (a stage or readiness flag kept as a buffer so checkpoints carry
+    it) as a Python number. The value is remembered with the buffer's identity and version: it is
+    read from the device only after something else changed it (a checkpoint load, `.to()`), so
+    an ordinary training step does not wait for the device to test a flag."""
+    buf = getattr(module, name)
+    key = (id(buf), buf._version)
+    memo = module.__dict__.setdefault("_flag_values", {})
+    hit = memo.get(name)
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    v = buf.item()
+    memo[name] = (key, v, buf)  # (the buffer kept alive: its id stays its own)
+    return v
+
+
+def set_flag(module: nn.Module, name: str, value) -> None:
+    """Fill a 0-d buffer and remember its new value (see flag_value)."""
+    buf = getattr(module, name)
+    buf.fill_(value)
+    v = bool(value) if buf.dtype == torch.bool else float(value) if buf.is_floating_point() else int(value)
+    module.__dict__.setdefault("_flag_values", {})[name] = ((id(buf), buf._version), v, buf)
+
+
 def _share(iterations, share) -> int:
     return int(round(int(iterations) * float(share)))
 

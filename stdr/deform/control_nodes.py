@@ -26,7 +26,8 @@ from torch import Tensor, nn
 
 from ..ops import RowView, rows_of, scatter_mean, take_rows
 from ..scene.knn import knn
-from .base import BaselineConfig, Deformation, Deltas, mlp_kwargs, stage_start
+from ..train.syncs import host_only
+from .base import BaselineConfig, Deformation, Deltas, flag_value, mlp_kwargs, set_flag, stage_start
 from .deform3dgs import DeformMLP
 from .registry import register_baseline
 from .geometry import farthest_point_sampling, quat_to_rotmat
@@ -200,13 +201,13 @@ class ControlNodeDeformation(Deformation):
 
     def before_step(self, params, step: int, cond: Optional[Tensor] = None) -> None:
         if step < self.start_step:
-            self.stage.fill_(0)
+            set_flag(self, "stage", 0)
         elif step < self.node_stage_end:
-            self.stage.fill_(1)
-        elif int(self.stage) != 2:
+            set_flag(self, "stage", 1)
+        elif flag_value(self, "stage") != 2:
             self.resample_nodes(params, cond)
-            self.stage.fill_(2)
-        self._detach = int(self.stage) == 2 and step < self.node_stage_end + self.main_warmup
+            set_flag(self, "stage", 2)
+        self._detach = flag_value(self, "stage") == 2 and step < self.node_stage_end + self.main_warmup
 
     # -------------------------------------------------------------- skinning
     def neighbours(self, params) -> tuple[Tensor, Tensor]:
@@ -240,7 +241,7 @@ class ControlNodeDeformation(Deformation):
         restricted; without one, only the kept rows are skinned."""
         if self.cond_dim and cond is None:
             raise ValueError("this deformation was built with cond_dim > 0 and needs cond")
-        if int(self.stage) == 1:  # node stage: the Gaussians are the nodes, moved directly
+        if flag_value(self, "stage") == 1:  # node stage: the Gaussians are the nodes, moved directly
             dx, _, _ = self.node_deltas(rows_of(params["means"], rows).detach(), t, rows_of(cond, rows))
             return Deltas(means=dx)
         skinned = params if rows is None or self.cond_dim else RowView(params, rows)
@@ -268,7 +269,7 @@ class ControlNodeDeformation(Deformation):
         from ..scene.gaussians import Gaussians
         sh = torch.cat([params["sh0"], params["shN"]], 1)
         op = torch.sigmoid(params["opacities"])
-        if int(self.stage) == 1:
+        if flag_value(self, "stage") == 1:
             s = torch.exp(params["scales"].mean(-1, keepdim=True)).expand(-1, 3)
             q = torch.zeros_like(params["quats"])
             q[:, 0] = 1.0
@@ -280,14 +281,15 @@ class ControlNodeDeformation(Deformation):
     def regularizers(self, params, t: float, step: int, cond: Optional[Tensor] = None) -> dict[str, Tensor]:
         """ARAP between the nodes at two nearby times, under the node conditioning the render uses
         (zeros when cond is None)."""
-        if int(self.stage) != 2 or getattr(self, "_detach", False):
+        if flag_value(self, "stage") != 2 or getattr(self, "_detach", False):
             return {}
         lam = log_interp_schedule(step - self.node_stage_end, self.arap_steps, self.arap_weights)
         if lam <= 0:
             return {}
         # the pair of times comes from (seed, step), so a resumed run draws the same ones
         g = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
-        t1 = float(torch.rand((), generator=g, device="cpu")) * (1.0 - self.arap_dt)
+        with host_only():  # a CPU generator's draw: host work, no device to wait for
+            t1 = float(torch.rand((), generator=g, device="cpu")) * (1.0 - self.arap_dt)
         t2 = t1 + self.arap_dt
         p = self.nodes[:, :3].detach()
         _, nbr = knn(p, p, min(self.arap_k, self.m - 1), exclude_self=True)

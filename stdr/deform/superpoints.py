@@ -21,7 +21,8 @@ from torch import Tensor, nn
 
 from ..ops import rows_of, scatter_mean, take_rows
 from ..scene.knn import knn
-from .base import BaselineConfig, Deformation, Deltas, apply_post_activation, mlp_kwargs, stage_start
+from .base import (BaselineConfig, Deformation, Deltas, apply_post_activation, flag_value, mlp_kwargs, set_flag,
+                   stage_start)
 from .deform3dgs import DeformMLP
 from .registry import register_baseline
 from .geometry import farthest_point_sampling, quat_multiply, so3_exp, so3_exp_quat
@@ -108,7 +109,7 @@ class SuperpointDeformation(Deformation):
             a = params[ASSOC_KEY]
             a.fill_(0.1)
             a.scatter_(1, nearest, 1.0)
-        self.ready.fill_(True)
+        set_flag(self, "ready", True)
 
     def assignment(self, params) -> tuple[Tensor, Tensor, Tensor]:
         """(knn indices [N, K], soft weights [N, K], hard superpoint [N]) for the current centres."""
@@ -122,15 +123,15 @@ class SuperpointDeformation(Deformation):
     def before_step(self, params, step: int, cond: Optional[Tensor] = None) -> None:
         if step < self.start_step:
             return
-        if not bool(self.ready):
+        if not flag_value(self, "ready"):
             self.initialize(params)
             return
         with torch.no_grad():  # centres: soft-assignment-weighted means of the canonical means
             idx, G, _ = self.assignment(params)
             x = params["means"].detach()
             new, w = scatter_mean(x[:, None, :].expand(-1, idx.shape[1], -1), idx, G, self.m)
-            keep = w > 1e-8
-            self.centers[keep] = new[keep]
+            keep = w > 1e-8  # (where, not boolean indexing: no host sync)
+            self.centers.copy_(torch.where(keep[:, None], new, self.centers))
 
     # -------------------------------------------------------------- deformation
     def superpoint_motion(self, t: float, cond_sp: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
@@ -145,7 +146,7 @@ class SuperpointDeformation(Deformation):
         """Deltas of the Gaussians `rows` [M] (all when None). The assignment runs on every row:
         the superpoints' conditioning and the property-reconstruction regularizer use all of
         them; only the per-Gaussian transform is restricted."""
-        if not bool(self.ready):
+        if not flag_value(self, "ready"):
             raise RuntimeError("SP-GS superpoints are not initialized (the training loop does this at "
                                "the end of the static warm-up)")
         idx, G, hard = self.assignment(params)

@@ -301,11 +301,23 @@ def contribution_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, de
 def camera_values(camera) -> list[float]:
     """The first 23 of the 26 camera numbers `csrc/project_math.h` (make_proj_cam) reads: R
     (row-major), t, the centre, fx, fy, cx, cy and the Jacobian clamp limits
-    (`projection.frustum_limits`); the caller appends near, far and eps2d. One host copy."""
+    (`projection.frustum_limits`); the caller appends near, far and eps2d.
+
+    One host copy per camera: the values are kept on the camera object, keyed by its pose
+    tensors and their versions (an in-place change of R or t recomputes them), so a training
+    step on a dataset camera, which is on the device, does not wait for the device here."""
     from .projection import frustum_limits
+    key = (id(camera.R), camera.R._version, id(camera.t), camera.t._version,
+           float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), camera.width, camera.height)
+    hit = getattr(camera, "__dict__", {}).get("_host_values")
+    if hit is not None and hit[0] == key:
+        return list(hit[1])
     pose = torch.cat([camera.R.detach().reshape(-1), camera.t.detach().reshape(-1), camera.center.detach()])
-    return pose.double().cpu().tolist() + [float(camera.fx), float(camera.fy), float(camera.cx),
-                                           float(camera.cy), *frustum_limits(camera)]
+    values = pose.double().cpu().tolist() + [float(camera.fx), float(camera.fy), float(camera.cx),
+                                             float(camera.cy), *frustum_limits(camera)]
+    if hasattr(camera, "__dict__"):
+        camera.__dict__["_host_values"] = (key, tuple(values), camera.R, camera.t)  # (R, t kept: ids stay unique)
+    return values
 
 
 class _ProjectSH(torch.autograd.Function):

@@ -218,18 +218,25 @@ class DensifyStrategy:
                 if opacities is None:
                     raise ValueError("densify.count_invisible=false needs the rendered opacities")
                 vis &= opacities.detach() >= ALPHA_MIN  # the rasterizer's cut-off
-            ids = torch.nonzero(vis).squeeze(1)
-            if rows is not None:
-                ids_model = rows[ids]
-            else:
-                ids_model = ids
+            # by masks over the rendered rows, not by the indices of the visible ones: the same
+            # sums (an invisible row adds 0) without a host sync (nonzero waits for the device)
             if means2d.grad is not None:
-                g = means2d.grad.detach()[ids].clone()
+                g = means2d.grad.detach().clone()
                 g[:, 0] *= 0.5 * width  # pixels -> 3DGS NDC units
                 g[:, 1] *= 0.5 * height
-                state["grad2d"][ids_model] += g.norm(dim=-1)
-                state["count"][ids_model] += 1
-            state["max_radii"][ids_model] = torch.maximum(state["max_radii"][ids_model], radii[ids].float())
+                add = torch.where(vis, g.norm(dim=-1), 0.0)
+                if rows is None:
+                    state["grad2d"] += add
+                    state["count"] += vis
+                else:
+                    state["grad2d"].index_add_(0, rows, add)
+                    state["count"].index_add_(0, rows, vis.to(state["count"].dtype))
+            mr = state["max_radii"] if rows is None else state["max_radii"][rows]
+            mr = torch.where(vis, torch.maximum(mr, radii.float()), mr)
+            if rows is None:
+                state["max_radii"].copy_(mr)
+            else:
+                state["max_radii"][rows] = mr
         out: dict[str, int] = {}
         if step > self.refine_start and step % self.refine_every == 0:
             out = self._refine(params, optimizers, state, step, generator, opacity_fn)

@@ -19,12 +19,14 @@ from ..data.load import load_scene
 from ..device import resolve_device, synchronize
 from ..metrics import l1, psnr, ssim
 from ..model import build_model, initial_points, model_entry
+from ..render.compiled import camera_values
 from ..scene.gaussians import scene_extent
 from ..scene.ply import save_ply
 from ..scene.prune import prune_event
 from ..scene.strategy import build_strategy
 from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from .guard import Guard, check_guard_config, monitor_split
+from .syncs import host_only
 from .schedule import exp_lr
 
 CKPT = "checkpoints/last.pt"
@@ -96,7 +98,8 @@ class CameraSampler:
 
     def next(self) -> int:
         if not self.stack:
-            self.stack = torch.randperm(self.n, generator=self.gen, device="cpu").tolist()
+            with host_only():  # a CPU generator's permutation: host work, no device to wait for
+                self.stack = torch.randperm(self.n, generator=self.gen, device="cpu").tolist()
         return self.stack.pop()
 
     def state_dict(self):
@@ -130,6 +133,8 @@ class Trainer:
         if self.monitor is not None:
             splits = tuple(dict.fromkeys((*splits, self.monitor)))
         self.scene = load_scene(cfg.data, splits, base=data_base, seed=cfg.seed).to(self.device)  # images moved once
+        for f in self.scene.frames("train"):  # each camera's host copy of its numbers, once (no sync in a step)
+            camera_values(f.camera)
         has_train = "train" in self.scene.splits
         train_times = self.scene.train_times() if has_train else None
         pts, colors = initial_points(cfg.model, self.scene.init_points, self.scene.init_colors, cfg.seed,
@@ -300,7 +305,7 @@ class Trainer:
         return self.writer
 
     def train_step(self) -> dict[str, Any]:
-        """One optimization step. Returns scalars (loss, l1, dssim, psnr), `densify` (the
+        """One optimization step. Returns 0-d tensors (loss, l1, dssim, psnr), `densify` (the
         strategy's counts), `losses` (each regularizer's weighted value: plug-in terms as
         `<plug-in>_<term>`, the baseline's by name) and the step's render `out` and `frame`."""
         cfg, it, prof, model = self.cfg, self.step, self.profile, self.model
@@ -381,9 +386,10 @@ class Trainer:
         if pruned is not None:
             info = {**info, "pruned_by_score": pruned["before"] - pruned["after"]}
         self.step = it + 1
-        return {"loss": loss.item(), "l1": loss_l1.item(), "dssim": loss_dssim.item(), "active": g.means.shape[0],
-                "psnr": float(psnr(out.image.detach(), frame.image)), "densify": info,
-                "losses": {k: v.item() for k, v in terms.items()}, "out": out, "frame": frame}
+        # scalars stay 0-d tensors (no host sync in an ordinary step): read them at log steps
+        return {"loss": loss.detach(), "l1": loss_l1.detach(), "dssim": loss_dssim.detach(), "active": g.means.shape[0],
+                "psnr": psnr(out.image.detach(), frame.image), "densify": info,
+                "losses": {k: v.detach() for k, v in terms.items()}, "out": out, "frame": frame}
 
     # ----------------------------------------------------------------- for the guard (stdr.train.guard)
     def network_params(self) -> list[tuple[str, Tensor]]:
@@ -444,8 +450,9 @@ class Trainer:
                 self._log_image(tb, it, logs["out"].image.detach(), logs["frame"].image)
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(loss=f"{logs['loss']:.4f}", psnr=f"{logs['psnr']:.2f}",
-                                N=self.model.num_gaussians)
+                if it % cfg.train.log_every == 0 or it == total:  # reading the scalars waits for the device
+                    bar.set_postfix(loss=f"{float(logs['loss']):.4f}", psnr=f"{float(logs['psnr']):.2f}",
+                                    N=self.model.num_gaussians)
             res = None
             if cfg.train.eval_at_warmup_end and it == warmup and warmup < total:
                 res = self.evaluate(cfg.data.eval_split, tag="static_warmup", step=warmup - 1,

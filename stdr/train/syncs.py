@@ -1,0 +1,102 @@
+"""Count the calls that make a GPU wait for the host: `.item()`, `.tolist()`, `.cpu()`,
+`.numpy()`, `bool(t)`, `float(t)`, `int(t)`, `nonzero`, `unique`, `masked_select`, indexing
+with a boolean tensor (which runs nonzero), ... On a GPU each of them blocks the Python thread
+until every queued kernel has run, so a training step with any of them cannot overlap its
+launches with the GPU's work. Counted on any device (the CPU too): the same code makes the same
+calls, which is what lets a CPU-only test pin a GPU property.
+
+    with SyncCounter() as sc:
+        trainer.train_step()
+    sc.total, sc.sites()   # {"stdr/train/trainer.py:384 item": 3, ...}
+
+`OpCounter` counts the ATen operators dispatched (forward and backward), a machine-independent
+proxy of kernel launches: on a GPU each is at least one launch (the compiled rasterizer's own
+kernels, bound through pybind, are not ATen operators and are not counted).
+
+Calls made inside `host_only(...)` blocks (work on host tensors by design, e.g. the frame
+sampler's permutation of a CPU generator) are counted apart, in `sc.host`.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+from collections import Counter
+
+import torch
+from torch.overrides import TorchFunctionMode
+from torch.utils._python_dispatch import TorchDispatchMode
+
+SYNC_FUNCS = frozenset({"item", "tolist", "cpu", "numpy", "__bool__", "__float__", "__int__", "__index__", "nonzero",
+                        "argwhere", "unique", "unique_consecutive", "masked_select", "equal", "allclose"})
+INDEX_FUNCS = frozenset({"__getitem__", "__setitem__", "index_put_", "index_put"})
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the stdr package
+_THIS = os.path.abspath(__file__)
+_state = {"host": 0}
+
+
+@contextlib.contextmanager
+def host_only():
+    """Mark a block as host work by design: its synchronizing calls are counted apart."""
+    _state["host"] += 1
+    try:
+        yield
+    finally:
+        _state["host"] -= 1
+
+
+def _has_bool_index(idx) -> bool:
+    if isinstance(idx, torch.Tensor):
+        return idx.dtype == torch.bool
+    if isinstance(idx, (tuple, list)):
+        return any(_has_bool_index(i) for i in idx)
+    return False
+
+
+def _site() -> str:
+    """file:line of the innermost stdr frame that made the call (outside this module)."""
+    f = sys._getframe(2)
+    while f is not None:
+        fn = os.path.abspath(f.f_code.co_filename)
+        if fn.startswith(_ROOT) and fn != _THIS:
+            return f"{os.path.relpath(fn, os.path.dirname(_ROOT))}:{f.f_lineno}"
+        f = f.f_back
+    return "(outside stdr)"
+
+
+class SyncCounter(TorchFunctionMode):
+    def __init__(self):
+        super().__init__()
+        self.calls: Counter = Counter()
+        self.host: Counter = Counter()
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        name = getattr(func, "__name__", "")
+        sync = name in SYNC_FUNCS or (name in INDEX_FUNCS and len(args) > 1 and _has_bool_index(args[1])) \
+            or (name == "repeat_interleave" and not (kwargs or {}).get("output_size")
+                and len(args) > 1 and isinstance(args[1], torch.Tensor)) \
+            or (name == "where" and len(args) == 1 and not kwargs)
+        if sync:
+            (self.host if _state["host"] else self.calls)[f"{_site()} {name}"] += 1
+        return func(*args, **(kwargs or {}))
+
+    @property
+    def total(self) -> int:
+        return sum(self.calls.values())
+
+    def sites(self) -> dict[str, int]:
+        return dict(sorted(self.calls.items()))
+
+
+class OpCounter(TorchDispatchMode):
+    """ATen operators dispatched while active (`ops`, and `by_op` per operator name)."""
+
+    def __init__(self):
+        super().__init__()
+        self.ops = 0
+        self.by_op: Counter = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.ops += 1
+        self.by_op[str(func.overloadpacket)] += 1
+        return func(*args, **(kwargs or {}))
