@@ -70,7 +70,7 @@ class _ClientRenderer:
             except Exception as e:  # noqa: BLE001 - shown in the page, the viewer goes on
                 self.viewer.set_status(f"render failed: {type(e).__name__}: {e}")
                 continue
-            if img is not None:
+            if img is not None and self.alive and not self.viewer.stopped.is_set():  # (not to a closed page)
                 self.client.scene.set_background_image(img, format="jpeg", jpeg_quality=92)
 
 
@@ -280,9 +280,9 @@ class Viewer:
         for r in renderers:
             r.alive = False
             r.wake.set()
-        self.server.stop()
         deadline = time.perf_counter() + timeout
-        for th in [self.player] + [r.thread for r in renderers]:
-            if th is not threading.current_thread():
+        for th in [self.player] + [r.thread for r in renderers]:  # a render in flight finishes first,
+            if th is not threading.current_thread():              # then the server stops
                 th.join(max(0.0, deadline - time.perf_counter()))
+        self.server.stop()
 
