@@ -27,7 +27,7 @@ def test_the_counter_sees_each_kind_of_sync_and_where():
     names = sorted(k.split()[-1] for k in sc.sites())
     assert names == ["__bool__", "__float__", "__getitem__", "item", "nonzero", "tolist"]
     assert sum(sc.host.values()) == 1
-    assert all(k.startswith("(outside stdr)") for k in sc.sites())  # made by this test, not by stdr
+    assert all(k.startswith("(outside the stdr package)") for k in sc.sites())  # made by this test, not by stdr
 
 
 def _ordinary(step: int) -> bool:

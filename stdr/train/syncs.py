@@ -54,14 +54,14 @@ def _has_bool_index(idx) -> bool:
 
 
 def _site() -> str:
-    """file:line of the innermost stdr frame that made the call (outside this module)."""
+    """file:line of the innermost frame in the stdr package that made the call (outside this module)."""
     f = sys._getframe(2)
     while f is not None:
         fn = os.path.abspath(f.f_code.co_filename)
         if fn.startswith(_ROOT) and fn != _THIS:
             return f"{os.path.relpath(fn, os.path.dirname(_ROOT))}:{f.f_lineno}"
         f = f.f_back
-    return "(outside stdr)"
+    return "(outside the stdr package)"
 
 
 class SyncCounter(TorchFunctionMode):
