@@ -150,6 +150,11 @@ def test_bad_captures_are_named(tmp_path):
     (tmp_path / "imgs").mkdir()
     with pytest.raises(cap.CaptureError, match="0 image"):
         cap.capture(tmp_path / "imgs", tmp_path / "o3")
+    for i, h in enumerate((48, 48, 50)):  # one image of another size: named, with the first one's size
+        cv2.imwrite(str(tmp_path / "imgs" / f"{i:03d}.png"), _frames(1, h=h)[0])
+    with pytest.raises(cap.CaptureError, match=r"002.png: 64x50 pixels, but 000.png is 64x48"):
+        cap.capture(tmp_path / "imgs", tmp_path / "o4")
+    assert not (tmp_path / "o4").exists()
     for cfg, msg in ((dict(select="best"), "--select 'best'"), (dict(val_every=1), "--val-every 1"),
                      (dict(min_registered=0), "--min-registered 0"), (dict(vocab_tree="/no/tree.bin"), "--vocab-tree")):
         with pytest.raises(cap.CaptureError, match=msg):

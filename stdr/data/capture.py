@@ -199,11 +199,16 @@ def folder_frames(folder: Path, out: Path, cfg: CaptureConfig) -> list[FrameReco
     bar = _progress(len(paths), f"images of {folder.name} (every {stride})")
 
     def read():
+        size = None
         for i, p in enumerate(paths):
             bar.update(1)
             img = cv2.imread(str(p), cv2.IMREAD_COLOR)
             if img is None:
                 raise CaptureError(f"could not decode image {p} (corrupt or unsupported format)")
+            size = size or (img.shape[:2], p.name)
+            if img.shape[:2] != size[0]:  # every image, as it is read
+                raise CaptureError(f"{p}: {img.shape[1]}x{img.shape[0]} pixels, but {size[1]} is "
+                                   f"{size[0][1]}x{size[0][0]}; one camera needs one image size")
             yield i, downscale(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), cfg.max_size)
 
     records = []
@@ -212,9 +217,6 @@ def folder_frames(folder: Path, out: Path, cfg: CaptureConfig) -> list[FrameReco
         _write_png(out / f"{fid}.png", img)
         records.append(FrameRecord(id=fid, source=paths[i].name, source_index=i, time_sec=float(i), sharpness=score))
     bar.close()
-    sizes = {cv2.imread(str(out / f"{r.id}.png")).shape[:2] for r in records[:1] + records[-1:]}
-    if len(sizes) > 1:
-        raise CaptureError(f"{folder}: images of different sizes {sorted(sizes)}; one camera needs one image size")
     return records
 
 
