@@ -178,6 +178,30 @@ def test_longer_cpu_preset_is_the_cpu_preset_run_longer(name, stdr):
     assert long["baseline.lr_max_steps"] - short["baseline.lr_max_steps"] == extra
 
 
+MILESTONES = {"optim.iterations", "optim.means_lr_max_steps", "model.sh_interval", "densify.refine_start",
+              "densify.refine_stop", "densify.reset_every", "densify.prune_big_after", "baseline.warmup",
+              "baseline.lr_max_steps", "baseline.scgs.node_stage_end", "baseline.scgs.main_warmup"}
+
+
+@pytest.mark.parametrize("name", sorted(BASELINES))
+@pytest.mark.parametrize("stdr", ["", "_stdr"])
+def test_gpu_preset_is_the_paper_preset_with_its_schedule_scaled_to_20k(name, stdr):
+    """budget=gpu (docs/budgets.md): every schedule milestone of the baseline's paper run
+    scaled by 20k / its paper iterations (to within rounding to 100 steps), 400 px wide,
+    nothing else changed (networks, thresholds, the densification interval, STDR's own
+    settings; its phases follow the warm-up)."""
+    from stdr.eval.table import flatten
+    exp = [f"experiment=dnerf_{name}{stdr}", "data.path=/x"]
+    paper = flatten(OmegaConf.to_container(make_cfg(exp + ["budget=paper"]), resolve=True))
+    gpu = flatten(OmegaConf.to_container(make_cfg(exp + ["budget=gpu"]), resolve=True))
+    changed = {k for k in paper.keys() | gpu.keys() if paper.get(k) != gpu.get(k) and not k.startswith("schedule.")}
+    assert changed == {"budget", "data.max_width"} | {k for k in MILESTONES if paper.get(k)}, changed
+    assert gpu["data.max_width"] == 400 and gpu["optim.iterations"] == 20000
+    f = 20000 / paper["optim.iterations"]
+    for k in changed & MILESTONES:
+        assert abs(gpu[k] - paper[k] * f) <= 50, (k, paper[k], gpu[k], f)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("budget", ["demo", "cpu"])
 def test_a_baseline_without_budget_files_trains_its_deformation_under_every_budget(tmp_path, drift, budget):
