@@ -19,9 +19,11 @@ CUDA extension, failing loudly: exit 4; the CPU extension builds beside it) -> k
 parity tests of the projection + SH and the rasterizer, CUDA_LAUNCH_BLOCKING=1) -> proj_scale
 (CUDA against the CPU extension at 200k and 1M Gaussians, both antialiasing modes) -> train_tests
 (rasterizer at training scale; training + resume on CUDA, all four baselines with STDR) ->
-run_deform (a budget=cpu D-NeRF run, comparable to docs/measurements/gpu_check_h100) ->
-run_deform_twin (the same with the torch projection + SH: what the compiled one saves) ->
-bench_raster -> bench_train -> run_4dgs, run_deform_stdr, run_4dgs_stdr, run_scgs, run_spgs ->
+syncs_cuda (an ordinary training step of every baseline +- STDR makes no synchronizing call the
+CUDA runtime reports; the guard's one) -> run_deform (a budget=cpu D-NeRF run, comparable to
+docs/measurements/gpu_check_h100) -> bench_train -> run_gpu_deform (deform at budget=gpu: a row
+of a D-NeRF table in minutes) -> run_deform_twin (the budget=cpu run with the torch projection +
+SH: what the compiled one saves) -> bench_raster -> run_4dgs, run_deform_stdr, run_4dgs_stdr, run_scgs, run_spgs ->
 sanitize (compute-sanitizer memcheck over every kernel of the extension).
 
 Training pins render.backend=cuda and render.compiled_projection=true: a broken build fails
@@ -134,7 +136,7 @@ class Runner:
         return status == "ok"
 
 
-RUN_KEYS = (("psnr", "PSNR", "{:.2f}"), ("train_seconds", "train s", "{:.1f}"), ("num_gaussians", "#G", "{:,}"),
+RUN_KEYS = (("psnr", "PSNR", "{:.2f}"), ("lpips", "LPIPS", "{:.4f}"), ("train_seconds", "train s", "{:.1f}"), ("num_gaussians", "#G", "{:,}"),
             ("fps", "FPS", "{:.1f}"), ("projection", "projection", "{}"), ("backend", "backend", "{}"))
 
 
@@ -186,7 +188,7 @@ def run_facts(name: str, run_dir: Path):
         keys = ("psnr", "ssim", "lpips", "train_seconds", "num_gaussians", "fps", "peak_memory_mb")
         out = {k: m.get(k) for k in keys if k in m}
         conv = m.get("conventions", {})
-        out.update(device=conv.get("device"), backend=conv.get("render_backend"),
+        out.update(device=conv.get("device"), backend=conv.get("render_backend"), lpips_kind=conv.get("lpips"),
                    projection=conv.get("render_projection"))
         return out
     return facts
@@ -213,22 +215,28 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
                                    + f"{py} -c \"{env_code}\""], facts=lambda t, r: {"lines": t.splitlines()[1:8]}),
              Stage("build", 60, 240, [py, "-c", build_code])]
 
-    def train(name: str, exp: str, est: int, cap: int, projection: str = "true") -> Stage:
+    def train(name: str, exp: str, est: int, cap: int, projection: str = "true", budget: str = "cpu") -> Stage:
         d = args.work / "runs" / name
         if dry:
-            base = [f"experiment=embedded_{exp}", "device=cpu", "render.backend=cpu", *TINY,
-                    f"data.cache_dir={args.work / 'cache'}"]
+            base = [f"experiment=embedded_{exp}", *([f"budget={budget}"] if budget != "cpu" else []), "device=cpu",
+                    "render.backend=cpu", *TINY, f"data.cache_dir={args.work / 'cache'}"]
         else:
-            base = [f"experiment=dnerf_{exp}", "budget=cpu", "device=cuda", "render.backend=cuda",
+            base = [f"experiment=dnerf_{exp}", f"budget={budget}", "device=cuda", "render.backend=cuda",
                     f"data.path={args.scene}", f"data.name={args.scene.name}"]
         cmd = [py, "-m", "stdr.cli.train", *base, f"render.compiled_projection={projection}", "train.progress=false",
                "eval.save_images=false", f"hydra.run.dir={d}"]
-        return Stage(name, est, cap, cmd, facts=run_facts(name, d))
+        env = {}
+        if args.lpips_weights:  # LPIPS-vgg (the default) where its weights came, else LPIPS-alex (metrics say which)
+            env["STDR_LPIPS_WEIGHTS"] = str(args.lpips_weights.resolve())
+            if not (args.lpips_weights / "lpips_v0.1_vgg_lin.pth").is_file():
+                cmd.insert(-1, "eval.lpips_net=alex")
+        return Stage(name, est, cap, cmd, env=env, facts=run_facts(name, d))
 
     if dry:
         kernels = pyt + junit("kernels") + ["tests/test_compiled.py", "-k", "projection_and_sh_match_the_torch_twin and cpu"]
         scale = pyt + junit("proj_scale") + ["tests/test_compiled.py", "-k", "cuda_projection_matches_the_cpu_extension_at_scale"]
         ttests = pyt + junit("train_tests") + ["tests/test_device.py", "-k", "device_names_resolve"]
+        syncs = pyt + junit("syncs_cuda") + ["tests/test_syncs.py", "-k", "counter"]
         braster = [py, "-m", "stdr.tools.bench_rasterizer", "--backends", "cpu", "--n", "2000", "--res", "64", "--repeats", "1"]
         btrain_x = ["--experiments", "embedded_deform", "--gaussians", "1000", "--res", "64", "--iters", "2",
                     "--warmup-iters", "1", "--", "device=cpu", "render.backend=cpu", *TINY[:4], f"data.cache_dir={args.work / 'cache'}"]
@@ -239,6 +247,7 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
         scale = pyt + junit("proj_scale") + ["tests/test_compiled.py", "-k", "cuda_projection_matches_the_cpu_extension_at_scale"]
         ttests = pyt + junit("train_tests") + ["tests/test_compiled.py", "tests/test_device.py", "-k",
                                                "training_scale or training_on_cuda or (benchmark_row and not cpu)"]
+        syncs = pyt + junit("syncs_cuda") + ["tests/test_syncs.py", "-k", "cuda or counter"]
         braster = [py, "-m", "stdr.tools.bench_rasterizer", "--backends", "cuda", "--n", "10000", "100000", "1000000",
                    "--res", "400", "800", "--repeats", "20", "--peak-gflops", os.environ.get("STDR_GPU_PEAK_GFLOPS", "67000")]
         btrain_x = ["--experiments", "dnerf_deform", "dnerf_4dgs", "--gaussians", "10000", "50000", "--res", "200", "400",
@@ -252,10 +261,12 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
         Stage("kernels", 45, 150, kernels, env={"CUDA_LAUNCH_BLOCKING": "1"}, facts=pytest_facts),
         Stage("proj_scale", 40, 120, scale, facts=pytest_facts),
         Stage("train_tests", 90, 200, ttests, facts=pytest_facts),
+        Stage("syncs_cuda", 60, 150, syncs, facts=pytest_facts),
         train("run_deform", "deform", 80, 150),
+        Stage("bench_train", 70, 150, btrain),
+        train("run_gpu_deform", "deform", 330, 420, budget="gpu"),  # the budget=gpu preset: a row
         train("run_deform_twin", "deform", 80, 150, projection="false"),  # the torch projection: the same run
         Stage("bench_raster", 50, 120, braster),
-        Stage("bench_train", 70, 150, btrain),
         train("run_4dgs", "4dgs", 95, 170),
         train("run_deform_stdr", "deform_stdr", 85, 160),
         train("run_4dgs_stdr", "4dgs_stdr", 100, 180),
@@ -300,6 +311,7 @@ def main(argv=None) -> int:
     ap.add_argument("--stages", nargs="*", default=[], help="only these (env and build always run)")
     ap.add_argument("--dry-run", action="store_true", help="CPU, toy sizes: the plumbing of every stage")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a new temporary one)")
+    ap.add_argument("--lpips-weights", type=Path, default=None, help="a folder of LPIPS weights for the runs")
     ap.add_argument("--python", default=sys.executable)
     ap.add_argument("--report", action="store_true", help="only print OUT/summary.json as Markdown")
     args = ap.parse_args(argv)

@@ -78,11 +78,11 @@ def test_dry_run_runs_every_stage_on_the_cpu(tmp_path):
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     recs = json.loads((out / "summary.json").read_text())
     gc = _module()
-    first, rest = gc.build_stages(type("A", (), {"work": tmp_path / "w", "scene": None})(), "python", True)
+    first, rest = gc.build_stages(type("A", (), {"work": tmp_path / "w", "scene": None, "lpips_weights": None})(), "python", True)
     assert [r["stage"] for r in recs] == [s.name for s in first + rest]
     assert all(r["status"] == "ok" for r in recs), [(r["stage"], r["status"]) for r in recs]
     runs = [r for r in recs if r["stage"].startswith("run_")]
-    assert {r["stage"] for r in runs} == {"run_deform", "run_deform_twin", "run_deform_stdr", "run_4dgs",
+    assert {r["stage"] for r in runs} == {"run_deform", "run_gpu_deform", "run_deform_twin", "run_deform_stdr", "run_4dgs",
                                           "run_4dgs_stdr", "run_scgs", "run_spgs"}
     for r in runs:
         assert r["backend"] == "cpu" and r["device"] == "cpu", r
@@ -90,5 +90,30 @@ def test_dry_run_runs_every_stage_on_the_cpu(tmp_path):
         assert r["psnr"] > 5
     with tarfile.open(out / "results.tgz") as tar:
         names = set(tar.getnames())
-    assert {f"res/runs/{r['stage']}/metrics.json" for r in runs} <= names
+        assert {f"res/runs/{r['stage']}/metrics.json" for r in runs} <= names
+        cfg = tar.extractfile("res/runs/run_gpu_deform/config.yaml").read().decode()
+    assert "budget: gpu" in cfg and "budget: gpu" not in tar_text(out, "res/runs/run_deform/config.yaml")
     assert {"res/kernels.xml", "res/bench_raster.json", "res/bench_train.json"} <= names
+
+
+def tar_text(out: Path, name: str) -> str:
+    with tarfile.open(out / "results.tgz") as tar:
+        return tar.extractfile(name).read().decode()
+
+
+def test_runs_use_the_lpips_weights_given_and_say_alex_when_no_vgg_weights_came(tmp_path):
+    gc = _module()
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    for files, alex in (({"lpips_v0.1_alex_lin.pth", "alexnet_features.pth"}, True),
+                        ({"lpips_v0.1_vgg_lin.pth", "vgg16_features.pth"}, False)):
+        w = tmp_path / ("alex" if alex else "vgg")
+        w.mkdir()
+        for f in files:
+            (w / f).write_bytes(b"")
+        args = type("A", (), {"work": tmp_path / "w", "scene": scene, "lpips_weights": w})()
+        _, rest = gc.build_stages(args, "python", False)
+        runs = [s for s in rest if s.name.startswith("run_")]
+        assert runs and all(s.env["STDR_LPIPS_WEIGHTS"] == str(w.resolve()) for s in runs)
+        assert all(("eval.lpips_net=alex" in s.cmd) == alex for s in runs)
+        assert all(s.cmd[-1].startswith("hydra.run.dir=") for s in runs)

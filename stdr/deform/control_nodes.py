@@ -255,8 +255,7 @@ class ControlNodeDeformation(Deformation):
                 T, dq, ds = self.node_deltas(p.detach(), t, cond_n)
         else:
             T, dq, ds = self.node_deltas(p.detach(), t, cond_n)
-        ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dq.dtype, device=dq.device)
-        R = quat_to_rotmat(ident + dq)  # [M, 3, 3]
+        R = quat_to_rotmat(torch.cat([1.0 + dq[:, :1], dq[:, 1:]], -1))  # identity + dq (no host tensor: a copy) [M, 3, 3]
         x = rows_of(params["means"], rows)
         x_t = blend_translation(x, take_rows(p, idx), take_rows(R, idx), take_rows(T, idx), w, self.local_frame)
         wq = (w[..., None] * take_rows(dq, idx)).sum(1)

@@ -202,7 +202,7 @@ class HexPlaneField(nn.Module):
         for planes in self.grids:
             f = 1.0
             for (i, j), plane in zip(PAIRS, planes):
-                f = f * (sample_plane_row(plane, c[:, i], tc) if j == 3 else sample_plane(plane, c[:, [i, j]]))
+                f = f * (sample_plane_row(plane, c[:, i], tc) if j == 3 else sample_plane(plane, torch.stack([c[:, i], c[:, j]], -1)))
             feats.append(f)
         return torch.cat(feats, -1)
 

@@ -19,8 +19,7 @@ def knn(query: Tensor, points: Tensor, k: int, exclude_self: bool = False,
         q = query[s:s + chunk]
         d2 = torch.cdist(q, points).square_()
         if exclude_self:
-            r = torch.arange(q.shape[0], device=q.device)
-            d2[r, r + s] = float("inf")
+            d2.diagonal(offset=s).fill_(float("inf"))  # (r, r + s): each query itself
         d, i = torch.topk(d2, k, dim=1, largest=False)
         d_out.append(d)
         i_out.append(i)

@@ -110,14 +110,22 @@ def bench_one(tr: Trainer, source: dict, n: int, iters: int, warmup_iters: int, 
             active.append(info["active"])
     prof = tr.profile
     # machine-independent proxies, counted on steps after the timed ones (the counters slow a step)
-    from ..train.syncs import OpCounter, SyncCounter
+    # (and, on a GPU, the synchronizing calls the CUDA runtime reports, without the profiler's own)
+    from ..train.syncs import DeviceSyncCounter, OpCounter, SyncCounter
     ops, syncs, n_count = 0, 0, 3
-    tr.step = min(tr.step, tr.cfg.optim.iterations - n_count)
+    dev_syncs = 0 if dev.type == "cuda" else None
+    tr.step = min(tr.step, tr.cfg.optim.iterations - 2 * n_count)
+    tr.profile = Profiler()  # the training one: no syncs
     for _ in range(n_count):
         with SyncCounter() as sc, OpCounter() as oc:
             tr.train_step()
         ops, syncs = ops + oc.ops, syncs + sc.total
+        if dev_syncs is not None:
+            with DeviceSyncCounter() as dc:
+                tr.train_step()
+            dev_syncs += dc.total
     return {"ops_per_step": ops / n_count, "syncs_per_step": syncs / n_count,
+            "device_syncs_per_step": None if dev_syncs is None else dev_syncs / n_count,
             "gaussians": tr.model.num_gaussians, "active_mean": statistics.mean(active),
             "ms": statistics.median(times) * 1e3, "ms_mean": statistics.mean(times) * 1e3,
             "sections_ms": {k: v * 1e3 / iters for k, v in prof.seconds.items()},
@@ -162,19 +170,21 @@ def run(experiments: list[str], resolutions: list[int], counts: list[int], overr
 
 def markdown(res: dict) -> str:
     mm = min(res["mm_ms_before"], res["mm_ms_after"])
-    head = ["experiment", "res", "Gaussians", "active", "ms/step", "÷ mm", "ops/step", "syncs/step", *SECTIONS,
+    head = ["experiment", "res", "Gaussians", "active", "ms/step", "÷ mm", "ops/step", "syncs/step", "CUDA syncs/step", *SECTIONS,
             *(f"bwd: {p}" for p in PARTS)]
     body = []
     for r in res["rows"]:
         sec, parts = r["sections_ms"], r["backward_parts_ms"]
         body.append([r["experiment"], f"{r['width']}x{r['height']}", f"{r['gaussians']:,}", f"{r['active_mean']:,.0f}",
                      fmt(r["ms"], "{:.1f}"), fmt(r["ms"] / mm, "{:.1f}"), fmt(r.get("ops_per_step"), "{:.0f}"),
-                     fmt(r.get("syncs_per_step"), "{:.1f}"), *(fmt(sec.get(k), "{:.1f}") for k in SECTIONS), *(fmt(parts.get(p), "{:.1f}") for p in PARTS)])
+                     fmt(r.get("syncs_per_step"), "{:.1f}"),
+                     fmt(r.get("device_syncs_per_step"), "{:.1f}"), *(fmt(sec.get(k), "{:.1f}") for k in SECTIONS), *(fmt(parts.get(p), "{:.1f}") for p in PARTS)])
     return "\n".join([
         "Training step time by section (stdr-tool bench-train): median ms per step, sections as the mean ms "
         "per step of the trainer's profiler; `bwd:` splits the backward where its gradient reaches the "
         "projection's means2d and conics and then the deformed Gaussians; ops/step: ATen operators dispatched "
-        "(forward and backward), syncs/step: host syncs (stdr.train.syncs), over 3 further steps.", "",
+        "(forward and backward), syncs/step: host syncs (stdr.train.syncs), over 3 further steps; CUDA syncs/step: "
+        "those the CUDA runtime reports (torch.cuda.set_sync_debug_mode), on a GPU, over 3 more.", "",
         f"Machine: {res['machine']}, {res['threads']} threads, torch {res['torch']}; torch.mm 2048² fp32: "
         f"{res['mm_ms_before']:.1f} ms before, {res['mm_ms_after']:.1f} ms after ({res['mm_gflops']:.0f} GFLOP/s); "
         f"÷ mm = ms/step over the faster mm time. {res['iters']} timed steps after {res['warmup_iters']} untimed; "
