@@ -61,25 +61,24 @@ def host_only():
         _state["host"] -= 1
 
 
+def _index_has(idx, pred) -> bool:
+    """Whether an index (one object, or a tuple or list of them) holds a part for which pred is true."""
+    if isinstance(idx, (tuple, list)) and not pred(idx):
+        return any(_index_has(i, pred) for i in idx)
+    return pred(idx)
+
+
 def _has_bool_index(idx) -> bool:
-    if isinstance(idx, torch.Tensor):
-        return idx.dtype == torch.bool
-    if isinstance(idx, (tuple, list)):
-        return any(_has_bool_index(i) for i in idx)
-    return False
+    return _index_has(idx, lambda i: isinstance(i, torch.Tensor) and i.dtype == torch.bool)
 
 
 def _has_list_index(idx) -> bool:
     """A Python list inside an index: torch makes a host tensor of it and copies it over."""
-    if isinstance(idx, list):
-        return True
-    return isinstance(idx, tuple) and any(isinstance(i, list) for i in idx)
+    return isinstance(idx, list) or (isinstance(idx, tuple) and any(isinstance(i, list) for i in idx))
 
 
 def _has_tensor_index(idx) -> bool:
-    if isinstance(idx, torch.Tensor):
-        return True
-    return isinstance(idx, tuple) and any(isinstance(i, torch.Tensor) for i in idx)
+    return _index_has(idx, lambda i: isinstance(i, torch.Tensor))
 
 
 def _host_copy(name: str, args, kwargs) -> bool:
@@ -107,7 +106,19 @@ def _site() -> str:
     return "(outside the stdr package)"
 
 
-class SyncCounter(TorchFunctionMode):
+class _Sites:
+    """`calls` (a Counter by site) as a total and a sorted dict."""
+    calls: Counter
+
+    @property
+    def total(self) -> int:
+        return sum(self.calls.values())
+
+    def sites(self) -> dict[str, int]:
+        return dict(sorted(self.calls.items()))
+
+
+class SyncCounter(_Sites, TorchFunctionMode):
     def __init__(self):
         super().__init__()
         self.calls: Counter = Counter()
@@ -122,13 +133,6 @@ class SyncCounter(TorchFunctionMode):
         if sync:
             (self.host if _state["host"] else self.calls)[f"{_site()} {name}"] += 1
         return func(*args, **(kwargs or {}))
-
-    @property
-    def total(self) -> int:
-        return sum(self.calls.values())
-
-    def sites(self) -> dict[str, int]:
-        return dict(sorted(self.calls.items()))
 
 
 class OpCounter(TorchDispatchMode):
@@ -145,7 +149,7 @@ class OpCounter(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-class DeviceSyncCounter:
+class DeviceSyncCounter(_Sites):
     """Synchronizing CUDA calls made while active, as the CUDA caching layer reports them
     (`torch.cuda.set_sync_debug_mode("warn")`: a copy to the host, a stream or device
     synchronize, `nonzero`, `item`, ...), with the Python file:line that made each (`sites()`).
@@ -176,10 +180,3 @@ class DeviceSyncCounter:
                     self.calls[f"{where}:{w.lineno}"] += 1
             self._cm.__exit__(*exc)
         return False
-
-    @property
-    def total(self) -> int:
-        return sum(self.calls.values())
-
-    def sites(self) -> dict[str, int]:
-        return dict(sorted(self.calls.items()))
