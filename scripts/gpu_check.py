@@ -265,6 +265,7 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
         train("run_deform", "deform", 80, 150),
         Stage("bench_train", 70, 150, btrain),
         train("run_gpu_deform", "deform", 330, 420, budget="gpu"),  # the budget=gpu preset: a row
+        train("run_gpu_deform_stdr", "deform_stdr", 360, 450, budget="gpu"),  # ... and its +STDR twin
         train("run_deform_twin", "deform", 80, 150, projection="false"),  # the torch projection: the same run
         Stage("bench_raster", 50, 120, braster),
         train("run_4dgs", "4dgs", 95, 170),

@@ -82,7 +82,7 @@ def test_dry_run_runs_every_stage_on_the_cpu(tmp_path):
     assert [r["stage"] for r in recs] == [s.name for s in first + rest]
     assert all(r["status"] == "ok" for r in recs), [(r["stage"], r["status"]) for r in recs]
     runs = [r for r in recs if r["stage"].startswith("run_")]
-    assert {r["stage"] for r in runs} == {"run_deform", "run_gpu_deform", "run_deform_twin", "run_deform_stdr", "run_4dgs",
+    assert {r["stage"] for r in runs} == {"run_deform", "run_gpu_deform", "run_gpu_deform_stdr", "run_deform_twin", "run_deform_stdr", "run_4dgs",
                                           "run_4dgs_stdr", "run_scgs", "run_spgs"}
     for r in runs:
         assert r["backend"] == "cpu" and r["device"] == "cpu", r
@@ -91,8 +91,8 @@ def test_dry_run_runs_every_stage_on_the_cpu(tmp_path):
     with tarfile.open(out / "results.tgz") as tar:
         names = set(tar.getnames())
         assert {f"res/runs/{r['stage']}/metrics.json" for r in runs} <= names
-        cfg = tar.extractfile("res/runs/run_gpu_deform/config.yaml").read().decode()
-    assert "budget: gpu" in cfg and "budget: gpu" not in tar_text(out, "res/runs/run_deform/config.yaml")
+        cfgs = [tar.extractfile(f"res/runs/{n}/config.yaml").read().decode() for n in ("run_gpu_deform", "run_gpu_deform_stdr")]
+    assert all("budget: gpu" in c for c in cfgs) and "budget: gpu" not in tar_text(out, "res/runs/run_deform/config.yaml")
     assert {"res/kernels.xml", "res/bench_raster.json", "res/bench_train.json"} <= names
 
 
