@@ -75,6 +75,8 @@ def test_nan_gradient_is_recovered_and_logged(tmp_path):
     rec = g["recoveries"][0]
     # detected at step 15, back to the snapshot of step 10, every lr halved
     assert rec["step"] == 15 and rec["restored_to"] == 10 and rec["reason"] == "non-finite grad of means"
+    # the CPU's default check is the sync-free one: read at the next snapshot step
+    assert g["check"] == "sync-free" and rec["found_at"] == 20
     assert rec["lr_scale"] == g["lr_scale"] == 0.5 and not rec["stopped"]
     assert m["iterations"] == 60 and m["last"]["step"] == 60 and m["best"]["psnr"] >= m["last"]["psnr"]
     ck = load_checkpoint(tmp_path / "nan" / "checkpoints" / "last.pt")
@@ -105,15 +107,61 @@ def test_recovery_restores_the_snapshot_exactly_and_lowers_every_lr(tmp_path):
 
 
 @pytest.mark.slow
-def test_too_many_recoveries_stop_with_a_clear_error_and_a_good_checkpoint(tmp_path):
-    tr = _trainer(tmp_path, "stop", ["train.guard.max_recoveries=2", "train.guard.inject_nan_grad_at=[12,13,14]"])
-    with pytest.raises(TrainingDiverged, match=r"max_recoveries=2.*last good state \(iteration 10\)"):
+@pytest.mark.parametrize("sync_free", ["true", "false"])
+def test_too_many_recoveries_stop_with_a_clear_error_and_a_good_checkpoint(tmp_path, sync_free):
+    # one fault in each snapshot interval: the sync-free check finds each at the interval's end
+    # (no log step in between: train.log_every=50)
+    tr = _trainer(tmp_path, "stop", ["train.guard.max_recoveries=2", "train.guard.inject_nan_grad_at=[12,23,34]",
+                                     f"train.guard.sync_free={sync_free}", "train.log_every=50"])
+    with pytest.raises(TrainingDiverged, match=r"max_recoveries=2.*last good state \(iteration 30\)"):
         tr.train()
     recs = tr.guard.recoveries
-    assert [r["step"] for r in recs] == [12, 13, 14] and [r["stopped"] for r in recs] == [False, False, True]
+    assert [r["step"] for r in recs] == [12, 23, 34] and [r["stopped"] for r in recs] == [False, False, True]
+    assert [r["restored_to"] for r in recs] == [10, 20, 30]
+    assert [r["found_at"] for r in recs] == ([20, 30, 40] if sync_free == "true" else [12, 23, 34])
     ck = load_checkpoint(tmp_path / "stop" / "checkpoints" / "last.pt")
-    assert ck["model"]["step"] == 10 and len(ck["guard"]["recoveries"]) == 3
+    assert ck["model"]["step"] == 30 and len(ck["guard"]["recoveries"]) == 3
     assert all(torch.isfinite(v).all() for v in ck["model"]["params"].values())
+
+
+@pytest.mark.slow
+def test_the_sync_free_check_recovers_exactly_as_the_check_of_every_step(tmp_path):
+    """Fused Adam applies nothing from the faulty step on, the flag is read at the next snapshot
+    step and the same snapshot is restored: the run goes on bit-identical to one whose check
+    read every step, with the same record but for when the fault was found."""
+    nan = ["train.guard.inject_nan_grad_at=[15]"]
+    free = _trainer(tmp_path, "free", nan + ["train.guard.sync_free=true"])
+    free.train()
+    each = _trainer(tmp_path, "each", nan + ["train.guard.sync_free=false"])
+    each.train()
+    assert free.guard.sync_free and not each.guard.sync_free
+    (a,), (b,) = free.guard.recoveries, each.guard.recoveries
+    assert a["found_at"] == 20 and b["found_at"] == 15
+    assert {k: v for k, v in a.items() if k not in ("found_at", "train_seconds")} == \
+        {k: v for k, v in b.items() if k not in ("found_at", "train_seconds")}
+    _same_params(free, each)
+
+
+def test_a_faulty_step_applies_nothing_until_the_flag_is_read(tmp_path):
+    tr = _trainer(tmp_path, "flag", ["train.guard.inject_nan_grad_at=[1]", "train.guard.sync_free=true"])
+    before = {k: v.detach().clone() for k, v in tr.model.params.items()}
+    tr.train_step()  # step 1: NaN in the gradient of the means
+    assert float(tr.guard.flag) == 1.0
+    for k, v in tr.model.params.items():
+        assert torch.equal(v, before[k]), k
+        st = tr.optimizers[k].state.get(v, {}) if k in tr.optimizers else {}
+        assert "step" not in st or float(st["step"]) == 0, k  # Adam's step count did not advance
+    tr.train_step()  # a clean step: still nothing applied until the flag is read
+    for k, v in tr.model.params.items():
+        assert torch.equal(v, before[k]), k
+    assert tr.guard.poll() == (1, "non-finite grad of means") and tr.guard.poll() is None
+
+
+def test_the_sync_free_check_needs_fused_adam(tmp_path):
+    with pytest.raises(ValueError, match=r"train.guard.sync_free=true needs optim.fused_adam=true"):
+        _trainer(tmp_path, "x", ["optim.fused_adam=false", "train.guard.sync_free=true"])
+    tr = _trainer(tmp_path, "y", ["optim.fused_adam=false"])  # null: the check of every step
+    assert not tr.guard.sync_free and tr.guard.summary(None)["check"] == "every step"
 
 
 @pytest.mark.slow

@@ -1,6 +1,6 @@
 """Host syncs: the counter itself, and an ordinary training step of every baseline with and
-without STDR makes none (so on a GPU its launches never wait for the device), except the
-guard's one per-step finiteness check when the guard is on."""
+without STDR makes none (so on a GPU its launches never wait for the device), with the guard's
+check sync-free or, read every step, its one sync."""
 from pathlib import Path
 
 import pytest
@@ -43,7 +43,7 @@ def _ordinary(step: int) -> bool:
     return step % 10 != 0 and step not in (1, 20, 21, 30, 31, 40, 41)
 
 
-def _count(name: str, guard: bool, folder: str, cuda: bool = False):
+def _count(name: str, guard: bool, folder: str, cuda: bool = False, sync_free=None):
     """Syncs of each ordinary step of the identity check's schedule (60 steps, every phase):
     those SyncCounter sees, or with `cuda` those the CUDA runtime reports."""
     from stdr.testing import tiny_config
@@ -51,7 +51,8 @@ def _count(name: str, guard: bool, folder: str, cuda: bool = False):
     phases = STDR_PHASES if name.endswith("_stdr") else []
     dev = ["device=cuda", "render.backend=cuda", "render.compiled_projection=true"] if cuda else []
     cfg = tiny_config(folder, [f"experiment=embedded_{name}", *SCHEDULE, *phases, "train.log_every=1000", *dev,
-                               f"train.guard.enabled={str(guard).lower()}", "train.guard.snapshot_every=1000"])
+                               f"train.guard.enabled={str(guard).lower()}", "train.guard.snapshot_every=1000",
+                               *([] if sync_free is None else [f"train.guard.sync_free={str(sync_free).lower()}"])])
     tr = Trainer(cfg, Path(folder) / "run", splits=("train",))
     counts, sites = [], {}
     while tr.step < cfg.optim.iterations - 1:
@@ -84,10 +85,15 @@ def test_an_ordinary_training_step_makes_no_host_sync(name, tmp_path):
 
 
 @pytest.mark.slow
-def test_with_the_guard_on_its_check_is_the_one_sync_a_step(tmp_path):
-    """The guard checks the loss and gradients before the optimizer runs (docs/performance.md)."""
-    counts, sites = _count("deform_stdr", True, str(tmp_path))
-    assert set(counts) == {1} and [k.split(":")[0] for k in sites] == ["stdr/train/guard.py"], sites
+@pytest.mark.parametrize("sync_free", [True, False])
+def test_the_guards_check_is_sync_free_or_one_sync_a_step(tmp_path, sync_free):
+    """The guard checks the loss and gradients before the optimizer runs (docs/performance.md):
+    sync-free (the CPU's default), its verdict is a device flag; read every step, one sync."""
+    counts, sites = _count("deform_stdr", True, str(tmp_path), sync_free=sync_free)
+    if sync_free:
+        assert sum(counts) == 0, sites
+    else:
+        assert set(counts) == {1} and [k.split(":")[0] for k in sites] == ["stdr/train/guard.py"], sites
 
 
 def test_the_device_counter_counts_nothing_without_cuda_and_restores_the_mode():
@@ -139,8 +145,32 @@ def test_on_cuda_an_ordinary_step_makes_only_the_rasterizers_syncs(name, tmp_pat
 
 
 @CUDA
-def test_on_cuda_the_guard_adds_its_one_sync(tmp_path):
+@pytest.mark.parametrize("sync_free", [True, False])
+def test_on_cuda_the_guard_adds_one_sync_or_none(tmp_path, sync_free):
+    """Read every step (CUDA's default until this test has passed on a GPU: SYNC_FREE_VERIFIED),
+    the guard adds one sync; sync-free, none."""
     from stdr.train.syncs import RASTERIZER_SYNCS
-    counts, sites = _count("deform_stdr", True, str(tmp_path), cuda=True)
-    assert set(counts) == {RASTERIZER_SYNCS + 1}, sites
-    assert {f for f in _files(sites) if f.startswith("stdr/")} == {"stdr/train/guard.py"}, sites
+    counts, sites = _count("deform_stdr", True, str(tmp_path), cuda=True, sync_free=sync_free)
+    if sync_free:
+        assert set(counts) == {RASTERIZER_SYNCS}, sites
+        assert not {f for f in _files(sites) if f.startswith("stdr/")}, sites
+    else:
+        assert set(counts) == {RASTERIZER_SYNCS + 1}, sites
+        assert {f for f in _files(sites) if f.startswith("stdr/")} == {"stdr/train/guard.py"}, sites
+
+
+@CUDA
+def test_on_cuda_the_sync_free_guard_recovers_a_fault(tmp_path):
+    """A NaN gradient on the GPU: fused Adam's found_inf holds every update until the flag is
+    read, and the recovery is the one the CPU tests pin (tests/test_guard.py)."""
+    from stdr.testing import tiny_config
+    from stdr.train.trainer import Trainer
+    cfg = tiny_config(tmp_path, ["optim.iterations=40", "baseline.warmup=20", "densify.refine_start=10",
+                                 "densify.refine_every=10", "train.checkpoint_every=0", "train.eval_at_warmup_end=false",
+                                 "train.guard.snapshot_every=10", "train.guard.inject_nan_grad_at=[15]",
+                                 "train.guard.sync_free=true", "device=cuda", "render.backend=cuda"])
+    tr = Trainer(cfg, tmp_path / "run", splits=("train",))
+    tr.train()
+    (rec,) = tr.guard.recoveries
+    assert (rec["step"], rec["found_at"], rec["restored_to"], rec["reason"]) == (15, 20, 10, "non-finite grad of means")
+    assert tr.step == 40 and all(torch.isfinite(v).all() for v in tr.model.params.values())

@@ -50,9 +50,33 @@ class GuardConfig:
     # frames of the detector's own evaluation (a fixed seeded subset; 0 = all). When the monitor
     # split is data.eval_split, the periodic evaluation itself is used (train.eval_frames)
     monitor_frames: int = 10
+    # the step check without a host sync: its verdict stays a flag on the device, read at the steps
+    # that wait for the device anyway (log, evaluation, checkpoint, snapshot, the end); fused Adam
+    # skips every update from the faulty step on (its found_inf), and the read restores the last
+    # snapshot, the state an immediate check restores. null: on where it has been checked
+    # (SYNC_FREE_VERIFIED); true / false. Needs optim.fused_adam (false reads the check every step)
+    sync_free: Optional[bool] = None
     # fault injection, for tests and drills: a NaN in the gradient of the means at each step
     # listed (counted from 1), once per process
     inject_nan_grad_at: List[int] = field(default_factory=list)
+
+
+# the devices where train.guard.sync_free=null turns the sync-free check on: those it has run on
+# (tests/test_guard.py on the CPU; on CUDA once a GPU check has run tests/test_syncs.py with it)
+SYNC_FREE_VERIFIED = ("cpu",)
+
+
+def resolve_sync_free(g, device: torch.device, fused_adam: bool) -> bool:
+    """Whether this run's step check is the sync-free one (train.guard.sync_free resolved)."""
+    if not g.enabled:
+        return False
+    if g.sync_free is None:
+        return fused_adam and device.type in SYNC_FREE_VERIFIED
+    if g.sync_free and not fused_adam:
+        raise ValueError("train.guard.sync_free=true needs optim.fused_adam=true on a CPU or CUDA device: fused Adam "
+                         "is what skips a faulty step's update on the device; set train.guard.sync_free=false "
+                         "(or null) to read the check every step")
+    return bool(g.sync_free)
 
 
 class TrainingDiverged(RuntimeError):
@@ -97,20 +121,21 @@ def monitor_split(g, data_format: str) -> str:
     return m
 
 
-def all_finite(tensors: Iterable[Optional[Tensor]]) -> bool:
-    """Whether every element of every (floating) tensor is finite; None entries are skipped.
+def nonfinite_flags(tensors: list[Tensor]) -> Tensor:
+    """One bool per tensor, on their device: whether it has a non-finite element. No host sync.
 
-    Fast and exact: a tensor's sum is finite only if all its elements are (inf and NaN
-    propagate through addition), so one small reduction per tensor decides; only a sum that
-    overflowed from finite elements is looked at element by element."""
-    ts = [t.detach() for t in tensors if t is not None and t.is_floating_point()]
-    if not ts:
-        return True
-    sums = torch.stack([t.sum(dtype=torch.float32) for t in ts])
-    ok = torch.isfinite(sums)
-    if bool(ok.all()):
-        return True
-    return all(bool(torch.isfinite(t).all()) for t, good in zip(ts, ok.tolist()) if not good)
+    Exact and cheap: each tensor is reduced to its minimum and maximum (one pass, no copy); NaN
+    propagates through both and an infinity is one of them, while, unlike a sum, they cannot
+    overflow from finite elements."""
+    mins, maxs = zip(*(torch.aminmax(t.detach()) for t in tensors))
+    return ~(torch.isfinite(torch.stack(mins)) & torch.isfinite(torch.stack(maxs)))
+
+
+def all_finite(tensors: Iterable[Optional[Tensor]]) -> bool:
+    """Whether every element of every (floating) tensor is finite; None and empty entries are
+    skipped. One host sync."""
+    ts = [t for t in tensors if t is not None and t.is_floating_point() and t.numel()]
+    return not ts or not bool(nonfinite_flags(ts).any())
 
 
 def first_nonfinite(named: Iterable[tuple[str, Optional[Tensor]]]) -> Optional[str]:
@@ -169,6 +194,15 @@ class Guard:
     snapshot: Optional[dict[str, Any]] = None      # last good state (a checkpoint payload, cloned)
     best_snapshot: Optional[dict[str, Any]] = None  # the state at `best`
     fired: set = field(default_factory=set)        # injected faults already fired (this process)
+    checks: bool = False     # whether this run checks its steps (train.guard.enabled)
+    sync_free: bool = False  # ... without a host sync (resolve_sync_free); not saved: each run's own
+    # the sync-free check's device-side state (None until its first step; cleared by each read):
+    # found_inf for fused Adam (float 0-d, 1 from the first faulty step on), that step (-1: none),
+    # the index of its first non-finite tensor, and the tensors' names from each step they changed
+    flag: Optional[Tensor] = None
+    bad_step: Optional[Tensor] = None
+    bad_index: Optional[Tensor] = None
+    names: list = field(default_factory=list)
 
     def state_dict(self) -> dict[str, Any]:
         return {"lr_scale": self.lr_scale, "recoveries": list(self.recoveries), "peak_gaussians": self.peak_gaussians,
@@ -191,23 +225,64 @@ class Guard:
         """metrics.json -> guard."""
         return {"recoveries": list(self.recoveries), "n_recoveries": len(self.recoveries),
                 "lr_scale": self.lr_scale, "peak_gaussians": self.peak_gaussians, "max_gaussians": cap,
-                "peak_memory_mb": self.peak_memory_mb, "monitor": self.monitor}
+                "peak_memory_mb": self.peak_memory_mb, "monitor": self.monitor,
+                "check": ("sync-free" if self.sync_free else "every step") if self.checks else None}
 
     # ------------------------------------------------------------------ what the loop calls
-    def check_step(self, trainer, loss: Tensor, step: int) -> Optional[str]:
-        """After the backward of step `step`: what is non-finite (the loss, or the gradient of a
-        named parameter), or None. train.guard.inject_nan_grad_at puts a NaN there first."""
+    def _step_tensors(self, trainer, loss: Tensor, step: int) -> list[tuple[str, Tensor]]:
+        """The loss and every gradient of step `step`, named; train.guard.inject_nan_grad_at puts a
+        NaN into the gradient of the means first."""
         params = trainer.model.params
         if step in trainer.cfg.train.guard.inject_nan_grad_at and ("nan", step) not in self.fired:
             self.fired.add(("nan", step))
             if params["means"].grad is not None:
                 params["means"].grad[0, 0] = float("nan")
-        nets = trainer.network_params()
-        if all_finite([loss, *(p.grad for p in params.values()), *(p.grad for _, p in nets)]):
-            return None  # the names below are built only on a failure
-        grads = [("loss", loss)] + [(f"grad of {k}", p.grad) for k, p in params.items()] + \
-            [(f"grad of {k}", p.grad) for k, p in nets]
-        return f"non-finite {first_nonfinite(grads)}"
+        named = [("loss", loss)] + [(f"grad of {k}", p.grad) for k, p in params.items()] + \
+            [(f"grad of {k}", p.grad) for k, p in trainer.network_params()]
+        return [(n, t) for n, t in named if t is not None and t.is_floating_point() and t.numel()]
+
+    def check_step(self, trainer, loss: Tensor, step: int) -> Optional[str]:
+        """After the backward of step `step`: what is non-finite (the loss, or the gradient of a
+        named parameter), or None. One host sync."""
+        named = self._step_tensors(trainer, loss, step)
+        return None if all_finite(t for _, t in named) else f"non-finite {first_nonfinite(named)}"
+
+    def flag_step(self, trainer, loss: Tensor, step: int) -> Tensor:
+        """The sync-free form of `check_step`: the verdict stays on the device. Returns the flag
+        for fused Adam's found_inf (1 from the first faulty step on, so that no update is applied
+        until `poll` reads it); the first faulty step and what failed are kept for `poll`."""
+        named = self._step_tensors(trainer, loss, step)
+        names = tuple(n for n, _ in named)
+        if self.flag is None:
+            self.flag = torch.zeros((), dtype=torch.float32, device=loss.device)
+            self.bad_step = torch.full((), -1, dtype=torch.int64, device=loss.device)
+            self.bad_index = torch.full((), -1, dtype=torch.int64, device=loss.device)
+        if not self.names or self.names[-1][1] != names:
+            self.names.append((step, names))
+        bad = nonfinite_flags([t for _, t in named])
+        anybad = bad.any()
+        new = anybad & (self.bad_step < 0)
+        self.bad_step = torch.where(new, step, self.bad_step)
+        self.bad_index = torch.where(new, bad.to(torch.int32).argmax(), self.bad_index)
+        self.flag = torch.maximum(self.flag, anybad.to(torch.float32))
+        return self.flag
+
+    def poll(self) -> Optional[tuple[int, str]]:
+        """Read the sync-free check (one host sync): (the first faulty step since the last read, what
+        was non-finite) or None. Clears it either way."""
+        if self.bad_step is None:
+            return None
+        step, index = int(self.bad_step), int(self.bad_index)
+        names = self.names
+        self.clear()
+        if step < 0:
+            return None
+        return step, f"non-finite {next(n for s, n in reversed(names) if s <= step)[index]}"
+
+    def clear(self) -> None:
+        """Forget the sync-free check's state (after a read, a recovery or a load)."""
+        self.flag = self.bad_step = self.bad_index = None
+        self.names = []
 
     def take_snapshot(self, trainer) -> None:
         """Keep the current state as the last good one (after checking the parameters)."""
@@ -231,12 +306,15 @@ class Guard:
             self.recover(trainer, f"divergence: evaluation PSNR {psnr:.2f} dB is more than {gc.divergence_db:g} dB "
                                   f"below the best, {self.best['psnr']:.2f} dB at step {self.best['step']}", best=True)
 
-    def recover(self, trainer, reason: str, best: bool = False) -> None:
+    def recover(self, trainer, reason: str, best: bool = False, step: Optional[int] = None) -> None:
         """Restore the last good state (the best evaluation's with best=True), lower every lr
         by train.guard.lr_factor and log it; past train.guard.max_recoveries, save the last good
-        state as the checkpoint and stop (TrainingDiverged)."""
+        state as the checkpoint and stop (TrainingDiverged). `step`: the faulty step when it came
+        before the step that found it (the sync-free check; default: now)."""
         gc = trainer.cfg.train.guard
-        detected = trainer.step
+        found_at = trainer.step
+        detected = found_at if step is None else step
+        self.clear()
         snap = self.best_snapshot if best and self.best_snapshot is not None else self.snapshot
         if snap is None:
             raise TrainingDiverged(f"{reason} at step {detected}, before any good state was kept")
@@ -248,8 +326,8 @@ class Guard:
         stop = len(self.recoveries) >= gc.max_recoveries
         if not stop:
             self.lr_scale *= gc.lr_factor
-        rec = {"step": detected, "restored_to": trainer.step, "reason": reason, "lr_scale": self.lr_scale,
-               "train_seconds": trainer.train_seconds, "stopped": stop}
+        rec = {"step": detected, "found_at": found_at, "restored_to": trainer.step, "reason": reason,
+               "lr_scale": self.lr_scale, "train_seconds": trainer.train_seconds, "stopped": stop}
         self.recoveries.append(rec)
         tb = trainer._tb()
         tb.add_scalar("guard/recoveries", len(self.recoveries), detected)

@@ -25,7 +25,7 @@ from ..scene.ply import save_ply
 from ..scene.prune import prune_event
 from ..scene.strategy import build_strategy
 from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
-from .guard import Guard, check_guard_config, monitor_split
+from .guard import Guard, check_guard_config, monitor_split, resolve_sync_free
 from .syncs import host_only
 from .schedule import exp_lr
 
@@ -165,7 +165,8 @@ class Trainer:
         self.history: list[dict[str, Any]] = []
         self.prune_log: list[dict[str, Any]] = []  # contribution pruning events (stdr.scene.prune.prune_event)
         self.writer = None
-        self.guard = Guard(peak_gaussians=len(pts), monitor=self.monitor)
+        self.guard = Guard(peak_gaussians=len(pts), monitor=self.monitor, checks=bool(cfg.train.guard.enabled),
+                           sync_free=resolve_sync_free(cfg.train.guard, self.device, self._fused_adam))
 
     @property
     def step(self) -> int:
@@ -278,6 +279,7 @@ class Trainer:
         ck = load_checkpoint(path, require=PAYLOAD_KEYS)
         self.load_payload(ck, str(path))
         self.guard.load_state_dict(ck.get("guard", {}))
+        self.guard.clear()
         self.guard.monitor = self.monitor  # this run's detector split, whatever the checkpoint's run had
 
     def load_payload(self, ck: dict[str, Any], where: str) -> None:
@@ -364,7 +366,11 @@ class Trainer:
                     terms[k] = v
                     loss = loss + v
         prof.backward(loss)
-        if cfg.train.guard.enabled:
+        found_inf = None  # the sync-free guard's flag: fused Adam applies no update while it is 1
+        if self.guard.sync_free:
+            with prof("guard"):
+                found_inf = self.guard.flag_step(self, loss, it + 1)
+        elif cfg.train.guard.enabled:
             with prof("guard"):
                 bad = self.guard.check_step(self, loss, it + 1)
             if bad is not None:  # nothing is applied: the caller restores the last good state
@@ -373,9 +379,11 @@ class Trainer:
                 return {"rejected": bad, "loss": float(loss.detach())}
         with prof("optimizer"):
             for o in self.optimizers.values():
+                o.found_inf = found_inf  # read by torch's fused Adam (as GradScaler sets it)
                 o.step()
                 o.zero_grad(set_to_none=True)
             if it >= model.warmup:
+                self.net_opt.found_inf = found_inf
                 self.net_opt.step()
             self.net_opt.zero_grad(set_to_none=True)
         with prof("densify"):
@@ -440,6 +448,14 @@ class Trainer:
                     bar.refresh()
                 continue
             it = self.step
+            if self.guard.sync_free and self._waits_for_the_device(it, end):
+                hit = self.guard.poll()  # the sync-free check, read where the loop waits anyway
+                if hit is not None:
+                    self.guard.recover(self, hit[1], step=hit[0])
+                    if bar is not None:
+                        bar.n = self.step
+                        bar.refresh()
+                    continue
             self.guard.peak_gaussians = max(self.guard.peak_gaussians, self.model.num_gaussians)
             if it % cfg.train.log_every == 0 or it == total:
                 self._log_scalars(tb, it, logs, dt)
@@ -480,6 +496,15 @@ class Trainer:
         self.save()
         save_ply(self.model.params, self.run_dir / "point_cloud.ply")
         (self.run_dir / "train_profile.json").write_text(json.dumps(self.profile_summary(), indent=1))
+
+    def _waits_for_the_device(self, it: int, end: int) -> bool:
+        """Whether the loop reads the device after step `it` anyway (logging, an evaluation, a
+        checkpoint, a snapshot, the end): where the sync-free guard's flag is read, so that no
+        state after a faulty step is logged, evaluated, saved or kept as good."""
+        t, g = self.cfg.train, self.cfg.train.guard
+        return (it % t.log_every == 0 or it >= end or it % g.snapshot_every == 0
+                or bool(t.eval_every and it % t.eval_every == 0) or bool(t.checkpoint_every and it % t.checkpoint_every == 0)
+                or (t.eval_at_warmup_end and it == self.cfg.baseline.warmup))
 
     def profile_summary(self) -> dict[str, Any]:
         tot = sum(self.profile.seconds.values()) or 1.0
