@@ -22,6 +22,11 @@ ROOT=${1:?usage: headline_table.sh DNERF_ROOT [WORK_DIR]}
 WORK=${2:-$here/outputs/headline}
 REC=$here/docs/measurements/dnerf_headline_cpu/runs
 CODE=${HEADLINE_CODE:-$here}
+# one queue per WORK_DIR: a second one would train the same runs at the same time (each then
+# counts the other as a foreign job, and both write one run folder)
+mkdir -p "$WORK"
+exec 9> "$WORK/.queue.lock"
+flock -n 9 || { echo "[headline] another queue is running on $WORK (it holds $WORK/.queue.lock); to restart it, remove $WORK/pause instead" >&2; exit 3; }
 [ -x "$CODE/scripts/run.sh" ] || { echo "[headline] HEADLINE_CODE=$CODE: no scripts/run.sh there" >&2; exit 2; }
 SCENES="bouncingballs hellwarrior jumpingjacks standup"
 for s in $SCENES; do

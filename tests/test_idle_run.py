@@ -1,4 +1,5 @@
 """scripts/idle_run.py: a command's CPU time against the whole machine's, and its exit status."""
+import fcntl
 import json
 import subprocess
 import sys
@@ -24,3 +25,21 @@ def test_a_missing_command_is_an_error(tmp_path):
     proc = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "x.json")], capture_output=True,
                           text=True)
     assert proc.returncode != 0 and "no command" in proc.stderr
+
+
+def test_a_second_headline_queue_on_one_work_dir_refuses_to_start(tmp_path):
+    """scripts/headline_table.sh: two queues on one WORK_DIR would train the same runs at once."""
+    root = tmp_path / "dnerf"
+    for s in ("bouncingballs", "hellwarrior", "jumpingjacks", "standup"):
+        (root / s).mkdir(parents=True)
+        (root / s / "transforms_train.json").write_text("{}")
+    work = tmp_path / "work"
+    work.mkdir()
+    env = {"HEADLINE_DRY": "1", "HEADLINE_SEEDS": "0", "PATH": "/usr/bin:/bin"}
+    cmd = ["bash", str(ROOT / "scripts" / "headline_table.sh"), str(root), str(work)]
+    with open(work / ".queue.lock", "w") as held:  # a queue running on WORK_DIR holds this lock
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        second = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        assert second.returncode == 3 and "another queue is running" in second.stderr
+    alone = subprocess.run(cmd, capture_output=True, text=True, env=env)  # the lock is free again
+    assert alone.returncode == 0 and "stdr-train experiment=dnerf_deform" in alone.stdout, alone.stderr
