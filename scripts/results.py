@@ -62,6 +62,12 @@ def _sd(xs):
 HEADLINE_SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
 
 
+def _idle(run_dir: Path) -> bool:
+    """Whether scripts/idle_run.py found the run alone on its machine (its load.json)."""
+    f = run_dir / "load.json"
+    return f.is_file() and json.loads(f.read_text()).get("idle") is True
+
+
 def headline_from_records(runs_dir: Path = HEADLINE_RUNS, baselines=BASELINES, scenes=HEADLINE_SCENES):
     """The rerun's table from its committed records, read and averaged by stdr-eval's own code
     (stdr.eval.table.load_run / collect): ({method: mean row}, provenance), or (None, how many
@@ -96,7 +102,9 @@ def headline_from_records(runs_dir: Path = HEADLINE_RUNS, baselines=BASELINES, s
             "command": "bash scripts/headline_table.sh ../shared/data/dnerf (docs/measurements/dnerf_headline_cpu/README.md)",
             "source": "docs/measurements/dnerf_headline_cpu/runs/",
             "chart": "measurements/dnerf_headline_cpu/charts/speed_accuracy_psnr.png",
-            "seeds": ("seed " if len(seeds) == 1 else "seeds ") + ", ".join(map(str, seeds))}
+            "seeds": ("seed " if len(seeds) == 1 else "seeds ") + ", ".join(map(str, seeds)),
+            # ratios of times only from runs that had their machine to themselves, all on one machine
+            "timed": len(machines) == 1 and all(_idle(Path(r["run_dir"])) for r in use)}
     means = {m: {**t["means"][m], "n_scenes": len(scenes)} for m in methods}
     return means, prov
 
@@ -126,24 +134,44 @@ def headline():
     return (means, prov) if means is not None else headline_from_previous_table(prov)
 
 
-def headline_table(means) -> list[str]:
+def _ratio(s: dict, p: dict, key: str):
+    return s[key] / p[key] if p.get(key) and s.get(key) is not None else None
+
+
+def headline_table(means, timed: bool) -> list[str]:
+    """`timed`: the runs were timed alone on their machine, so the train-time and FPS ratios of
+    +STDR to plain mean something (else "–")."""
     out = ["| baseline | plain PSNR↑ | +STDR PSNR↑ | Δ PSNR | plain LPIPS↓ | +STDR LPIPS↓ | seeds | "
-           "Gaussians +STDR / plain |",
-           "|---|---|---|---|---|---|---|---|"]
+           "Gaussians +STDR / plain | train s +STDR / plain | FPS +STDR / plain |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
     for b in BASELINES:
         p, s = means.get(b), means.get(b + "+STDR")
         if p is None or s is None:
             out.append(f"| {b} | {'–' if p is None else _f(p['psnr'])} | {'–' if s is None else _f(s['psnr'])} "
-                       "| – | – | – | – | – |")
+                       "| – | – | – | – | – | – | – |")
             continue
 
         def cell(r):
             sd = r.get("psnr_std")
             return _f(r["psnr"]) + ("" if not sd else f" ± {sd:.2f}")
-        ratio = (s["num_gaussians"] / p["num_gaussians"]) if p.get("num_gaussians") else None
+        times = [_f(_ratio(s, p, k)) if timed else "–" for k in ("train_seconds", "fps")]
         out.append(f"| {b} | {cell(p)} | {cell(s)} | {s['psnr'] - p['psnr']:+.2f} | {_f(p.get('lpips'), 4)} "
-                   f"| {_f(s.get('lpips'), 4)} | {min(p['n_seeds'], s['n_seeds'])} | {_f(ratio)} |")
+                   f"| {_f(s.get('lpips'), 4)} | {min(p['n_seeds'], s['n_seeds'])} | {_f(_ratio(s, p, 'num_gaussians'))} "
+                   f"| {times[0]} | {times[1]} |")
     return out
+
+
+def stdr_cost(means, timed: bool) -> str:
+    """The README's sentence on what STDR costs, from the table's ratios."""
+    if not timed:
+        return "STDR costs training time and render speed; see the results page."
+    pairs = [(means[b + "+STDR"], means[b]) for b in BASELINES if b in means and b + "+STDR" in means]
+    tr = [_ratio(s, p, "train_seconds") for s, p in pairs]
+    fps = [_ratio(s, p, "fps") for s, p in pairs]
+    if None in tr or None in fps:
+        return "STDR costs training time and render speed; see the results page."
+    return (f"STDR's cost here: training {min(tr):.2f}-{max(tr):.2f}x as long, rendering at "
+            f"{min(fps):.2f}-{max(fps):.2f}x the FPS (CPU rasterizer).")
 
 
 def stdr_effect(means) -> dict:
@@ -220,7 +248,7 @@ def build() -> tuple[str, str]:
             f"Source: `{prov['source']}`.", ""]
     if prov.get("caveat"):
         page += [f"**Caveat:** {prov['caveat']}", ""]
-    page += headline_table(means)
+    page += headline_table(means, prov.get("timed", False))
     page += ["", f"PSNR, LPIPS and Gaussians are means over the scenes (± the std over seeds of each seed's "
              f"scene mean, where there are several seeds). Mean Δ over the {eff['n']} baselines: "
              f"{eff['mean']:+.2f} dB (from {eff['min']:+.2f} to {eff['max']:+.2f}).", "",
@@ -258,12 +286,12 @@ def build() -> tuple[str, str]:
              "From [docs/results.md](docs/results.md) (generated):", ""]
     if prov.get("caveat"):
         block[-2] += f" **Caveat:** {prov['caveat']}"
-    block += headline_table(means)
-    block += ["", f"**What STDR does here, and its scope.** On these four scenes the mean Δ PSNR over the four "
+    block += headline_table(means, prov.get("timed", False))
+    block += ["", f"**What STDR does here, and its scope.** On these four scenes ({seeds}) the mean Δ PSNR over the four "
               f"baselines is {eff['mean']:+.2f} dB (from {eff['min']:+.2f} to {eff['max']:+.2f}); on {ueff['n']} "
               f"baseline/scene pairs of D-NeRF scenes that are not in ../shared (one seed) it is "
               f"{ueff['mean']:+.2f} dB (from {ueff['min']:+.2f} to {ueff['max']:+.2f}), within one seed's noise. "
-              "STDR costs training time and render speed; see the results page.", ""]
+              + stdr_cost(means, prov.get("timed", False)), ""]
     if (ROOT / "docs" / prov["chart"]).is_file():
         block += [f"![PSNR against render FPS, the table's runs](docs/{prov['chart']})"]
     block += [_markers("results")[1]]

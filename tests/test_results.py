@@ -19,15 +19,18 @@ def _results():
     return mod
 
 
-def _record(root: Path, baseline: str, stdr: bool, scene: str, seed: int, psnr: float, gaussians: int = 1000):
+def _record(root: Path, baseline: str, stdr: bool, scene: str, seed: int, psnr: float, gaussians: int = 1000,
+            train_s: float = 100.0, fps: float = 50.0, idle=None, machine: str = "test machine"):
     d = root / f"dnerf_{baseline}{'_stdr' if stdr else ''}" / scene / f"s{seed}"
     d.mkdir(parents=True)
     cfg = {"seed": seed, "baseline": {"name": baseline}, "stdr": {"enabled": stdr},
            "data": {"name": scene, "path": f"/data/{scene}"}, "render": {"backend": "cpu"}}
     (d / "config.yaml").write_text(yaml.safe_dump(cfg))
-    m = {"psnr": psnr, "ssim": 0.9, "lpips": 0.05, "fps": 50.0, "num_gaussians": gaussians, "train_seconds": 100.0,
-         "conventions": {"machine": "test machine"}, "code": {"commit": "abcdef0123", "dirty": False}}
+    m = {"psnr": psnr, "ssim": 0.9, "lpips": 0.05, "fps": fps, "num_gaussians": gaussians, "train_seconds": train_s,
+         "conventions": {"machine": machine}, "code": {"commit": "abcdef0123", "dirty": False}}
     (d / "metrics.json").write_text(json.dumps({"test": m}))
+    if idle is not None:  # scripts/idle_run.py's record of the run
+        (d / "load.json").write_text(json.dumps({"idle": idle}))
 
 
 def test_headline_waits_for_a_complete_seed_and_averages_only_complete_seeds(tmp_path):
@@ -60,3 +63,30 @@ def test_headline_waits_for_a_complete_seed_and_averages_only_complete_seeds(tmp
     assert means["deform"]["psnr"] == pytest.approx(45.0) and means["deform"]["n_seeds"] == 2
     assert means["deform"]["psnr_std"] == pytest.approx(((25 - 45) ** 2 + (65 - 45) ** 2) ** 0.5)
     assert means["scgs+STDR"]["psnr"] == pytest.approx(26.5)
+
+
+def _grid(runs: Path, idle_plain_a=True, machine_plain_a="test machine"):
+    for stdr in (False, True):
+        for sc in ("a", "b"):
+            first = not stdr and sc == "a"
+            _record(runs, "deform", stdr, sc, 0, 20.0 + stdr, train_s=100.0 * (1.5 if stdr else 1.0),
+                    fps=40.0 * (0.5 if stdr else 1.0), idle=idle_plain_a if first else True,
+                    machine=machine_plain_a if first else "test machine")
+
+
+@pytest.mark.parametrize("case", ["idle", "shared", "no record", "two machines"])
+def test_time_ratios_only_from_runs_timed_alone_on_one_machine(tmp_path, case):
+    """The train-time and FPS ratios of +STDR to plain are shown only when every run of the table
+    had its machine to itself (load.json) and all ran on one machine; else "–"."""
+    r = _results()
+    _grid(tmp_path, idle_plain_a={"idle": True, "shared": False, "no record": None, "two machines": True}[case],
+          machine_plain_a="other machine" if case == "two machines" else "test machine")
+    means, prov = r.headline_from_records(tmp_path, ("deform",), ("a", "b"))
+    row = r.headline_table(means, prov["timed"])[2].split("|")
+    ratios = [c.strip() for c in row[-3:-1]]
+    if case == "idle":
+        assert prov["timed"] and ratios == ["1.50", "0.50"]
+        assert "training 1.50-1.50x as long, rendering at 0.50-0.50x the FPS" in r.stdr_cost(means, True)
+    else:
+        assert not prov["timed"] and ratios == ["–", "–"]
+        assert "see the results page" in r.stdr_cost(means, prov["timed"])
