@@ -35,11 +35,12 @@ def test_a_second_headline_queue_on_one_work_dir_refuses_to_start(tmp_path):
         (root / s / "transforms_train.json").write_text("{}")
     work = tmp_path / "work"
     work.mkdir()
-    env = {"HEADLINE_DRY": "1", "HEADLINE_SEEDS": "0", "PATH": "/usr/bin:/bin"}
+    # a seed the committed records do not have, so the dry run lists its runs (HEADLINE_DRY prints them)
+    env = {"HEADLINE_DRY": "1", "HEADLINE_SEEDS": "99", "PATH": "/usr/bin:/bin"}
     cmd = ["bash", str(ROOT / "scripts" / "headline_table.sh"), str(root), str(work)]
     with open(work / ".queue.lock", "w") as held:  # a queue running on WORK_DIR holds this lock
         fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
         second = subprocess.run(cmd, capture_output=True, text=True, env=env)
         assert second.returncode == 3 and "another queue is running" in second.stderr
     alone = subprocess.run(cmd, capture_output=True, text=True, env=env)  # the lock is free again
-    assert alone.returncode == 0 and "stdr-train experiment=dnerf_deform" in alone.stdout, alone.stderr
+    assert alone.returncode == 0 and "stdr-train experiment=dnerf_deform budget=cpu seed=99" in alone.stdout, alone.stderr
