@@ -131,10 +131,15 @@ def nonfinite_flags(tensors: list[Tensor]) -> Tensor:
     return ~(torch.isfinite(torch.stack(mins)) & torch.isfinite(torch.stack(maxs)))
 
 
+def _checkable(t: Optional[Tensor]) -> bool:
+    """What the finiteness checks look at: present, floating, non-empty tensors."""
+    return t is not None and t.is_floating_point() and t.numel() > 0
+
+
 def all_finite(tensors: Iterable[Optional[Tensor]]) -> bool:
     """Whether every element of every (floating) tensor is finite; None and empty entries are
     skipped. One host sync."""
-    ts = [t for t in tensors if t is not None and t.is_floating_point() and t.numel()]
+    ts = [t for t in tensors if _checkable(t)]
     return not ts or not bool(nonfinite_flags(ts).any())
 
 
@@ -239,7 +244,7 @@ class Guard:
                 params["means"].grad[0, 0] = float("nan")
         named = [("loss", loss)] + [(f"grad of {k}", p.grad) for k, p in params.items()] + \
             [(f"grad of {k}", p.grad) for k, p in trainer.network_params()]
-        return [(n, t) for n, t in named if t is not None and t.is_floating_point() and t.numel()]
+        return [(n, t) for n, t in named if _checkable(t)]
 
     def check_step(self, trainer, loss: Tensor, step: int) -> Optional[str]:
         """After the backward of step `step`: what is non-finite (the loss, or the gradient of a
