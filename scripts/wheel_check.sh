@@ -29,6 +29,9 @@ base=$("$VPY" -c "import sys; print(sys.base_prefix)")/bin/python3
 site=$("$WORK/venv/bin/python" -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")
 "$VPY" -c "import sysconfig; print(sysconfig.get_paths()['purelib'])" > "$site/borrowed_deps.pth"
 "$WORK/venv/bin/python" -m pip install -q --no-deps --no-index "$whl"
+# the installed package's files (bytecode caches aside), compared after the runs
+installed() { (cd "$site" && find stdr -path '*/__pycache__' -prune -o -print | LC_ALL=C sort); }
+installed > "$WORK/installed.before"
 
 cd "$WORK"  # outside the checkout from here on
 export XDG_CACHE_HOME=$WORK/cache  # the scene, LPIPS lookup and compiled kernels all go under it
@@ -51,4 +54,9 @@ echo "[wheel] stdr-eval"
 "$WORK/venv/bin/stdr-eval" "$WORK/run" out="$WORK/table" > "$WORK/eval.log" 2>&1 || { tail -30 "$WORK/eval.log"; exit 1; }
 grep "deform+STDR" "$WORK/eval.log" | head -2
 [ -d "$WORK/cache/stdr/data/embedded" ] || { echo "[wheel] the embedded scene was not cached under XDG_CACHE_HOME" >&2; exit 1; }
+installed > "$WORK/installed.after"
+if ! diff "$WORK/installed.before" "$WORK/installed.after" > "$WORK/installed.diff"; then
+  echo "[wheel] the runs wrote into the installed package ($site/stdr):" >&2; head -20 "$WORK/installed.diff" >&2; exit 1
+fi
+echo "[wheel] site-packages unchanged ($(wc -l < "$WORK/installed.after") entries under $site/stdr)"
 echo "[wheel] ok"

@@ -58,9 +58,9 @@ def test_the_readme_is_a_front_door():
     assert len(lines) <= 150
     first = "\n".join(lines[:40])
     assert "bash scripts/setup.sh && scripts/run.sh stdr-train" in first
-    assert "bash scripts/setup.sh && scripts/run.sh python -m pytest -q" in first
+    assert "bash scripts/setup.sh && scripts/run.sh python -m pytest -q -n 2 --dist loadfile" in first
     # .ci/run runs the README's test command
-    assert "bash scripts/setup.sh && scripts/run.sh python -m pytest -q" in (ROOT / ".ci" / "run").read_text()
+    assert "bash scripts/setup.sh && scripts/run.sh python -m pytest -q -n 2 --dist loadfile" in (ROOT / ".ci" / "run").read_text()
 
 
 def test_the_numbers_the_readme_quotes_are_the_generated_ones():
