@@ -275,6 +275,13 @@ def experiment_names() -> list[str]:
 
 
 _STORED: dict[str, set[str]] = {"baseline": set(), "experiment": set(), "plugin": set(), "densify": set()}
+_SYNCED: list = [None]  # the registries' contents at the last _sync_store
+
+
+def _registries() -> tuple:
+    """What the stored configs are made from: the registered baselines, plug-ins and densification
+    strategies (specs compare by name and class)."""
+    return tuple(BASELINES.values()), tuple(registered_plugins()), tuple(STRATEGIES.items())
 
 
 def _sync_store(*_) -> None:
@@ -316,6 +323,7 @@ def _sync_store(*_) -> None:
     for e, node in exps.items():
         cs.store(group="experiment", name=e, node=node, package="_global_")
     _STORED["experiment"] = set(exps)
+    _SYNCED[0] = _registries()
 
 
 def _experiments_resolver(data: str, *which: str) -> str:
@@ -357,7 +365,8 @@ def register() -> None:
         OmegaConf.register_new_resolver("stdr_scene_path", _scene_path_resolver)
     discover_baselines()  # baselines of other installed distributions (entry points)
     registered_plugins()  # built-in plug-ins and those of other distributions
-    _sync_store()
+    if _SYNCED[0] != _registries():  # (re-storing every node costs ~0.3 s; compose_config calls this each time)
+        _sync_store()
     add_listener(_sync_store)
     add_plugin_listener(_sync_store)
     add_strategy_listener(_sync_store)

@@ -81,6 +81,21 @@ def drift():
     assert "drift" not in BASELINES and not any("drift" in e for e in experiment_names())
 
 
+def test_composing_sees_a_registry_change_that_bypassed_the_listeners(monkeypatch):
+    """compose_config re-stores Hydra's nodes only when the registries changed since the last
+    time; a change made without register_baseline (no listener call) is still seen."""
+    from hydra.errors import ConfigCompositionException
+
+    from stdr.deform.registry import BaselineSpec
+    with pytest.raises(ConfigCompositionException, match="drift"):
+        make_cfg(["baseline=drift"])
+    monkeypatch.setitem(BASELINES, "drift", BaselineSpec("drift", Drift, DriftConfig))
+    assert make_cfg(["baseline=drift"]).baseline.drift.speed == 0.0
+    monkeypatch.delitem(BASELINES, "drift")
+    with pytest.raises(ConfigCompositionException, match="drift"):
+        make_cfg(["baseline=drift"])
+
+
 @pytest.mark.slow
 def test_a_baseline_is_one_module_and_one_config(tmp_path, drift):
     from stdr.model import load_model
