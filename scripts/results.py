@@ -103,10 +103,34 @@ def headline_from_records(runs_dir: Path = HEADLINE_RUNS, baselines=BASELINES, s
             "source": "docs/measurements/dnerf_headline_cpu/runs/",
             "chart": "measurements/dnerf_headline_cpu/charts/speed_accuracy_psnr.png",
             "seeds": ("seed " if len(seeds) == 1 else "seeds ") + ", ".join(map(str, seeds)),
-            # ratios of times only from runs that had their machine to themselves, all on one machine
-            "timed": len(machines) == 1 and all(_idle(Path(r["run_dir"])) for r in use)}
+            "ratios": paired_time_ratios(use, baselines)}
     means = {m: {**t["means"][m], "n_scenes": len(scenes)} for m in methods}
     return means, prov
+
+
+def paired_time_ratios(use: list, baselines=BASELINES) -> dict:
+    """+STDR's train-time and FPS ratios to plain, per baseline, from matched runs only: for each
+    (scene, seed) the +STDR run's value over the plain run's, counted only when both runs had their
+    machine to themselves (scripts/idle_run.py's load.json) and ran on the same machine, then the
+    geometric mean over the counted pairs. So runs of one table may come from several machines
+    (a queue resumed elsewhere) without a time from one machine ever being divided by a time from
+    another. {baseline: {"train_seconds", "fps": ratio or None, "pairs": counted, "of": all pairs}}."""
+    by = {(r["method"], r["scene"], r["seed"]): r for r in use}
+    out = {}
+    for b in baselines:
+        keys = sorted({(sc, sd) for (m, sc, sd) in by if m == b and (b + "+STDR", sc, sd) in by})
+        rs: dict = {"train_seconds": [], "fps": []}
+        for sc, sd in keys:
+            p, s = by[(b, sc, sd)], by[(b + "+STDR", sc, sd)]
+            mach = [r["metrics"].get("conventions", {}).get("machine") for r in (p, s)]
+            if not (mach[0] and mach[0] == mach[1] and _idle(Path(p["run_dir"])) and _idle(Path(s["run_dir"]))):
+                continue
+            for k in rs:
+                if p["metrics"].get(k) and s["metrics"].get(k) is not None:
+                    rs[k].append(s["metrics"][k] / p["metrics"][k])
+        out[b] = {**{k: (statistics.geometric_mean(v) if v else None) for k, v in rs.items()},
+                  "pairs": len(rs["train_seconds"]), "of": len(keys)}
+    return out
 
 
 def headline_from_previous_table(recorded: int = 0):
@@ -138,9 +162,23 @@ def _ratio(s: dict, p: dict, key: str):
     return s[key] / p[key] if p.get(key) and s.get(key) is not None else None
 
 
-def headline_table(means, timed: bool) -> list[str]:
-    """`timed`: the runs were timed alone on their machine, so the train-time and FPS ratios of
-    +STDR to plain mean something (else "–")."""
+def _ratio_cell(ratios: dict | None, b: str, key: str) -> str:
+    """A time ratio for the table: '–' without matched pairs timed alone on one machine, and the
+    count of pairs used when that is not all of them."""
+    r = (ratios or {}).get(b)
+    if not r or r.get(key) is None:
+        return "–"
+    return _f(r[key]) + ("" if r["pairs"] == r["of"] else f" ({r['pairs']} of {r['of']} pairs)")
+
+
+RATIO_NOTE = ("Train s and FPS +STDR / plain: the geometric mean, over the (scene, seed) pairs, of the +STDR run's "
+              "value over the plain run's, counting only pairs whose two runs ran alone on one machine "
+              "(scripts/idle_run.py); \"–\" where no pair qualifies.")
+
+
+def headline_table(means, ratios: dict | None) -> list[str]:
+    """`ratios`: paired_time_ratios() of the table's runs, or None where the runs' times are not
+    comparable (then the time columns read "–")."""
     out = ["| baseline | plain PSNR↑ | +STDR PSNR↑ | Δ PSNR | plain LPIPS↓ | +STDR LPIPS↓ | seeds | "
            "Gaussians +STDR / plain | train s +STDR / plain | FPS +STDR / plain |",
            "|---|---|---|---|---|---|---|---|---|---|"]
@@ -154,24 +192,21 @@ def headline_table(means, timed: bool) -> list[str]:
         def cell(r):
             sd = r.get("psnr_std")
             return _f(r["psnr"]) + ("" if not sd else f" ± {sd:.2f}")
-        times = [_f(_ratio(s, p, k)) if timed else "–" for k in ("train_seconds", "fps")]
         out.append(f"| {b} | {cell(p)} | {cell(s)} | {s['psnr'] - p['psnr']:+.2f} | {_f(p.get('lpips'), 4)} "
                    f"| {_f(s.get('lpips'), 4)} | {min(p['n_seeds'], s['n_seeds'])} | {_f(_ratio(s, p, 'num_gaussians'))} "
-                   f"| {times[0]} | {times[1]} |")
+                   f"| {_ratio_cell(ratios, b, 'train_seconds')} | {_ratio_cell(ratios, b, 'fps')} |")
     return out
 
 
-def stdr_cost(means, timed: bool) -> str:
-    """The README's sentence on what STDR costs, from the table's ratios."""
-    if not timed:
-        return "STDR costs training time and render speed; see the results page."
-    pairs = [(means[b + "+STDR"], means[b]) for b in BASELINES if b in means and b + "+STDR" in means]
-    tr = [_ratio(s, p, "train_seconds") for s, p in pairs]
-    fps = [_ratio(s, p, "fps") for s, p in pairs]
-    if None in tr or None in fps:
+def stdr_cost(ratios: dict | None) -> str:
+    """The README's sentence on what STDR costs, from the table's paired ratios (every baseline
+    needs both ratios, else the sentence points to the results page)."""
+    rs = [(ratios or {}).get(b) or {} for b in BASELINES]
+    tr, fps = [r.get("train_seconds") for r in rs], [r.get("fps") for r in rs]
+    if not ratios or None in tr or None in fps:
         return "STDR costs training time and render speed; see the results page."
     return (f"STDR's cost here: training {min(tr):.2f}-{max(tr):.2f}x as long, rendering at "
-            f"{min(fps):.2f}-{max(fps):.2f}x the FPS (CPU rasterizer).")
+            f"{min(fps):.2f}-{max(fps):.2f}x the FPS (CPU rasterizer; geometric means over matched runs).")
 
 
 def stdr_effect(means) -> dict:
@@ -243,14 +278,14 @@ def build() -> tuple[str, str]:
             "",
             "## D-NeRF, four shared scenes, budget=cpu, test split", "",
             f"Runs: {prov['runs']} (the rerun: 4 baselines × plain/+STDR × bouncingballs, hellwarrior, "
-            "jumpingjacks, standup × seeds 0-2, one commit, one machine). "
+            "jumpingjacks, standup × seeds 0-2, one commit). "
             f"Code: {prov['code']}. Machine: {prov['machine']}. Command: `{prov['command']}`. "
             f"Source: `{prov['source']}`.", ""]
     if prov.get("caveat"):
         page += [f"**Caveat:** {prov['caveat']}", ""]
-    page += headline_table(means, prov.get("timed", False))
+    page += headline_table(means, prov.get("ratios"))
     page += ["", f"PSNR, LPIPS and Gaussians are means over the scenes (± the std over seeds of each seed's "
-             f"scene mean, where there are several seeds). Mean Δ over the {eff['n']} baselines: "
+             f"scene mean, where there are several seeds). {RATIO_NOTE} Mean Δ over the {eff['n']} baselines: "
              f"{eff['mean']:+.2f} dB (from {eff['min']:+.2f} to {eff['max']:+.2f}).", "",
              *([f"![PSNR against render FPS, the table's runs]({prov['chart']})", ""]
                if (ROOT / "docs" / prov["chart"]).is_file() else []),
@@ -286,12 +321,12 @@ def build() -> tuple[str, str]:
              "From [docs/results.md](docs/results.md) (generated):", ""]
     if prov.get("caveat"):
         block[-2] += f" **Caveat:** {prov['caveat']}"
-    block += headline_table(means, prov.get("timed", False))
+    block += headline_table(means, prov.get("ratios"))
     block += ["", f"**What STDR does here, and its scope.** On these four scenes ({seeds}) the mean Δ PSNR over the four "
               f"baselines is {eff['mean']:+.2f} dB (from {eff['min']:+.2f} to {eff['max']:+.2f}); on {ueff['n']} "
               f"baseline/scene pairs of D-NeRF scenes that are not in ../shared (one seed) it is "
               f"{ueff['mean']:+.2f} dB (from {ueff['min']:+.2f} to {ueff['max']:+.2f}), within one seed's noise. "
-              + stdr_cost(means, prov.get("timed", False)), ""]
+              + stdr_cost(prov.get("ratios")), ""]
     if (ROOT / "docs" / prov["chart"]).is_file():
         block += [f"![PSNR against render FPS, the table's runs](docs/{prov['chart']})"]
     block += [_markers("results")[1]]

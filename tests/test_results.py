@@ -65,28 +65,58 @@ def test_headline_waits_for_a_complete_seed_and_averages_only_complete_seeds(tmp
     assert means["scgs+STDR"]["psnr"] == pytest.approx(26.5)
 
 
-def _grid(runs: Path, idle_plain_a=True, machine_plain_a="test machine"):
+def _grid(runs: Path, idle_plain_a=True, machine_plain_a="test machine", idle_plain_b=True):
+    """deform on scenes a and b, seed 0: +STDR trains 1.5x as long and renders at 0.5x the FPS."""
     for stdr in (False, True):
         for sc in ("a", "b"):
-            first = not stdr and sc == "a"
+            plain_a, plain_b = not stdr and sc == "a", not stdr and sc == "b"
             _record(runs, "deform", stdr, sc, 0, 20.0 + stdr, train_s=100.0 * (1.5 if stdr else 1.0),
-                    fps=40.0 * (0.5 if stdr else 1.0), idle=idle_plain_a if first else True,
-                    machine=machine_plain_a if first else "test machine")
+                    fps=40.0 * (0.5 if stdr else 1.0),
+                    idle=idle_plain_a if plain_a else idle_plain_b if plain_b else True,
+                    machine=machine_plain_a if plain_a else "test machine")
 
 
-@pytest.mark.parametrize("case", ["idle", "shared", "no record", "two machines"])
-def test_time_ratios_only_from_runs_timed_alone_on_one_machine(tmp_path, case):
-    """The train-time and FPS ratios of +STDR to plain are shown only when every run of the table
-    had its machine to itself (load.json) and all ran on one machine; else "–"."""
+@pytest.mark.parametrize("case", ["idle", "shared", "no record", "two machines", "none alone"])
+def test_time_ratios_come_only_from_pairs_timed_alone_on_one_machine(tmp_path, case):
+    """A (scene, seed) pair's +STDR / plain time ratio counts only when both runs had their machine
+    to themselves (load.json) and ran on the same machine; the cell says how many pairs it used,
+    and reads "–" (the README sentence points to the results page) when none qualifies."""
     r = _results()
-    _grid(tmp_path, idle_plain_a={"idle": True, "shared": False, "no record": None, "two machines": True}[case],
-          machine_plain_a="other machine" if case == "two machines" else "test machine")
+    _grid(tmp_path, idle_plain_a={"idle": True, "shared": False, "no record": None, "two machines": True,
+                                  "none alone": False}[case],
+          machine_plain_a="other machine" if case == "two machines" else "test machine",
+          idle_plain_b=case != "none alone")
     means, prov = r.headline_from_records(tmp_path, ("deform",), ("a", "b"))
-    row = r.headline_table(means, prov["timed"])[2].split("|")
+    row = r.headline_table(means, prov["ratios"])[2].split("|")
     ratios = [c.strip() for c in row[-3:-1]]
     if case == "idle":
-        assert prov["timed"] and ratios == ["1.50", "0.50"]
-        assert "training 1.50-1.50x as long, rendering at 0.50-0.50x the FPS" in r.stdr_cost(means, True)
-    else:
-        assert not prov["timed"] and ratios == ["–", "–"]
-        assert "see the results page" in r.stdr_cost(means, prov["timed"])
+        assert ratios == ["1.50", "0.50"] and prov["ratios"]["deform"]["pairs"] == 2
+        assert "training 1.50-1.50x as long, rendering at 0.50-0.50x the FPS" in r.stdr_cost(prov["ratios"])
+    elif case == "none alone":
+        assert ratios == ["–", "–"] and prov["ratios"]["deform"]["pairs"] == 0
+        assert "see the results page" in r.stdr_cost(prov["ratios"])
+    else:  # scene a's pair is left out, scene b's counts
+        assert ratios == ["1.50 (1 of 2 pairs)", "0.50 (1 of 2 pairs)"]
+
+
+def test_time_ratios_are_geometric_means_of_per_pair_ratios(tmp_path):
+    """+STDR twice as slow to train on one scene and twice as fast on the other is no change (a
+    ratio of the means, (200 + 50) / (100 + 100), would say 1.25x), and a plain run 10x slower
+    than its +STDR pair on the other machine cannot tip it."""
+    r = _results()
+    for sc, plain_s, stdr_s in (("a", 100.0, 200.0), ("b", 100.0, 50.0)):
+        _record(tmp_path, "deform", False, sc, 0, 20.0, train_s=plain_s, fps=40.0, idle=True)
+        _record(tmp_path, "deform", True, sc, 0, 20.0, train_s=stdr_s, fps=10.0 if sc == "a" else 40.0, idle=True)
+    means, prov = r.headline_from_records(tmp_path, ("deform",), ("a", "b"))
+    got = prov["ratios"]["deform"]
+    assert got["train_seconds"] == pytest.approx(1.0) and got["fps"] == pytest.approx(0.5)
+    assert (got["pairs"], got["of"]) == (2, 2)
+    for stdr, train_s in ((False, 1000.0), (True, 100.0)):  # seed 1 on scene a: plain and +STDR on two machines
+        _record(tmp_path, "deform", stdr, "a", 1, 20.0, train_s=train_s, idle=True,
+                machine="other machine" if stdr else "test machine")
+    for stdr in (False, True):
+        _record(tmp_path, "deform", stdr, "b", 1, 20.0, train_s=100.0, fps=40.0, idle=True)
+    means, prov = r.headline_from_records(tmp_path, ("deform",), ("a", "b"))
+    got = prov["ratios"]["deform"]
+    assert (got["pairs"], got["of"]) == (3, 4) and got["train_seconds"] == pytest.approx(1.0)
+    assert "(3 of 4 pairs)" in r.headline_table(means, prov["ratios"])[2]
