@@ -1,14 +1,17 @@
-"""Contribution pruning study (docs/measurements/compact_prune/protocol.md): branch every
-headline seed-0 run at its step-1500 checkpoint into the protocol's variants, train the last 500
-steps, evaluate on val; then tabulate and apply the protocol's rule.
+"""Contribution pruning study (docs/measurements/compact_prune/protocol.md): branch each headline
+run (one seed, the trunk) at its step-1500 checkpoint into the protocol's variants, train the last
+500 steps, evaluate on val; then tabulate and apply the protocol's rule.
 
-    python studies/compact.py run DNERF_ROOT --headline WORK [--work DIR] [--code CHECKOUT]
+    python studies/compact.py run DNERF_ROOT --headline WORK --seed 2 [--follow] [--work DIR] [--code CHECKOUT]
     python studies/compact.py table [--records DIR]
 
-`run` is a resumable queue: a (method, scene, variant) whose records are committed is skipped;
-`touch WORK/pause` (its --work folder) makes it wait between runs. Records (config.yaml,
-metrics.json, history.json, train_profile.json; `identity.json` for the control) go to
-docs/measurements/compact_prune/runs/<experiment>/<scene>/<variant>/.
+`run` is a resumable queue: a (method, scene, variant) whose records are committed is skipped, and
+a cell whose trunk (WORK/<experiment>/<scene>/s<seed>, a finished headline run with its
+checkpoints) is not there yet waits; `--follow` keeps polling for new trunks while the headline
+queue trains them (scripts/idle_run.py's machine lock makes the two queues take turns), until
+every cell is recorded. `touch <--work>/pause` makes it wait between runs. Records (config.yaml,
+metrics.json, history.json, train_profile.json, load.json, branch.json; `identity.json` for the
+control) go to docs/measurements/compact_prune/runs/<experiment>/<scene>/<variant>/.
 """
 from __future__ import annotations
 
@@ -49,68 +52,98 @@ def same_parameters(a: Path, b: Path) -> dict:
     return {"identical": not diff and ma["step"] == mb["step"], "differing": diff, "steps": [ma["step"], mb["step"]]}
 
 
-def write_branch(ckpt: Path, rec: Path) -> None:
-    """branch.json: the step and training seconds of the checkpoint a branch started from (the
-    headline run's; its seconds were measured there, so the table reports the branch's own
-    seconds, the ones after it, separately)."""
+def branch_point(ckpt: Path) -> dict:
+    """The step and training seconds of the checkpoint a branch starts from (the headline run's; its
+    seconds were measured there, so the table reports the branch's own seconds separately)."""
     from stdr.train.checkpoint import load_checkpoint
     ck = load_checkpoint(ckpt)
-    (rec / "branch.json").write_text(json.dumps({"from_step": int(ck["model"]["step"]),
-                                                 "train_seconds_at_branch": float(ck["train_seconds"])}, indent=1))
+    return {"from_step": int(ck["model"]["step"]), "train_seconds_at_branch": float(ck["train_seconds"])}
+
+
+def trunk_dir(headline: Path, exp: str, scene: str, seed: int) -> Path:
+    return Path(headline) / exp / scene / f"s{seed}" / "checkpoints"
+
+
+def branch_once(args, code: Path, exp: str, scene: str, name: str, keys: list[str], src: Path, point: dict) -> str:
+    """Train one branch and record it: "recorded", "failed" or "shared" (not recorded: other jobs
+    used the machine)."""
+    rec = RECORDS / exp / scene / name
+    while (Path(args.work) / "pause").exists():
+        time.sleep(10)
+    run = Path(args.work) / exp / scene / name
+    if run.exists():
+        shutil.rmtree(run)  # a branch killed midway starts again from the checkpoint
+    (run / "checkpoints").mkdir(parents=True)
+    shutil.copy2(src / "last.previous.pt", run / "checkpoints" / "last.pt")
+    # `python -m` from the checkout imports its own stdr, whatever the environment's install
+    cmd = [str(code / "scripts" / "run.sh"), "python", "-m", "stdr.cli.train", f"experiment={exp}",
+           "budget=cpu", f"seed={args.seed}",
+           f"data.path={Path(args.dnerf) / scene}", f"data.name={scene}", "data.eval_split=val",
+           "train.progress=false", f"hydra.run.dir={run}", AT, *keys]
+    print(f"[compact] {time.strftime('%T')} {exp} {scene} {name} (trunk seed {args.seed})", flush=True)
+    load = Path(str(run) + ".load.json")  # scripts/idle_run.py: did it have the machine to itself?
+    with open(str(run) + ".log", "w") as log:
+        rc = subprocess.run([sys.executable, str(ROOT / "scripts" / "idle_run.py"), "--out", str(load),
+                             "--", *cmd], stdout=log, stderr=subprocess.STDOUT, cwd=code).returncode
+    if rc != 0 or not (run / "metrics.json").is_file():
+        print(f"[compact] FAILED {exp} {scene} {name} (log: {run}.log)", file=sys.stderr, flush=True)
+        return "failed"
+    if not json.loads(load.read_text())["idle"]:
+        print(f"[compact] SHARED {exp} {scene} {name}: other jobs used the machine ({load}); not "
+              "recorded, redone later", file=sys.stderr, flush=True)
+        return "shared"
+    rec.mkdir(parents=True, exist_ok=True)
+    (rec / "branch.json").write_text(json.dumps({**point, "trunk_seed": args.seed}, indent=1))
+    shutil.copy2(load, rec / "load.json")
+    for f in KEEP:
+        if (run / f).is_file():
+            shutil.copy2(run / f, rec / f)
+    if name == "control":
+        ident = same_parameters(run / "checkpoints" / "last.pt", src / "last.pt")
+        (rec / "identity.json").write_text(json.dumps(ident, indent=1))
+    return "recorded"
 
 
 def run_queue(args) -> int:
+    """Every (method, scene, variant) without records whose trunk is there; with --follow, again
+    every minute until all are recorded. A branch that fails is not retried in this process, one
+    that shared the machine up to three times."""
     code = Path(args.code).resolve()
-    failed = 0
-    for exp in (args.experiments or EXPERIMENTS):
-        for scene in SCENES:
-            src = Path(args.headline) / exp / scene / "s0" / "checkpoints"
+    failed, shared, warned = set(), {}, set()
+    while True:
+        todo = 0
+        for exp in (args.experiments or EXPERIMENTS):
             variants = {**VARIANTS, **(STDR_VARIANTS if exp.endswith("_stdr") else {})}
-            for name, keys in variants.items():
-                rec = RECORDS / exp / scene / name
-                if (rec / "metrics.json").is_file():
-                    if not (rec / "branch.json").is_file() and (src / "last.previous.pt").is_file():
-                        write_branch(src / "last.previous.pt", rec)  # records from before branch.json
-                    continue
-                if not (src / "last.previous.pt").is_file() or not (src / "last.pt").is_file():
-                    continue  # the headline run is not there yet
-                while (Path(args.work) / "pause").exists():
-                    time.sleep(10)
-                run = Path(args.work) / exp / scene / name
-                if run.exists():
-                    shutil.rmtree(run)  # a branch killed midway starts again from the checkpoint
-                (run / "checkpoints").mkdir(parents=True)
-                shutil.copy2(src / "last.previous.pt", run / "checkpoints" / "last.pt")
-                # `python -m` from the checkout imports its own stdr, whatever the environment's install
-                cmd = [str(code / "scripts" / "run.sh"), "python", "-m", "stdr.cli.train", f"experiment={exp}",
-                       "budget=cpu", "seed=0",
-                       f"data.path={Path(args.dnerf) / scene}", f"data.name={scene}", "data.eval_split=val",
-                       "train.progress=false", f"hydra.run.dir={run}", AT, *keys]
-                print(f"[compact] {time.strftime('%T')} {exp} {scene} {name}", flush=True)
-                load = Path(str(run) + ".load.json")  # scripts/idle_run.py: did it have the machine to itself?
-                with open(str(run) + ".log", "w") as log:
-                    rc = subprocess.run([sys.executable, str(ROOT / "scripts" / "idle_run.py"), "--out", str(load),
-                                         "--", *cmd], stdout=log, stderr=subprocess.STDOUT, cwd=code).returncode
-                if rc != 0 or not (run / "metrics.json").is_file():
-                    print(f"[compact] FAILED {exp} {scene} {name} (log: {run}.log)", file=sys.stderr, flush=True)
-                    failed += 1
-                    continue
-                if not json.loads(load.read_text())["idle"]:
-                    print(f"[compact] SHARED {exp} {scene} {name}: other jobs used the machine ({load}); not "
-                          "recorded, run the queue again", file=sys.stderr, flush=True)
-                    failed += 1
-                    continue
-                rec.mkdir(parents=True, exist_ok=True)
-                write_branch(src / "last.previous.pt", rec)
-                shutil.copy2(load, rec / "load.json")
-                for f in KEEP:
-                    if (run / f).is_file():
-                        shutil.copy2(run / f, rec / f)
-                if name == "control":
-                    ident = same_parameters(run / "checkpoints" / "last.pt", src / "last.pt")
-                    (rec / "identity.json").write_text(json.dumps(ident, indent=1))
-    print(f"[compact] done; {failed} failed")
-    return 1 if failed else 0
+            for scene in SCENES:
+                src = trunk_dir(args.headline, exp, scene, args.seed)
+                for name, keys in variants.items():
+                    cell = (exp, scene, name)
+                    if (RECORDS / exp / scene / name / "metrics.json").is_file() or cell in failed \
+                            or shared.get(cell, 0) >= 3:
+                        continue
+                    todo += 1
+                    if not (src / "last.previous.pt").is_file() or not (src / "last.pt").is_file():
+                        continue  # the headline run is not there yet (or still training)
+                    point = branch_point(src / "last.previous.pt")
+                    if point["from_step"] != BRANCH_STEP:
+                        if (exp, scene) not in warned:
+                            print(f"[compact] {src / 'last.previous.pt'}: step {point['from_step']}, not "
+                                  f"{BRANCH_STEP}; {exp} {scene} is skipped (protocol.md)", file=sys.stderr, flush=True)
+                            warned.add((exp, scene))
+                        failed.add(cell)
+                        continue
+                    status = branch_once(args, code, exp, scene, name, keys, src, point)
+                    if status == "failed":
+                        failed.add(cell)
+                    elif status == "shared":
+                        shared[cell] = shared.get(cell, 0) + 1
+                    else:
+                        todo -= 1
+        if not args.follow or todo == 0:
+            break
+        time.sleep(60)
+    print(f"[compact] done; {len(failed)} failed, {todo} not recorded")
+    return 1 if failed or todo else 0
 
 
 def load_records(root: Path) -> dict:
@@ -121,9 +154,10 @@ def load_records(root: Path) -> dict:
         entry = json.loads(m.read_text())["val"]
         ident = m.parent / "identity.json"
         entry["identity"] = json.loads(ident.read_text()) if ident.is_file() else None
-        br = m.parent / "branch.json"
-        entry["branch_seconds"] = (entry["train_seconds"] - json.loads(br.read_text())["train_seconds_at_branch"]
-                                   if br.is_file() else None)
+        br = json.loads((m.parent / "branch.json").read_text()) if (m.parent / "branch.json").is_file() else {}
+        entry["branch_seconds"] = (entry["train_seconds"] - br["train_seconds_at_branch"]
+                                   if "train_seconds_at_branch" in br else None)
+        entry["trunk_seed"] = br.get("trunk_seed", 0)  # records from before the key branched seed 0
         out[(exp, scene, variant)] = entry
     return out
 
@@ -171,12 +205,23 @@ def decide(recs: dict) -> dict:
             "choice": choice, "why": why, "m8_delta_psnr": m8, "mask_bits_8": mask8}
 
 
+def _machines(recs: dict) -> str:
+    n: dict = {}
+    for r in recs.values():
+        m = (r.get("conventions") or {}).get("machine", "not recorded")
+        n[m] = n.get(m, 0) + 1
+    return "; ".join(f"{k} ({v} runs)" for k, v in sorted(n.items())) or "–"
+
+
 def table(args) -> int:
     from stdr.eval.evaluate import code_version, machine_name
     recs = load_records(Path(args.records))
-    lines = ["# Contribution pruning on val (budget=cpu, seed 0, four shared D-NeRF scenes)", "",
+    seeds = sorted({r["trunk_seed"] for r in recs.values()})
+    lines = [f"# Contribution pruning on val (budget=cpu, trunk seed {', '.join(map(str, seeds)) or '–'}, "
+             "four shared D-NeRF scenes)", "",
              f"Generated by `python studies/compact.py table` from {len(recs)} records at commit "
              f"{code_version().get('commit', '?')[:10]} on {machine_name()}, {time.strftime('%Y-%m-%d')}. "
+             f"Runs' machines: {_machines(recs)}. "
              "Rule: protocol.md. Means over the scenes present (n).", "",
              "Train s: the branch's own seconds (steps 1500-2000, the pruning events included); the first "
              "1500 steps are the headline run's, timed there.", "",
@@ -214,6 +259,8 @@ def main(argv=None) -> int:
     r = sub.add_parser("run")
     r.add_argument("dnerf", help="folder with the D-NeRF scenes")
     r.add_argument("--headline", required=True, help="the headline queue's WORK_DIR (its run folders)")
+    r.add_argument("--seed", type=int, default=0, help="the trunks' seed: branch WORK/<exp>/<scene>/s<seed>")
+    r.add_argument("--follow", action="store_true", help="wait for trunks the headline queue has yet to train")
     r.add_argument("--work", default=str(ROOT / "outputs" / "compact"))
     r.add_argument("--code", default=str(ROOT), help="checkout whose scripts/run.sh trains (frozen at one commit)")
     r.add_argument("--experiments", nargs="*", choices=EXPERIMENTS, help="only these methods (default: all)")

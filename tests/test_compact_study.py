@@ -52,3 +52,62 @@ def test_the_8bit_mask_joins_only_without_a_measurable_loss():
     base = {"s30": lambda e: 0.0, "s30_tw1": lambda e: 0.0, "s50": lambda e: 0.0, "s50_tw1": lambda e: 0.0}
     assert decide(_recs({**base, "m8": lambda e: -0.01}))["mask_bits_8"] is True
     assert decide(_recs({**base, "m8": lambda e: -0.2 if e == "dnerf_4dgs_stdr" else 0.0}))["mask_bits_8"] is False
+
+
+def _queue(tmp_path, monkeypatch, scenes, step_of):
+    """studies.compact.run_queue with the training and checkpoint reads replaced: `step_of(scene)`
+    is the step of a trunk's last.previous.pt; each branch 'trains' by writing its metrics.json."""
+    import argparse
+
+    import studies.compact as c
+    monkeypatch.setattr(c, "RECORDS", tmp_path / "records")
+    monkeypatch.setattr(c, "SCENES", scenes)
+    calls = []
+
+    def fake_branch(args, code, exp, scene, name, keys, src, point):
+        calls.append((exp, scene, name, src))
+        rec = c.RECORDS / exp / scene / name
+        rec.mkdir(parents=True)
+        (rec / "metrics.json").write_text("{}")
+        return "recorded"
+    monkeypatch.setattr(c, "branch_once", fake_branch)
+    monkeypatch.setattr(c, "branch_point", lambda ck: {"from_step": step_of(ck.parent.parent.parent.name),
+                                                       "train_seconds_at_branch": 1.0})
+    args = argparse.Namespace(headline=str(tmp_path / "headline"), seed=2, follow=False, work=str(tmp_path / "work"),
+                              code=str(tmp_path), experiments=["dnerf_deform"], dnerf=str(tmp_path))
+    return c, args, calls
+
+
+def _trunk(tmp_path, scene, seed):
+    d = tmp_path / "headline" / "dnerf_deform" / scene / f"s{seed}" / "checkpoints"
+    d.mkdir(parents=True)
+    for f in ("last.pt", "last.previous.pt"):
+        (d / f).write_bytes(b"")
+
+
+def test_the_queue_branches_the_chosen_seeds_trunks_at_step_1500_only(tmp_path, monkeypatch):
+    c, args, calls = _queue(tmp_path, monkeypatch, ("a", "b", "c"), lambda scene: 1000 if scene == "b" else 1500)
+    _trunk(tmp_path, "a", 2)
+    _trunk(tmp_path, "b", 2)  # its step-1500 checkpoint is not there: skipped, never branched
+    _trunk(tmp_path, "c", 0)  # another seed's trunk: not this queue's
+    assert c.run_queue(args) == 1  # b and c are not recorded
+    assert {(scene, name) for _, scene, name, _ in calls} == {("a", v) for v in VARIANTS}
+    assert all(src.parent.name == "s2" for *_, src in calls)
+    calls.clear()
+    assert c.run_queue(args) == 1 and calls == []  # resumable: recorded cells are skipped
+
+
+def test_follow_waits_for_trunks_the_headline_queue_has_yet_to_train(tmp_path, monkeypatch):
+    c, args, calls = _queue(tmp_path, monkeypatch, ("a", "b"), lambda scene: 1500)
+    args.follow = True
+    _trunk(tmp_path, "a", 2)
+    sleeps = []
+
+    def sleep(s):  # while the queue waits, the headline queue finishes scene b's trunk
+        sleeps.append(s)
+        if len(sleeps) == 2:
+            _trunk(tmp_path, "b", 2)
+        assert len(sleeps) < 5
+    monkeypatch.setattr(c.time, "sleep", sleep)
+    assert c.run_queue(args) == 0
+    assert len(calls) == 2 * len(VARIANTS) and [n for _, s, n, _ in calls if s == "b"] == list(VARIANTS)
