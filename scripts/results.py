@@ -95,7 +95,7 @@ def headline_from_records(runs_dir: Path = HEADLINE_RUNS, baselines=BASELINES, s
         code = r["metrics"].get("code", {})
         c = (code.get("commit") or "not recorded")[:7] + ("+dirty" if code.get("dirty") else "")
         commits[c] = commits.get(c, 0) + 1
-    prov = {"runs": f"{len(use)} (seeds {', '.join(map(str, seeds))} complete; {len(runs)} of the "
+    prov = {"runs": f"{len(use)} (seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))} complete; {len(runs)} of the "
                     f"{HEADLINE_PLANNED} planned recorded so far)",
             "code": ", ".join(f"{k} ({v} runs)" for k, v in sorted(commits.items())),
             "machine": ", ".join(f"{k} ({v} runs)" for k, v in sorted(machines.items())),
@@ -199,11 +199,11 @@ def headline_table(means, ratios: dict | None) -> list[str]:
 
 
 def stdr_cost(ratios: dict | None) -> str:
-    """The README's sentence on what STDR costs, from the table's paired ratios (every baseline
-    needs both ratios, else the sentence points to the results page)."""
-    rs = [(ratios or {}).get(b) or {} for b in BASELINES]
+    """The README's sentence on what STDR costs, from the table's paired ratios (every baseline of
+    the table needs both ratios, else the sentence points to the results page)."""
+    rs = [ratios[b] for b in BASELINES if b in (ratios or {})]
     tr, fps = [r.get("train_seconds") for r in rs], [r.get("fps") for r in rs]
-    if not ratios or None in tr or None in fps:
+    if not rs or None in tr or None in fps:
         return "STDR costs training time and render speed; see the results page."
     return (f"STDR's cost here: training {min(tr):.2f}-{max(tr):.2f}x as long, rendering at "
             f"{min(fps):.2f}-{max(fps):.2f}x the FPS (CPU rasterizer; geometric means over matched runs).")
