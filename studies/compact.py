@@ -67,7 +67,7 @@ def trunk_dir(headline: Path, exp: str, scene: str, seed: int) -> Path:
 def branch_once(args, code: Path, exp: str, scene: str, name: str, keys: list[str], src: Path, point: dict) -> str:
     """Train one branch and record it: "recorded", "failed" or "shared" (not recorded: other jobs
     used the machine)."""
-    rec = RECORDS / exp / scene / name
+    rec = Path(args.records) / exp / scene / name
     while (Path(args.work) / "pause").exists():
         time.sleep(10)
     run = Path(args.work) / exp / scene / name
@@ -75,6 +75,9 @@ def branch_once(args, code: Path, exp: str, scene: str, name: str, keys: list[st
         shutil.rmtree(run)  # a branch killed midway starts again from the checkpoint
     (run / "checkpoints").mkdir(parents=True)
     shutil.copy2(src / "last.previous.pt", run / "checkpoints" / "last.pt")
+    # the trunk's final state, for the control's check: the headline queue may retrain the trunk
+    # (a run that shared the machine) while this branch runs
+    shutil.copy2(src / "last.pt", run / "trunk_last.pt")
     # `python -m` from the checkout imports its own stdr, whatever the environment's install
     cmd = [str(code / "scripts" / "run.sh"), "python", "-m", "stdr.cli.train", f"experiment={exp}",
            "budget=cpu", f"seed={args.seed}",
@@ -99,7 +102,7 @@ def branch_once(args, code: Path, exp: str, scene: str, name: str, keys: list[st
         if (run / f).is_file():
             shutil.copy2(run / f, rec / f)
     if name == "control":
-        ident = same_parameters(run / "checkpoints" / "last.pt", src / "last.pt")
+        ident = same_parameters(run / "checkpoints" / "last.pt", run / "trunk_last.pt")
         (rec / "identity.json").write_text(json.dumps(ident, indent=1))
     return "recorded"
 
@@ -117,13 +120,15 @@ def run_queue(args) -> int:
             for scene in SCENES:
                 src = trunk_dir(args.headline, exp, scene, args.seed)
                 for name, keys in variants.items():
+                    if args.variants and name not in args.variants:
+                        continue
                     cell = (exp, scene, name)
-                    if (RECORDS / exp / scene / name / "metrics.json").is_file() or cell in failed \
+                    if (Path(args.records) / exp / scene / name / "metrics.json").is_file() or cell in failed \
                             or shared.get(cell, 0) >= 3:
                         continue
                     todo += 1
-                    if not (src / "last.previous.pt").is_file() or not (src / "last.pt").is_file():
-                        continue  # the headline run is not there yet (or still training)
+                    if not (src.parent / "metrics.json").is_file() or not (src / "last.previous.pt").is_file():
+                        continue  # the headline run is not there yet, or still training
                     point = branch_point(src / "last.previous.pt")
                     if point["from_step"] != BRANCH_STEP:
                         if (exp, scene) not in warned:
@@ -261,6 +266,8 @@ def main(argv=None) -> int:
     r.add_argument("--headline", required=True, help="the headline queue's WORK_DIR (its run folders)")
     r.add_argument("--seed", type=int, default=0, help="the trunks' seed: branch WORK/<exp>/<scene>/s<seed>")
     r.add_argument("--follow", action="store_true", help="wait for trunks the headline queue has yet to train")
+    r.add_argument("--records", default=str(RECORDS), help="where the records go (default: the study's runs/)")
+    r.add_argument("--variants", nargs="*", choices=[*VARIANTS, *STDR_VARIANTS], help="only these variants (default: all)")
     r.add_argument("--work", default=str(ROOT / "outputs" / "compact"))
     r.add_argument("--code", default=str(ROOT), help="checkout whose scripts/run.sh trains (frozen at one commit)")
     r.add_argument("--experiments", nargs="*", choices=EXPERIMENTS, help="only these methods (default: all)")

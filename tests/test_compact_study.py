@@ -60,13 +60,12 @@ def _queue(tmp_path, monkeypatch, scenes, step_of):
     import argparse
 
     import studies.compact as c
-    monkeypatch.setattr(c, "RECORDS", tmp_path / "records")
     monkeypatch.setattr(c, "SCENES", scenes)
     calls = []
 
     def fake_branch(args, code, exp, scene, name, keys, src, point):
         calls.append((exp, scene, name, src))
-        rec = c.RECORDS / exp / scene / name
+        rec = Path(args.records) / exp / scene / name
         rec.mkdir(parents=True)
         (rec / "metrics.json").write_text("{}")
         return "recorded"
@@ -74,15 +73,19 @@ def _queue(tmp_path, monkeypatch, scenes, step_of):
     monkeypatch.setattr(c, "branch_point", lambda ck: {"from_step": step_of(ck.parent.parent.parent.name),
                                                        "train_seconds_at_branch": 1.0})
     args = argparse.Namespace(headline=str(tmp_path / "headline"), seed=2, follow=False, work=str(tmp_path / "work"),
-                              code=str(tmp_path), experiments=["dnerf_deform"], dnerf=str(tmp_path))
+                              code=str(tmp_path), experiments=["dnerf_deform"], dnerf=str(tmp_path),
+                              records=str(tmp_path / "records"), variants=None)
     return c, args, calls
 
 
-def _trunk(tmp_path, scene, seed):
+def _trunk(tmp_path, scene, seed, finished=True):
+    """A headline run folder with its checkpoints, and its metrics.json once it has finished."""
     d = tmp_path / "headline" / "dnerf_deform" / scene / f"s{seed}" / "checkpoints"
-    d.mkdir(parents=True)
+    d.mkdir(parents=True, exist_ok=True)
     for f in ("last.pt", "last.previous.pt"):
         (d / f).write_bytes(b"")
+    if finished:
+        (d.parent / "metrics.json").write_text("{}")
 
 
 def test_the_queue_branches_the_chosen_seeds_trunks_at_step_1500_only(tmp_path, monkeypatch):
@@ -98,9 +101,12 @@ def test_the_queue_branches_the_chosen_seeds_trunks_at_step_1500_only(tmp_path, 
 
 
 def test_follow_waits_for_trunks_the_headline_queue_has_yet_to_train(tmp_path, monkeypatch):
-    c, args, calls = _queue(tmp_path, monkeypatch, ("a", "b"), lambda scene: 1500)
+    # a trunk still training has an earlier checkpoint as last.previous.pt (step 1000 while it runs 1500-2000)
+    done = lambda scene: (tmp_path / "headline" / "dnerf_deform" / scene / "s2" / "metrics.json").is_file()  # noqa: E731
+    c, args, calls = _queue(tmp_path, monkeypatch, ("a", "b"), lambda scene: 1500 if done(scene) else 1000)
     args.follow = True
     _trunk(tmp_path, "a", 2)
+    _trunk(tmp_path, "b", 2, finished=False)  # still training: its last.previous.pt is not step 1500 yet
     sleeps = []
 
     def sleep(s):  # while the queue waits, the headline queue finishes scene b's trunk
