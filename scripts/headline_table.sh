@@ -15,7 +15,8 @@
 # worktree frozen at the table's commit; HEADLINE_DRY=1 prints the commands; HEADLINE_SEEDS picks
 # the seeds (default "0 1 2"). Run it on an otherwise idle machine: train seconds are reported.
 # To use the machine for something else meanwhile, `touch WORK_DIR/pause`: the queue finishes the
-# run in progress, then waits (no run is timed while paused) until the file is removed.
+# run in progress, then waits (no run is timed while paused) until the file is removed; any
+# WORK_DIR/pause.<name> does the same (studies/compact.py --hold uses WORK_DIR/pause.compact).
 set -uo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 ROOT=${1:?usage: headline_table.sh DNERF_ROOT [WORK_DIR]}
@@ -34,6 +35,7 @@ for s in $SCENES; do
 done
 EXPS=""
 for b in deform scgs spgs 4dgs; do EXPS+=" dnerf_$b dnerf_${b}_stdr"; done
+paused() { compgen -G "$WORK/pause*" | tr '\n' ' '; }
 failed=0
 left=0
 # a run that shared the machine (scripts/idle_run.py: other jobs took more than 5 % of it) is not
@@ -53,8 +55,10 @@ shared=0
       cmd=("$CODE/scripts/run.sh" stdr-train "experiment=$exp" budget=cpu "seed=$seed" "data.path=$ROOT/$scene"
            "data.name=$scene" data.eval_split=test train.progress=false "hydra.run.dir=$run")
       if [ "${HEADLINE_DRY:-0}" = 1 ]; then echo "${cmd[*]}"; continue; fi
-      [ -e "$WORK/pause" ] && echo "[headline] $(date +%T) paused ($WORK/pause)"
-      while [ -e "$WORK/pause" ]; do sleep 10; done
+      # WORK/pause (yours) or WORK/pause.<name> (a study that branches this queue's runs and wants
+      # the machine first, e.g. studies/compact.py --hold) stops the queue between runs
+      [ -n "$(paused)" ] && echo "[headline] $(date +%T) paused ($(paused))"
+      while [ -n "$(paused)" ]; do sleep 10; done
       echo "[headline] $(date +%T) $exp $scene seed $seed"
       rm -rf "$run"; mkdir -p "$run"
       if python3 "$here/scripts/idle_run.py" --out "$run.load.json" -- "${cmd[@]}" > "$run.log" 2>&1 \

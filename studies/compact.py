@@ -9,7 +9,8 @@ run (one seed, the trunk) at its step-1500 checkpoint into the protocol's varian
 a cell whose trunk (WORK/<experiment>/<scene>/s<seed>, a finished headline run with its
 checkpoints) is not there yet waits; `--follow` keeps polling for new trunks while the headline
 queue trains them (scripts/idle_run.py's machine lock makes the two queues take turns), until
-every cell is recorded. `touch <--work>/pause` makes it wait between runs. Records (config.yaml,
+every cell is recorded; `--hold` pauses the headline queue between its runs while branches are
+runnable (WORK/pause.compact), so a session's trunks are branched before it ends. `touch <--work>/pause` makes it wait between runs. Records (config.yaml,
 metrics.json, history.json, train_profile.json, load.json, branch.json; `identity.json` for the
 control) go to docs/measurements/compact_prune/runs/<experiment>/<scene>/<variant>/.
 """
@@ -109,44 +110,61 @@ def branch_once(args, code: Path, exp: str, scene: str, name: str, keys: list[st
 
 def run_queue(args) -> int:
     """Every (method, scene, variant) without records whose trunk is there; with --follow, again
-    every minute until all are recorded. A branch that fails is not retried in this process, one
-    that shared the machine up to three times."""
+    every --poll seconds until all are recorded. A branch that fails is not retried in this
+    process, one that shared the machine up to three times. With --hold, WORK/pause.compact
+    (WORK: the headline queue's folder) is kept while branches are runnable, so the headline
+    queue waits between its runs and a trunk's branches run before the next trunk is trained."""
+    import signal
     code = Path(args.code).resolve()
+    hold = Path(args.headline) / "pause.compact" if args.hold else None
+    prev = signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the `finally` below: never leave the hold
     failed, shared, warned = set(), {}, set()
-    while True:
-        todo = 0
-        for exp in (args.experiments or EXPERIMENTS):
-            variants = {**VARIANTS, **(STDR_VARIANTS if exp.endswith("_stdr") else {})}
-            for scene in SCENES:
-                src = trunk_dir(args.headline, exp, scene, args.seed)
-                for name, keys in variants.items():
-                    if args.variants and name not in args.variants:
-                        continue
-                    cell = (exp, scene, name)
-                    if (Path(args.records) / exp / scene / name / "metrics.json").is_file() or cell in failed \
-                            or shared.get(cell, 0) >= 3:
-                        continue
-                    todo += 1
-                    if not (src.parent / "metrics.json").is_file() or not (src / "last.previous.pt").is_file():
-                        continue  # the headline run is not there yet, or still training
-                    point = branch_point(src / "last.previous.pt")
-                    if point["from_step"] != BRANCH_STEP:
-                        if (exp, scene) not in warned:
-                            print(f"[compact] {src / 'last.previous.pt'}: step {point['from_step']}, not "
-                                  f"{BRANCH_STEP}; {exp} {scene} is skipped (protocol.md)", file=sys.stderr, flush=True)
-                            warned.add((exp, scene))
-                        failed.add(cell)
-                        continue
-                    status = branch_once(args, code, exp, scene, name, keys, src, point)
-                    if status == "failed":
-                        failed.add(cell)
-                    elif status == "shared":
-                        shared[cell] = shared.get(cell, 0) + 1
-                    else:
-                        todo -= 1
-        if not args.follow or todo == 0:
-            break
-        time.sleep(60)
+    try:
+        while True:
+            todo, ran = 0, 0
+            for exp in (args.experiments or EXPERIMENTS):
+                variants = {**VARIANTS, **(STDR_VARIANTS if exp.endswith("_stdr") else {})}
+                for scene in SCENES:
+                    src = trunk_dir(args.headline, exp, scene, args.seed)
+                    for name, keys in variants.items():
+                        if args.variants and name not in args.variants:
+                            continue
+                        cell = (exp, scene, name)
+                        if (Path(args.records) / exp / scene / name / "metrics.json").is_file() or cell in failed \
+                                or shared.get(cell, 0) >= 3:
+                            continue
+                        todo += 1
+                        if not (src.parent / "metrics.json").is_file() or not (src / "last.previous.pt").is_file():
+                            continue  # the headline run is not there yet, or still training
+                        point = branch_point(src / "last.previous.pt")
+                        if point["from_step"] != BRANCH_STEP:
+                            if (exp, scene) not in warned:
+                                print(f"[compact] {src / 'last.previous.pt'}: step {point['from_step']}, not "
+                                      f"{BRANCH_STEP}; {exp} {scene} is skipped (protocol.md)", file=sys.stderr,
+                                      flush=True)
+                                warned.add((exp, scene))
+                            failed.add(cell)
+                            continue
+                        if hold is not None:
+                            hold.touch()
+                        ran += 1
+                        status = branch_once(args, code, exp, scene, name, keys, src, point)
+                        if status == "failed":
+                            failed.add(cell)
+                        elif status == "shared":
+                            shared[cell] = shared.get(cell, 0) + 1
+                        else:
+                            todo -= 1
+            if not ran and hold is not None:
+                hold.unlink(missing_ok=True)  # nothing to branch: the headline queue goes on
+            if not args.follow or todo == 0:
+                break
+            if not ran:
+                time.sleep(args.poll)
+    finally:
+        if hold is not None:
+            hold.unlink(missing_ok=True)
+        signal.signal(signal.SIGTERM, prev)
     print(f"[compact] done; {len(failed)} failed, {todo} not recorded")
     return 1 if failed or todo else 0
 
@@ -267,6 +285,9 @@ def main(argv=None) -> int:
     r.add_argument("--seed", type=int, default=0, help="the trunks' seed: branch WORK/<exp>/<scene>/s<seed>")
     r.add_argument("--follow", action="store_true", help="wait for trunks the headline queue has yet to train")
     r.add_argument("--records", default=str(RECORDS), help="where the records go (default: the study's runs/)")
+    r.add_argument("--hold", action="store_true", help="pause the headline queue (WORK/pause.compact) while branches "
+                   "are runnable, so each trunk is branched before the next is trained")
+    r.add_argument("--poll", type=float, default=30.0, help="with --follow: seconds between looks for new trunks")
     r.add_argument("--variants", nargs="*", choices=[*VARIANTS, *STDR_VARIANTS], help="only these variants (default: all)")
     r.add_argument("--work", default=str(ROOT / "outputs" / "compact"))
     r.add_argument("--code", default=str(ROOT), help="checkout whose scripts/run.sh trains (frozen at one commit)")

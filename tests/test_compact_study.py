@@ -74,7 +74,7 @@ def _queue(tmp_path, monkeypatch, scenes, step_of):
                                                        "train_seconds_at_branch": 1.0})
     args = argparse.Namespace(headline=str(tmp_path / "headline"), seed=2, follow=False, work=str(tmp_path / "work"),
                               code=str(tmp_path), experiments=["dnerf_deform"], dnerf=str(tmp_path),
-                              records=str(tmp_path / "records"), variants=None)
+                              records=str(tmp_path / "records"), variants=None, hold=False, poll=60.0)
     return c, args, calls
 
 
@@ -117,3 +117,27 @@ def test_follow_waits_for_trunks_the_headline_queue_has_yet_to_train(tmp_path, m
     monkeypatch.setattr(c.time, "sleep", sleep)
     assert c.run_queue(args) == 0
     assert len(calls) == 2 * len(VARIANTS) and [n for _, s, n, _ in calls if s == "b"] == list(VARIANTS)
+
+
+def test_hold_pauses_the_headline_queue_only_while_branches_are_runnable(tmp_path, monkeypatch):
+    """--hold: WORK/pause.compact exists while a branch trains, is gone while the queue waits for
+    the next trunk, and is removed when the queue ends."""
+    c, args, calls = _queue(tmp_path, monkeypatch, ("a", "b"), lambda scene: 1500)
+    args.follow, args.hold = True, True
+    hold = tmp_path / "headline" / "pause.compact"
+    _trunk(tmp_path, "a", 2)
+    seen = []
+    inner = c.branch_once
+
+    def branch(*a):
+        seen.append(("branch", hold.exists()))
+        return inner(*a)
+    monkeypatch.setattr(c, "branch_once", branch)
+
+    def sleep(s):
+        seen.append(("wait", hold.exists()))
+        _trunk(tmp_path, "b", 2)
+    monkeypatch.setattr(c.time, "sleep", sleep)
+    assert c.run_queue(args) == 0
+    assert seen == [("branch", True)] * len(VARIANTS) + [("wait", False)] + [("branch", True)] * len(VARIANTS)
+    assert not hold.exists()

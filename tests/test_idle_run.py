@@ -68,3 +68,35 @@ def test_a_second_headline_queue_on_one_work_dir_refuses_to_start(tmp_path):
         assert second.returncode == 3 and "another queue is running" in second.stderr
     alone = subprocess.run(cmd, capture_output=True, text=True, env=env)  # the lock is free again
     assert alone.returncode == 0 and "stdr-train experiment=dnerf_deform budget=cpu seed=99" in alone.stdout, alone.stderr
+
+
+def test_a_studys_pause_file_stops_the_headline_queue_before_its_next_run(tmp_path):
+    """WORK_DIR/pause.<name> (studies/compact.py --hold) pauses scripts/headline_table.sh between
+    runs, as WORK_DIR/pause does: no run starts while it is there."""
+    import os
+    import signal
+    import time
+    root = tmp_path / "dnerf"
+    for s in ("bouncingballs", "hellwarrior", "jumpingjacks", "standup"):
+        (root / s).mkdir(parents=True)
+        (root / s / "transforms_train.json").write_text("{}")
+    code = tmp_path / "code"
+    (code / "scripts").mkdir(parents=True)
+    marker = tmp_path / "trained"
+    (code / "scripts" / "run.sh").write_text(f"#!/bin/sh\ntouch {marker}\n")
+    (code / "scripts" / "run.sh").chmod(0o755)
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "pause.compact").write_text("")
+    env = {"HEADLINE_SEEDS": "99", "HEADLINE_CODE": str(code), "PATH": "/usr/bin:/bin",
+           "STDR_IDLE_LOCK": str(tmp_path / "machine.lock")}
+    proc = subprocess.Popen(["bash", str(ROOT / "scripts" / "headline_table.sh"), str(root), str(work)],
+                            stdout=subprocess.PIPE, text=True, env=env, start_new_session=True)
+    try:
+        line = proc.stdout.readline()  # the first thing it says
+        assert "paused (" in line and "pause.compact" in line, line
+        time.sleep(1.5)
+        assert not marker.exists() and proc.poll() is None  # still waiting, nothing trained
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
