@@ -63,6 +63,10 @@ def test_headline_waits_for_a_complete_seed_and_averages_only_complete_seeds(tmp
     assert means["deform"]["psnr"] == pytest.approx(45.0) and means["deform"]["n_seeds"] == 2
     assert means["deform"]["psnr_std"] == pytest.approx(((25 - 45) ** 2 + (65 - 45) ** 2) ** 0.5)
     assert means["scgs+STDR"]["psnr"] == pytest.approx(26.5)
+    # the mean Δ of each seed alone: seed 0: +1 for both baselines; seed 1: deform+STDR (22 + 32) / 2 = 27
+    # against plain 65 (-38), scgs +1
+    assert prov["delta_by_seed"] == pytest.approx({0: 1.0, 1: (-38.0 + 1.0) / 2})
+    assert r._by_seed(prov) == "; by seed: +1.00 (seed 0), -18.50 (seed 1)"
 
 
 def _grid(runs: Path, idle_plain_a=True, machine_plain_a="test machine", idle_plain_b=True):
