@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..render import compiled as compiled_backend
 from .base import BaselineConfig, Deformation, Deltas, apply_pre_activation
 from .registry import register_baseline
 
@@ -38,6 +39,11 @@ class HexPlaneConfig:
     plane_tv: float = 1e-4
     time_smooth: float = 1e-2
     l1_time: float = 1e-4
+    # the field's sampling (features forward, planes' gradients backward) as one compiled kernel
+    # (stdr.render.compiled.hexplane_compiled) instead of the torch ops: null = where it has been
+    # verified (HEXPLANE_COMPILED_VERIFIED: the CPU; the CUDA kernel is built but has not run on a
+    # GPU yet), true = required (an error where it cannot be built), false = torch
+    compiled: Optional[bool] = None
 
 
 @dataclass
@@ -69,6 +75,10 @@ def hexplane_time_res(b, train_times: Optional[np.ndarray]) -> int:
                          "holds them (stdr.model.load_model), or set baseline.hexplane.time_res")
     return max(2, len(train_times) // 2)
 
+
+# the devices where baseline.hexplane.compiled=null uses the compiled sampling (the parity tests
+# of tests/test_compiled.py have run there; on CUDA once a GPU check has run them)
+HEXPLANE_COMPILED_VERIFIED = ("cpu",)
 
 PAIRS = list(itertools.combinations(range(4), 2))  # (0,1) (0,2) (0,3) (1,2) (1,3) (2,3)
 TIME_PLANES = [i for i, p in enumerate(PAIRS) if 3 in p]   # 2, 4, 5
@@ -162,8 +172,9 @@ def second_difference_smoothness(plane: Tensor) -> Tensor:
 
 class HexPlaneField(nn.Module):
     def __init__(self, base_res: int = 64, multires: Sequence[int] = (1, 2), channels: int = 32,
-                 time_res: int = 25):
+                 time_res: int = 25, compiled: Optional[bool] = None):
         super().__init__()
+        self.compiled = compiled
         if time_res < 2:
             raise ValueError(f"HexPlane time resolution must be >= 2, got {time_res}")
         self.channels, self.multires = channels, tuple(multires)
@@ -195,8 +206,34 @@ class HexPlaneField(nn.Module):
         tt = torch.full_like(x[:, :1], 2.0 * float(t) - 1.0)
         return torch.cat([x, tt], -1)
 
+    def compiled_kind(self, c: Tensor) -> Optional[str]:
+        """The compiled backend that samples coordinates `c` ('cpu' / 'cuda'), or None for the
+        torch ops (baseline.hexplane.compiled; coordinates that need a gradient always take torch)."""
+        if self.compiled is False or c.requires_grad:
+            return None
+        kind = c.device.type
+        supported = kind in ("cpu", "cuda") and c.dtype in ((torch.float32,) if kind == "cuda" else
+                                                            (torch.float32, torch.float64))
+        if self.compiled is None:
+            return kind if supported and kind in HEXPLANE_COMPILED_VERIFIED and compiled_backend.available(kind) else None
+        if not supported:
+            raise ValueError(f"baseline.hexplane.compiled=true: no compiled HexPlane sampling for {c.dtype} on {kind}; "
+                             "set baseline.hexplane.compiled=null (or false) to use the torch ops")
+        if not compiled_backend.available(kind):
+            raise RuntimeError(f"baseline.hexplane.compiled=true, but the {kind} extension could not be built: "
+                               f"{compiled_backend.build_error(kind)}; set baseline.hexplane.compiled=null (or false)")
+        return kind
+
     def forward(self, xyz: Tensor, t: float) -> Tensor:  # [N, 3] -> [N, feat_dim]
         c = self.normalize(xyz, t)
+        kind = self.compiled_kind(c)
+        if kind is not None:
+            return compiled_backend.hexplane_compiled(c, [p for planes in self.grids for p in planes], kind)
+        return self.features_torch(c, t)
+
+    def features_torch(self, c: Tensor, t: float) -> Tensor:
+        """The features of normalized coordinates c [N, 4] (time 2t - 1) in torch ops: the twin
+        of the compiled sampling."""
         tc = 2.0 * float(t) - 1.0  # c[:, 3], one value: the time planes are sampled by row
         feats = []
         for planes in self.grids:
@@ -228,15 +265,16 @@ class HexPlaneDeformation(Deformation):
         return dict(base_res=c.base_res, multires=list(c.multires), channels=c.channels,
                     time_res=hexplane_time_res(b, train_times), depth=b.depth, width=b.width, cond_dim=cond_dim,
                     head_init_std=b.head_init_std, grid_lr_mult=c.grid_lr_mult,
-                    weights={"plane_tv": c.plane_tv, "time_smooth": c.time_smooth, "l1_time": c.l1_time})
+                    weights={"plane_tv": c.plane_tv, "time_smooth": c.time_smooth, "l1_time": c.l1_time},
+                    compiled=getattr(c, "compiled", None))
 
     def __init__(self, base_res: int = 64, multires: Sequence[int] = (1, 2), channels: int = 32,
                  time_res: int = 25, depth: int = 0, width: int = 64, cond_dim: int = 0,
                  head_init_std: Optional[float] = None, grid_lr_mult: float = 10.0,
-                 weights: Optional[dict] = None):
+                 weights: Optional[dict] = None, compiled: Optional[bool] = None):
         super().__init__()
         self.cond_dim = cond_dim
-        self.grid = HexPlaneField(base_res, multires, channels, time_res)
+        self.grid = HexPlaneField(base_res, multires, channels, time_res, compiled=compiled)
         self.grid_lr_mult = grid_lr_mult
         self.weights = dict(weights or {"plane_tv": 1e-4, "time_smooth": 1e-2, "l1_time": 1e-4})
         layers: list[nn.Module] = [nn.Linear(self.grid.feat_dim + cond_dim, width)]

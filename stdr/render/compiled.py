@@ -30,7 +30,7 @@ from torch.autograd.function import once_differentiable
 CSRC = Path(__file__).resolve().parent / "csrc"
 CPU_SOURCES = [CSRC / "cpu" / "raster_cpu.cpp"]
 CUDA_SOURCES = [CSRC / "cuda" / "raster_cuda.cpp", CSRC / "cuda" / "raster_kernels.cu"]
-HEADERS = [CSRC / "raster_math.h", CSRC / "project_math.h", CSRC / "cpu" / "raster_simd.h",
+HEADERS = [CSRC / "raster_math.h", CSRC / "project_math.h", CSRC / "hexplane_math.h", CSRC / "cpu" / "raster_simd.h",
            CSRC / "cuda" / "raster_kernels.h"]
 PORTABLE_ENV = "STDR_PORTABLE_BUILD"  # =1: no -march=native (e.g. a cache shared by machines)
 
@@ -375,3 +375,47 @@ def project_sh_compiled(means: Tensor, quats: Tensor, scales: Tensor, opacities:
         means, quats, scales, opacities, sh, cam, int(camera.width), int(camera.height), bool(antialiased),
         int(sh_degree), ext)
     return Projection(means2d=means2d, depths=depths, conics=conics, opacities=opac, radii=radii), colors
+
+
+class _HexPlane(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, coords, ext, *planes):
+        feats, others = ext.hexplane_forward(coords, list(planes))
+        ctx.save_for_backward(coords, others, *planes)
+        ctx.ext = ext
+        return feats
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g):
+        coords, others, *planes = ctx.saved_tensors
+        grads = ctx.ext.hexplane_backward(coords, list(planes), others, g.to(coords.dtype).contiguous())
+        return (None, None, *grads)
+
+
+def hexplane_compiled(coords: Tensor, planes: list[Tensor], kind: str = "cpu") -> Tensor:
+    """A HexPlane field's features in one compiled pass, forward and backward (the planes'
+    gradients; the coordinates get none): [N, M*C] = for each scale m (6 planes each, in the
+    order of `stdr.deform.hexplane.PAIRS`), the product over its planes of the bilinear samples
+    at the coordinate pairs, zero outside the planes (grid_sample, align_corners=True). The
+    torch twin is `stdr.deform.hexplane.HexPlaneField.features_torch`; tests/test_compiled.py
+    pins the two together. The CPU backward is deterministic; the CUDA one adds atomically.
+
+    coords [N, 4] in [-1, 1] (x, y, z, t), planes 6*M tensors [C, H, W] (one C)."""
+    want = (torch.float32,) if kind == "cuda" else (torch.float32, torch.float64)
+    if coords.dim() != 2 or coords.shape[1] != 4:
+        raise ValueError(f"stdr hexplane: coords must be [N, 4], got {list(coords.shape)}")
+    if not planes or len(planes) % 6 or len(planes) > 48:
+        raise ValueError(f"stdr hexplane: planes must be 6 per scale (at most 8 scales), got {len(planes)}")
+    dev = "cuda" if kind == "cuda" else "cpu"
+    for i, t in enumerate([coords, *planes]):
+        name = "coords" if i == 0 else f"plane {i - 1}"
+        if t.dtype != coords.dtype or t.dtype not in want:
+            raise ValueError(f"stdr {kind} hexplane: {name} is {t.dtype}; every input must be one of {want}")
+        if t.device.type != dev or t.device != coords.device:
+            raise ValueError(f"stdr {kind} hexplane: {name} is on {t.device}; every input must be on {coords.device} "
+                             f"({dev})")
+        if i and (t.dim() != 3 or t.shape[0] != planes[0].shape[0]):
+            raise ValueError(f"stdr hexplane: {name} must be [C, H, W] with C={planes[0].shape[0]}, got {list(t.shape)}")
+    ext = load_extension(kind)
+    return _HexPlane.apply(coords.detach().contiguous(), ext, *[p.contiguous() for p in planes])

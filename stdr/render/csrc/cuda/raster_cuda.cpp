@@ -7,6 +7,7 @@
 #include <c10/cuda/CUDAStream.h>
 
 #include "../raster_math.h"
+#include "../hexplane_math.h"
 #include "raster_kernels.h"
 
 namespace {
@@ -191,6 +192,64 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
   return {gm, gq, gs, go, gh};
 }
 
+// ---------------------------------------------------------------- HexPlane sampling
+
+stdr_cuda::HexPlanes hex_planes(const at::Tensor& coords, const std::vector<at::Tensor>& planes,
+                                const std::vector<at::Tensor>* grads) {
+  TORCH_CHECK(coords.is_cuda() && coords.is_contiguous() && coords.scalar_type() == at::kFloat &&
+                  coords.dim() == 2 && coords.size(1) == 4,
+              "stdr CUDA hexplane: coords must be a contiguous float32 [N, 4] CUDA tensor");
+  TORCH_CHECK(!planes.empty() && planes.size() % stdr::HEX_PLANES == 0 &&
+                  (int)planes.size() <= stdr_cuda::HEX_MAX_PLANES,
+              "stdr CUDA hexplane: planes must be 6 per scale, at most 8 scales");
+  stdr_cuda::HexPlanes pl;
+  pl.M = (int)(planes.size() / stdr::HEX_PLANES);
+  pl.C = (int)planes[0].size(0);
+  for (size_t q = 0; q < planes.size(); ++q) {
+    const auto& t = planes[q];
+    TORCH_CHECK(t.is_cuda() && t.get_device() == coords.get_device() && t.is_contiguous() &&
+                    t.scalar_type() == at::kFloat && t.dim() == 3 && t.size(0) == pl.C,
+                "stdr CUDA hexplane: planes must be contiguous float32 [C, H, W] tensors on the coords' GPU");
+    pl.ptr[q] = t.data_ptr<float>();
+    pl.grad[q] = grads ? (*grads)[q].data_ptr<float>() : nullptr;
+    pl.H[q] = (int)t.size(1);
+    pl.W[q] = (int)t.size(2);
+  }
+  return pl;
+}
+
+std::vector<at::Tensor> hexplane_forward(at::Tensor coords, std::vector<at::Tensor> planes) {
+  const auto pl = hex_planes(coords, planes, nullptr);
+  const at::cuda::CUDAGuard guard(coords.device());
+  auto stream = c10::cuda::getCurrentCUDAStream().stream();
+  const int64_t N = coords.size(0);
+  auto feats = at::empty({N, (int64_t)pl.M * pl.C}, coords.options());
+  auto others = at::empty({N, (int64_t)pl.M, stdr::HEX_PLANES, (int64_t)pl.C}, coords.options());
+  stdr_cuda::hexplane_forward(pl, N, coords.data_ptr<float>(), feats.data_ptr<float>(), others.data_ptr<float>(),
+                              stream);
+  C10_CUDA_CHECK(cudaGetLastError());
+  return {feats, others};
+}
+
+std::vector<at::Tensor> hexplane_backward(at::Tensor coords, std::vector<at::Tensor> planes, at::Tensor others,
+                                          at::Tensor g_feats) {
+  std::vector<at::Tensor> grads;
+  for (const auto& t : planes) grads.push_back(at::zeros_like(t));
+  const auto pl = hex_planes(coords, planes, &grads);
+  const int64_t N = coords.size(0);
+  TORCH_CHECK(others.is_cuda() && others.is_contiguous() && others.numel() == N * pl.M * stdr::HEX_PLANES * pl.C,
+              "stdr CUDA hexplane backward: others must be the forward's");
+  TORCH_CHECK(g_feats.is_cuda() && g_feats.is_contiguous() && g_feats.scalar_type() == at::kFloat &&
+                  g_feats.numel() == N * pl.M * pl.C,
+              "stdr CUDA hexplane backward: g_feats must be a contiguous float32 [N, M*C] CUDA tensor");
+  const at::cuda::CUDAGuard guard(coords.device());
+  auto stream = c10::cuda::getCurrentCUDAStream().stream();
+  stdr_cuda::hexplane_backward(pl, N, coords.data_ptr<float>(), others.data_ptr<float>(), g_feats.data_ptr<float>(),
+                               stream);
+  C10_CUDA_CHECK(cudaGetLastError());
+  return grads;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -199,4 +258,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("score", &score, "contribution score: blending weight summed per Gaussian (CUDA)");
   m.def("project_forward", &project_forward, "projection and SH forward (CUDA)");
   m.def("project_backward", &project_backward, "projection and SH backward (CUDA)");
+  m.def("hexplane_forward", &hexplane_forward, "HexPlane features and the others-products (CUDA)");
+  m.def("hexplane_backward", &hexplane_backward, "HexPlane plane gradients (CUDA, atomic adds)");
 }

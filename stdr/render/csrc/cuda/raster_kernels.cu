@@ -2,6 +2,7 @@
 // header's (raster_math.h), the same functions the CPU backend runs and the CPU tests check.
 #include "raster_kernels.h"
 #include "../raster_math.h"
+#include "../hexplane_math.h"
 
 namespace stdr_cuda {
 namespace {
@@ -335,6 +336,69 @@ __global__ void project_backward_kernel(stdr::ProjCam<float> cam, int64_t N, con
   stdr::project_backward_one<float>(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, opac[i], sh + k3,
                                     g_m2d + 2 * i, g_depth[i], g_conic + 3 * i, g_opac[i], g_color + 3 * i,
                                     g_means + 3 * i, g_quats + 4 * i, g_scales + 3 * i, g_opac_in + i, g_sh + k3);
+}
+
+__global__ void hexplane_forward_kernel(HexPlanes pl, int64_t N, const float* __restrict__ coords,
+                                        float* __restrict__ feats, float* __restrict__ others) {
+  const int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;  // (n, m, c), c fastest
+  const int64_t MC = (int64_t)pl.M * pl.C;
+  if (i >= N * MC) return;
+  const int64_t n = i / MC;
+  const int m = (int)((i % MC) / pl.C), c = (int)(i % pl.C);
+  const float* cn = coords + 4 * n;
+  float s[stdr::HEX_PLANES];
+  for (int p = 0; p < stdr::HEX_PLANES; ++p) {
+    const int q = m * stdr::HEX_PLANES + p;
+    int64_t off[4];
+    float w[4];
+    stdr::hex_corners<float>(cn[stdr::hex_u(p)], cn[stdr::hex_v(p)], pl.H[q], pl.W[q], off, w);
+    s[p] = stdr::hex_sample<float>(pl.ptr[q] + (int64_t)c * pl.H[q] * pl.W[q], off, w);
+  }
+  float pre = 1.0f, suf[stdr::HEX_PLANES + 1];
+  suf[stdr::HEX_PLANES] = 1.0f;
+  for (int p = stdr::HEX_PLANES - 1; p >= 0; --p) suf[p] = s[p] * suf[p + 1];
+  float* orow = others + ((n * pl.M + m) * stdr::HEX_PLANES) * pl.C + c;
+  for (int p = 0; p < stdr::HEX_PLANES; ++p) {
+    orow[(int64_t)p * pl.C] = pre * suf[p + 1];
+    pre = pre * s[p];
+  }
+  feats[i] = pre;
+}
+
+__global__ void hexplane_backward_kernel(HexPlanes pl, int64_t N, const float* __restrict__ coords,
+                                         const float* __restrict__ others, const float* __restrict__ g_feats) {
+  const int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  const int64_t MC = (int64_t)pl.M * pl.C;
+  if (i >= N * MC) return;
+  const int64_t n = i / MC;
+  const int m = (int)((i % MC) / pl.C), c = (int)(i % pl.C);
+  const float g = g_feats[i];
+  const float* cn = coords + 4 * n;
+  const float* orow = others + ((n * pl.M + m) * stdr::HEX_PLANES) * pl.C + c;
+  for (int p = 0; p < stdr::HEX_PLANES; ++p) {
+    const int q = m * stdr::HEX_PLANES + p;
+    int64_t off[4];
+    float w[4];
+    stdr::hex_corners<float>(cn[stdr::hex_u(p)], cn[stdr::hex_v(p)], pl.H[q], pl.W[q], off, w);
+    const float gv = g * orow[(int64_t)p * pl.C];
+    float* out = pl.grad[q] + (int64_t)c * pl.H[q] * pl.W[q];
+    for (int k = 0; k < 4; ++k)
+      if (w[k] != 0.0f) atomicAdd(out + off[k], gv * w[k]);
+  }
+}
+
+void hexplane_forward(const HexPlanes& planes, int64_t N, const float* coords, float* feats, float* others,
+                      cudaStream_t stream) {
+  const int64_t total = N * planes.M * planes.C;
+  if (total == 0) return;
+  hexplane_forward_kernel<<<(unsigned)((total + 255) / 256), 256, 0, stream>>>(planes, N, coords, feats, others);
+}
+
+void hexplane_backward(const HexPlanes& planes, int64_t N, const float* coords, const float* others,
+                       const float* g_feats, cudaStream_t stream) {
+  const int64_t total = N * planes.M * planes.C;
+  if (total == 0) return;
+  hexplane_backward_kernel<<<(unsigned)((total + 255) / 256), 256, 0, stream>>>(planes, N, coords, others, g_feats);
 }
 
 void project_forward(const stdr::ProjCam<float>& cam, int64_t N, const float* means, const float* quats,

@@ -10,6 +10,15 @@
 
 namespace stdr_cuda {
 
+// the planes of a HexPlane field (6 per scale, at most HEX_MAX_PLANES), passed by value to the kernels
+constexpr int HEX_MAX_PLANES = 48;
+struct HexPlanes {
+  const float* ptr[HEX_MAX_PLANES];
+  float* grad[HEX_MAX_PLANES];
+  int H[HEX_MAX_PLANES], W[HEX_MAX_PLANES];
+  int M, C;
+};
+
 // packed[v] = [mx, my, a, b, c, o, f_0..f_{F-1}] of Gaussian order[v]; vradii[v] = radii[order[v]]
 void pack_rows(const float* means2d, const float* conics, const float* opac, const float* feats,
                const int32_t* radii, const int64_t* order, int64_t V, int F, float* packed,
@@ -52,5 +61,15 @@ void project_backward(const stdr::ProjCam<float>& cam, int64_t N, const float* m
                       const float* g_depth, const float* g_conic, const float* g_opac, const float* g_color,
                       float* g_means, float* g_quats, float* g_scales, float* g_opac_in, float* g_sh,
                       cudaStream_t stream);
+
+// One thread per (point, scale, channel): the HexPlane features feats [N, M*C] and, for each
+// plane, the product of the five other samples, others [N, M, 6, C] (hexplane_math.h).
+void hexplane_forward(const HexPlanes& planes, int64_t N, const float* coords, float* feats, float* others,
+                      cudaStream_t stream);
+
+// One thread per (point, scale, channel): the planes' gradients (planes.grad, zeroed by the
+// caller) of sum(g_feats * feats), by atomic adds.
+void hexplane_backward(const HexPlanes& planes, int64_t N, const float* coords, const float* others,
+                       const float* g_feats, cudaStream_t stream);
 
 }  // namespace stdr_cuda

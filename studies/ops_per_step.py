@@ -1,0 +1,140 @@
+"""ATen operators dispatched by one ordinary training step, per section of the trainer's profiler.
+
+A machine-independent proxy for the launches of a GPU step (the step is launch-bound there:
+docs/performance.md) and for the Python overhead of a CPU step. For each experiment: the
+trainer at budget=cpu on a D-NeRF scene, set near the end of its schedule (every phase on:
+the deformation, STDR's frozen mask, the full SH degree; densification off), three untimed
+steps, then one step counted with `stdr.train.syncs.OpCounter`, split by profiler section
+(deform, render_fwd, loss, regularizers, backward, guard, optimizer, densify) with the most
+frequent operators of each. Counts are deterministic: they do not depend on the machine.
+
+    python studies/ops_per_step.py --scene ../shared/data/dnerf/jumpingjacks --label after \\
+        --out docs/measurements/ops_per_step
+    python studies/ops_per_step.py --compare docs/measurements/ops_per_step/before.json \\
+        docs/measurements/ops_per_step/after.json --out docs/measurements/ops_per_step
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import tempfile
+from collections import Counter, defaultdict
+from contextlib import contextmanager
+from pathlib import Path
+
+EXPERIMENTS = ["dnerf_deform", "dnerf_deform_stdr", "dnerf_scgs", "dnerf_scgs_stdr", "dnerf_spgs",
+               "dnerf_spgs_stdr", "dnerf_4dgs", "dnerf_4dgs_stdr"]
+
+
+def count(exp: str, scene: Path, overrides: list[str]) -> dict:
+    import torch  # noqa: F401  (imported here: --compare needs no torch)
+
+    from stdr.cli.common import compose_config
+    from stdr.train.syncs import OpCounter
+    from stdr.train.trainer import Profiler, Trainer
+
+    class SectionCounter(Profiler):
+        """The trainer's profiler, counting operators per section instead of timing."""
+
+        def __init__(self, oc):
+            super().__init__()
+            self.oc, self.ops, self.by_op = oc, Counter(), defaultdict(Counter)
+
+        @contextmanager
+        def __call__(self, name):
+            n0, b0 = self.oc.ops, Counter(self.oc.by_op)
+            yield
+            self.ops[name] += self.oc.ops - n0
+            self.by_op[name] += Counter(self.oc.by_op) - b0
+
+        def backward(self, loss):
+            with self("backward"):
+                loss.backward()
+
+    cfg = compose_config([f"experiment={exp}", "budget=cpu", f"data.path={scene}", "train.progress=false",
+                          "eval.lpips=false", "train.eval_every=0", "train.eval_at_warmup_end=false",
+                          "densify.refine_start=1000000000", *overrides])
+    with tempfile.TemporaryDirectory() as tmp:
+        tr = Trainer(cfg, tmp, splits=("train",))
+        tr.step = cfg.optim.iterations - 10
+        for _ in range(3):
+            tr.train_step()
+        with OpCounter() as oc:
+            tr.profile = SectionCounter(oc)
+            tr.train_step()
+        sections = dict(tr.profile.ops)
+        sections["other"] = oc.ops - sum(sections.values())
+        return {"experiment": exp, "ops": oc.ops, "sections": sections, "backend": tr.backend,
+                "gaussians": tr.model.num_gaussians,
+                "top": {s: c.most_common(8) for s, c in tr.profile.by_op.items() if c}}
+
+
+def _code(c) -> str:
+    """A code_version() record as `<commit 10>[-dirty]`."""
+    if isinstance(c, dict):
+        return f"{str(c.get('commit'))[:10]}{'-dirty' if c.get('dirty') else ''}"
+    return str(c)
+
+
+def markdown(res: dict) -> str:
+    secs = sorted({s for r in res["rows"] for s in r["sections"]})
+    head = ["experiment", "ops/step", *secs]
+    lines = [f"Operators per ordinary training step ({res['label']}; studies/ops_per_step.py), budget=cpu, "
+             f"{Path(res['scene']).name}; code {_code(res['code'])}, torch {res['torch']}, {res['machine']}.", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in res["rows"]:
+        lines.append("| " + " | ".join([r["experiment"], str(r["ops"]), *(str(r["sections"].get(s, 0)) for s in secs)])
+                     + " |")
+    return "\n".join(lines) + "\n"
+
+
+def compare(a: dict, b: dict) -> str:
+    rows = {r["experiment"]: r for r in a["rows"]}
+    lines = [f"Operators per ordinary training step: {a['label']} (code {_code(a['code'])}) against {b['label']} "
+             f"(code {_code(b['code'])}); studies/ops_per_step.py, budget=cpu, {Path(b['scene']).name}.", "",
+             f"| experiment | {a['label']} | {b['label']} | ratio |", "|---|---|---|---|"]
+    for r in b["rows"]:
+        if r["experiment"] in rows:
+            o = rows[r["experiment"]]["ops"]
+            lines.append(f"| {r['experiment']} | {o} | {r['ops']} | {r['ops'] / o:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scene", type=Path, help="a D-NeRF scene folder")
+    ap.add_argument("--experiments", nargs="+", default=EXPERIMENTS)
+    ap.add_argument("--label", default="this checkout")
+    ap.add_argument("--out", type=Path, help="folder: <label>.json and .md (with --compare: compare.md)")
+    ap.add_argument("--compare", nargs=2, type=Path, metavar=("A.json", "B.json"))
+    ap.add_argument("overrides", nargs="*", help="config overrides for every experiment")
+    a = ap.parse_args(argv)
+    if a.compare:
+        text = compare(*(json.loads(p.read_text()) for p in a.compare))
+        print(text, end="")
+        if a.out:
+            a.out.mkdir(parents=True, exist_ok=True)
+            (a.out / "compare.md").write_text(text)
+        return 0
+    if a.scene is None:
+        ap.error("--scene is required (a D-NeRF scene folder), unless --compare")
+    import torch
+
+    from stdr.eval.evaluate import code_version, machine_name
+    rows = []
+    for exp in a.experiments:
+        r = count(exp, a.scene.resolve(), a.overrides)
+        print(f"{exp}: {r['ops']} ops/step " + " ".join(f"{k}={v}" for k, v in r["sections"].items()), flush=True)
+        rows.append(r)
+    res = {"label": a.label, "scene": str(a.scene), "code": code_version(), "machine": machine_name(),
+           "platform": platform.platform(), "torch": torch.__version__, "overrides": a.overrides, "rows": rows}
+    if a.out:
+        a.out.mkdir(parents=True, exist_ok=True)
+        (a.out / f"{a.label}.json").write_text(json.dumps(res, indent=1) + "\n")
+        (a.out / f"{a.label}.md").write_text(markdown(res))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
