@@ -16,7 +16,7 @@ stage OUT holds everything that finished, in four files (a device call returns a
 
 Stages (GPU): env (GPU, torch, nvcc, Python packages: exit 3 when one is missing) -> build (the
 CUDA extension, failing loudly: exit 4; the CPU extension builds beside it) -> kernels (the CUDA
-parity tests of the projection + SH and the rasterizer, CUDA_LAUNCH_BLOCKING=1) -> proj_scale
+parity tests of the projection + SH, the rasterizer and 4dgs's HexPlane sampling, CUDA_LAUNCH_BLOCKING=1) -> proj_scale
 (CUDA against the CPU extension at 200k and 1M Gaussians, both antialiasing modes) -> train_tests
 (rasterizer at training scale; training + resume on CUDA, all four baselines with STDR) ->
 syncs_cuda (an ordinary training step of every baseline +- STDR makes no synchronizing call the
@@ -233,7 +233,8 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
         return Stage(name, est, cap, cmd, env=env, facts=run_facts(name, d))
 
     if dry:
-        kernels = pyt + junit("kernels") + ["tests/test_compiled.py", "-k", "projection_and_sh_match_the_torch_twin and cpu"]
+        kernels = pyt + junit("kernels") + ["tests/test_compiled.py", "tests/test_hexplane_compiled.py", "-k",
+                                            "(projection_and_sh_match_the_torch_twin or sampling_matches_the_torch_twin) and cpu"]
         scale = pyt + junit("proj_scale") + ["tests/test_compiled.py", "-k", "cuda_projection_matches_the_cpu_extension_at_scale"]
         ttests = pyt + junit("train_tests") + ["tests/test_device.py", "-k", "device_names_resolve"]
         syncs = pyt + junit("syncs_cuda") + ["tests/test_syncs.py", "-k", "counter"]
@@ -242,7 +243,8 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
                     "--warmup-iters", "1", "--", "device=cpu", "render.backend=cpu", *TINY[:4], f"data.cache_dir={args.work / 'cache'}"]
         sanitize = [py, str(Path(__file__).resolve()), SANITIZE_PROBE, "cpu"]
     else:
-        kernels = pyt + junit("kernels") + ["tests/test_compiled.py", "tests/test_contribution.py", "-k",
+        kernels = pyt + junit("kernels") + ["tests/test_compiled.py", "tests/test_contribution.py",
+                                            "tests/test_hexplane_compiled.py", "-k",
                                             "cuda and not nvcc and not torch_headers and not training_scale and not benchmark_row and not at_scale"]
         scale = pyt + junit("proj_scale") + ["tests/test_compiled.py", "-k", "cuda_projection_matches_the_cpu_extension_at_scale"]
         ttests = pyt + junit("train_tests") + ["tests/test_compiled.py", "tests/test_device.py", "-k",
@@ -283,7 +285,8 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
 
 def sanitize_probe(kind: str) -> None:
     """One small render() forward + backward through every kernel of the extension (projection +
-    SH, pack, tiles, forward, backward), both antialiasing modes and two tile sizes."""
+    SH, pack, tiles, forward, backward), both antialiasing modes and two tile sizes, and the
+    HexPlane sampling forward and backward."""
     import torch
 
     sys.path.insert(0, str(ROOT))
@@ -297,9 +300,16 @@ def sanitize_probe(kind: str) -> None:
         out = render(*xs, cam, 3, background=torch.ones(3), backend=kind, antialiased=aa, tile_size=tile,
                      compiled_projection=True)
         (out.image.square().sum() + out.depth.sum() + out.alpha.sum()).backward()
+    # 4dgs's HexPlane sampling (forward and the planes' backward), points inside and outside
+    from stdr.render.compiled import hexplane_compiled
+    g = torch.Generator().manual_seed(3)
+    planes = [torch.rand(8, h, w, generator=g).to(kind).requires_grad_(True)
+              for h, w in ((32, 32), (32, 32), (25, 32), (32, 32), (25, 32), (25, 32)) * 2]
+    coords = (torch.rand(5000, 4, generator=g) * 2.4 - 1.2).to(kind)
+    (hexplane_compiled(coords, planes, kind) ** 2).sum().backward()
     if kind == "cuda":
         torch.cuda.synchronize()
-    sums = [float(x.grad.abs().sum()) for x in xs]
+    sums = [float(x.grad.abs().sum()) for x in xs + planes]
     assert all(s > 0 and s == s for s in sums), sums
     print("ok: gradient sums", sums)
 

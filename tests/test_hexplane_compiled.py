@@ -137,7 +137,7 @@ def test_4dgs_trains_with_it_and_the_key_composes(tmp_path, monkeypatch):
 
 
 @pytest.mark.skipif("cuda" not in BACKENDS, reason=NO_CUDA)
-def test_cuda_matches_the_cpu_extension_at_training_scale():
+def test_cuda_hexplane_matches_the_cpu_extension_with_200k_points():
     field = _field(torch.float32, base_res=64, channels=32, time_res=75)
     c = _coords(200_000, torch.float32, 0.3)
     w = torch.randn(200_000, field.feat_dim, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
