@@ -10,7 +10,10 @@ a cell whose trunk (WORK/<experiment>/<scene>/s<seed>, a finished headline run w
 checkpoints) is not there yet waits; `--follow` keeps polling for new trunks while the headline
 queue trains them (scripts/idle_run.py's machine lock makes the two queues take turns), until
 every cell is recorded; `--hold` pauses the headline queue between its runs while branches are
-runnable (WORK/pause.compact), so a session's trunks are branched before it ends. `touch <--work>/pause` makes it wait between runs. Records (config.yaml,
+runnable (WORK/pause.compact), so a session's trunks are branched before it ends. `touch <--work>/pause` makes it wait between runs.
+`--scratch` adds the +STDR methods' `stdr.time_bins` variants (protocol.md, amendment 2): trained
+from scratch with the same seed and code, one at a time whenever no trunk waits for its branches.
+Records (config.yaml,
 metrics.json, history.json, train_profile.json, load.json, branch.json; `identity.json` for the
 control) go to docs/measurements/compact_prune/runs/<experiment>/<scene>/<variant>/.
 """
@@ -37,6 +40,9 @@ VARIANTS = {  # name: prune.* overrides (the protocol's table)
 }
 #: variants only for the +STDR methods
 STDR_VARIANTS = {"m8": ["prune.share=0", "stdr.mask_bits=8"]}
+#: +STDR variants trained from scratch (no trunk: the mask's time columns are fixed at the start),
+#: with --scratch only; compared with the control branch of the same seed (protocol.md, amendment 2)
+SCRATCH_VARIANTS = {"tb50": ["prune.share=0", "stdr.time_bins=50"], "tb25": ["prune.share=0", "stdr.time_bins=25"]}
 AT = "prune.at=[refine_stop,0.9]"
 BRANCH_STEP = 1500
 KEEP = ("config.yaml", "metrics.json", "history.json", "train_profile.json")
@@ -75,16 +81,18 @@ def branch_once(args, code: Path, exp: str, scene: str, name: str, keys: list[st
     if run.exists():
         shutil.rmtree(run)  # a branch killed midway starts again from the checkpoint
     (run / "checkpoints").mkdir(parents=True)
-    shutil.copy2(src / "last.previous.pt", run / "checkpoints" / "last.pt")
-    # the trunk's final state, for the control's check: the headline queue may retrain the trunk
-    # (a run that shared the machine) while this branch runs
-    shutil.copy2(src / "last.pt", run / "trunk_last.pt")
+    if src is not None:  # None: trained from scratch (SCRATCH_VARIANTS)
+        shutil.copy2(src / "last.previous.pt", run / "checkpoints" / "last.pt")
+        # the trunk's final state, for the control's check: the headline queue may retrain the trunk
+        # (a run that shared the machine) while this branch runs
+        shutil.copy2(src / "last.pt", run / "trunk_last.pt")
     # `python -m` from the checkout imports its own stdr, whatever the environment's install
     cmd = [str(code / "scripts" / "run.sh"), "python", "-m", "stdr.cli.train", f"experiment={exp}",
            "budget=cpu", f"seed={args.seed}",
            f"data.path={Path(args.dnerf) / scene}", f"data.name={scene}", "data.eval_split=val",
            "train.progress=false", f"hydra.run.dir={run}", AT, *keys]
-    print(f"[compact] {time.strftime('%T')} {exp} {scene} {name} (trunk seed {args.seed})", flush=True)
+    print(f"[compact] {time.strftime('%T')} {exp} {scene} {name} "
+          f"({'from scratch, seed' if src is None else 'trunk seed'} {args.seed})", flush=True)
     load = Path(str(run) + ".load.json")  # scripts/idle_run.py: did it have the machine to itself?
     with open(str(run) + ".log", "w") as log:
         rc = subprocess.run([sys.executable, str(ROOT / "scripts" / "idle_run.py"), "--out", str(load),
@@ -97,7 +105,7 @@ def branch_once(args, code: Path, exp: str, scene: str, name: str, keys: list[st
               "recorded, redone later", file=sys.stderr, flush=True)
         return "shared"
     rec.mkdir(parents=True, exist_ok=True)
-    (rec / "branch.json").write_text(json.dumps({**point, "trunk_seed": args.seed}, indent=1))
+    (rec / "branch.json").write_text(json.dumps({**point, "trunk_seed": args.seed, "scratch": src is None}, indent=1))
     shutil.copy2(load, rec / "load.json")
     for f in KEEP:
         if (run / f).is_file():
@@ -157,7 +165,28 @@ def run_queue(args) -> int:
                             todo -= 1
             if not ran and hold is not None:
                 hold.unlink(missing_ok=True)  # nothing to branch: the headline queue goes on
-            if not args.follow or todo == 0:
+            scratch_ran = False
+            if not ran and args.scratch:  # no trunk to branch now: one from-scratch run, then look again
+                for exp in (e for e in (args.experiments or EXPERIMENTS) if e.endswith("_stdr")):
+                    for scene in SCENES:
+                        for name, keys in SCRATCH_VARIANTS.items():
+                            cell = (exp, scene, name)
+                            if (args.variants and name not in args.variants) or cell in failed or \
+                                    shared.get(cell, 0) >= 3 or \
+                                    (Path(args.records) / exp / scene / name / "metrics.json").is_file():
+                                continue
+                            todo += 1
+                            if ran:
+                                continue
+                            ran, scratch_ran = ran + 1, True
+                            status = branch_once(args, code, exp, scene, name, keys, None, {"from_step": 0})
+                            if status == "failed":
+                                failed.add(cell)
+                            elif status == "shared":
+                                shared[cell] = shared.get(cell, 0) + 1
+                            else:
+                                todo -= 1
+            if (not args.follow and not scratch_ran) or todo == 0:
                 break
             if not ran:
                 time.sleep(args.poll)
@@ -181,6 +210,7 @@ def load_records(root: Path) -> dict:
         entry["branch_seconds"] = (entry["train_seconds"] - br["train_seconds_at_branch"]
                                    if "train_seconds_at_branch" in br else None)
         entry["trunk_seed"] = br.get("trunk_seed", 0)  # records from before the key branched seed 0
+        entry["scratch"] = bool(br.get("scratch", False))
         out[(exp, scene, variant)] = entry
     return out
 
@@ -225,7 +255,24 @@ def decide(recs: dict) -> dict:
         m8[exp] = sum(ds) / len(ds) if len(ds) == len(SCENES) else None
     mask8 = None if None in m8.values() else min(m8.values()) >= -0.05  # rule 5
     return {"delta_psnr": delta, "admissible": admissible, "mean_delta_psnr": avg, "complete": True,
-            "choice": choice, "why": why, "m8_delta_psnr": m8, "mask_bits_8": mask8}
+            "choice": choice, "why": why, "m8_delta_psnr": m8, "mask_bits_8": mask8, **decide_time_bins(recs)}
+
+
+def decide_time_bins(recs: dict) -> dict:
+    """Rule 6 (protocol.md, amendment 2): each from-scratch time_bins variant's mean ΔPSNR against the
+    control of each +STDR method; the preset's time_bins is the fewest columns whose ΔPSNR is >= -0.1 dB
+    for all four methods (tb25 before tb50), else none. None while records are missing."""
+    per = {}
+    for v in SCRATCH_VARIANTS:
+        per[v] = {}
+        for exp in (e for e in EXPERIMENTS if e.endswith("_stdr")):
+            ds = [recs[(exp, s, v)]["psnr"] - recs[(exp, s, "control")]["psnr"]
+                  for s in SCENES if (exp, s, v) in recs and (exp, s, "control") in recs]
+            per[v][exp] = sum(ds) / len(ds) if len(ds) == len(SCENES) else None
+    if any(x is None for d in per.values() for x in d.values()):
+        return {"time_bins_delta_psnr": per, "time_bins": None}
+    ok = [v for v in ("tb25", "tb50") if min(per[v].values()) >= -0.1]
+    return {"time_bins_delta_psnr": per, "time_bins": int(ok[0][2:]) if ok else 0}
 
 
 def _machines(recs: dict) -> str:
@@ -251,13 +298,16 @@ def table(args) -> int:
              "| method | variant | n | PSNR | SSIM | LPIPS | FPS | Gaussians | seen/frame | model MB | train s (1500-2000) | "
              "score pass s/event | identical control |", "|" + "---|" * 13]
     for exp in EXPERIMENTS:
-        for v in [*VARIANTS, *(STDR_VARIANTS if exp.endswith("_stdr") else {})]:
+        for v in [*VARIANTS, *(dict(STDR_VARIANTS, **SCRATCH_VARIANTS) if exp.endswith("_stdr") else {})]:
             rows = [recs[(exp, s, v)] for s in SCENES if (exp, s, v) in recs]
             if not rows:
                 continue
             ev = [e["score_seconds"] for r in rows for e in r.get("prune", [])]
             ident = "" if v != "control" else "/".join("yes" if (r["identity"] or {}).get("identical") else "NO"
                                                        for r in rows)
+
+            if v in SCRATCH_VARIANTS:  # whole runs: their seconds are all theirs
+                rows = [dict(r, branch_seconds=r.get("train_seconds")) for r in rows]
 
             def f(k, fmt, rows=rows):
                 x = _mean(r.get(k) for r in rows)
@@ -268,6 +318,11 @@ def table(args) -> int:
                          f"{(sum(ev) / len(ev)) if ev else 0:.2f} | {ident} |")
     d = decide(recs)
     lines += ["", f"Decision: {d['choice'] or 'not yet (records incomplete)'}" + (f" ({d['why']})" if d.get('why') else "")]
+    tb = d.get("time_bins", decide_time_bins(recs)["time_bins"])
+    lines += ["", "`tb50` / `tb25` are trained from scratch with `stdr.time_bins` (their train s is the whole run's, "
+              "not the branch's); rule 6: "
+              + ("not yet (records incomplete)" if tb is None else
+                 (f"stdr.time_bins={tb} joins the compact preset" if tb else "no time_bins variant is admissible"))]
     out = Path(args.records).parent
     (out / "table_val.md").write_text("\n".join(lines) + "\n")
     (out / "table_val.json").write_text(json.dumps({"decision": d, "records": {"/".join(k): v for k, v in recs.items()}},
@@ -288,7 +343,10 @@ def main(argv=None) -> int:
     r.add_argument("--hold", action="store_true", help="pause the headline queue (WORK/pause.compact) while branches "
                    "are runnable, so each trunk is branched before the next is trained")
     r.add_argument("--poll", type=float, default=30.0, help="with --follow: seconds between looks for new trunks")
-    r.add_argument("--variants", nargs="*", choices=[*VARIANTS, *STDR_VARIANTS], help="only these variants (default: all)")
+    r.add_argument("--variants", nargs="*", choices=[*VARIANTS, *STDR_VARIANTS, *SCRATCH_VARIANTS],
+                   help="only these variants (default: all)")
+    r.add_argument("--scratch", action="store_true", help="also train the from-scratch time_bins variants "
+                   "(protocol.md, amendment 2), one at a time whenever no trunk is waiting for its branches")
     r.add_argument("--work", default=str(ROOT / "outputs" / "compact"))
     r.add_argument("--code", default=str(ROOT), help="checkout whose scripts/run.sh trains (frozen at one commit)")
     r.add_argument("--experiments", nargs="*", choices=EXPERIMENTS, help="only these methods (default: all)")

@@ -3,9 +3,11 @@ synthetic records: the rule as written, checked case by case."""
 import sys
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from studies.compact import EXPERIMENTS, SCENES, STDR_VARIANTS, VARIANTS, decide  # noqa: E402
+from studies.compact import EXPERIMENTS, SCENES, SCRATCH_VARIANTS, STDR_VARIANTS, VARIANTS, decide  # noqa: E402
 
 
 def _recs(delta):
@@ -14,7 +16,7 @@ def _recs(delta):
     for exp in EXPERIMENTS:
         for s in SCENES:
             out[(exp, s, "control")] = {"psnr": 30.0}
-            for v in [*VARIANTS, *(STDR_VARIANTS if exp.endswith("_stdr") else {})]:
+            for v in [*VARIANTS, *(dict(STDR_VARIANTS, **SCRATCH_VARIANTS) if exp.endswith("_stdr") else {})]:
                 if v != "control":
                     out[(exp, s, v)] = {"psnr": 30.0 + delta.get(v, lambda e: 0.0)(exp)}
     return out
@@ -54,6 +56,19 @@ def test_the_8bit_mask_joins_only_without_a_measurable_loss():
     assert decide(_recs({**base, "m8": lambda e: -0.2 if e == "dnerf_4dgs_stdr" else 0.0}))["mask_bits_8"] is False
 
 
+def test_time_bins_takes_the_fewest_columns_that_keep_every_stdr_method():
+    base = {v: (lambda e: 0.0) for v in ("s30", "s30_tw1", "s50", "s50_tw1", "m8")}
+    assert decide(_recs({**base, "tb25": lambda e: -0.05, "tb50": lambda e: 0.0}))["time_bins"] == 25
+    # one +STDR method loses more than 0.1 dB with 25 columns: 50
+    worst = "dnerf_spgs_stdr"
+    assert decide(_recs({**base, "tb25": lambda e: -0.3 if e == worst else 0.0, "tb50": lambda e: -0.08}))["time_bins"] == 50
+    d = decide(_recs({**base, "tb25": lambda e: -0.3, "tb50": lambda e: -0.2}))
+    assert d["time_bins"] == 0 and d["time_bins_delta_psnr"]["tb50"][worst] == pytest.approx(-0.2)
+    recs = _recs({**base, "tb25": lambda e: 0.0, "tb50": lambda e: 0.0})
+    del recs[("dnerf_4dgs_stdr", SCENES[1], "tb25")]
+    assert decide(recs)["time_bins"] is None  # incomplete: no decision
+
+
 def _queue(tmp_path, monkeypatch, scenes, step_of):
     """studies.compact.run_queue with the training and checkpoint reads replaced: `step_of(scene)`
     is the step of a trunk's last.previous.pt; each branch 'trains' by writing its metrics.json."""
@@ -74,7 +89,8 @@ def _queue(tmp_path, monkeypatch, scenes, step_of):
                                                        "train_seconds_at_branch": 1.0})
     args = argparse.Namespace(headline=str(tmp_path / "headline"), seed=2, follow=False, work=str(tmp_path / "work"),
                               code=str(tmp_path), experiments=["dnerf_deform"], dnerf=str(tmp_path),
-                              records=str(tmp_path / "records"), variants=None, hold=False, poll=60.0)
+                              records=str(tmp_path / "records"), variants=None, hold=False, poll=60.0,
+                              scratch=False)
     return c, args, calls
 
 
@@ -141,3 +157,17 @@ def test_hold_pauses_the_headline_queue_only_while_branches_are_runnable(tmp_pat
     assert c.run_queue(args) == 0
     assert seen == [("branch", True)] * len(VARIANTS) + [("wait", False)] + [("branch", True)] * len(VARIANTS)
     assert not hold.exists()
+
+
+def test_scratch_runs_train_from_nothing_and_only_while_no_trunk_waits(tmp_path, monkeypatch):
+    """--scratch: the time_bins variants (+STDR methods only) train without a trunk, one at a time,
+    after the branches of every trunk that is there; without --scratch they never run."""
+    c, args, calls = _queue(tmp_path, monkeypatch, ("a",), lambda scene: 1500)
+    args.experiments = ["dnerf_deform", "dnerf_deform_stdr"]
+    _trunk(tmp_path, "a", 2)
+    assert c.run_queue(args) == 1  # deform_stdr's trunk is not there: its cells wait
+    assert {n for *_, n, _ in calls} == set(VARIANTS)
+    calls.clear()
+    args.scratch = True
+    assert c.run_queue(args) == 1
+    assert [(e, n, src) for e, _, n, src in calls] == [("dnerf_deform_stdr", v, None) for v in SCRATCH_VARIANTS]
