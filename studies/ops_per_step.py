@@ -6,7 +6,9 @@ trainer at budget=cpu on a D-NeRF scene, set near the end of its schedule (every
 the deformation, STDR's frozen mask, the full SH degree; densification off), three untimed
 steps, then one step counted with `stdr.train.syncs.OpCounter`, split by profiler section
 (deform, render_fwd, loss, regularizers, backward, guard, optimizer, densify) with the most
-frequent operators of each. Counts are deterministic: they do not depend on the machine.
+frequent operators of each. Two counts: every operator dispatched, and the "compute" ones that
+launch work (views such as t, view, slice or detach launch no kernel on a GPU, nor do bare
+allocations or profiler records). Counts are deterministic: they do not depend on the machine.
 
     python studies/ops_per_step.py --scene ../shared/data/dnerf/jumpingjacks --label after \\
         --out docs/measurements/ops_per_step
@@ -23,6 +25,8 @@ from collections import Counter, defaultdict
 from contextlib import contextmanager
 from pathlib import Path
 
+# allocations that fill nothing: no kernel on a GPU
+ALLOCATIONS = {"aten.empty", "aten.empty_like", "aten.empty_strided", "aten.new_empty", "aten.new_empty_strided"}
 EXPERIMENTS = ["dnerf_deform", "dnerf_deform_stdr", "dnerf_scgs", "dnerf_scgs_stdr", "dnerf_spgs",
                "dnerf_spgs_stdr", "dnerf_4dgs", "dnerf_4dgs_stdr"]
 
@@ -30,23 +34,44 @@ EXPERIMENTS = ["dnerf_deform", "dnerf_deform_stdr", "dnerf_scgs", "dnerf_scgs_st
 def count(exp: str, scene: Path, overrides: list[str]) -> dict:
     import torch  # noqa: F401  (imported here: --compare needs no torch)
 
+    from torch.utils._python_dispatch import TorchDispatchMode
+
     from stdr.cli.common import compose_config
-    from stdr.train.syncs import OpCounter
     from stdr.train.trainer import Profiler, Trainer
+
+    class OpCounter(TorchDispatchMode):
+        """Every ATen operator dispatched (`ops`, `by_op`) and those that launch work (`compute`):
+        not a view (no kernel: t, view, slice, detach, ...), an allocation without a fill (empty,
+        empty_like, ...) or a profiler record. The study's own counter, so that any commit's code
+        is counted the same way."""
+
+        def __init__(self):
+            super().__init__()
+            self.ops, self.compute, self.by_op, self.by_compute = 0, 0, Counter(), Counter()
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            name = str(func.overloadpacket)
+            self.ops += 1
+            self.by_op[name] += 1
+            if not (func.is_view or name in ALLOCATIONS or name.startswith("profiler.")):
+                self.compute += 1
+                self.by_compute[name] += 1
+            return func(*args, **(kwargs or {}))
 
     class SectionCounter(Profiler):
         """The trainer's profiler, counting operators per section instead of timing."""
 
         def __init__(self, oc):
             super().__init__()
-            self.oc, self.ops, self.by_op = oc, Counter(), defaultdict(Counter)
+            self.oc, self.ops, self.compute, self.by_op = oc, Counter(), Counter(), defaultdict(Counter)
 
         @contextmanager
         def __call__(self, name):
-            n0, b0 = self.oc.ops, Counter(self.oc.by_op)
+            n0, c0, b0 = self.oc.ops, self.oc.compute, Counter(self.oc.by_compute)
             yield
             self.ops[name] += self.oc.ops - n0
-            self.by_op[name] += Counter(self.oc.by_op) - b0
+            self.compute[name] += self.oc.compute - c0
+            self.by_op[name] += Counter(self.oc.by_compute) - b0
 
         def backward(self, loss):
             with self("backward"):
@@ -65,9 +90,11 @@ def count(exp: str, scene: Path, overrides: list[str]) -> dict:
             tr.train_step()
         sections = dict(tr.profile.ops)
         sections["other"] = oc.ops - sum(sections.values())
-        return {"experiment": exp, "ops": oc.ops, "sections": sections, "backend": tr.backend,
-                "gaussians": tr.model.num_gaussians,
-                "top": {s: c.most_common(8) for s, c in tr.profile.by_op.items() if c}}
+        compute = dict(tr.profile.compute)
+        compute["other"] = oc.compute - sum(compute.values())
+        return {"experiment": exp, "ops": oc.ops, "compute_ops": oc.compute, "sections": sections,
+                "compute_sections": compute, "backend": tr.backend, "gaussians": tr.model.num_gaussians,
+                "top_compute": {s: c.most_common(8) for s, c in tr.profile.by_op.items() if c}}
 
 
 def _code(c) -> str:
@@ -78,14 +105,16 @@ def _code(c) -> str:
 
 
 def markdown(res: dict) -> str:
-    secs = sorted({s for r in res["rows"] for s in r["sections"]})
-    head = ["experiment", "ops/step", *secs]
+    secs = sorted({s for r in res["rows"] for s in r["compute_sections"]})
+    head = ["experiment", "ops/step", "compute ops/step", *(f"{s} (compute)" for s in secs)]
     lines = [f"Operators per ordinary training step ({res['label']}; studies/ops_per_step.py), budget=cpu, "
-             f"{Path(res['scene']).name}; code {_code(res['code'])}, torch {res['torch']}, {res['machine']}.", "",
+             f"{Path(res['scene']).name}; code {_code(res['code'])}, torch {res['torch']}, {res['machine']}. "
+             "ops: every ATen operator dispatched; compute: those that launch work (not views, bare "
+             "allocations or profiler records); sections: the compute ops of each profiler section.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in res["rows"]:
-        lines.append("| " + " | ".join([r["experiment"], str(r["ops"]), *(str(r["sections"].get(s, 0)) for s in secs)])
-                     + " |")
+        lines.append("| " + " | ".join([r["experiment"], str(r["ops"]), str(r["compute_ops"]),
+                                        *(str(r["compute_sections"].get(s, 0)) for s in secs)]) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -93,11 +122,13 @@ def compare(a: dict, b: dict) -> str:
     rows = {r["experiment"]: r for r in a["rows"]}
     lines = [f"Operators per ordinary training step: {a['label']} (code {_code(a['code'])}) against {b['label']} "
              f"(code {_code(b['code'])}); studies/ops_per_step.py, budget=cpu, {Path(b['scene']).name}.", "",
-             f"| experiment | {a['label']} | {b['label']} | ratio |", "|---|---|---|---|"]
+             f"| experiment | ops {a['label']} | ops {b['label']} | ratio | compute ops {a['label']} | "
+             f"compute ops {b['label']} | ratio |", "|---|---|---|---|---|---|---|"]
     for r in b["rows"]:
         if r["experiment"] in rows:
-            o = rows[r["experiment"]]["ops"]
-            lines.append(f"| {r['experiment']} | {o} | {r['ops']} | {r['ops'] / o:.2f} |")
+            o, c = rows[r["experiment"]]["ops"], rows[r["experiment"]]["compute_ops"]
+            lines.append(f"| {r['experiment']} | {o} | {r['ops']} | {r['ops'] / o:.2f} | {c} | {r['compute_ops']} | "
+                         f"{r['compute_ops'] / c:.2f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -125,7 +156,8 @@ def main(argv=None) -> int:
     rows = []
     for exp in a.experiments:
         r = count(exp, a.scene.resolve(), a.overrides)
-        print(f"{exp}: {r['ops']} ops/step " + " ".join(f"{k}={v}" for k, v in r["sections"].items()), flush=True)
+        print(f"{exp}: {r['ops']} ops/step, {r['compute_ops']} compute " +
+              " ".join(f"{k}={v}" for k, v in r["compute_sections"].items()), flush=True)
         rows.append(r)
     res = {"label": a.label, "scene": str(a.scene), "code": code_version(), "machine": machine_name(),
            "platform": platform.platform(), "torch": torch.__version__, "overrides": a.overrides, "rows": rows}
