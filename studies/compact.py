@@ -116,6 +116,16 @@ def branch_once(args, code: Path, exp: str, scene: str, name: str, keys: list[st
     return "recorded"
 
 
+def _account(status: str, cell: tuple, failed: set, shared: dict) -> int:
+    """Book one branch's outcome: a failure is not retried in this process, a run that shared the
+    machine up to three times. Returns 1 when it was recorded."""
+    if status == "failed":
+        failed.add(cell)
+    elif status == "shared":
+        shared[cell] = shared.get(cell, 0) + 1
+    return int(status == "recorded")
+
+
 def run_queue(args) -> int:
     """Every (method, scene, variant) without records whose trunk is there; with --follow, again
     every --poll seconds until all are recorded. A branch that fails is not retried in this
@@ -156,13 +166,8 @@ def run_queue(args) -> int:
                         if hold is not None:
                             hold.touch()
                         ran += 1
-                        status = branch_once(args, code, exp, scene, name, keys, src, point)
-                        if status == "failed":
-                            failed.add(cell)
-                        elif status == "shared":
-                            shared[cell] = shared.get(cell, 0) + 1
-                        else:
-                            todo -= 1
+                        todo -= _account(branch_once(args, code, exp, scene, name, keys, src, point), cell, failed,
+                                         shared)
             if not ran and hold is not None:
                 hold.unlink(missing_ok=True)  # nothing to branch: the headline queue goes on
             scratch_ran = False
@@ -179,13 +184,8 @@ def run_queue(args) -> int:
                             if ran:
                                 continue
                             ran, scratch_ran = ran + 1, True
-                            status = branch_once(args, code, exp, scene, name, keys, None, {"from_step": 0})
-                            if status == "failed":
-                                failed.add(cell)
-                            elif status == "shared":
-                                shared[cell] = shared.get(cell, 0) + 1
-                            else:
-                                todo -= 1
+                            todo -= _account(branch_once(args, code, exp, scene, name, keys, None, {"from_step": 0}),
+                                             cell, failed, shared)
             if (not args.follow and not scratch_ran) or todo == 0:
                 break
             if not ran:
