@@ -77,7 +77,7 @@ def hexplane_time_res(b, train_times: Optional[np.ndarray]) -> int:
 
 
 # the devices where baseline.hexplane.compiled=null uses the compiled sampling (the parity tests
-# of tests/test_compiled.py have run there; on CUDA once a GPU check has run them)
+# of tests/test_hexplane_compiled.py have run there; on CUDA once a GPU check has run them)
 HEXPLANE_COMPILED_VERIFIED = ("cpu",)
 
 PAIRS = list(itertools.combinations(range(4), 2))  # (0,1) (0,2) (0,3) (1,2) (1,3) (2,3)
@@ -212,8 +212,7 @@ class HexPlaneField(nn.Module):
         if self.compiled is False or c.requires_grad:
             return None
         kind = c.device.type
-        supported = kind in ("cpu", "cuda") and c.dtype in ((torch.float32,) if kind == "cuda" else
-                                                            (torch.float32, torch.float64))
+        supported = c.dtype in compiled_backend.HEXPLANE_DTYPES.get(kind, ())
         if self.compiled is None:
             return kind if supported and kind in HEXPLANE_COMPILED_VERIFIED and compiled_backend.available(kind) else None
         if not supported:

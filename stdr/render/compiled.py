@@ -377,6 +377,10 @@ def project_sh_compiled(means: Tensor, quats: Tensor, scales: Tensor, opacities:
     return Projection(means2d=means2d, depths=depths, conics=conics, opacities=opac, radii=radii), colors
 
 
+# the dtypes each HexPlane kernel takes (the CUDA one is float32 only)
+HEXPLANE_DTYPES = {"cpu": (torch.float32, torch.float64), "cuda": (torch.float32,)}
+
+
 class _HexPlane(torch.autograd.Function):
     @staticmethod
     def forward(ctx, coords, ext, *planes):
@@ -402,7 +406,7 @@ def hexplane_compiled(coords: Tensor, planes: list[Tensor], kind: str = "cpu") -
     pins the two together. The CPU backward is deterministic; the CUDA one adds atomically.
 
     coords [N, 4] in [-1, 1] (x, y, z, t), planes 6*M tensors [C, H, W] (one C)."""
-    want = (torch.float32,) if kind == "cuda" else (torch.float32, torch.float64)
+    want = HEXPLANE_DTYPES["cuda" if kind == "cuda" else "cpu"]
     if coords.dim() != 2 or coords.shape[1] != 4:
         raise ValueError(f"stdr hexplane: coords must be [N, 4], got {list(coords.shape)}")
     if not planes or len(planes) % 6 or len(planes) > 48:
