@@ -298,7 +298,8 @@ def table(args) -> int:
              "| method | variant | n | PSNR | SSIM | LPIPS | FPS | Gaussians | seen/frame | model MB | train s (1500-2000) | "
              "score pass s/event | identical control |", "|" + "---|" * 13]
     for exp in EXPERIMENTS:
-        for v in [*VARIANTS, *(dict(STDR_VARIANTS, **SCRATCH_VARIANTS) if exp.endswith("_stdr") else {})]:
+        # `preset`: amendment 4's compact run where no variant has its keys (val numbers shown, not used)
+        for v in [*VARIANTS, *(dict(STDR_VARIANTS, **SCRATCH_VARIANTS) if exp.endswith("_stdr") else {}), "preset"]:
             rows = [recs[(exp, s, v)] for s in SCENES if (exp, s, v) in recs]
             if not rows:
                 continue
@@ -331,6 +332,178 @@ def table(args) -> int:
     return 0
 
 
+TEST_RECORDS = RECORDS.parent / "test"
+ROLES = ("full", "compact")
+
+
+def preset_of(d: dict, exp: str) -> tuple[str, list[str]]:
+    """(branch name, keys) of method `exp`'s compact run under decision `d` (protocol.md, amendment 4):
+    the chosen variant's branch, or `preset` (the chosen keys + stdr.mask_bits=8) for a +STDR method
+    when rule 5 admits 8 bits, which no val variant combines with a share."""
+    keys = list(VARIANTS[d["choice"]])
+    if exp.endswith("_stdr") and d["mask_bits_8"]:
+        return "preset", [*keys, "stdr.mask_bits=8"]
+    return d["choice"], keys
+
+
+def evaluate_once(args, code: Path, run: Path, out: Path, meta: dict) -> str:
+    """Evaluate one run folder's final checkpoint on the test split with the frozen code's stdr-eval,
+    alone on the machine, and record it in `out`: "recorded", "failed" or "shared"."""
+    while (Path(args.work) / "pause").exists():
+        time.sleep(10)
+    if not (run / "checkpoints" / "last.pt").is_file():
+        print(f"[compact] FAILED test {run}: no checkpoints/last.pt (the branch's work folder is gone)",
+              file=sys.stderr, flush=True)
+        return "failed"
+    cmd = [str(code / "scripts" / "run.sh"), "python", "-m", "stdr.cli.eval", str(run), "split=test",
+           f"out={run}/test_table"]
+    print(f"[compact] {time.strftime('%T')} test {meta['experiment']} {meta['scene']} {meta['role']} "
+          f"({meta['branch']})", flush=True)
+    load = Path(str(run) + ".test_load.json")
+    with open(str(run) + ".test.log", "w") as log:
+        rc = subprocess.run([sys.executable, str(ROOT / "scripts" / "idle_run.py"), "--out", str(load),
+                             "--", *cmd], stdout=log, stderr=subprocess.STDOUT, cwd=code).returncode
+    m = run / "metrics.json"
+    if rc != 0 or not m.is_file() or "test" not in json.loads(m.read_text()):
+        print(f"[compact] FAILED test {run} (log: {run}.test.log)", file=sys.stderr, flush=True)
+        return "failed"
+    if not json.loads(load.read_text())["idle"]:
+        print(f"[compact] SHARED test {run}: other jobs used the machine; evaluated again", file=sys.stderr, flush=True)
+        return "shared"
+    out.mkdir(parents=True, exist_ok=True)
+    for f in ("metrics.json", "config.yaml"):  # a run folder stdr-eval / stdr-chart can tabulate
+        shutil.copy2(run / f, out / f)
+    shutil.copy2(load, out / "load.json")
+    (out / "source.json").write_text(json.dumps(meta, indent=1))
+    return "recorded"
+
+
+def run_test(args) -> int:
+    """Amendment 4: train the `preset` branches the decision needs, then evaluate each method and
+    scene's full (control) and compact run once on test. Resumable: recorded cells are skipped."""
+    d = decide(load_records(Path(args.records)))
+    if not d["complete"] or d["mask_bits_8"] is None:
+        raise SystemExit("studies/compact.py test: the val records are incomplete (every variant of every method "
+                         "and scene, m8 included, is needed for rules 1-5); run `studies/compact.py run` first")
+    code = Path(args.code).resolve()
+    failed, shared = set(), {}
+    for exp in (args.experiments or EXPERIMENTS):
+        branch, keys = preset_of(d, exp)
+        for scene in SCENES:
+            cell = (exp, scene, branch)
+            while branch == "preset" and cell not in failed and shared.get(cell, 0) < 3 and \
+                    not (Path(args.records) / exp / scene / branch / "metrics.json").is_file():
+                src = trunk_dir(args.headline, exp, scene, args.seed)
+                _account(branch_once(args, code, exp, scene, branch, keys, src, branch_point(src / "last.previous.pt")),
+                         cell, failed, shared)
+            for role, name in (("full", "control"), ("compact", branch)):
+                out = Path(args.test_records) / exp / scene / role
+                tcell = (exp, scene, role)
+                meta = {"experiment": exp, "scene": scene, "role": role, "branch": name,
+                        "keys": VARIANTS["control"] if role == "full" else keys, "decision": d["choice"],
+                        "mask_bits_8": d["mask_bits_8"]}
+                while tcell not in failed and shared.get(tcell, 0) < 3 and not (out / "metrics.json").is_file():
+                    _account(evaluate_once(args, code, Path(args.work) / exp / scene / name, out, meta),
+                             tcell, failed, shared)
+    todo = sum(not (Path(args.test_records) / e / s / r / "metrics.json").is_file()
+               for e in (args.experiments or EXPERIMENTS) for s in SCENES for r in ROLES)
+    print(f"[compact] test done; {len(failed)} failed, {todo} not recorded")
+    return 1 if failed or todo else 0
+
+
+def _gmean(xs):
+    import math
+    xs = [x for x in xs if x is not None]
+    return math.exp(sum(math.log(x) for x in xs) / len(xs)) if xs and all(x > 0 for x in xs) else None
+
+
+#: issue 38's targets: (name, what, test, bound)
+TARGETS = (("psnr", "mean PSNR, compact - full (dB)", ">=", -0.1),
+           ("num_gaussians", "Gaussians, compact / full", "<=", 0.5),
+           ("fps", "render FPS, compact / full", ">=", 1.6),
+           ("model_mb", "model bytes, compact / full", "<=", 0.4))
+STDR_TARGETS = (("fps", "render FPS, +STDR / plain (both compact)", ">=", 1.0),
+                ("model_mb", "model bytes, +STDR / plain (both compact)", "<=", 1.25),
+                ("train_seconds", "train s, +STDR / plain (both compact)", "<=", 1.1))
+
+
+def _compare(a: dict, b: dict, key: str):
+    """Mean over scenes of a - b (PSNR) or geometric mean over scenes of a / b (the others)."""
+    pairs = [(a[s][key], b[s][key]) for s in SCENES if s in a and s in b]
+    if len(pairs) != len(SCENES):
+        return None
+    return _mean(x - y for x, y in pairs) if key == "psnr" else _gmean(x / y for x, y in pairs)
+
+
+def _meets(value, op: str, bound: float):
+    return None if value is None else (value >= bound if op == ">=" else value <= bound)
+
+
+def test_table(args) -> int:
+    """table_test.md / .json: per baseline, plain and +STDR, full and compact on test, and the targets."""
+    from stdr.eval.evaluate import code_version, machine_name
+    root = Path(args.test_records)
+    recs: dict = {}
+    for m in sorted(root.glob("*/*/*/metrics.json")):
+        role, scene, exp = m.parent.name, m.parent.parent.name, m.parent.parent.parent.name
+        entry = json.loads(m.read_text())["test"]
+        entry["source"] = json.loads((m.parent / "source.json").read_text())
+        recs.setdefault((exp, role), {})[scene] = entry
+    if not recs:
+        raise SystemExit(f"studies/compact.py test-table: no records under {root}; run `studies/compact.py test` first")
+    src = next(iter(next(iter(recs.values())).values()))["source"]
+    lines = ["# Full and compact on test (budget=cpu, trunk seed 2, four shared D-NeRF scenes)", "",
+             f"Generated by `python studies/compact.py test-table` from {sum(map(len, recs.values()))} records at "
+             f"commit {code_version().get('commit', '?')[:10]} on {machine_name()}, {time.strftime('%Y-%m-%d')}. "
+             f"Runs' machines: {_machines({(k, s): v for k, d in recs.items() for s, v in d.items()})}. "
+             f"Compact: the preset chosen on val (`{src['decision']}`"
+             + (", + `stdr.mask_bits=8` for +STDR" if src["mask_bits_8"] else "") +
+             "; protocol.md, amendment 4). Means over the scenes present (n); train s: the trunk's first "
+             "1500 steps + the branch's 500.", "",
+             "| baseline | method | n | PSNR | SSIM | LPIPS | FPS | Gaussians | seen/frame | model MB | train s |",
+             "|" + "---|" * 11]
+    for b in ("deform", "scgs", "spgs", "4dgs"):
+        for exp in (f"dnerf_{b}", f"dnerf_{b}_stdr"):
+            for role in ROLES:
+                rows = list(recs.get((exp, role), {}).values())
+                if not rows:
+                    continue
+
+                def f(k, fmt, rows=rows):
+                    x = _mean(r.get(k) for r in rows)
+                    return "–" if x is None else format(x, fmt)
+                label = ("+STDR" if exp.endswith("_stdr") else "plain") + f" {role}"
+                lines.append(f"| {b} | {label} | {len(rows)} | {f('psnr', '.2f')} | {f('ssim', '.4f')} | "
+                             f"{f('lpips', '.4f')} | {f('fps', '.1f')} | {f('num_gaussians', ',.0f')} | "
+                             f"{f('seen_per_frame', '.1%')} | {f('model_mb', '.2f')} | {f('train_seconds', '.0f')} |")
+    targets = []
+    for exp in EXPERIMENTS:
+        full, comp = recs.get((exp, "full"), {}), recs.get((exp, "compact"), {})
+        for key, what, op, bound in TARGETS:
+            v = _compare(comp, full, key)
+            targets.append({"method": exp, "target": what, "bound": f"{op} {bound}", "value": v,
+                            "met": _meets(v, op, bound)})
+    for b in ("deform", "scgs", "spgs", "4dgs"):
+        st, pl = recs.get((f"dnerf_{b}_stdr", "compact"), {}), recs.get((f"dnerf_{b}", "compact"), {})
+        for key, what, op, bound in STDR_TARGETS:
+            v = _compare(st, pl, key)
+            targets.append({"method": f"dnerf_{b}_stdr", "target": what, "bound": f"{op} {bound}", "value": v,
+                            "met": _meets(v, op, bound)})
+    lines += ["", "Targets of issue 38 (ratios: geometric mean over the scenes of the per-scene ratio):", "",
+              "| method | target | bound | measured | met |", "|---|---|---|---|---|"]
+    for t in targets:
+        v = "–" if t["value"] is None else f"{t['value']:+.2f}" if "PSNR" in t["target"] else f"{t['value']:.2f}"
+        met = "–" if t["met"] is None else "yes" if t["met"] else "**no**"
+        lines.append(f"| {t['method']} | {t['target']} | {t['bound']} | {v} | {met} |")
+    out = root.parent
+    (out / "table_test.md").write_text("\n".join(lines) + "\n")
+    (out / "table_test.json").write_text(json.dumps(
+        {"targets": targets, "records": {f"{e}/{r}/{s}": v for (e, r), d in recs.items() for s, v in d.items()}},
+        indent=1, default=str))
+    print("\n".join(lines))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -352,8 +525,19 @@ def main(argv=None) -> int:
     r.add_argument("--experiments", nargs="*", choices=EXPERIMENTS, help="only these methods (default: all)")
     t = sub.add_parser("table")
     t.add_argument("--records", default=str(RECORDS))
+    e = sub.add_parser("test", help="amendment 4: evaluate each full and compact run once on test")
+    e.add_argument("dnerf", help="folder with the D-NeRF scenes")
+    e.add_argument("--headline", required=True, help="the headline queue's WORK_DIR (the trunks)")
+    e.add_argument("--seed", type=int, default=2, help="the trunks' seed")
+    e.add_argument("--records", default=str(RECORDS), help="the val records (the decision; `preset` branches go here)")
+    e.add_argument("--test-records", default=str(TEST_RECORDS), help="where the test records go")
+    e.add_argument("--work", default=str(ROOT / "outputs" / "compact"), help="the branches' run folders (`run`'s --work)")
+    e.add_argument("--code", default=str(ROOT), help="checkout whose scripts/run.sh trains and evaluates")
+    e.add_argument("--experiments", nargs="*", choices=EXPERIMENTS, help="only these methods (default: all)")
+    tt = sub.add_parser("test-table")
+    tt.add_argument("--test-records", default=str(TEST_RECORDS))
     args = ap.parse_args(argv)
-    return run_queue(args) if args.cmd == "run" else table(args)
+    return {"run": run_queue, "table": table, "test": run_test, "test-table": test_table}[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -171,3 +171,104 @@ def test_scratch_runs_train_from_nothing_and_only_while_no_trunk_waits(tmp_path,
     args.scratch = True
     assert c.run_queue(args) == 1
     assert [(e, n, src) for e, _, n, src in calls] == [("dnerf_deform_stdr", v, None) for v in SCRATCH_VARIANTS]
+
+
+def _decision(m8: float):
+    base = {"s30": lambda e: -0.02, "s30_tw1": lambda e: -0.03, "s50": lambda e: -0.4, "s50_tw1": lambda e: -0.4}
+    return decide(_recs({**base, "m8": lambda e: m8}))
+
+
+def test_the_compact_run_is_the_chosen_variant_or_a_preset_branch_with_8_bits():
+    from studies.compact import preset_of
+    d = _decision(-0.01)  # rule 5 admits 8 bits: +STDR methods need a branch no val variant has
+    assert d["choice"] == "s30" and d["mask_bits_8"] is True
+    assert preset_of(d, "dnerf_scgs") == ("s30", VARIANTS["s30"])
+    assert preset_of(d, "dnerf_scgs_stdr") == ("preset", [*VARIANTS["s30"], "stdr.mask_bits=8"])
+    d = _decision(-0.3)
+    assert preset_of(d, "dnerf_scgs_stdr") == ("s30", VARIANTS["s30"])
+
+
+def _test_stage(tmp_path, monkeypatch, m8: float):
+    """studies.compact.run_test over val records of one decision, with training and evaluation
+    replaced by writers of their records."""
+    import argparse
+    import json
+
+    import studies.compact as c
+    recs = _recs({"s30": lambda e: -0.02, "s30_tw1": lambda e: -0.03, "s50": lambda e: -0.4,
+                  "s50_tw1": lambda e: -0.4, "m8": lambda e: m8})
+    monkeypatch.setattr(c, "load_records", lambda root: recs)
+    trained, evaluated = [], []
+
+    def fake_branch(args, code, exp, scene, name, keys, src, point):
+        trained.append((exp, scene, name, tuple(keys)))
+        (Path(args.records) / exp / scene / name).mkdir(parents=True)
+        (Path(args.records) / exp / scene / name / "metrics.json").write_text("{}")
+        return "recorded"
+
+    def fake_eval(args, code, run, out, meta):
+        evaluated.append((meta["experiment"], meta["scene"], meta["role"], run.name))
+        out.mkdir(parents=True)
+        (out / "metrics.json").write_text(json.dumps({"test": {}}))
+        return "recorded"
+    monkeypatch.setattr(c, "branch_once", fake_branch)
+    monkeypatch.setattr(c, "evaluate_once", fake_eval)
+    monkeypatch.setattr(c, "branch_point", lambda ck: {"from_step": 1500, "train_seconds_at_branch": 1.0})
+    args = argparse.Namespace(headline=str(tmp_path / "h"), seed=2, work=str(tmp_path / "work"), code=str(tmp_path),
+                              experiments=None, dnerf=str(tmp_path), records=str(tmp_path / "records"),
+                              test_records=str(tmp_path / "test"))
+    return c, args, trained, evaluated
+
+
+def test_the_test_stage_trains_only_the_missing_preset_branches_and_evaluates_full_and_compact(tmp_path, monkeypatch):
+    c, args, trained, evaluated = _test_stage(tmp_path, monkeypatch, m8=-0.01)
+    assert c.run_test(args) == 0
+    stdr = [e for e in EXPERIMENTS if e.endswith("_stdr")]
+    assert sorted(trained) == sorted((e, s, "preset", (*VARIANTS["s30"], "stdr.mask_bits=8"))
+                                     for e in stdr for s in SCENES)
+    assert len(evaluated) == len(EXPERIMENTS) * len(SCENES) * 2
+    for exp, scene, role, run in evaluated:
+        assert run == ("control" if role == "full" else "preset" if exp in stdr else "s30")
+    trained.clear(), evaluated.clear()
+    assert c.run_test(args) == 0 and trained == [] and evaluated == []  # resumable
+
+
+def test_the_test_stage_refuses_an_undecided_study(tmp_path, monkeypatch):
+    c, args, trained, evaluated = _test_stage(tmp_path, monkeypatch, m8=-0.01)
+    full = c.load_records(None)
+    monkeypatch.setattr(c, "load_records", lambda root: {k: v for k, v in full.items() if k[2] != "m8"})
+    with pytest.raises(SystemExit, match="incomplete"):
+        c.run_test(args)
+    assert trained == [] and evaluated == []
+
+
+def test_the_test_table_checks_each_target_on_per_scene_ratios(tmp_path, monkeypatch):
+    import json
+
+    import studies.compact as c
+    monkeypatch.setattr(c, "SCENES", ("a", "b"))
+    root = tmp_path / "test"
+    # per scene: (psnr, gaussians, fps, model_mb, train_seconds), full then compact
+    rows = {"full": {"a": (30.0, 1000, 10.0, 4.0, 100.0), "b": (28.0, 2000, 20.0, 8.0, 200.0)},
+            "compact": {"a": (29.8, 400, 40.0, 1.0, 100.0), "b": (28.1, 1200, 10.0, 4.0, 200.0)}}
+    for exp in EXPERIMENTS:
+        for role, per in rows.items():
+            for scene, (p, n, fps, mb, ts) in per.items():
+                d = root / exp / scene / role
+                d.mkdir(parents=True)
+                (d / "metrics.json").write_text(json.dumps({"test": {
+                    "psnr": p, "ssim": 0.9, "lpips": 0.1, "fps": fps, "num_gaussians": n, "seen_per_frame": 0.5,
+                    "model_mb": mb * (2 if exp.endswith("_stdr") else 1), "train_seconds": ts}}))
+                (d / "source.json").write_text(json.dumps({"decision": "s30", "mask_bits_8": True}))
+    args = type("A", (), {"test_records": str(root)})()
+    assert c.test_table(args) == 0
+    t = {(x["method"], x["target"]): x for x in json.loads((tmp_path / "table_test.json").read_text())["targets"]}
+    psnr = t[("dnerf_deform", "mean PSNR, compact - full (dB)")]
+    assert psnr["value"] == pytest.approx((-0.2 + 0.1) / 2) and psnr["met"] is True
+    g = t[("dnerf_deform", "Gaussians, compact / full")]  # ratios 0.4 and 0.6: geometric mean sqrt(0.24) = 0.49 <= 0.5
+    assert g["value"] == pytest.approx(0.24 ** 0.5) and g["met"] is True
+    f = t[("dnerf_deform", "render FPS, compact / full")]  # 4.0 and 0.5: geometric mean 1.41 (the arithmetic 2.25 would pass)
+    assert f["value"] == pytest.approx(2 ** 0.5) and f["met"] is False
+    m = t[("dnerf_deform_stdr", "model bytes, +STDR / plain (both compact)")]  # 2x everywhere
+    assert m["value"] == pytest.approx(2.0) and m["met"] is False
+    assert "| deform | +STDR compact | 2 |" in (tmp_path / "table_test.md").read_text()
