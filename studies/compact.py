@@ -171,7 +171,7 @@ def run_queue(args) -> int:
             if not ran and hold is not None:
                 hold.unlink(missing_ok=True)  # nothing to branch: the headline queue goes on
             scratch_ran = False
-            if not ran and args.scratch:  # no trunk to branch now: one from-scratch run, then look again
+            if args.scratch:  # once no trunk waits for branches: one from-scratch run, then look again
                 for exp in (e for e in (args.experiments or EXPERIMENTS) if e.endswith("_stdr")):
                     for scene in SCENES:
                         for name, keys in SCRATCH_VARIANTS.items():
@@ -394,9 +394,16 @@ def run_test(args) -> int:
             while branch == "preset" and cell not in failed and shared.get(cell, 0) < 3 and \
                     not (Path(args.records) / exp / scene / branch / "metrics.json").is_file():
                 src = trunk_dir(args.headline, exp, scene, args.seed)
+                if not (src / "last.previous.pt").is_file():
+                    print(f"[compact] FAILED {exp} {scene} preset: no trunk {src / 'last.previous.pt'} (protocol.md, "
+                          "amendment 3 retrains it)", file=sys.stderr, flush=True)
+                    failed.add(cell)
+                    break
                 _account(branch_once(args, code, exp, scene, branch, keys, src, branch_point(src / "last.previous.pt")),
                          cell, failed, shared)
             for role, name in (("full", "control"), ("compact", branch)):
+                if role == "compact" and cell in failed:
+                    continue  # its branch could not be trained
                 out = Path(args.test_records) / exp / scene / role
                 tcell = (exp, scene, role)
                 meta = {"experiment": exp, "scene": scene, "role": role, "branch": name,

@@ -214,6 +214,11 @@ def _test_stage(tmp_path, monkeypatch, m8: float):
     monkeypatch.setattr(c, "branch_once", fake_branch)
     monkeypatch.setattr(c, "evaluate_once", fake_eval)
     monkeypatch.setattr(c, "branch_point", lambda ck: {"from_step": 1500, "train_seconds_at_branch": 1.0})
+    for exp in EXPERIMENTS:
+        for scene in SCENES:
+            d = tmp_path / "h" / exp / scene / "s2" / "checkpoints"
+            d.mkdir(parents=True)
+            (d / "last.previous.pt").write_bytes(b"")
     args = argparse.Namespace(headline=str(tmp_path / "h"), seed=2, work=str(tmp_path / "work"), code=str(tmp_path),
                               experiments=None, dnerf=str(tmp_path), records=str(tmp_path / "records"),
                               test_records=str(tmp_path / "test"))
@@ -231,6 +236,15 @@ def test_the_test_stage_trains_only_the_missing_preset_branches_and_evaluates_fu
         assert run == ("control" if role == "full" else "preset" if exp in stdr else "s30")
     trained.clear(), evaluated.clear()
     assert c.run_test(args) == 0 and trained == [] and evaluated == []  # resumable
+
+
+def test_a_missing_trunk_fails_its_preset_cell_only(tmp_path, monkeypatch):
+    c, args, trained, evaluated = _test_stage(tmp_path, monkeypatch, m8=-0.01)
+    (tmp_path / "h" / "dnerf_scgs_stdr" / SCENES[0] / "s2" / "checkpoints" / "last.previous.pt").unlink()
+    assert c.run_test(args) == 1  # reported, not recorded
+    assert ("dnerf_scgs_stdr", SCENES[0], "preset") not in {t[:3] for t in trained}
+    assert ("dnerf_scgs_stdr", SCENES[0], "compact", "preset") not in evaluated  # never evaluated without its run
+    assert len(trained) == 4 * len(SCENES) - 1
 
 
 def test_the_test_stage_refuses_an_undecided_study(tmp_path, monkeypatch):
@@ -272,3 +286,17 @@ def test_the_test_table_checks_each_target_on_per_scene_ratios(tmp_path, monkeyp
     m = t[("dnerf_deform_stdr", "model bytes, +STDR / plain (both compact)")]  # 2x everywhere
     assert m["value"] == pytest.approx(2.0) and m["met"] is False
     assert "| deform | +STDR compact | 2 |" in (tmp_path / "table_test.md").read_text()
+
+
+def test_follow_with_scratch_goes_on_to_the_scratch_runs_after_the_last_branches(tmp_path, monkeypatch):
+    """The pass that runs the last branches must not end the queue while scratch runs wait."""
+    c, args, calls = _queue(tmp_path, monkeypatch, ("a",), lambda scene: 1500)
+    args.experiments, args.follow, args.scratch = ["dnerf_deform_stdr"], True, True
+    d = tmp_path / "headline" / "dnerf_deform_stdr" / "a" / "s2" / "checkpoints"
+    d.mkdir(parents=True)
+    for f in ("last.pt", "last.previous.pt"):
+        (d / f).write_bytes(b"")
+    (d.parent / "metrics.json").write_text("{}")
+    monkeypatch.setattr(c.time, "sleep", lambda s: pytest.fail("nothing to wait for"))
+    assert c.run_queue(args) == 0
+    assert [n for *_, n, _ in calls] == [*VARIANTS, *STDR_VARIANTS, *SCRATCH_VARIANTS]
