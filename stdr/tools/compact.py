@@ -1,6 +1,10 @@
 """Compact a trained run: prune its least significant Gaussians by contribution, fine-tune, save.
 
-    stdr-tool compact RUN_DIR --share 0.5 [--steps 300] [--time-weight 0] [--mask-bits 8] [--out DIR] [--split val]
+    stdr-tool compact RUN_DIR [--share S] [--steps 300] [--time-weight W] [--mask-bits 8|32] [--out DIR] [--split val]
+
+Without --share / --time-weight / --mask-bits, the compact preset's values are used
+(stdr/configs/compact/on.yaml, `compact=on` of stdr-train): one event removing the share that the
+preset's events remove together, its time weight, and its mask form for an STDR run.
 
 The run's checkpoint is copied to the new run folder (default RUN_DIR_compact) and training goes
 on from it for --steps more iterations with `prune.share=SHARE prune.at=[<its step>]`: the
@@ -17,6 +21,25 @@ import copy
 import shutil
 from pathlib import Path
 from typing import Optional
+
+
+def preset_values() -> dict:
+    """The compact preset's keys (stdr/configs/compact/on.yaml) as this tool applies them to a
+    trained run in one event: `share` = the fraction the preset's `prune.at` events remove
+    together (1 - (1 - s)^events), `time_weight`, `mask_bits` (0: the preset keeps the mask's
+    form)."""
+    from omegaconf import OmegaConf
+
+    from ..cli.common import CONFIG_DIR
+    node = OmegaConf.load(Path(CONFIG_DIR) / "compact" / "on.yaml")
+    s, events = float(node.prune.share), len(node.prune.at)
+    return {"share": 1.0 - (1.0 - s) ** events, "time_weight": float(node.prune.time_weight),
+            "mask_bits": _as_change(int(OmegaConf.select(node, "stdr.mask_bits", default=32)))}
+
+
+def _as_change(bits: int) -> int:
+    """A mask form as `compact` takes it: 8 (store in 8 bits) or 0 (keep; 32 is the float form)."""
+    return 0 if bits == 32 else bits
 
 
 def compact_config(cfg, step: int, share: float, steps: int, time_weight: float = 0.0, mask_bits: int = 0):
@@ -86,17 +109,34 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="stdr-tool compact", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run", type=Path, help="a trained run folder")
-    ap.add_argument("--share", type=float, required=True, help="fraction of the Gaussians removed, in (0, 1)")
+    ap.add_argument("--share", type=float, default=None, help="fraction of the Gaussians removed, in (0, 1) "
+                    "(default: what the compact preset's events remove together)")
     ap.add_argument("--steps", type=int, default=300, help="fine-tuning iterations after the pruning")
-    ap.add_argument("--time-weight", type=float, default=0.0, help="prune.time_weight (stdr/scene/prune.py)")
+    ap.add_argument("--time-weight", type=float, default=None,
+                    help="prune.time_weight (stdr/scene/prune.py; default: the compact preset's)")
     ap.add_argument("--out", type=Path, default=None, help="the new run folder (default RUN_compact)")
     ap.add_argument("--split", default=None, help="evaluation split (default: the run's data.eval_split)")
-    ap.add_argument("--mask-bits", type=int, default=0, choices=(0, 8, 32),
-                    help="STDR runs: store the frozen mask in 8 bits from the first fine-tuning step (0: keep)")
+    ap.add_argument("--mask-bits", type=int, default=None, choices=(0, 8, 32),
+                    help="STDR runs: 8 stores the frozen mask in 8 bits from the first fine-tuning step, 0 or 32 "
+                    "keeps it (default: the compact preset's form for an STDR run, nothing for a plain one)")
     a = ap.parse_args(argv)
-    if not 0.0 < a.share < 1.0:
-        raise SystemExit(f"stdr-tool compact: --share {a.share}: use a fraction in (0, 1)")
-    compact(a.run, a.share, a.steps, a.time_weight, a.out, a.split, mask_bits=a.mask_bits)
+    pre = preset_values()
+    share = pre["share"] if a.share is None else a.share
+    if not 0.0 < share < 1.0:
+        raise SystemExit(f"stdr-tool compact: --share {share}: use a fraction in (0, 1)")
+    mask_bits = _as_change(a.mask_bits) if a.mask_bits is not None else pre["mask_bits"] if _has_stdr(a.run) else 0
+    tw = pre["time_weight"] if a.time_weight is None else a.time_weight
+    compact(a.run, share, a.steps, tw, a.out, a.split, mask_bits=mask_bits)
+
+
+def _has_stdr(run_dir: Path) -> bool:
+    """Whether a run folder's config switches STDR on (the preset's mask form applies to it)."""
+    from ..config import load_config
+    from ..plugins import enabled_plugins
+    cfg_path = Path(run_dir) / "config.yaml"
+    if not cfg_path.is_file():
+        raise SystemExit(f"stdr-tool compact: {run_dir}: not a trained run (no config.yaml)")
+    return "stdr" in [p.name for p in enabled_plugins(load_config(cfg_path))]
 
 
 if __name__ == "__main__":
