@@ -446,6 +446,27 @@ def _meets(value, op: str, bound: float):
     return None if value is None else (value >= bound if op == ">=" else value <= bound)
 
 
+def bytes_split(recs: dict) -> dict:
+    """Per method, from each scene's full and compact run (the same deformation module, other
+    Gaussian counts): the fixed MiB and the bytes per Gaussian of model_mb without STDR's mask,
+    and the mask's MiB in each; means over the scenes that have both runs."""
+    out = {}
+    for exp in EXPERIMENTS:
+        full, comp = recs.get((exp, "full"), {}), recs.get((exp, "compact"), {})
+        rows = []
+        for s in SCENES:
+            if s not in full or s not in comp or full[s]["num_gaussians"] == comp[s]["num_gaussians"]:
+                continue
+            mf, mc = ((r.get("stdr") or {}).get("mask_bytes", 0) / 2 ** 20 for r in (full[s], comp[s]))
+            bf, bc = full[s]["model_mb"] - mf, comp[s]["model_mb"] - mc
+            per = (bf - bc) / (full[s]["num_gaussians"] - comp[s]["num_gaussians"])
+            rows.append((bf - per * full[s]["num_gaussians"], per * 2 ** 20, mf, mc))
+        if rows:
+            out[exp] = dict(zip(("fixed_mib", "bytes_per_gaussian", "mask_mib_full", "mask_mib_compact"),
+                                (_mean(col) for col in zip(*rows))))
+    return out
+
+
 def test_table(args) -> int:
     """table_test.md / .json: per baseline, plain and +STDR, full and compact on test, and the targets."""
     from stdr.eval.evaluate import code_version, machine_name
@@ -502,10 +523,19 @@ def test_table(args) -> int:
         v = "–" if t["value"] is None else f"{t['value']:+.2f}" if "PSNR" in t["target"] else f"{t['value']:.2f}"
         met = "–" if t["met"] is None else "yes" if t["met"] else "**no**"
         lines.append(f"| {t['method']} | {t['target']} | {t['bound']} | {v} | {met} |")
+    split = bytes_split(recs)
+    lines += ["", "Where the bytes are: model MiB = fixed part (deformation network, fields) + per-Gaussian bytes x N "
+              "(+ STDR's mask), solved per scene from the full and the compact run (same method: the fixed part is "
+              "untouched by pruning), means over the scenes:", "",
+              "| method | fixed MiB | bytes per Gaussian (mask excluded) | mask MiB full | mask MiB compact |",
+              "|---|---|---|---|---|"]
+    for exp, b in split.items():
+        lines.append(f"| {exp} | {b['fixed_mib']:.2f} | {b['bytes_per_gaussian']:.0f} | {b['mask_mib_full']:.2f} | "
+                     f"{b['mask_mib_compact']:.2f} |")
     out = root.parent
     (out / "table_test.md").write_text("\n".join(lines) + "\n")
     (out / "table_test.json").write_text(json.dumps(
-        {"targets": targets, "records": {f"{e}/{r}/{s}": v for (e, r), d in recs.items() for s, v in d.items()}},
+        {"targets": targets, "bytes_split": split, "records": {f"{e}/{r}/{s}": v for (e, r), d in recs.items() for s, v in d.items()}},
         indent=1, default=str))
     print("\n".join(lines))
     return 0

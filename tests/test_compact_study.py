@@ -300,3 +300,21 @@ def test_follow_with_scratch_goes_on_to_the_scratch_runs_after_the_last_branches
     monkeypatch.setattr(c.time, "sleep", lambda s: pytest.fail("nothing to wait for"))
     assert c.run_queue(args) == 0
     assert [n for *_, n, _ in calls] == [*VARIANTS, *STDR_VARIANTS, *SCRATCH_VARIANTS]
+
+
+def test_the_bytes_split_recovers_a_fixed_part_and_per_gaussian_bytes():
+    from studies.compact import bytes_split
+    mib = 2 ** 20
+
+    def rec(n, mask_bytes_per_g):  # 0.5 MiB fixed, 236 bytes a Gaussian, the mask on top
+        return {"num_gaussians": n, "model_mb": 0.5 + (236 + mask_bytes_per_g) * n / mib,
+                "stdr": {"mask_bytes": mask_bytes_per_g * n}}
+    recs = {("dnerf_deform_stdr", "full"): {s: rec(10000 + i, 600) for i, s in enumerate(SCENES)},
+            ("dnerf_deform_stdr", "compact"): {s: rec(4900 + i, 150) for i, s in enumerate(SCENES)}}
+    b = bytes_split(recs)["dnerf_deform_stdr"]
+    assert b["fixed_mib"] == pytest.approx(0.5) and b["bytes_per_gaussian"] == pytest.approx(236)
+    assert b["mask_mib_compact"] == pytest.approx(_mean_n(4900, 150) / mib)
+
+
+def _mean_n(n0, per):
+    return sum((n0 + i) * per for i in range(len(SCENES))) / len(SCENES)
