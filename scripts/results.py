@@ -298,7 +298,10 @@ def compact_preset() -> list[str]:
             "Source: `docs/measurements/compact_prune/table_test.md`; the preset was chosen on the val split by the "
             "rule of `docs/measurements/compact_prune/protocol.md` (`table_val.md`). " + stamp, "",
             *_first_table(md), "", text[targets], "", *_first_table(md, targets), "", text[where], "",
-            *_first_table(md, where)]
+            *_first_table(md, where),
+            *(["", "![PSNR against Gaussians and model size, full and compact](measurements/compact_prune/charts/"
+               "size_accuracy_psnr.png)"] if (M / "compact_prune" / "charts" / "size_accuracy_psnr.png").is_file()
+              else [])]
 
 
 # ----------------------------------------------------------------- the page

@@ -121,3 +121,29 @@ def test_labelled_folders_chart_differing_configs_as_separate_methods(tmp_path):
     assert [float(r["psnr"]) for r in curves if r["method"] == "10k"] == [28.0, 33.0]
     with pytest.raises(SystemExit, match="LABEL=PATH"):
         stdr_chart([f"x={tmp_path / 'missing'}", "--out", str(out)])
+
+
+def test_compact_runs_are_squares_with_an_arrow_from_their_full_model(tmp_path):
+    """A run with contribution pruning is its own point, marked as compact, and paired with the
+    unpruned run of the same baseline and plug-ins (not with the other one)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    from stdr.eval.chart import _full_of, labelled, read_runs, speed_points
+    for scene in ("a", "b"):
+        _run(tmp_path / "runs", "deform", scene, 30.0, 40.0, 10000)
+        _run(tmp_path / "runs", "deform+STDR", scene, 30.5, 30.0, 11000)
+        for method, psnr in (("deform", 29.9), ("deform+STDR", 30.4)):
+            d = _run(tmp_path / "runs", method, scene, psnr, 80.0, 5000, seed=7)
+            cfg = yaml.safe_load((d / "config.yaml").read_text())
+            cfg["prune"] = {"share": 0.3, "at": ["refine_stop", "0.9"], "time_weight": 0.0}
+            (d / "config.yaml").write_text(yaml.safe_dump(cfg))
+    rows = read_runs(labelled([str(tmp_path / "runs")]), "test", "psnr")
+    pts = [p for p in speed_points(rows, "psnr") if p["scene"] == "mean"]
+    by = {p["method"]: p for p in pts}
+    assert set(by) == {"deform", "deform+STDR", "deform pruned 0.3x2", "deform+STDR pruned 0.3x2"}
+    assert [m for m, p in sorted(by.items()) if p["pruned"]] == ["deform pruned 0.3x2", "deform+STDR pruned 0.3x2"]
+    assert _full_of(by["deform pruned 0.3x2"], pts)["method"] == "deform"
+    assert _full_of(by["deform+STDR pruned 0.3x2"], pts)["method"] == "deform+STDR"
+    out = tmp_path / "charts"
+    stdr_chart([str(tmp_path / "runs"), "--out", str(out), "--charts", "size_accuracy"])
+    assert "compact (pruned)" in (out / "size_accuracy_psnr.svg").read_text()

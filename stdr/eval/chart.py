@@ -61,7 +61,8 @@ def read_runs(runs: list, split: str, metric: str) -> list[dict[str, Any]]:
                                  + (" (LPIPS weights were not found when it was evaluated)" if k == "lpips" else ""))
         cfg = x["config"]
         row = {**table_row(cfg, split, m, str(r)), "baseline": cfg["baseline"]["name"],
-               "variant": method_suffix(cfg)}  # "" (plain), or the plug-ins' labels and tags
+               "variant": method_suffix(cfg),  # "" (plain), or the plug-ins' labels and tags
+               "pruned": float((cfg.get("prune") or {}).get("share") or 0) > 0}  # contribution pruning (compact)
         if label is not None:
             row["method"] = label
         rows.append(row)
@@ -84,8 +85,9 @@ def caption(rows: list[dict[str, Any]]) -> str:
 
 # ------------------------------------------------------------------ data behind each chart
 def _kinds(rows) -> dict[str, dict[str, Any]]:
-    """method -> {baseline, variant} (one config per method: collect refuses mixed ones)."""
-    return {r["method"]: {"baseline": r["baseline"], "variant": r["variant"]} for r in rows}
+    """method -> {baseline, variant, pruned} (one config per method: collect refuses mixed ones)."""
+    return {r["method"]: {"baseline": r["baseline"], "variant": r["variant"], "pruned": r.get("pruned", False)}
+            for r in rows}
 
 
 def speed_points(rows: list[dict[str, Any]], metric: str) -> list[dict[str, Any]]:
@@ -155,15 +157,31 @@ def _log_ticks(ax):
     ax.xaxis.set_minor_formatter(NullFormatter())
 
 
-def _marker(ax, x, y, color, filled, size=60):
-    ax.scatter([x], [y], s=size, marker="o", facecolors=color if filled else "none", edgecolors=[color],
+def _marker(ax, x, y, color, filled, size=60, shape="o"):
+    ax.scatter([x], [y], s=size, marker=shape, facecolors=color if filled else "none", edgecolors=[color],
                linewidths=1.6, zorder=3)
+
+
+def _full_of(q, pts):
+    """The unpruned point a pruned (compact) point was made from: same baseline, the plug-ins on
+    or off alike, and a method label the compact one's starts with; None if absent."""
+    for p in pts:
+        if not p.get("pruned") and p["baseline"] == q["baseline"] and bool(p["variant"]) == bool(q["variant"]) \
+                and q["method"].startswith(p["method"] + " "):
+            return p
+    return None
 
 
 def _methods_panel(ax, pts, metric, colors, xkey, logx):
     higher = HIGHER_IS_BETTER[metric]
     for p in pts:
-        _marker(ax, p[xkey], p[metric], colors[p["baseline"]], bool(p["variant"]))
+        _marker(ax, p[xkey], p[metric], colors[p["baseline"]], bool(p["variant"]),
+                shape="s" if p.get("pruned") else "o")
+    for q in pts:  # a dotted arrow from each full model to its compact (pruned) twin
+        p = _full_of(q, pts) if q.get("pruned") else None
+        if p is not None:
+            ax.annotate("", xy=(q[xkey], q[metric]), xytext=(p[xkey], p[metric]),
+                        arrowprops=dict(arrowstyle="->", color=colors[p["baseline"]], lw=0.9, ls=":", alpha=0.8))
     labels = {s.label for s in registered_plugins()}
     for p in pts:  # an arrow from each plain point to the same baseline with one plug-in at its defaults
         if p["variant"]:
@@ -196,6 +214,9 @@ def _legend(fig, colors, pts, pareto_line=True):
                for b, c in colors.items()]
     handles += [Line2D([], [], marker="o", ls="", markerfacecolor="none", markeredgecolor="k", label="plain"),
                 Line2D([], [], marker="o", ls="", markerfacecolor="k", markeredgecolor="k", label=_variants(pts))]
+    if any(p.get("pruned") for p in pts):
+        handles.append(Line2D([], [], marker="s", ls=":", color="k", markerfacecolor="none", markeredgecolor="k",
+                              label="compact (pruned), from its full model"))
     if pareto_line:
         handles.append(Line2D([], [], ls="--", color="0.5", label="Pareto frontier"))
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False, fontsize=8)
@@ -244,7 +265,7 @@ def draw_size_accuracy(pts, metric, cap, out: Path) -> dict[str, Path]:
     mean = [p for p in pts if p["scene"] == "mean"]
     panels = [("num_gaussians", "Gaussians (final count)")]
     if mean and all(p["model_mb"] is not None for p in mean):
-        panels.append(("model_mb", "model size (MiB, float32 tensors)"))
+        panels.append(("model_mb", "model size (MiB, tensors as stored)"))
     fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.6), squeeze=False)
     for ax, (key, label) in zip(axes.flat, panels):
         # fewer is better on x: flip it so the frontier logic (larger x better) applies
