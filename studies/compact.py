@@ -269,10 +269,21 @@ def decide_time_bins(recs: dict) -> dict:
             ds = [recs[(exp, s, v)]["psnr"] - recs[(exp, s, "control")]["psnr"]
                   for s in SCENES if (exp, s, v) in recs and (exp, s, "control") in recs]
             per[v][exp] = sum(ds) / len(ds) if len(ds) == len(SCENES) else None
-    if any(x is None for d in per.values() for x in d.values()):
-        return {"time_bins_delta_psnr": per, "time_bins": None}
-    ok = [v for v in ("tb25", "tb50") if min(per[v].values()) >= -0.1]
-    return {"time_bins_delta_psnr": per, "time_bins": int(ok[0][2:]) if ok else 0}
+    # a variant is out once one method's complete mean is below the bar (the missing ones cannot
+    # bring it back), in once every method's is at or above it; the rule decides as soon as that
+    # settles it: the fewest admitted columns with every variant of fewer columns out, else none
+    state = {v: "out" if any(x is not None and x < -0.1 for x in d.values()) else
+             "in" if all(x is not None for x in d.values()) else None for v, d in per.items()}
+    decided = None
+    for v in ("tb25", "tb50"):
+        if state[v] == "in":
+            decided = int(v[2:])
+            break
+        if state[v] is None:
+            break
+    else:
+        decided = 0
+    return {"time_bins_delta_psnr": per, "time_bins_state": state, "time_bins": decided}
 
 
 def _machines(recs: dict) -> str:

@@ -318,3 +318,22 @@ def test_the_bytes_split_recovers_a_fixed_part_and_per_gaussian_bytes():
 
 def _mean_n(n0, per):
     return sum((n0 + i) * per for i in range(len(SCENES))) / len(SCENES)
+
+
+def test_time_bins_is_decided_once_one_complete_method_rules_both_variants_out():
+    base = {v: (lambda e: 0.0) for v in ("s30", "s30_tw1", "s50", "s50_tw1", "m8")}
+    recs = _recs({**base, "tb25": lambda e: -0.3 if e == "dnerf_scgs_stdr" else 0.0,
+                  "tb50": lambda e: -0.2 if e == "dnerf_scgs_stdr" else 0.0})
+    for s in SCENES:  # two other methods not run yet: they cannot bring scgs+STDR's mean back
+        for v in ("tb25", "tb50"):
+            del recs[("dnerf_4dgs_stdr", s, v)], recs[("dnerf_spgs_stdr", s, v)]
+    d = decide(recs)
+    assert d["time_bins"] == 0 and d["time_bins_state"] == {"tb25": "out", "tb50": "out"}
+    # tb25 out, tb50 still open: no decision yet
+    recs = _recs({**base, "tb25": lambda e: -0.3 if e == "dnerf_scgs_stdr" else 0.0, "tb50": lambda e: 0.0})
+    del recs[("dnerf_4dgs_stdr", SCENES[0], "tb50")]
+    assert decide(recs)["time_bins"] is None
+    # tb25 still open: tb50 admitted is not enough (25 would win if it passes)
+    recs = _recs({**base, "tb25": lambda e: 0.0, "tb50": lambda e: 0.0})
+    del recs[("dnerf_4dgs_stdr", SCENES[0], "tb25")]
+    assert decide(recs)["time_bins"] is None
