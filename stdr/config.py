@@ -137,7 +137,7 @@ class Config:
     name: str = "embedded_deform"  # experiment name (run folder, tables)
     budget: str = "cpu"
     # the compact preset (stdr/configs/compact/<off|on>.yaml, docs/compactness.md): "on" sets the
-    # pruning and STDR-mask keys the compactness study chose; the keys it sets are in config.yaml too
+    # pruning keys and the plug-ins' compact forms the compactness study chose; config.yaml keeps what it set
     compact: str = "off"
     seed: int = 0
     device: str = "auto"  # auto (cuda when torch sees a GPU, else cpu) | cpu | cuda | cuda:<index>
