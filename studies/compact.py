@@ -142,7 +142,7 @@ def run_queue(args) -> int:
             todo, ran = 0, 0
             for exp in (args.experiments or EXPERIMENTS):
                 variants = {**VARIANTS, **(STDR_VARIANTS if exp.endswith("_stdr") else {})}
-                for scene in (getattr(args, "scenes", None) or SCENES):
+                for scene in (args.scenes or SCENES):
                     src = trunk_dir(args.headline, exp, scene, args.seed)
                     for name, keys in variants.items():
                         if args.variants and name not in args.variants:
@@ -352,8 +352,8 @@ def preset_of(d: dict, exp: str) -> tuple[str, list[str]]:
     the chosen variant's branch, or `preset` (the chosen keys + stdr.mask_bits=8) for a +STDR method
     when rule 5 admits 8 bits, which no val variant combines with a share."""
     keys = list(VARIANTS[d["choice"]])
-    if exp.endswith("_stdr") and d["mask_bits_8"]:
-        return "preset", [*keys, "stdr.mask_bits=8"]
+    if exp.endswith("_stdr") and d["mask_bits_8"]:  # m8's mask key (its prune.share=0 is the choice's here)
+        return "preset", [*keys, *(k for k in STDR_VARIANTS["m8"] if not k.startswith("prune."))]
     return d["choice"], keys
 
 

@@ -90,7 +90,7 @@ def _queue(tmp_path, monkeypatch, scenes, step_of):
     args = argparse.Namespace(headline=str(tmp_path / "headline"), seed=2, follow=False, work=str(tmp_path / "work"),
                               code=str(tmp_path), experiments=["dnerf_deform"], dnerf=str(tmp_path),
                               records=str(tmp_path / "records"), variants=None, hold=False, poll=60.0,
-                              scratch=False)
+                              scratch=False, scenes=None)
     return c, args, calls
 
 
