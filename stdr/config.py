@@ -77,6 +77,11 @@ class OptimConfig:
     sh0_lr: float = 2.5e-3
     shN_lr: float = 1.25e-4
     fused_adam: bool = True         # torch's fused Adam on CPU and CUDA (false: the for-loop one)
+    # the photometric loss ((1 - lambda_dssim) L1 + lambda_dssim D-SSIM, with the step's PSNR) as one
+    # compiled pass, forward and backward (stdr.render.compiled.image_loss_compiled), or its torch
+    # twin (stdr.metrics.image_loss). null: compiled where it has been checked (stdr.metrics.
+    # FUSED_LOSS_VERIFIED: the CPU; there is no CUDA kernel) and the CPU extension builds; true / false
+    fused_loss: Optional[bool] = None
 
 
 @dataclass

@@ -4,6 +4,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+_FREQS: dict = {}  # (n_freqs, dtype, device) -> the bands, made once (two operators fewer a call)
+
+
+def _bands(n_freqs: int, dtype, device) -> Tensor:
+    key = (n_freqs, dtype, device)
+    if key not in _FREQS:
+        _FREQS[key] = 2.0 ** torch.arange(n_freqs, dtype=dtype, device=device)
+    return _FREQS[key]
+
 
 def positional_encoding(x: Tensor, n_freqs: int) -> Tensor:
     """NeRF encoding with the input included: [.., D] -> [.., D (1 + 2 n_freqs)].
@@ -12,7 +21,7 @@ def positional_encoding(x: Tensor, n_freqs: int) -> Tensor:
     """
     if n_freqs == 0:
         return x
-    freqs = 2.0 ** torch.arange(n_freqs, dtype=x.dtype, device=x.device)
+    freqs = _bands(n_freqs, x.dtype, x.device)
     xf = x[..., None, :] * freqs[:, None]  # [.., L, D]
     return torch.cat([x, torch.stack([xf.sin(), xf.cos()], -2).flatten(-3)], -1)
 

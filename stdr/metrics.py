@@ -97,3 +97,42 @@ def psnr(img1: Tensor, img2: Tensor) -> Tensor:
 
 def l1(img1: Tensor, img2: Tensor) -> Tensor:
     return (img1 - img2).abs().mean()
+
+
+def image_loss(img: Tensor, gt: Tensor, lam: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The photometric training loss: (loss, l1, dssim, psnr), 0-d tensors, with
+    loss = (1 - lam) * l1(img, gt) + lam * (1 - ssim(img, gt)). With lam = 0 the D-SSIM is
+    computed without a gradient (for the log only). The torch twin of
+    `stdr.render.compiled.image_loss_compiled` (`fused_loss`)."""
+    loss_l1 = l1(img, gt)
+    if lam > 0:
+        loss_dssim = 1.0 - ssim(img, gt)
+        loss = (1 - lam) * loss_l1 + lam * loss_dssim
+    else:  # its backward would add exact zeros
+        with torch.no_grad():
+            loss_dssim = 1.0 - ssim(img.detach(), gt)
+        loss = loss_l1
+    return loss, loss_l1, loss_dssim, psnr(img.detach(), gt)
+
+
+# the devices where optim.fused_loss=null takes the compiled loss (its parity tests have run there)
+FUSED_LOSS_VERIFIED = ("cpu",)
+
+
+def fused_loss(setting, device: torch.device, dtype: torch.dtype = torch.float32) -> bool:
+    """Whether a run's loss is the compiled one (optim.fused_loss resolved): null = where it has
+    been verified and the CPU extension builds; true insists (an error says why it cannot)."""
+    from .render import compiled
+
+    if setting is False:
+        return False
+    supported = device.type == "cpu" and dtype in (torch.float32, torch.float64)
+    if setting is None:
+        return supported and device.type in FUSED_LOSS_VERIFIED and compiled.available("cpu")
+    if not supported:
+        raise ValueError(f"optim.fused_loss=true: the compiled loss runs on the CPU in float32/float64, this run is "
+                         f"{dtype} on {device}; set optim.fused_loss=null (or false) to use the torch ops")
+    if not compiled.available("cpu"):
+        raise RuntimeError(f"optim.fused_loss=true, but the CPU extension could not be built: "
+                           f"{compiled.build_error('cpu')}; set optim.fused_loss=null (or false)")
+    return True

@@ -322,3 +322,82 @@ def test_peak_memory_follows_an_allocation_and_survives_a_resume():
     h = Guard()
     h.load_state_dict(g.state_dict())
     assert h.peak_memory_mb == g.peak_memory_mb and g.summary(10)["peak_memory_mb"] == g.peak_memory_mb
+
+
+def _faulty_tensors():
+    """Tensors of every checked dtype, with a NaN or an infinity at the start, the middle or the
+    end (beyond one work chunk of the compiled check), and clean ones."""
+    out = []
+    for dtype in (torch.float32, torch.float64, torch.float16, torch.bfloat16):
+        for n in (1, 7, 200_003):
+            for where in (0, n // 2, n - 1):
+                for bad in (float("nan"), float("inf"), -float("inf")):
+                    t = torch.linspace(-3e4, 3e4, n).to(dtype)
+                    t[where] = bad
+                    out.append(t)
+            out.append(torch.linspace(-3e4, 3e4, n).to(dtype))
+    big = torch.full((1000,), 3.3e38)  # the largest finite values are finite
+    return out + [big, -big, torch.tensor([]), torch.zeros(3, 4).t()]  # empty; not contiguous
+
+
+def test_the_compiled_check_agrees_with_the_torch_one():
+    from stdr.render import compiled
+    from stdr.train.guard import nonfinite_flags
+    if not compiled.available("cpu"):
+        pytest.skip("the CPU extension cannot be built here")
+    ts = _faulty_tensors()
+    checked = [t for t in ts if t.numel()]
+    want = nonfinite_flags(checked)
+    assert want.sum() > 0 and (~want).sum() > 0
+    assert torch.equal(compiled.nonfinite_flags_compiled(checked), want)
+    assert not compiled.nonfinite_flags_compiled([torch.tensor([])]).any()  # empty: nothing to find
+    assert all_finite([ts[-4]], compiled=True) and not all_finite([ts[0]], compiled=True)
+
+
+def test_the_compiled_step_update_is_the_torch_one():
+    """Guard.flag_step's state over a sequence of steps (clean, faulty, faulty again, clean),
+    compiled against the torch operators: the same flag, first faulty step and index."""
+    from types import SimpleNamespace
+
+    from stdr.render import compiled
+    from stdr.train.guard import Guard
+    if not compiled.available("cpu"):
+        pytest.skip("the CPU extension cannot be built here")
+    bad = torch.ones(5)
+    bad[3] = float("nan")
+    steps = {1: [torch.ones(3), torch.ones(5)], 2: [torch.ones(3), bad], 3: [bad, torch.ones(5)],
+             4: [torch.ones(3), torch.ones(5)]}
+    states = {}
+    for compiled_ in (False, True):
+        g = Guard(checks=True, sync_free=True, compiled=compiled_)
+        seen = []
+        for step, (p, q) in steps.items():
+            params = {"means": SimpleNamespace(grad=p), "scales": SimpleNamespace(grad=q)}
+            trainer = SimpleNamespace(model=SimpleNamespace(params=params), network_params=lambda: [],
+                                      cfg=SimpleNamespace(train=SimpleNamespace(guard=SimpleNamespace(
+                                          inject_nan_grad_at=[]))))
+            flag = g.flag_step(trainer, torch.tensor(0.5), step)
+            seen.append((float(flag), int(g.bad_step), int(g.bad_index)))
+        states[compiled_] = (seen, g.poll())
+    assert states[True] == states[False]
+    assert states[True][0] == [(0.0, -1, -1), (1.0, 2, 2), (1.0, 2, 2), (1.0, 2, 2)]
+    assert states[True][1] == (2, "non-finite grad of scales")
+
+
+def test_the_compiled_check_is_the_default_on_the_cpu_and_finds_the_same_fault(tmp_path):
+    from stdr.render import compiled
+    from stdr.train.guard import COMPILED_CHECK_VERIFIED
+    if not compiled.available("cpu"):
+        pytest.skip("the CPU extension cannot be built here")
+    assert COMPILED_CHECK_VERIFIED == ("cpu",)  # CPU code: CUDA runs keep the torch operators
+    runs = {}
+    for key in ("null", "false"):
+        tr = _trainer(tmp_path, key, [f"train.guard.compiled={key}", "train.guard.inject_nan_grad_at=[25]"])
+        tr.train()
+        runs[key] = tr
+    assert runs["null"].guard.compiled and not runs["false"].guard.compiled
+    def when(tr):  # each recovery but its clock
+        return [{k: v for k, v in r.items() if k != "train_seconds"} for r in tr.guard.recoveries]
+    assert when(runs["null"]) == when(runs["false"]) and len(when(runs["null"])) == 1
+    assert runs["null"].guard.recoveries[0]["reason"] == "non-finite grad of means"
+    _same_params(runs["null"], runs["false"])

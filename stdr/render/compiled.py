@@ -31,6 +31,7 @@ CSRC = Path(__file__).resolve().parent / "csrc"
 CPU_SOURCES = [CSRC / "cpu" / "raster_cpu.cpp"]
 CUDA_SOURCES = [CSRC / "cuda" / "raster_cuda.cpp", CSRC / "cuda" / "raster_kernels.cu"]
 HEADERS = [CSRC / "raster_math.h", CSRC / "project_math.h", CSRC / "hexplane_math.h", CSRC / "cpu" / "raster_simd.h",
+           CSRC / "cpu" / "loss_cpu.h",
            CSRC / "cuda" / "raster_kernels.h"]
 PORTABLE_ENV = "STDR_PORTABLE_BUILD"  # =1: no -march=native (e.g. a cache shared by machines)
 
@@ -423,3 +424,57 @@ def hexplane_compiled(coords: Tensor, planes: list[Tensor], kind: str = "cpu") -
             raise ValueError(f"stdr hexplane: {name} must be [C, H, W] with C={planes[0].shape[0]}, got {list(t.shape)}")
     ext = load_extension(kind)
     return _HexPlane.apply(coords.detach().contiguous(), ext, *[p.contiguous() for p in planes])
+
+
+# ----------------------------------------------------------------------------- the training loss
+class _ImageLoss(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, img, gt, lam, window, sigma, ext):
+        loss, stats, partials = ext.image_loss_forward(img, gt, lam, window, sigma)
+        ctx.save_for_backward(img, gt, partials)
+        ctx.args = (lam, window, sigma, ext)
+        ctx.mark_non_differentiable(stats)
+        return loss, stats
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_loss, g_stats):
+        img, gt, partials = ctx.saved_tensors
+        lam, window, sigma, ext = ctx.args
+        return ext.image_loss_backward(g_loss, img, gt, partials, lam, window, sigma), None, None, None, None, None
+
+
+def image_loss_compiled(img: Tensor, gt: Tensor, lam: float, window: int = 11,
+                        sigma: float = 1.5) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The photometric training loss in one compiled pass (CPU): (loss, l1, dssim, psnr), 0-d
+    tensors, where loss = (1 - lam) * l1 + lam * dssim and only loss has a gradient (img's). The
+    torch twin is `stdr.metrics.image_loss`; tests/test_fused_loss.py pins the two together.
+
+    img, gt [H, W, C] on the CPU, float32 or float64; gt is a target (no gradient)."""
+    if img.dim() != 3 or img.shape != gt.shape:
+        raise ValueError(f"stdr image_loss: img and gt must be [H, W, C] of one shape, got {list(img.shape)} and "
+                         f"{list(gt.shape)}")
+    for name, t in (("img", img), ("gt", gt)):
+        if t.device.type != "cpu" or t.dtype not in (torch.float32, torch.float64) or t.dtype != img.dtype:
+            raise ValueError(f"stdr image_loss: {name} is {t.dtype} on {t.device}; both must be float32 or float64 "
+                             "on the CPU, of one dtype")
+    if gt.requires_grad:
+        raise ValueError("stdr image_loss: gt needs a gradient; the compiled loss differentiates img only")
+    if not 1 <= window <= 31 or window % 2 == 0:
+        raise ValueError(f"stdr image_loss: window={window} must be odd, 1..31")
+    ext = load_extension("cpu")
+    loss, stats = _ImageLoss.apply(img.contiguous(), gt.contiguous(), float(lam), int(window), float(sigma), ext)
+    return loss, stats[0], stats[1], stats[2]
+
+
+def nonfinite_flags_compiled(tensors: list[Tensor]) -> Tensor:
+    """One bool per CPU tensor: whether it has a NaN or an infinity (the torch form is
+    `stdr.train.guard.nonfinite_flags`)."""
+    return load_extension("cpu").nonfinite_flags([t.detach() for t in tensors])
+
+
+def guard_update_compiled(tensors: list[Tensor], flag: Tensor, bad_step: Tensor, bad_index: Tensor, step: int) -> None:
+    """The sync-free guard's per-step update in one call, in place (the torch form is in
+    `stdr.train.guard.Guard.flag_step`): when a tensor is non-finite, flag = 1 and, if no step was
+    recorded yet (bad_step < 0), bad_step = step and bad_index = the first such tensor's index."""
+    load_extension("cpu").guard_update([t.detach() for t in tensors], flag, bad_step, bad_index, int(step))

@@ -56,6 +56,10 @@ class GuardConfig:
     # snapshot, the state an immediate check restores. null: on where it has been checked
     # (SYNC_FREE_VERIFIED); true / false. Needs optim.fused_adam (false reads the check every step)
     sync_free: Optional[bool] = None
+    # the check of a step's tensors as one compiled call (stdr.render.compiled.guard_update; one
+    # operator instead of two a tensor and ten for the verdict) or as torch operators. null: compiled
+    # where it has been checked (COMPILED_CHECK_VERIFIED) and the CPU extension builds; true / false
+    compiled: Optional[bool] = None
     # fault injection, for tests and drills: a NaN in the gradient of the means at each step
     # listed (counted from 1), once per process
     inject_nan_grad_at: List[int] = field(default_factory=list)
@@ -77,6 +81,28 @@ def resolve_sync_free(g, device: torch.device, fused_adam: bool) -> bool:
                          "is what skips a faulty step's update on the device; set train.guard.sync_free=false "
                          "(or null) to read the check every step")
     return bool(g.sync_free)
+
+
+# the devices where train.guard.compiled=null checks with the compiled call (tests/test_guard.py
+# pins it to the torch form there); it is CPU code: a CUDA run keeps the torch operators
+COMPILED_CHECK_VERIFIED = ("cpu",)
+
+
+def resolve_compiled_check(g, device: torch.device) -> bool:
+    """Whether this run's step check is the compiled call (train.guard.compiled resolved)."""
+    from ..render import compiled
+
+    if not g.enabled or g.compiled is False:
+        return False
+    if g.compiled is None:
+        return device.type in COMPILED_CHECK_VERIFIED and compiled.available("cpu")
+    if device.type != "cpu":
+        raise ValueError(f"train.guard.compiled=true: the compiled check is CPU code and this run is on {device}; "
+                         "set train.guard.compiled=null (or false) to check with torch operators")
+    if not compiled.available("cpu"):
+        raise RuntimeError(f"train.guard.compiled=true, but the CPU extension could not be built: "
+                           f"{compiled.build_error('cpu')}; set train.guard.compiled=null (or false)")
+    return True
 
 
 class TrainingDiverged(RuntimeError):
@@ -136,10 +162,13 @@ def _checkable(t: Optional[Tensor]) -> bool:
     return t is not None and t.is_floating_point() and t.numel() > 0
 
 
-def all_finite(tensors: Iterable[Optional[Tensor]]) -> bool:
+def all_finite(tensors: Iterable[Optional[Tensor]], compiled: bool = False) -> bool:
     """Whether every element of every (floating) tensor is finite; None and empty entries are
-    skipped. One host sync."""
+    skipped. One host sync. compiled: the CPU extension's check (CPU tensors only)."""
     ts = [t for t in tensors if _checkable(t)]
+    if compiled and ts:
+        from ..render.compiled import nonfinite_flags_compiled
+        return not bool(nonfinite_flags_compiled(ts).any())
     return not ts or not bool(nonfinite_flags(ts).any())
 
 
@@ -201,6 +230,7 @@ class Guard:
     fired: set = field(default_factory=set)        # injected faults already fired (this process)
     checks: bool = False     # whether this run checks its steps (train.guard.enabled)
     sync_free: bool = False  # ... without a host sync (resolve_sync_free); not saved: each run's own
+    compiled: bool = False   # ... with the compiled call (resolve_compiled_check); not saved either
     # the sync-free check's device-side state (None until its first step; cleared by each read):
     # found_inf for fused Adam (float 0-d, 1 from the first faulty step on), that step (-1: none),
     # the index of its first non-finite tensor, and the tensors' names from each step they changed
@@ -250,7 +280,7 @@ class Guard:
         """After the backward of step `step`: what is non-finite (the loss, or the gradient of a
         named parameter), or None. One host sync."""
         named = self._step_tensors(trainer, loss, step)
-        return None if all_finite(t for _, t in named) else f"non-finite {first_nonfinite(named)}"
+        return None if all_finite((t for _, t in named), self.compiled) else f"non-finite {first_nonfinite(named)}"
 
     def flag_step(self, trainer, loss: Tensor, step: int) -> Tensor:
         """The sync-free form of `check_step`: the verdict stays on the device. Returns the flag
@@ -264,6 +294,10 @@ class Guard:
             self.bad_index = torch.full((), -1, dtype=torch.int64, device=loss.device)
         if not self.names or self.names[-1][1] != names:
             self.names.append((step, names))
+        if self.compiled:  # the same update as the torch operators below, in one call
+            from ..render.compiled import guard_update_compiled
+            guard_update_compiled([t for _, t in named], self.flag, self.bad_step, self.bad_index, step)
+            return self.flag
         bad = nonfinite_flags([t for _, t in named])
         anybad = bad.any()
         new = anybad & (self.bad_step < 0)

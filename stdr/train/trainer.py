@@ -17,7 +17,8 @@ from torch import Tensor
 
 from ..data.load import load_scene
 from ..device import resolve_device, synchronize
-from ..metrics import l1, psnr, ssim
+from ..metrics import fused_loss, image_loss
+from ..render.compiled import image_loss_compiled
 from ..model import build_model, initial_points, model_entry
 from ..render.compiled import camera_values
 from ..scene.gaussians import scene_extent
@@ -26,7 +27,7 @@ from ..scene.prune import prune_event
 from ..scene.strategy import build_strategy
 from .adam import adam_step, clear_grads
 from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
-from .guard import Guard, check_guard_config, monitor_split, resolve_sync_free
+from .guard import Guard, check_guard_config, monitor_split, resolve_compiled_check, resolve_sync_free
 from .syncs import host_only
 from .schedule import exp_lr
 
@@ -167,7 +168,10 @@ class Trainer:
         self.prune_log: list[dict[str, Any]] = []  # contribution pruning events (stdr.scene.prune.prune_event)
         self.writer = None
         self.guard = Guard(peak_gaussians=len(pts), monitor=self.monitor, checks=bool(cfg.train.guard.enabled),
-                           sync_free=resolve_sync_free(cfg.train.guard, self.device, self._fused_adam))
+                           sync_free=resolve_sync_free(cfg.train.guard, self.device, self._fused_adam),
+                           compiled=resolve_compiled_check(cfg.train.guard, self.device))
+        # the photometric loss as one compiled pass (optim.fused_loss) or its torch twin
+        self.image_loss = image_loss_compiled if fused_loss(cfg.optim.fused_loss, self.device) else image_loss
 
     @property
     def step(self) -> int:
@@ -345,16 +349,8 @@ class Trainer:
         # (made by the projection alone) mark the end of the rasterizer's backward
         prof.watch("loss+rasterizer", (pj.means2d, pj.conics))
         prof.watch("projection+sh", (g.means, g.quats, g.scales, g.opacities, g.sh))
-        with prof("loss"):
-            lam = cfg.optim.lambda_dssim
-            loss_l1 = l1(out.image, frame.image)
-            if lam > 0:
-                loss_dssim = 1.0 - ssim(out.image, frame.image)
-                loss = (1 - lam) * loss_l1 + lam * loss_dssim
-            else:  # D-SSIM only for the log (4dgs's presets): its backward would add exact zeros
-                with torch.no_grad():
-                    loss_dssim = 1.0 - ssim(out.image.detach(), frame.image)
-                loss = loss_l1
+        with prof("loss"):  # (loss, l1, dssim, psnr); D-SSIM without a gradient where lambda_dssim = 0
+            loss, loss_l1, loss_dssim, step_psnr = self.image_loss(out.image, frame.image, cfg.optim.lambda_dssim)
         terms: dict[str, Tensor] = {}
         for p in model.plugins:
             with prof(f"{p.name}_reg"):
@@ -393,7 +389,7 @@ class Trainer:
         self.step = it + 1
         # scalars stay 0-d tensors (no host sync in an ordinary step): read them at log steps
         return {"loss": loss.detach(), "l1": loss_l1.detach(), "dssim": loss_dssim.detach(), "active": g.means.shape[0],
-                "psnr": psnr(out.image.detach(), frame.image), "densify": info,
+                "psnr": step_psnr.detach(), "densify": info,
                 "losses": {k: v.detach() for k, v in terms.items()}, "out": out, "frame": frame}
 
     # ----------------------------------------------------------------- for the guard (stdr.train.guard)

@@ -19,6 +19,7 @@
 #include "../hexplane_math.h"
 #include "../project_math.h"
 #include "../raster_math.h"
+#include "loss_cpu.h"
 #include "raster_simd.h"
 
 #if defined(__GNUC__)
@@ -806,4 +807,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_backward", &project_backward, "projection and SH backward (CPU)");
   m.def("hexplane_forward", &hexplane_forward, "HexPlane features and the others-products (CPU)");
   m.def("hexplane_backward", &hexplane_backward, "HexPlane plane gradients (CPU, deterministic)");
+  m.def("image_loss_forward", &image_loss_forward, "(1 - lam) L1 + lam (1 - SSIM), its stats and partials (CPU)");
+  m.def("image_loss_backward", &image_loss_backward, "the image gradient of image_loss (CPU, deterministic)");
+  m.def("nonfinite_flags", &nonfinite_flags, "one bool per tensor: has a NaN or an infinity (CPU)");
+  m.def("guard_update", &guard_update, "the sync-free guard's per-step update, in place (CPU)");
 }

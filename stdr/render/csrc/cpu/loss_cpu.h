@@ -1,0 +1,293 @@
+// CPU kernels outside the rasterizer, included by raster_cpu.cpp (one extension module):
+//
+// * image_loss_forward / image_loss_backward: the training's photometric loss,
+//   (1 - lam) * L1 + lam * (1 - SSIM), in one pass over the image instead of ~35 ATen operators
+//   forward and ~45 backward. SSIM as stdr.metrics.ssim (its torch twin): 11-tap Gaussian window
+//   (sigma 1.5) applied as a vertical then a horizontal pass with zero padding ("same"),
+//   C1 = 0.01^2, C2 = 0.03^2, mean over pixels and channels. The forward keeps the three partial
+//   derivatives of each pixel's SSIM (by mu1, E[x^2], E[xy]) for the backward, which filters them
+//   with the same window (the filter is symmetric and zero padded, so it is its own adjoint).
+//   Deterministic: rows are independent work items, sums are per row and added in row order.
+// * nonfinite_flags / guard_update: the training guard's finiteness check of a list of tensors as
+//   one call. The test is on the exponent bits, so no compiler flag can fold it away.
+#pragma once
+
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <vector>
+
+namespace stdr_loss {
+
+constexpr int MAX_WINDOW = 31;
+
+// The normalized 1D Gaussian window, computed in double as stdr.metrics._gauss1d, then rounded.
+template <typename T>
+void gauss1d(int size, double sigma, T* out) {
+  double g[MAX_WINDOW], s = 0.0;
+  for (int i = 0; i < size; ++i) {
+    const double x = double(i - size / 2);
+    g[i] = std::exp(-x * x / (2.0 * sigma * sigma));
+    s += g[i];
+  }
+  for (int i = 0; i < size; ++i) out[i] = T(g[i] / s);
+}
+
+// Horizontal pass of one row of K maps: out[k][x*C + c] = sum_j g[j] * in[k][(x + j - R)*C + c],
+// zero outside the row. `in` and `out` are K rows of RW = W*C values.
+template <typename T, int K>
+inline void hpass(const T* in, T* out, int64_t RW, int64_t C, const T* g, int R) {
+  for (int k = 0; k < K; ++k) {
+    const T* src = in + k * RW;
+    T* dst = out + k * RW;
+    for (int64_t i = 0; i < RW; ++i) dst[i] = T(0);
+    for (int j = 0; j < 2 * R + 1; ++j) {
+      const int64_t shift = (int64_t)(j - R) * C;  // dst[i] += g[j] * src[i + shift]
+      const int64_t lo = shift < 0 ? -shift : 0, hi = shift > 0 ? RW - shift : RW;
+      const T w = g[j];
+#pragma omp simd
+      for (int64_t i = lo; i < hi; ++i) dst[i] += w * src[i + shift];
+    }
+  }
+}
+
+// dst += w * src over n values (a function of its own: a pragma cannot sit in a macro's argument)
+template <typename T>
+inline void axpy(T w, const T* src, T* dst, int64_t n) {
+#pragma omp simd
+  for (int64_t i = 0; i < n; ++i) dst[i] += w * src[i];
+}
+
+template <typename T>
+inline T sgn(T v) { return T((v > T(0)) - (v < T(0))); }
+
+// The five filtered maps of row y (a, b, a^2, b^2, ab -> mu1, mu2, s11, s22, s12), into out[5][RW];
+// vt is scratch of 5*RW.
+template <typename T>
+inline void filtered_row(const T* a, const T* b, int64_t H, int64_t RW, int64_t C, const T* g, int R, int64_t y,
+                         T* vt, T* out) {
+  for (int64_t i = 0; i < 5 * RW; ++i) vt[i] = T(0);
+  for (int j = 0; j < 2 * R + 1; ++j) {
+    const int64_t yy = y + j - R;
+    if (yy < 0 || yy >= H) continue;
+    const T w = g[j];
+    const T* ar = a + yy * RW;
+    const T* br = b + yy * RW;
+#pragma omp simd
+    for (int64_t i = 0; i < RW; ++i) {
+      const T av = ar[i], bv = br[i];
+      vt[i] += w * av;
+      vt[RW + i] += w * bv;
+      vt[2 * RW + i] += w * (av * av);
+      vt[3 * RW + i] += w * (bv * bv);
+      vt[4 * RW + i] += w * (av * bv);
+    }
+  }
+  hpass<T, 5>(vt, out, RW, C, g, R);
+}
+
+}  // namespace stdr_loss
+
+// img, gt [H, W, C] (contiguous, one floating dtype, CPU). Returns {loss (0-d), stats [3] =
+// (l1, 1 - ssim, psnr in dB), partials [3, H, W, C] (dS/dmu1, dS/ds11, dS/ds12; empty when
+// lam == 0: the backward then needs none)}.
+std::vector<at::Tensor> image_loss_forward(at::Tensor img, at::Tensor gt, double lam, int64_t window, double sigma) {
+  TORCH_CHECK(img.dim() == 3 && img.sizes() == gt.sizes(), "stdr image_loss: img and gt must be [H, W, C] of one shape");
+  TORCH_CHECK(img.scalar_type() == gt.scalar_type(), "stdr image_loss: img and gt must have one dtype");
+  TORCH_CHECK(img.device().is_cpu() && gt.device().is_cpu(), "stdr image_loss: img and gt must be on the CPU");
+  TORCH_CHECK(window % 2 == 1 && window >= 1 && window <= stdr_loss::MAX_WINDOW,
+              "stdr image_loss: window must be odd, 1..31");
+  img = img.contiguous();
+  gt = gt.contiguous();
+  const int64_t H = img.size(0), W = img.size(1), C = img.size(2), RW = W * C, n = H * RW;
+  const int R = (int)(window / 2);
+  const bool grad = lam != 0.0;
+  auto loss = at::empty({}, img.options());
+  auto stats = at::empty({3}, img.options());
+  auto partials = grad ? at::empty({3, H, W, C}, img.options()) : at::empty({0}, img.options());
+  std::vector<double> row_ssim(H), row_l1(H), row_sq(H);
+  AT_DISPATCH_FLOATING_TYPES(img.scalar_type(), "stdr_image_loss_forward", [&] {
+    using T = scalar_t;
+    T g[stdr_loss::MAX_WINDOW];
+    stdr_loss::gauss1d<T>((int)window, sigma, g);
+    const T* a = img.data_ptr<T>();
+    const T* b = gt.data_ptr<T>();
+    T* P = grad ? partials.data_ptr<T>() : nullptr;
+    const T C1 = T(0.01 * 0.01), C2 = T(0.03 * 0.03);
+    at::parallel_for(0, H, 4, [&](int64_t y0, int64_t y1) {
+      std::vector<T> vt(5 * RW), f(5 * RW);
+      for (int64_t y = y0; y < y1; ++y) {
+        stdr_loss::filtered_row<T>(a, b, H, RW, C, g, R, y, vt.data(), f.data());
+        const T *mu1 = f.data(), *mu2 = mu1 + RW, *s11 = mu2 + RW, *s22 = s11 + RW, *s12 = s22 + RW;
+        const T* ar = a + y * RW;
+        const T* br = b + y * RW;
+        double ss = 0.0, sl = 0.0, sq = 0.0;
+        for (int64_t i = 0; i < RW; ++i) {
+          // the twin's expression, term for term (stdr.metrics._ssim_map)
+          const T m1 = mu1[i], m2 = mu2[i], m12 = m1 * m2;
+          const T A1 = T(2) * m12 + C1, A2 = T(2) * (s12[i] - m12) + C2;
+          const T B1 = m1 * m1 + m2 * m2 + C1, B2 = s11[i] - m1 * m1 + s22[i] - m2 * m2 + C2;
+          const T D = B1 * B2, S = (A1 * A2) / D;
+          ss += (double)S;
+          const T d = ar[i] - br[i];
+          sl += (double)std::abs(d);
+          sq += (double)(d * d);
+          if (P) {
+            const int64_t o = y * RW + i;
+            // dS/dmu1, dS/ds11, dS/ds12 with mu2, s22 fixed
+            P[o] = (T(2) * m2 * A2 - T(2) * m2 * A1) / D - S * (T(2) * m1 / B1 - T(2) * m1 / B2);
+            P[n + o] = -S / B2;
+            P[2 * n + o] = T(2) * A1 / D;
+          }
+        }
+        row_ssim[y] = ss;
+        row_l1[y] = sl;
+        row_sq[y] = sq;
+      }
+    });
+    double ss = 0.0, sl = 0.0, sq = 0.0;
+    for (int64_t y = 0; y < H; ++y) {  // in row order: the result does not depend on the threads
+      ss += row_ssim[y];
+      sl += row_l1[y];
+      sq += row_sq[y];
+    }
+    const double N = (double)n, l1 = sl / N, dssim = 1.0 - ss / N, mse = sq / N;
+    *loss.data_ptr<T>() = T((1.0 - lam) * l1 + lam * dssim);  // written, not filled: no ATen operator
+    T* st = stats.data_ptr<T>();
+    st[0] = T(l1);
+    st[1] = T(dssim);
+    st[2] = T(10.0 * std::log10(1.0 / std::max(mse, 1e-20)));
+  });
+  return {loss, stats, partials};
+}
+
+// The gradient of g_loss * loss with respect to img. g_loss: 0-d (read here, on the CPU).
+at::Tensor image_loss_backward(at::Tensor g_loss, at::Tensor img, at::Tensor gt, at::Tensor partials, double lam,
+                               int64_t window, double sigma) {
+  TORCH_CHECK(img.dim() == 3 && img.sizes() == gt.sizes() && img.device().is_cpu() && gt.device().is_cpu() &&
+                  img.scalar_type() == gt.scalar_type(),
+              "stdr image_loss: img and gt must be [H, W, C] CPU tensors of one shape and dtype");
+  img = img.contiguous();
+  gt = gt.contiguous();
+  const int64_t H = img.size(0), W = img.size(1), C = img.size(2), RW = W * C, n = H * RW;
+  const int R = (int)(window / 2);
+  const bool grad = lam != 0.0;
+  TORCH_CHECK(g_loss.numel() == 1 && g_loss.scalar_type() == img.scalar_type() && g_loss.device().is_cpu(),
+              "stdr image_loss: the loss gradient must be a CPU scalar of the image's dtype");
+  TORCH_CHECK(!grad || (partials.dim() == 4 && partials.size(0) == 3 && partials.numel() == 3 * n),
+              "stdr image_loss: partials do not match the image");
+  auto out = at::empty_like(img);
+  AT_DISPATCH_FLOATING_TYPES(img.scalar_type(), "stdr_image_loss_backward", [&] {
+    using T = scalar_t;
+    T g[stdr_loss::MAX_WINDOW];
+    stdr_loss::gauss1d<T>((int)window, sigma, g);
+    const double gl = (double)*g_loss.data_ptr<T>();  // a CPU scalar: no device to wait for
+    const T ks = T(-lam * gl / (double)n), kl = T((1.0 - lam) * gl / (double)n);
+    const T* a = img.data_ptr<T>();
+    const T* b = gt.data_ptr<T>();
+    const T* P = grad ? partials.data_ptr<T>() : nullptr;
+    T* o = out.data_ptr<T>();
+    at::parallel_for(0, H, 4, [&](int64_t y0, int64_t y1) {
+      std::vector<T> vt(grad ? 3 * RW : 0), f(grad ? 3 * RW : 0);
+      for (int64_t y = y0; y < y1; ++y) {
+        const T* ar = a + y * RW;
+        const T* br = b + y * RW;
+        T* orow = o + y * RW;
+        if (!grad) {
+          for (int64_t i = 0; i < RW; ++i) orow[i] = kl * stdr_loss::sgn<T>(ar[i] - br[i]);
+          continue;
+        }
+        for (int64_t i = 0; i < 3 * RW; ++i) vt[i] = T(0);
+        for (int j = 0; j < 2 * R + 1; ++j) {
+          const int64_t yy = y + j - R;
+          if (yy < 0 || yy >= H) continue;
+          const T w = g[j];
+          for (int k = 0; k < 3; ++k) stdr_loss::axpy<T>(w, P + k * n + yy * RW, vt.data() + k * RW, RW);
+        }
+        stdr_loss::hpass<T, 3>(vt.data(), f.data(), RW, C, g, R);
+        const T *f1 = f.data(), *f2 = f1 + RW, *f3 = f2 + RW;
+        for (int64_t i = 0; i < RW; ++i)
+          orow[i] = ks * (f1[i] + T(2) * ar[i] * f2[i] + br[i] * f3[i]) + kl * stdr_loss::sgn<T>(ar[i] - br[i]);
+      }
+    });
+  });
+  return out;
+}
+
+namespace stdr_loss {
+
+// Whether a tensor has a NaN or an infinity: an exponent field of all ones.
+template <typename U>
+bool any_nonfinite_bits(const U* p, int64_t n, U mask) {
+  return at::parallel_reduce(
+      0, n, 1 << 16, false,
+      [&](int64_t b, int64_t e, bool acc) {
+        if (acc) return true;
+        unsigned bad = 0;
+#pragma omp simd reduction(| : bad)
+        for (int64_t i = b; i < e; ++i) bad |= (unsigned)((p[i] & mask) == mask);
+        return bad != 0;
+      },
+      [](bool x, bool y) { return x || y; });
+}
+
+inline bool any_nonfinite(const at::Tensor& t0) {
+  if (!t0.defined() || t0.numel() == 0 || !t0.is_floating_point()) return false;
+  const at::Tensor t = t0.contiguous();
+  const int64_t n = t.numel();
+  switch (t.scalar_type()) {
+    case at::kFloat:
+      return any_nonfinite_bits<uint32_t>(reinterpret_cast<const uint32_t*>(t.data_ptr()), n, 0x7f800000u);
+    case at::kDouble:
+      return any_nonfinite_bits<uint64_t>(reinterpret_cast<const uint64_t*>(t.data_ptr()), n, 0x7ff0000000000000ull);
+    case at::kHalf:
+      return any_nonfinite_bits<uint16_t>(reinterpret_cast<const uint16_t*>(t.data_ptr()), n, (uint16_t)0x7c00u);
+    case at::kBFloat16:
+      return any_nonfinite_bits<uint16_t>(reinterpret_cast<const uint16_t*>(t.data_ptr()), n, (uint16_t)0x7f80u);
+    default:
+      return !at::isfinite(t).all().item<bool>();
+  }
+}
+
+inline void check_cpu(const std::vector<at::Tensor>& ts) {
+  for (size_t i = 0; i < ts.size(); ++i)
+    TORCH_CHECK(!ts[i].defined() || ts[i].device().is_cpu(), "stdr guard: every tensor must be on the CPU");
+}
+
+}  // namespace stdr_loss
+
+// One bool per tensor: whether it has a non-finite element (undefined / empty / integer: false).
+at::Tensor nonfinite_flags(std::vector<at::Tensor> ts) {
+  stdr_loss::check_cpu(ts);
+  auto out = at::empty({(int64_t)ts.size()}, at::TensorOptions().dtype(at::kBool));
+  bool* o = out.data_ptr<bool>();
+  for (size_t i = 0; i < ts.size(); ++i) o[i] = stdr_loss::any_nonfinite(ts[i]);
+  return out;
+}
+
+// The sync-free guard's per-step update, in place (stdr.train.guard.Guard.flag_step's torch form):
+// if any tensor is non-finite, flag = 1 (float 0-d) and, where bad_step < 0 (int64 0-d), bad_step =
+// step and bad_index = the first such tensor's index. The tensors are checked in order and the
+// check stops at the first non-finite one.
+void guard_update(std::vector<at::Tensor> ts, at::Tensor flag, at::Tensor bad_step, at::Tensor bad_index,
+                  int64_t step) {
+  stdr_loss::check_cpu(ts);
+  TORCH_CHECK(flag.device().is_cpu() && flag.numel() == 1 && flag.scalar_type() == at::kFloat,
+              "stdr guard: flag must be a float32 CPU scalar");
+  TORCH_CHECK(bad_step.numel() == 1 && bad_step.scalar_type() == at::kLong && bad_index.numel() == 1 &&
+                  bad_index.scalar_type() == at::kLong,
+              "stdr guard: bad_step and bad_index must be int64 scalars");
+  int64_t first = -1;
+  for (size_t i = 0; i < ts.size() && first < 0; ++i)
+    if (stdr_loss::any_nonfinite(ts[i])) first = (int64_t)i;
+  if (first < 0) return;
+  flag.fill_(1.0);
+  int64_t* bs = bad_step.data_ptr<int64_t>();
+  if (*bs < 0) {
+    *bs = step;
+    *bad_index.data_ptr<int64_t>() = first;
+  }
+}
