@@ -13,7 +13,8 @@ allocations or profiler records). Counts are deterministic: they do not depend o
     python studies/ops_per_step.py --scene ../shared/data/dnerf/jumpingjacks --label after \\
         --out docs/measurements/ops_per_step
     python studies/ops_per_step.py --compare docs/measurements/ops_per_step/before.json \\
-        docs/measurements/ops_per_step/after.json --out docs/measurements/ops_per_step
+        docs/measurements/ops_per_step/after.json docs/measurements/ops_per_step/fused.json \\
+        --out docs/measurements/ops_per_step
 """
 from __future__ import annotations
 
@@ -118,17 +119,24 @@ def markdown(res: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def compare(a: dict, b: dict) -> str:
-    rows = {r["experiment"]: r for r in a["rows"]}
-    lines = [f"Operators per ordinary training step: {a['label']} (code {_code(a['code'])}) against {b['label']} "
-             f"(code {_code(b['code'])}); studies/ops_per_step.py, budget=cpu, {Path(b['scene']).name}.", "",
-             f"| experiment | ops {a['label']} | ops {b['label']} | ratio | compute ops {a['label']} | "
-             f"compute ops {b['label']} | ratio |", "|---|---|---|---|---|---|---|"]
-    for r in b["rows"]:
-        if r["experiment"] in rows:
-            o, c = rows[r["experiment"]]["ops"], rows[r["experiment"]]["compute_ops"]
-            lines.append(f"| {r['experiment']} | {o} | {r['ops']} | {r['ops'] / o:.2f} | {c} | {r['compute_ops']} | "
-                         f"{r['compute_ops'] / c:.2f} |")
+def compare(a: dict, *later: dict) -> str:
+    """Each later count against the first, per experiment: operators and compute operators, with
+    the ratio to the first."""
+    rows = [{r["experiment"]: r for r in res["rows"]} for res in later]
+    codes = "; ".join(f"{res['label']} (code {_code(res['code'])})" for res in later)
+    lines = [f"Operators per ordinary training step: {a['label']} (code {_code(a['code'])}) against {codes}; "
+             f"studies/ops_per_step.py, budget=cpu, {Path(later[-1]['scene']).name}. Ratios are to {a['label']}.", ""]
+    head = ["experiment", f"ops {a['label']}"] + [f"ops {r['label']} (ratio)" for r in later] + \
+        [f"compute ops {a['label']}"] + [f"compute ops {r['label']} (ratio)" for r in later]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in a["rows"]:
+        e = r["experiment"]
+        if not all(e in rs for rs in rows):
+            continue
+        o, c = r["ops"], r["compute_ops"]
+        cells = [e, str(o)] + [f"{rs[e]['ops']} ({rs[e]['ops'] / o:.2f})" for rs in rows] + [str(c)] + \
+            [f"{rs[e]['compute_ops']} ({rs[e]['compute_ops'] / c:.2f})" for rs in rows]
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -138,10 +146,13 @@ def main(argv=None) -> int:
     ap.add_argument("--experiments", nargs="+", default=EXPERIMENTS)
     ap.add_argument("--label", default="this checkout")
     ap.add_argument("--out", type=Path, help="folder: <label>.json and .md (with --compare: compare.md)")
-    ap.add_argument("--compare", nargs=2, type=Path, metavar=("A.json", "B.json"))
+    ap.add_argument("--compare", nargs="+", type=Path, metavar="JSON",
+                    help="two or more counts: each later one against the first")
     ap.add_argument("overrides", nargs="*", help="config overrides for every experiment")
     a = ap.parse_args(argv)
     if a.compare:
+        if len(a.compare) < 2:
+            ap.error("--compare needs at least two counts (JSON files)")
         text = compare(*(json.loads(p.read_text()) for p in a.compare))
         print(text, end="")
         if a.out:
