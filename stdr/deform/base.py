@@ -89,6 +89,11 @@ class BaselineConfig:
     # accumulation, deltas returned in fp32; fast where the CPU has AMX / AVX512-BF16 or on a GPU;
     # docs/performance.md has the measurement)
     precision: str = "fp32"
+    # the deformation MLP (deform's network; scgs's and spgs's trunk) through torch.compile
+    # (inductor, dynamic shapes). Off: on the CPU it is no faster at budget=cpu sizes and costs
+    # ~12 s of compilation a process (docs/performance.md); not measured on a GPU yet. 4dgs has no
+    # compiled form of its network (its HexPlane sampling is a kernel: baseline.hexplane.compiled)
+    compile: bool = False
 
 
 def mlp_kwargs(b: Any, cond_dim: int) -> dict:
@@ -181,7 +186,15 @@ class Deformation(nn.Module):
         """The module of a baseline config (see `config_kwargs`)."""
         module = cls(**cls.config_kwargs(b, cond_dim, train_times, seed, schedule))
         module.precision = check_precision(getattr(b, "precision", "fp32"))
+        if getattr(b, "compile", False):
+            module.compile_network()
         return module
+
+    def compile_network(self) -> None:
+        """baseline.compile=true: run this module's network through torch.compile. A module with
+        a compiled form overrides this."""
+        raise ValueError(f"baseline.compile=true: the {getattr(self, 'name', type(self).__name__)} deformation "
+                         f"({type(self).__name__}) has no torch.compile form; set baseline.compile=false")
 
     def gaussian_params(self, n: int) -> dict[str, Tensor]:
         return {}

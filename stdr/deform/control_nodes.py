@@ -160,6 +160,10 @@ class ControlNodeDeformation(Deformation):
         return events, [("SC-GS node->skinning switch (baseline.scgs.node_stage_end + main_warmup)", end, detached)]
 
     # -------------------------------------------------------------- per-Gaussian state
+    def compile_network(self) -> None:
+        """baseline.compile=true: the MLP trunk through torch.compile (DeformMLP.compile_network)."""
+        self.net.compile_network()
+
     def gaussian_params(self, n: int) -> dict[str, Tensor]:
         return {FEATURE_KEY: torch.full((n, self.hyper_dim), -1e-2)}
 

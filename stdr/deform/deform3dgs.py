@@ -91,12 +91,24 @@ class DeformMLP(Deformation):
         input is concatenated. The same function as one Linear on the concatenated input (the
         weights are unchanged; only float rounding differs), and with xyz detached autograd
         computes no gradient for the PE block (about a fifth of the backward's products)."""
-        t_in = torch.full((1, 1), float(t), dtype=xyz.dtype, device=xyz.device)
+        if self.cond_dim and cond is None:
+            raise ValueError("this deformation network was built with cond_dim > 0 and needs cond")
+        t_in = torch.full((1, 1), float(t), dtype=xyz.dtype, device=xyz.device)  # a tensor: compiled code
+        return (self._compiled or self._trunk)(xyz, t_in, cond)                # is not specialized on t
+
+    #: the trunk through torch.compile (baseline.compile; `compile_network`), or None: eager
+    _compiled = None
+
+    def compile_network(self) -> None:
+        """Run the trunk through torch.compile (inductor; shapes dynamic, so densification does not
+        recompile it). baseline.compile=true; off by default (docs/performance.md)."""
+        self._compiled = torch.compile(self._trunk, dynamic=True)
+
+    def _trunk(self, xyz: Tensor, t_in: Tensor, cond: Optional[Tensor]) -> Tensor:
+        """`trunk` with the time as a [1, 1] tensor (what torch.compile compiles)."""
         t_emb = positional_encoding(t_in, self.t_freqs)  # [1, T]
         if self.time_net is not None:
             t_emb = self.time_net(t_emb)
-        if self.cond_dim and cond is None:
-            raise ValueError("this deformation network was built with cond_dim > 0 and needs cond")
         pe = positional_encoding(xyz, self.xyz_freqs)  # [N, P]
         P, T = pe.shape[1], t_emb.shape[1]
 

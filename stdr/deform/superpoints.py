@@ -86,6 +86,10 @@ class SuperpointDeformation(Deformation):
         self._last: dict = {}
 
     # -------------------------------------------------------------- per-Gaussian state
+    def compile_network(self) -> None:
+        """baseline.compile=true: the MLP trunk through torch.compile (DeformMLP.compile_network)."""
+        self.net.compile_network()
+
     def gaussian_params(self, n: int) -> dict[str, Tensor]:
         return {ASSOC_KEY: torch.zeros(n, self.m)}
 
