@@ -16,7 +16,7 @@ stage OUT holds everything that finished, in four files (a device call returns a
 
 Stages (GPU): env (GPU, torch, nvcc, Python packages: exit 3 when one is missing) -> build (the
 CUDA extension, failing loudly: exit 4; the CPU extension builds beside it) -> kernels (the CUDA
-parity tests of the projection + SH, the rasterizer and 4dgs's HexPlane sampling, CUDA_LAUNCH_BLOCKING=1) -> proj_scale
+parity tests of the projection + SH, the rasterizer, 4dgs's HexPlane sampling, the training loss and the guard's check, CUDA_LAUNCH_BLOCKING=1) -> proj_scale
 (CUDA against the CPU extension at 200k and 1M Gaussians, both antialiasing modes) -> train_tests
 (rasterizer at training scale; training + resume on CUDA, all four baselines with STDR) ->
 syncs_cuda (an ordinary training step of every baseline +- STDR makes no synchronizing call the
@@ -233,8 +233,10 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
         return Stage(name, est, cap, cmd, env=env, facts=run_facts(name, d))
 
     if dry:
-        kernels = pyt + junit("kernels") + ["tests/test_compiled.py", "tests/test_hexplane_compiled.py", "-k",
-                                            "(projection_and_sh_match_the_torch_twin or sampling_matches_the_torch_twin) and cpu"]
+        kernels = pyt + junit("kernels") + ["tests/test_compiled.py", "tests/test_hexplane_compiled.py",
+                                            "tests/test_fused_loss.py", "tests/test_guard.py", "-k",
+                                            "(projection_and_sh_match_the_torch_twin or sampling_matches_the_torch_twin or "
+                                            "loss_matches_the_torch_twin or compiled_step_update) and cpu"]
         scale = pyt + junit("proj_scale") + ["tests/test_compiled.py", "-k", "cuda_projection_matches_the_cpu_extension_at_scale"]
         ttests = pyt + junit("train_tests") + ["tests/test_device.py", "-k", "device_names_resolve"]
         syncs = pyt + junit("syncs_cuda") + ["tests/test_syncs.py", "-k", "counter"]
@@ -244,7 +246,8 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
         sanitize = [py, str(Path(__file__).resolve()), SANITIZE_PROBE, "cpu"]
     else:
         kernels = pyt + junit("kernels") + ["tests/test_compiled.py", "tests/test_contribution.py",
-                                            "tests/test_hexplane_compiled.py", "-k",
+                                            "tests/test_hexplane_compiled.py", "tests/test_fused_loss.py",
+                                            "tests/test_guard.py", "-k",
                                             "cuda and not nvcc and not torch_headers and not training_scale and not benchmark_row and not at_scale"]
         scale = pyt + junit("proj_scale") + ["tests/test_compiled.py", "-k", "cuda_projection_matches_the_cpu_extension_at_scale"]
         ttests = pyt + junit("train_tests") + ["tests/test_compiled.py", "tests/test_device.py", "-k",
@@ -285,8 +288,8 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
 
 def sanitize_probe(kind: str) -> None:
     """One small render() forward + backward through every kernel of the extension (projection +
-    SH, pack, tiles, forward, backward), both antialiasing modes and two tile sizes, and the
-    HexPlane sampling forward and backward."""
+    SH, pack, tiles, forward, backward), both antialiasing modes and two tile sizes, the HexPlane
+    sampling forward and backward, the training loss forward and backward and the guard's check."""
     import torch
 
     sys.path.insert(0, str(ROOT))
@@ -307,11 +310,23 @@ def sanitize_probe(kind: str) -> None:
               for h, w in ((32, 32), (32, 32), (25, 32), (32, 32), (25, 32), (25, 32)) * 2]
     coords = (torch.rand(5000, 4, generator=g) * 2.4 - 1.2).to(kind)
     (hexplane_compiled(coords, planes, kind) ** 2).sum().backward()
+    # the training loss (forward, backward) and the guard's check (a clean list, then a NaN in a
+    # tensor beyond the first block's elements)
+    from stdr.render.compiled import guard_update_compiled, image_loss_compiled
+    img = torch.rand(37, 53, 3, generator=g).to(kind).requires_grad_(True)
+    image_loss_compiled(img, torch.rand(37, 53, 3, generator=g).to(kind), 0.2)[0].backward()
+    flag, step, index = (torch.zeros((), device=kind), torch.full((), -1, device=kind),
+                         torch.full((), -1, device=kind))
+    bad = torch.ones(70_000, device=kind)
+    bad[-1] = float("nan")
+    guard_update_compiled([img.grad, *planes], flag, step, index, 5)
+    guard_update_compiled([img.grad, bad], flag, step, index, 6)
     if kind == "cuda":
         torch.cuda.synchronize()
-    sums = [float(x.grad.abs().sum()) for x in xs + planes]
+    sums = [float(x.grad.abs().sum()) for x in xs + planes + [img]]
     assert all(s > 0 and s == s for s in sums), sums
-    print("ok: gradient sums", sums)
+    assert (float(flag), int(step), int(index)) == (1.0, 6, 1), (flag, step, index)
+    print("ok: gradient sums", sums, "guard", float(flag), int(step), int(index))
 
 
 def main(argv=None) -> int:

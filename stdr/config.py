@@ -80,7 +80,8 @@ class OptimConfig:
     # the photometric loss ((1 - lambda_dssim) L1 + lambda_dssim D-SSIM, with the step's PSNR) as one
     # compiled pass, forward and backward (stdr.render.compiled.image_loss_compiled), or its torch
     # twin (stdr.metrics.image_loss). null: compiled where it has been checked (stdr.metrics.
-    # FUSED_LOSS_VERIFIED: the CPU; there is no CUDA kernel) and the CPU extension builds; true / false
+    # FUSED_LOSS_VERIFIED: the CPU; the CUDA kernel is built, not yet run on a GPU) and the extension
+    # builds; true / false
     fused_loss: Optional[bool] = None
 
 

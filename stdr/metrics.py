@@ -115,24 +115,27 @@ def image_loss(img: Tensor, gt: Tensor, lam: float) -> tuple[Tensor, Tensor, Ten
     return loss, loss_l1, loss_dssim, psnr(img.detach(), gt)
 
 
-# the devices where optim.fused_loss=null takes the compiled loss (its parity tests have run there)
+# the devices where optim.fused_loss=null takes the compiled loss (its parity tests have run there;
+# on CUDA once a GPU check has run tests/test_fused_loss.py)
 FUSED_LOSS_VERIFIED = ("cpu",)
 
 
 def fused_loss(setting, device: torch.device, dtype: torch.dtype = torch.float32) -> bool:
     """Whether a run's loss is the compiled one (optim.fused_loss resolved): null = where it has
-    been verified and the CPU extension builds; true insists (an error says why it cannot)."""
+    been verified and the extension builds; true insists (an error says why it cannot)."""
     from .render import compiled
 
     if setting is False:
         return False
-    supported = device.type == "cpu" and dtype in (torch.float32, torch.float64)
+    kind = device.type
+    supported = dtype in compiled.LOSS_DTYPES.get(kind, ())
     if setting is None:
-        return supported and device.type in FUSED_LOSS_VERIFIED and compiled.available("cpu")
+        return supported and kind in FUSED_LOSS_VERIFIED and compiled.available(kind)
     if not supported:
-        raise ValueError(f"optim.fused_loss=true: the compiled loss runs on the CPU in float32/float64, this run is "
-                         f"{dtype} on {device}; set optim.fused_loss=null (or false) to use the torch ops")
-    if not compiled.available("cpu"):
-        raise RuntimeError(f"optim.fused_loss=true, but the CPU extension could not be built: "
-                           f"{compiled.build_error('cpu')}; set optim.fused_loss=null (or false)")
+        raise ValueError(f"optim.fused_loss=true: the compiled loss runs in float32/float64 on the CPU and float32 on "
+                         f"CUDA, this run is {dtype} on {device}; set optim.fused_loss=null (or false) to use the torch "
+                         "ops")
+    if not compiled.available(kind):
+        raise RuntimeError(f"optim.fused_loss=true, but the {kind} extension could not be built: "
+                           f"{compiled.build_error(kind)}; set optim.fused_loss=null (or false)")
     return True

@@ -6,6 +6,8 @@ from stdr.metrics import FUSED_LOSS_VERIFIED, fused_loss, image_loss, l1, psnr, 
 from stdr.render import compiled
 
 pytestmark = pytest.mark.skipif(not compiled.available("cpu"), reason="the CPU extension cannot be built here")
+CUDA = torch.cuda.is_available() and bool(torch.version.cuda)
+BACKENDS = ["cpu"] + (["cuda"] if CUDA else [])
 
 # (H, W, C): odd sizes, an image smaller than the window, one channel, a wide one
 SHAPES = [(37, 23, 3), (5, 7, 3), (24, 16, 1), (9, 64, 3)]
@@ -27,19 +29,34 @@ def _run(fn, a, b, lam, w):
     return [o.detach().double() for o in out], x.grad.double()
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("shape", SHAPES)
 @pytest.mark.parametrize("lam", [0.0, 0.2, 1.0])
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
-def test_it_matches_the_torch_twin(shape, lam, dtype, tol):
+def test_the_loss_matches_the_torch_twin(backend, shape, lam, dtype, tol):
+    if backend == "cuda" and dtype == torch.float64:
+        pytest.skip("the CUDA kernel is float32")
     a, b = _pair(shape, dtype, seed=len(shape) + shape[0])
     ref, ref_g = _run(image_loss, a.double(), b.double(), lam, 1.7)  # the oracle: the twin in float64
-    out, grad = _run(compiled.image_loss_compiled, a, b, lam, 1.7)
+    out, grad = _run(compiled.image_loss_compiled, a.to(backend), b.to(backend), lam, 1.7)
+    out, grad = [o.cpu() for o in out], grad.cpu()
     for name, o, r in zip(("loss", "l1", "dssim", "psnr"), out, ref):
         assert abs(float(o - r)) <= tol * max(1.0, abs(float(r))), name
     assert ref_g.abs().max() > 0
     assert (grad - ref_g).abs().max() <= tol * ref_g.abs().max()
     if lam == 1.0:  # no L1 term: the gradient is D-SSIM's alone, nonzero at the tied pixels too
         assert grad[0, 0].abs().max() > 0
+
+
+@pytest.mark.skipif(not CUDA, reason="no CUDA device on this machine (torch.cuda.is_available() is False)")
+def test_the_cuda_loss_is_deterministic_and_matches_the_cpu_one_at_training_size():
+    a, b = _pair((400, 400, 3), torch.float32, seed=4)
+    cpu = _run(compiled.image_loss_compiled, a, b, 0.2, 1.0)
+    runs = [_run(compiled.image_loss_compiled, a.cuda(), b.cuda(), 0.2, 1.0) for _ in range(2)]
+    assert all(torch.equal(x, y) for x, y in zip(runs[0][0], runs[1][0])) and torch.equal(runs[0][1], runs[1][1])
+    for o, r in zip(runs[0][0], cpu[0]):
+        assert abs(float(o.cpu() - r)) <= 1e-5 * max(1.0, abs(float(r)))
+    assert (runs[0][1].cpu() - cpu[1]).abs().max() <= 1e-5 * cpu[1].abs().max()
 
 
 def test_its_ssim_is_the_direct_2d_window_and_its_stats_the_metrics():
@@ -98,15 +115,20 @@ def test_bad_inputs_are_rejected_with_what_is_wrong():
 
 
 def test_the_key_resolves_by_device_and_names_itself_when_it_cannot_run():
-    assert FUSED_LOSS_VERIFIED == ("cpu",)  # there is no CUDA kernel
-    cpu = torch.device("cpu")
+    assert FUSED_LOSS_VERIFIED == ("cpu",)  # CUDA: once a GPU check has run these tests there
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
     assert fused_loss(None, cpu) and fused_loss(True, cpu) and not fused_loss(False, cpu)
-    assert not fused_loss(None, torch.device("cuda"))  # null: the torch twin there
-    assert not fused_loss(False, torch.device("cuda"))
+    assert not fused_loss(None, cuda)  # null: the torch twin there, until verified
+    assert not fused_loss(False, cuda)
     with pytest.raises(ValueError, match="optim.fused_loss=true"):
-        fused_loss(True, torch.device("cuda"))
+        fused_loss(True, cuda, torch.float64)  # the CUDA kernel is float32
     with pytest.raises(ValueError, match="optim.fused_loss=true"):
         fused_loss(True, cpu, torch.float16)
+    if CUDA:
+        assert fused_loss(True, cuda)
+    else:
+        with pytest.raises(RuntimeError, match="optim.fused_loss=true"):
+            fused_loss(True, cuda)  # no CUDA extension here: the key is named
 
 
 def test_training_takes_it_by_default_and_the_twin_on_request(tmp_path):

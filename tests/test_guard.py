@@ -354,19 +354,23 @@ def test_the_compiled_check_agrees_with_the_torch_one():
     assert all_finite([ts[-4]], compiled=True) and not all_finite([ts[0]], compiled=True)
 
 
-def test_the_compiled_step_update_is_the_torch_one():
+@pytest.mark.parametrize("backend", ["cpu"] + (["cuda"] if torch.cuda.is_available() and torch.version.cuda else []))
+def test_the_compiled_step_update_is_the_torch_one(backend):
     """Guard.flag_step's state over a sequence of steps (clean, faulty, faulty again, clean),
     compiled against the torch operators: the same flag, first faulty step and index."""
     from types import SimpleNamespace
 
     from stdr.render import compiled
     from stdr.train.guard import Guard
-    if not compiled.available("cpu"):
-        pytest.skip("the CPU extension cannot be built here")
+    if not compiled.available(backend):
+        pytest.skip(f"the {backend} extension cannot be built here")
     bad = torch.ones(5)
     bad[3] = float("nan")
+    big = torch.ones(300_000)  # more elements than one block of the CUDA check covers
+    big[-1] = float("inf")
     steps = {1: [torch.ones(3), torch.ones(5)], 2: [torch.ones(3), bad], 3: [bad, torch.ones(5)],
              4: [torch.ones(3), torch.ones(5)]}
+    steps = {k: [t.to(backend) for t in v] for k, v in steps.items()}
     states = {}
     for compiled_ in (False, True):
         g = Guard(checks=True, sync_free=True, compiled=compiled_)
@@ -376,12 +380,19 @@ def test_the_compiled_step_update_is_the_torch_one():
             trainer = SimpleNamespace(model=SimpleNamespace(params=params), network_params=lambda: [],
                                       cfg=SimpleNamespace(train=SimpleNamespace(guard=SimpleNamespace(
                                           inject_nan_grad_at=[]))))
-            flag = g.flag_step(trainer, torch.tensor(0.5), step)
+            flag = g.flag_step(trainer, torch.tensor(0.5, device=backend), step)
             seen.append((float(flag), int(g.bad_step), int(g.bad_index)))
         states[compiled_] = (seen, g.poll())
     assert states[True] == states[False]
     assert states[True][0] == [(0.0, -1, -1), (1.0, 2, 2), (1.0, 2, 2), (1.0, 2, 2)]
     assert states[True][1] == (2, "non-finite grad of scales")
+    # a fault at the very end of a large tensor, found by the compiled update alone
+    g = Guard(checks=True, sync_free=True, compiled=True)
+    params = {"means": SimpleNamespace(grad=torch.ones(3, device=backend)), "scales": SimpleNamespace(grad=big.to(backend))}
+    trainer = SimpleNamespace(model=SimpleNamespace(params=params), network_params=lambda: [],
+                              cfg=SimpleNamespace(train=SimpleNamespace(guard=SimpleNamespace(inject_nan_grad_at=[]))))
+    g.flag_step(trainer, torch.tensor(0.5, device=backend), 7)
+    assert g.poll() == (7, "non-finite grad of scales")
 
 
 def test_the_compiled_check_is_the_default_on_the_cpu_and_finds_the_same_fault(tmp_path):

@@ -30,7 +30,8 @@ from torch.autograd.function import once_differentiable
 CSRC = Path(__file__).resolve().parent / "csrc"
 CPU_SOURCES = [CSRC / "cpu" / "raster_cpu.cpp"]
 CUDA_SOURCES = [CSRC / "cuda" / "raster_cuda.cpp", CSRC / "cuda" / "raster_kernels.cu"]
-HEADERS = [CSRC / "raster_math.h", CSRC / "project_math.h", CSRC / "hexplane_math.h", CSRC / "cpu" / "raster_simd.h",
+HEADERS = [CSRC / "raster_math.h", CSRC / "project_math.h", CSRC / "hexplane_math.h", CSRC / "loss_math.h",
+           CSRC / "cpu" / "raster_simd.h",
            CSRC / "cpu" / "loss_cpu.h",
            CSRC / "cuda" / "raster_kernels.h"]
 PORTABLE_ENV = "STDR_PORTABLE_BUILD"  # =1: no -march=native (e.g. a cache shared by machines)
@@ -444,25 +445,34 @@ class _ImageLoss(torch.autograd.Function):
         return ext.image_loss_backward(g_loss, img, gt, partials, lam, window, sigma), None, None, None, None, None
 
 
+# the dtypes each loss kernel takes (the CUDA one is float32 only)
+LOSS_DTYPES = {"cpu": (torch.float32, torch.float64), "cuda": (torch.float32,)}
+
+
 def image_loss_compiled(img: Tensor, gt: Tensor, lam: float, window: int = 11,
                         sigma: float = 1.5) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The photometric training loss in one compiled pass (CPU): (loss, l1, dssim, psnr), 0-d
-    tensors, where loss = (1 - lam) * l1 + lam * dssim and only loss has a gradient (img's). The
-    torch twin is `stdr.metrics.image_loss`; tests/test_fused_loss.py pins the two together.
+    """The photometric training loss in one compiled pass: (loss, l1, dssim, psnr), 0-d tensors,
+    where loss = (1 - lam) * l1 + lam * dssim and only loss has a gradient (img's). The torch
+    twin is `stdr.metrics.image_loss`; tests/test_fused_loss.py pins the two together. The CPU
+    kernel is one call each way; the CUDA one three launches forward and two backward, with no
+    host sync (the loss gradient is read on the device). Both are deterministic.
 
-    img, gt [H, W, C] on the CPU, float32 or float64; gt is a target (no gradient)."""
+    img, gt [H, W, C] on one device (CPU: float32 or float64; CUDA: float32); gt is a target (no
+    gradient)."""
     if img.dim() != 3 or img.shape != gt.shape:
         raise ValueError(f"stdr image_loss: img and gt must be [H, W, C] of one shape, got {list(img.shape)} and "
                          f"{list(gt.shape)}")
+    kind = img.device.type
+    want = LOSS_DTYPES.get(kind, ())
     for name, t in (("img", img), ("gt", gt)):
-        if t.device.type != "cpu" or t.dtype not in (torch.float32, torch.float64) or t.dtype != img.dtype:
-            raise ValueError(f"stdr image_loss: {name} is {t.dtype} on {t.device}; both must be float32 or float64 "
-                             "on the CPU, of one dtype")
+        if t.device != img.device or t.dtype not in want or t.dtype != img.dtype:
+            raise ValueError(f"stdr image_loss: {name} is {t.dtype} on {t.device}; both must be on one device, of one "
+                             "dtype: float32 or float64 on the CPU, float32 on CUDA")
     if gt.requires_grad:
         raise ValueError("stdr image_loss: gt needs a gradient; the compiled loss differentiates img only")
     if not 1 <= window <= 31 or window % 2 == 0:
         raise ValueError(f"stdr image_loss: window={window} must be odd, 1..31")
-    ext = load_extension("cpu")
+    ext = load_extension(kind)
     loss, stats = _ImageLoss.apply(img.contiguous(), gt.contiguous(), float(lam), int(window), float(sigma), ext)
     return loss, stats[0], stats[1], stats[2]
 
@@ -476,5 +486,7 @@ def nonfinite_flags_compiled(tensors: list[Tensor]) -> Tensor:
 def guard_update_compiled(tensors: list[Tensor], flag: Tensor, bad_step: Tensor, bad_index: Tensor, step: int) -> None:
     """The sync-free guard's per-step update in one call, in place (the torch form is in
     `stdr.train.guard.Guard.flag_step`): when a tensor is non-finite, flag = 1 and, if no step was
-    recorded yet (bad_step < 0), bad_step = step and bad_index = the first such tensor's index."""
-    load_extension("cpu").guard_update([t.detach() for t in tensors], flag, bad_step, bad_index, int(step))
+    recorded yet (bad_step < 0), bad_step = step and bad_index = the first such tensor's index.
+    On the flag's device: the CPU (any floating dtype) or CUDA (float32 tensors; a fill and two
+    launches, no host sync)."""
+    load_extension(flag.device.type).guard_update([t.detach() for t in tensors], flag, bad_step, bad_index, int(step))

@@ -56,9 +56,10 @@ class GuardConfig:
     # snapshot, the state an immediate check restores. null: on where it has been checked
     # (SYNC_FREE_VERIFIED); true / false. Needs optim.fused_adam (false reads the check every step)
     sync_free: Optional[bool] = None
-    # the check of a step's tensors as one compiled call (stdr.render.compiled.guard_update; one
-    # operator instead of two a tensor and ten for the verdict) or as torch operators. null: compiled
-    # where it has been checked (COMPILED_CHECK_VERIFIED) and the CPU extension builds; true / false
+    # the check of a step's tensors as one compiled call (stdr.render.compiled.guard_update_compiled;
+    # instead of two operators a tensor and ten for the verdict) or as torch operators. null: compiled
+    # where it has been checked (COMPILED_CHECK_VERIFIED: the CPU; the CUDA kernel is built, not yet
+    # run on a GPU) and the extension builds; true / false
     compiled: Optional[bool] = None
     # fault injection, for tests and drills: a NaN in the gradient of the means at each step
     # listed (counted from 1), once per process
@@ -84,7 +85,7 @@ def resolve_sync_free(g, device: torch.device, fused_adam: bool) -> bool:
 
 
 # the devices where train.guard.compiled=null checks with the compiled call (tests/test_guard.py
-# pins it to the torch form there); it is CPU code: a CUDA run keeps the torch operators
+# pins it to the torch form there; on CUDA once a GPU check has run those tests)
 COMPILED_CHECK_VERIFIED = ("cpu",)
 
 
@@ -94,14 +95,15 @@ def resolve_compiled_check(g, device: torch.device) -> bool:
 
     if not g.enabled or g.compiled is False:
         return False
+    kind = device.type
     if g.compiled is None:
-        return device.type in COMPILED_CHECK_VERIFIED and compiled.available("cpu")
-    if device.type != "cpu":
-        raise ValueError(f"train.guard.compiled=true: the compiled check is CPU code and this run is on {device}; "
-                         "set train.guard.compiled=null (or false) to check with torch operators")
-    if not compiled.available("cpu"):
-        raise RuntimeError(f"train.guard.compiled=true, but the CPU extension could not be built: "
-                           f"{compiled.build_error('cpu')}; set train.guard.compiled=null (or false)")
+        return kind in COMPILED_CHECK_VERIFIED and compiled.available(kind)
+    if kind not in ("cpu", "cuda"):
+        raise ValueError(f"train.guard.compiled=true: there is no compiled check on {device}; set "
+                         "train.guard.compiled=null (or false) to check with torch operators")
+    if not compiled.available(kind):
+        raise RuntimeError(f"train.guard.compiled=true, but the {kind} extension could not be built: "
+                           f"{compiled.build_error(kind)}; set train.guard.compiled=null (or false)")
     return True
 
 
@@ -166,7 +168,7 @@ def all_finite(tensors: Iterable[Optional[Tensor]], compiled: bool = False) -> b
     """Whether every element of every (floating) tensor is finite; None and empty entries are
     skipped. One host sync. compiled: the CPU extension's check (CPU tensors only)."""
     ts = [t for t in tensors if _checkable(t)]
-    if compiled and ts:
+    if compiled and ts and all(t.device.type == "cpu" for t in ts):
         from ..render.compiled import nonfinite_flags_compiled
         return not bool(nonfinite_flags_compiled(ts).any())
     return not ts or not bool(nonfinite_flags(ts).any())
@@ -294,8 +296,8 @@ class Guard:
             self.bad_index = torch.full((), -1, dtype=torch.int64, device=loss.device)
         if not self.names or self.names[-1][1] != names:
             self.names.append((step, names))
-        if self.compiled:  # the same update as the torch operators below, in one call
-            from ..render.compiled import guard_update_compiled
+        if self.compiled and (loss.device.type == "cpu" or all(t.dtype == torch.float32 for _, t in named)):
+            from ..render.compiled import guard_update_compiled  # the torch operators' update, in one call
             guard_update_compiled([t for _, t in named], self.flag, self.bad_step, self.bad_index, step)
             return self.flag
         bad = nonfinite_flags([t for _, t in named])

@@ -20,20 +20,18 @@
 #include <cstring>
 #include <vector>
 
+#include "../loss_math.h"
+
 namespace stdr_loss {
 
-constexpr int MAX_WINDOW = 31;
+constexpr int MAX_WINDOW = stdr::LOSS_MAX_WINDOW;
 
-// The normalized 1D Gaussian window, computed in double as stdr.metrics._gauss1d, then rounded.
+// The window rounded to T (stdr::loss_window computes it in double, as the twin does).
 template <typename T>
 void gauss1d(int size, double sigma, T* out) {
-  double g[MAX_WINDOW], s = 0.0;
-  for (int i = 0; i < size; ++i) {
-    const double x = double(i - size / 2);
-    g[i] = std::exp(-x * x / (2.0 * sigma * sigma));
-    s += g[i];
-  }
-  for (int i = 0; i < size; ++i) out[i] = T(g[i] / s);
+  double g[MAX_WINDOW];
+  stdr::loss_window(size, sigma, g);
+  for (int i = 0; i < size; ++i) out[i] = T(g[i]);
 }
 
 // Horizontal pass of one row of K maps: out[k][x*C + c] = sum_j g[j] * in[k][(x + j - R)*C + c],
@@ -60,9 +58,6 @@ inline void axpy(T w, const T* src, T* dst, int64_t n) {
 #pragma omp simd
   for (int64_t i = 0; i < n; ++i) dst[i] += w * src[i];
 }
-
-template <typename T>
-inline T sgn(T v) { return T((v > T(0)) - (v < T(0))); }
 
 // The five filtered maps of row y (a, b, a^2, b^2, ab -> mu1, mu2, s11, s22, s12), into out[5][RW];
 // vt is scratch of 5*RW.
@@ -96,25 +91,27 @@ inline void filtered_row(const T* a, const T* b, int64_t H, int64_t RW, int64_t 
 template <typename T>
 void ssim_row(const T* __restrict f, const T* __restrict ar, const T* __restrict br, int64_t RW, T* __restrict P0,
               T* __restrict P1, T* __restrict P2, double* ss_out, double* sl_out, double* sq_out) {
-  const T C1 = T(0.01 * 0.01), C2 = T(0.03 * 0.03);
   const T *mu1 = f, *mu2 = f + RW, *s11 = f + 2 * RW, *s22 = f + 3 * RW, *s12 = f + 4 * RW;
   double ss = 0.0, sl = 0.0, sq = 0.0;
-  const bool partials = P0 != nullptr;
+  if (P0 != nullptr) {
 #pragma omp simd reduction(+ : ss, sl, sq)
-  for (int64_t i = 0; i < RW; ++i) {
-    // the twin's expression, term for term (stdr.metrics._ssim_map)
-    const T m1 = mu1[i], m2 = mu2[i], m12 = m1 * m2;
-    const T A1 = T(2) * m12 + C1, A2 = T(2) * (s12[i] - m12) + C2;
-    const T B1 = m1 * m1 + m2 * m2 + C1, B2 = s11[i] - m1 * m1 + s22[i] - m2 * m2 + C2;
-    const T D = B1 * B2, S = (A1 * A2) / D;
-    ss += (double)S;
-    const T d = ar[i] - br[i];
-    sl += (double)std::abs(d);
-    sq += (double)(d * d);
-    if (partials) {  // dS/dmu1, dS/ds11, dS/ds12 with mu2, s22 fixed
-      P0[i] = (T(2) * m2 * A2 - T(2) * m2 * A1) / D - S * (T(2) * m1 / B1 - T(2) * m1 / B2);
-      P1[i] = -S / B2;
-      P2[i] = T(2) * A1 / D;
+    for (int64_t i = 0; i < RW; ++i) {
+      T p0, p1, p2;
+      ss += (double)stdr::ssim_pixel<T>(mu1[i], mu2[i], s11[i], s22[i], s12[i], p0, p1, p2);
+      P0[i] = p0;
+      P1[i] = p1;
+      P2[i] = p2;
+      const T d = ar[i] - br[i];
+      sl += (double)std::abs(d);
+      sq += (double)(d * d);
+    }
+  } else {
+#pragma omp simd reduction(+ : ss, sl, sq)
+    for (int64_t i = 0; i < RW; ++i) {
+      ss += (double)stdr::ssim_value<T>(mu1[i], mu2[i], s11[i], s22[i], s12[i]);
+      const T d = ar[i] - br[i];
+      sl += (double)std::abs(d);
+      sq += (double)(d * d);
     }
   }
   *ss_out = ss;
@@ -129,12 +126,12 @@ void grad_row(const T* __restrict F, const T* __restrict ar, const T* __restrict
               T* __restrict out) {
   if (F == nullptr) {
 #pragma omp simd
-    for (int64_t i = 0; i < RW; ++i) out[i] = kl * sgn<T>(ar[i] - br[i]);
+    for (int64_t i = 0; i < RW; ++i) out[i] = kl * stdr::loss_sgn<T>(ar[i] - br[i]);
     return;
   }
   const T *f1 = F, *f2 = F + RW, *f3 = F + 2 * RW;
 #pragma omp simd
-  for (int64_t i = 0; i < RW; ++i) out[i] = ks * (f1[i] + T(2) * ar[i] * f2[i] + br[i] * f3[i]) + kl * sgn<T>(ar[i] - br[i]);
+  for (int64_t i = 0; i < RW; ++i) out[i] = stdr::loss_grad<T>(ar[i], br[i], f1[i], f2[i], f3[i], ks, kl);
 }
 
 }  // namespace stdr_loss

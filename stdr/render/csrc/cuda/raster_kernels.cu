@@ -1,8 +1,11 @@
 // CUDA kernels of the rasterizer. The per-Gaussian and per-pixel arithmetic is the shared
 // header's (raster_math.h), the same functions the CPU backend runs and the CPU tests check.
 #include "raster_kernels.h"
+
+#include <climits>
 #include "../raster_math.h"
 #include "../hexplane_math.h"
+#include "../loss_math.h"
 
 namespace stdr_cuda {
 namespace {
@@ -257,6 +260,172 @@ template <int F> void launch_backward(const float* packed, const int32_t* pair_i
     default: break;                       \
   }
 
+
+// ---------------------------------------------------------------- the training loss
+// img, gt [H, W, C] as rows of RW = W*C values; n = H*RW. Five launches in all (three forward,
+// two backward); the sums are per block, added in block order by one block: deterministic.
+
+constexpr int LOSS_THREADS = 256;
+
+__global__ void loss_vpass5_kernel(const float* __restrict__ a, const float* __restrict__ b, int64_t H, int64_t RW,
+                                   LossWindow w, float* __restrict__ vt) {
+  const int64_t n = H * RW, idx = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (idx >= n) return;
+  const int64_t y = idx / RW, i = idx % RW;
+  float s0 = 0.f, s1 = 0.f, s2 = 0.f, s3 = 0.f, s4 = 0.f;
+  for (int j = 0; j < 2 * w.R + 1; ++j) {
+    const int64_t yy = y + j - w.R;
+    if (yy < 0 || yy >= H) continue;
+    const float g = w.g[j], av = a[yy * RW + i], bv = b[yy * RW + i];
+    s0 += g * av;
+    s1 += g * bv;
+    s2 += g * (av * av);
+    s3 += g * (bv * bv);
+    s4 += g * (av * bv);
+  }
+  vt[idx] = s0;
+  vt[n + idx] = s1;
+  vt[2 * n + idx] = s2;
+  vt[3 * n + idx] = s3;
+  vt[4 * n + idx] = s4;
+}
+
+// The horizontal pass of K maps at element idx: out[k] = sum_j g[j] * vt[k][y][i + (j - R) C].
+template <int K>
+__device__ __forceinline__ void loss_hpass(const float* __restrict__ vt, int64_t n, int64_t RW, int64_t C,
+                                           const LossWindow& w, int64_t idx, float* out) {
+  const int64_t i = idx % RW, row = idx - i;
+  for (int k = 0; k < K; ++k) out[k] = 0.f;
+  for (int j = 0; j < 2 * w.R + 1; ++j) {
+    const int64_t ii = i + (int64_t)(j - w.R) * C;
+    if (ii < 0 || ii >= RW) continue;
+    for (int k = 0; k < K; ++k) out[k] += w.g[j] * vt[k * n + row + ii];
+  }
+}
+
+// Sum of v over the block into *out (a fixed tree: the same order every run).
+__device__ __forceinline__ void loss_block_sum(double v, double* shared, double* out) {
+  shared[threadIdx.x] = v;
+  __syncthreads();
+  for (int s = blockDim.x / 2; s > 0; s >>= 1) {
+    if ((int)threadIdx.x < s) shared[threadIdx.x] += shared[threadIdx.x + s];
+    __syncthreads();
+  }
+  if (threadIdx.x == 0) *out = shared[0];
+  __syncthreads();
+}
+
+__global__ void loss_ssim_kernel(const float* __restrict__ vt, const float* __restrict__ a,
+                                 const float* __restrict__ b, int64_t H, int64_t RW, int64_t C, LossWindow w,
+                                 float* __restrict__ P, double* __restrict__ block_sums) {
+  __shared__ double shared[LOSS_THREADS];
+  const int64_t n = H * RW, idx = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  double ss = 0.0, sl = 0.0, sq = 0.0;
+  if (idx < n) {
+    float f[5];
+    loss_hpass<5>(vt, n, RW, C, w, idx, f);
+    float S;
+    if (P) {
+      float p0, p1, p2;
+      S = stdr::ssim_pixel<float>(f[0], f[1], f[2], f[3], f[4], p0, p1, p2);
+      P[idx] = p0;
+      P[n + idx] = p1;
+      P[2 * n + idx] = p2;
+    } else {
+      S = stdr::ssim_value<float>(f[0], f[1], f[2], f[3], f[4]);
+    }
+    const float d = a[idx] - b[idx];
+    ss = S;
+    sl = fabsf(d);
+    sq = (double)d * d;
+  }
+  double* out = block_sums + 3 * (int64_t)blockIdx.x;
+  loss_block_sum(ss, shared, out);
+  loss_block_sum(sl, shared, out + 1);
+  loss_block_sum(sq, shared, out + 2);
+}
+
+// One block: the blocks' sums in block order (each thread a fixed stride, then a fixed tree),
+// then loss and stats (l1, 1 - ssim, psnr).
+__global__ void loss_finish_kernel(const double* __restrict__ block_sums, int64_t blocks, int64_t n, double lam,
+                                   float* __restrict__ loss, float* __restrict__ stats) {
+  __shared__ double shared[LOSS_THREADS];
+  __shared__ double tot[3];
+  for (int k = 0; k < 3; ++k) {
+    double v = 0.0;
+    for (int64_t q = threadIdx.x; q < blocks; q += blockDim.x) v += block_sums[3 * q + k];
+    loss_block_sum(v, shared, tot + k);
+  }
+  if (threadIdx.x == 0) {
+    const double N = (double)n, l1 = tot[1] / N, dssim = 1.0 - tot[0] / N, mse = tot[2] / N;
+    loss[0] = (float)((1.0 - lam) * l1 + lam * dssim);
+    stats[0] = (float)l1;
+    stats[1] = (float)dssim;
+    stats[2] = (float)(10.0 * log10(1.0 / fmax(mse, 1e-20)));
+  }
+}
+
+__global__ void loss_vpass3_kernel(const float* __restrict__ P, int64_t H, int64_t RW, LossWindow w,
+                                   float* __restrict__ vt) {
+  const int64_t n = H * RW, idx = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (idx >= n) return;
+  const int64_t y = idx / RW, i = idx % RW;
+  float s0 = 0.f, s1 = 0.f, s2 = 0.f;
+  for (int j = 0; j < 2 * w.R + 1; ++j) {
+    const int64_t yy = y + j - w.R;
+    if (yy < 0 || yy >= H) continue;
+    const float g = w.g[j];
+    const int64_t o = yy * RW + i;
+    s0 += g * P[o];
+    s1 += g * P[n + o];
+    s2 += g * P[2 * n + o];
+  }
+  vt[idx] = s0;
+  vt[n + idx] = s1;
+  vt[2 * n + idx] = s2;
+}
+
+// The image gradient; g_loss is read on the device (no host sync).
+__global__ void loss_grad_kernel(const float* __restrict__ vt, const float* __restrict__ a,
+                                 const float* __restrict__ b, int64_t H, int64_t RW, int64_t C, LossWindow w,
+                                 double lam, const float* __restrict__ g_loss, float* __restrict__ out) {
+  const int64_t n = H * RW, idx = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+  if (idx >= n) return;
+  const double g = (double)g_loss[0];
+  const float ks = (float)(-lam * g / (double)n), kl = (float)((1.0 - lam) * g / (double)n);
+  if (vt == nullptr) {
+    out[idx] = kl * stdr::loss_sgn<float>(a[idx] - b[idx]);
+    return;
+  }
+  float f[3];
+  loss_hpass<3>(vt, n, RW, C, w, idx, f);
+  out[idx] = stdr::loss_grad<float>(a[idx], b[idx], f[0], f[1], f[2], ks, kl);
+}
+
+// ---------------------------------------------------------------- the guard's check
+// blockIdx.y: a tensor of the table; blockIdx.x: a stretch of its elements. A non-finite element
+// (exponent bits all ones) lowers *first to the tensor's index (atomicMin: the result, the lowest
+// index, does not depend on the order).
+__global__ void guard_check_kernel(GuardTable t, int* __restrict__ first) {
+  const int k = blockIdx.y;
+  const int64_t n = t.numel[k];
+  const uint32_t* p = reinterpret_cast<const uint32_t*>(t.ptr[k]);
+  bool bad = false;
+  for (int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x; i < n; i += (int64_t)gridDim.x * blockDim.x)
+    bad |= (p[i] & 0x7f800000u) == 0x7f800000u;
+  if (__syncthreads_or(bad) && threadIdx.x == 0) atomicMin(first, t.index[k]);
+}
+
+__global__ void guard_finish_kernel(const int* __restrict__ first, float* __restrict__ flag,
+                                    int64_t* __restrict__ bad_step, int64_t* __restrict__ bad_index, int64_t step) {
+  if (first[0] == INT_MAX) return;
+  flag[0] = 1.0f;
+  if (bad_step[0] < 0) {
+    bad_step[0] = step;
+    bad_index[0] = first[0];
+  }
+}
+
 }  // namespace
 
 void pack_rows(const float* means2d, const float* conics, const float* opac, const float* feats,
@@ -418,6 +587,47 @@ void project_backward(const stdr::ProjCam<float>& cam, int64_t N, const float* m
   project_backward_kernel<<<(unsigned)((N + 255) / 256), 256, 0, stream>>>(
       cam, N, means, quats, scales, opac, sh, g_m2d, g_depth, g_conic, g_opac, g_color, g_means, g_quats,
       g_scales, g_opac_in, g_sh);
+}
+
+LossWindow loss_window_f(int64_t window, double sigma) {
+  LossWindow w;
+  double g[stdr::LOSS_MAX_WINDOW];
+  stdr::loss_window((int)window, sigma, g);
+  for (int i = 0; i < (int)window; ++i) w.g[i] = (float)g[i];
+  w.R = (int)(window / 2);
+  return w;
+}
+
+int64_t loss_blocks(int64_t n) { return (n + LOSS_THREADS - 1) / LOSS_THREADS; }
+
+void image_loss_forward(const float* a, const float* b, int64_t H, int64_t W, int64_t C, const LossWindow& w,
+                        double lam, float* vt, float* P, double* block_sums, float* loss, float* stats,
+                        cudaStream_t stream) {
+  const int64_t RW = W * C, n = H * RW, blocks = loss_blocks(n);
+  loss_vpass5_kernel<<<(unsigned)blocks, LOSS_THREADS, 0, stream>>>(a, b, H, RW, w, vt);
+  loss_ssim_kernel<<<(unsigned)blocks, LOSS_THREADS, 0, stream>>>(vt, a, b, H, RW, C, w, P, block_sums);
+  loss_finish_kernel<<<1, LOSS_THREADS, 0, stream>>>(block_sums, blocks, n, lam, loss, stats);
+}
+
+void image_loss_backward(const float* a, const float* b, const float* P, int64_t H, int64_t W, int64_t C,
+                         const LossWindow& w, double lam, const float* g_loss, float* vt, float* out,
+                         cudaStream_t stream) {
+  const int64_t RW = W * C, n = H * RW, blocks = loss_blocks(n);
+  if (P) loss_vpass3_kernel<<<(unsigned)blocks, LOSS_THREADS, 0, stream>>>(P, H, RW, w, vt);
+  loss_grad_kernel<<<(unsigned)blocks, LOSS_THREADS, 0, stream>>>(P ? vt : nullptr, a, b, H, RW, C, w, lam, g_loss,
+                                                                 out);
+}
+
+void guard_check(const GuardTable& table, int count, int64_t max_numel, int* first, cudaStream_t stream) {
+  if (count == 0) return;
+  const int64_t want = (max_numel + 4 * LOSS_THREADS - 1) / (4 * LOSS_THREADS);  // ~4 elements a thread
+  const unsigned gx = (unsigned)(want < 1 ? 1 : (want > 1024 ? 1024 : want));
+  guard_check_kernel<<<dim3(gx, (unsigned)count), LOSS_THREADS, 0, stream>>>(table, first);
+}
+
+void guard_finish(const int* first, float* flag, int64_t* bad_step, int64_t* bad_index, int64_t step,
+                  cudaStream_t stream) {
+  guard_finish_kernel<<<1, 1, 0, stream>>>(first, flag, bad_step, bad_index, step);
 }
 
 }  // namespace stdr_cuda

@@ -6,6 +6,7 @@
 #include <cstdint>
 #include <cuda_runtime.h>
 
+#include "../loss_math.h"
 #include "../project_math.h"
 
 namespace stdr_cuda {
@@ -17,6 +18,21 @@ struct HexPlanes {
   float* grad[HEX_MAX_PLANES];
   int H[HEX_MAX_PLANES], W[HEX_MAX_PLANES];
   int M, C;
+};
+
+// the training loss's window, in float, passed by value to the kernels
+struct LossWindow {
+  float g[stdr::LOSS_MAX_WINDOW];
+  int R;  // radius: the window has 2R + 1 taps
+};
+
+// up to GUARD_MAX float32 tensors for one launch of the guard's check, passed by value; index is
+// each tensor's position in the caller's list
+constexpr int GUARD_MAX = 64;
+struct GuardTable {
+  const void* ptr[GUARD_MAX];
+  int64_t numel[GUARD_MAX];
+  int index[GUARD_MAX];
 };
 
 // packed[v] = [mx, my, a, b, c, o, f_0..f_{F-1}] of Gaussian order[v]; vradii[v] = radii[order[v]]
@@ -71,5 +87,28 @@ void hexplane_forward(const HexPlanes& planes, int64_t N, const float* coords, f
 // caller) of sum(g_feats * feats), by atomic adds.
 void hexplane_backward(const HexPlanes& planes, int64_t N, const float* coords, const float* others,
                        const float* g_feats, cudaStream_t stream);
+
+// The training loss (stdr.render.compiled.image_loss_compiled): the window as floats, and the
+// number of blocks whose sums block_sums [3 * loss_blocks(n)] holds (n = H * W * C).
+LossWindow loss_window_f(int64_t window, double sigma);
+int64_t loss_blocks(int64_t n);
+
+// img a, gt b [H, W, C]; vt scratch [5 n]; P [3 n] the partials (null: lam = 0, none kept); loss
+// [1] and stats [3] = (l1, 1 - ssim, psnr) written on the device.
+void image_loss_forward(const float* a, const float* b, int64_t H, int64_t W, int64_t C, const LossWindow& w,
+                        double lam, float* vt, float* P, double* block_sums, float* loss, float* stats,
+                        cudaStream_t stream);
+
+// out [n] = the gradient of g_loss[0] * loss by img; vt scratch [3 n] (unused when P is null).
+void image_loss_backward(const float* a, const float* b, const float* P, int64_t H, int64_t W, int64_t C,
+                         const LossWindow& w, double lam, const float* g_loss, float* vt, float* out,
+                         cudaStream_t stream);
+
+// *first = min(*first, index of each table tensor with a NaN or an infinity) (*first starts at INT_MAX)
+void guard_check(const GuardTable& table, int count, int64_t max_numel, int* first, cudaStream_t stream);
+
+// where *first < INT_MAX: flag = 1 and, if bad_step < 0, bad_step = step, bad_index = *first
+void guard_finish(const int* first, float* flag, int64_t* bad_step, int64_t* bad_index, int64_t step,
+                  cudaStream_t stream);
 
 }  // namespace stdr_cuda
