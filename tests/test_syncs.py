@@ -43,7 +43,7 @@ def _ordinary(step: int) -> bool:
     return step % 10 != 0 and step not in (1, 20, 21, 30, 31, 40, 41)
 
 
-def _count(name: str, guard: bool, folder: str, cuda: bool = False, sync_free=None):
+def _count(name: str, guard: bool, folder: str, cuda: bool = False, sync_free=None, extra=()):
     """Syncs of each ordinary step of the identity check's schedule (60 steps, every phase):
     those SyncCounter sees, or with `cuda` those the CUDA runtime reports."""
     from stdr.testing import tiny_config
@@ -52,7 +52,8 @@ def _count(name: str, guard: bool, folder: str, cuda: bool = False, sync_free=No
     dev = ["device=cuda", "render.backend=cuda", "render.compiled_projection=true"] if cuda else []
     cfg = tiny_config(folder, [f"experiment=embedded_{name}", *SCHEDULE, *phases, "train.log_every=1000", *dev,
                                f"train.guard.enabled={str(guard).lower()}", "train.guard.snapshot_every=1000",
-                               *([] if sync_free is None else [f"train.guard.sync_free={str(sync_free).lower()}"])])
+                               *([] if sync_free is None else [f"train.guard.sync_free={str(sync_free).lower()}"]),
+                               *extra])
     tr = Trainer(cfg, Path(folder) / "run", splits=("train",))
     counts, sites = [], {}
     while tr.step < cfg.optim.iterations - 1:
@@ -160,7 +161,20 @@ def test_on_cuda_the_guard_adds_one_sync_or_none(tmp_path, sync_free):
 
 
 @CUDA
-def test_on_cuda_the_sync_free_guard_recovers_a_fault(tmp_path):
+def test_on_cuda_the_compiled_loss_and_check_add_no_sync(tmp_path):
+    """The CUDA kernels of the loss (its gradient read on the device) and of the guard's check
+    (before they are CUDA defaults: FUSED_LOSS_VERIFIED, COMPILED_CHECK_VERIFIED) leave an
+    ordinary step with the rasterizer's syncs alone, and the guard's fault recovery unchanged."""
+    from stdr.train.syncs import RASTERIZER_SYNCS
+    counts, sites = _count("deform_stdr", True, str(tmp_path), cuda=True, sync_free=True,
+                           extra=["optim.fused_loss=true", "train.guard.compiled=true"])
+    assert set(counts) == {RASTERIZER_SYNCS}, sites
+    assert not {f for f in _files(sites) if f.startswith("stdr/")}, sites
+
+
+@CUDA
+@pytest.mark.parametrize("compiled_check", [False, True])
+def test_on_cuda_the_sync_free_guard_recovers_a_fault(tmp_path, compiled_check):
     """A NaN gradient on the GPU: fused Adam's found_inf holds every update until the flag is
     read, and the recovery is the one the CPU tests pin (tests/test_guard.py)."""
     from stdr.testing import tiny_config
@@ -168,8 +182,10 @@ def test_on_cuda_the_sync_free_guard_recovers_a_fault(tmp_path):
     cfg = tiny_config(tmp_path, ["optim.iterations=40", "baseline.warmup=20", "densify.refine_start=10",
                                  "densify.refine_every=10", "train.checkpoint_every=0", "train.eval_at_warmup_end=false",
                                  "train.guard.snapshot_every=10", "train.guard.inject_nan_grad_at=[15]",
-                                 "train.guard.sync_free=true", "device=cuda", "render.backend=cuda"])
+                                 "train.guard.sync_free=true", "device=cuda", "render.backend=cuda",
+                                 f"train.guard.compiled={str(compiled_check).lower()}"])
     tr = Trainer(cfg, tmp_path / "run", splits=("train",))
+    assert tr.guard.compiled == compiled_check
     tr.train()
     (rec,) = tr.guard.recoveries
     assert (rec["step"], rec["found_at"], rec["restored_to"], rec["reason"]) == (15, 20, 10, "non-finite grad of means")

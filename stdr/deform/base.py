@@ -91,7 +91,7 @@ class BaselineConfig:
     precision: str = "fp32"
     # the deformation MLP (deform's network; scgs's and spgs's trunk) through torch.compile
     # (inductor, dynamic shapes). Off: on the CPU it is no faster at budget=cpu sizes and costs
-    # ~12 s of compilation a process (docs/performance.md); not measured on a GPU yet. 4dgs has no
+    # seconds of compilation a process (docs/performance.md); not measured on a GPU yet. 4dgs has no
     # compiled form of its network (its HexPlane sampling is a kernel: baseline.hexplane.compiled)
     compile: bool = False
 
