@@ -83,7 +83,7 @@ def test_dry_run_runs_every_stage_on_the_cpu(tmp_path):
     assert all(r["status"] == "ok" for r in recs), [(r["stage"], r["status"]) for r in recs]
     runs = [r for r in recs if r["stage"].startswith("run_")]
     assert {r["stage"] for r in runs} == {"run_deform", "run_gpu_deform", "run_gpu_deform_stdr", "run_deform_twin", "run_deform_stdr", "run_4dgs",
-                                          "run_4dgs_stdr", "run_scgs", "run_spgs"}
+                                          "run_4dgs_stdr", "run_scgs", "run_spgs", "run_paper_deform", "run_paper_scgs"}
     for r in runs:
         assert r["backend"] == "cpu" and r["device"] == "cpu", r
         assert r["projection"] == ("torch" if r["stage"] == "run_deform_twin" else "compiled"), r
@@ -93,7 +93,10 @@ def test_dry_run_runs_every_stage_on_the_cpu(tmp_path):
         assert {f"res/runs/{r['stage']}/metrics.json" for r in runs} <= names
         cfgs = [tar.extractfile(f"res/runs/{n}/config.yaml").read().decode() for n in ("run_gpu_deform", "run_gpu_deform_stdr")]
     assert all("budget: gpu" in c for c in cfgs) and "budget: gpu" not in tar_text(out, "res/runs/run_deform/config.yaml")
-    assert {"res/kernels.xml", "res/bench_raster.json", "res/bench_train.json"} <= names
+    assert {"res/kernels.xml", "res/bench_raster.json", "res/bench_train.json", "res/bench_train_fast.json",
+            "res/bench_train_compile.json"} <= names
+    paper = tar_text(out, "res/runs/run_paper_deform/config.yaml")  # the paper budget with the speed keys on
+    assert "budget: paper" in paper and "fused_loss: true" in paper and "sync_free: true" in paper
 
 
 def tar_text(out: Path, name: str) -> str:
