@@ -125,17 +125,8 @@ def fused_loss(setting, device: torch.device, dtype: torch.dtype = torch.float32
     been verified and the extension builds; true insists (an error says why it cannot)."""
     from .render import compiled
 
-    if setting is False:
-        return False
     kind = device.type
-    supported = dtype in compiled.LOSS_DTYPES.get(kind, ())
-    if setting is None:
-        return supported and kind in FUSED_LOSS_VERIFIED and compiled.available(kind)
-    if not supported:
-        raise ValueError(f"optim.fused_loss=true: the compiled loss runs in float32/float64 on the CPU and float32 on "
-                         f"CUDA, this run is {dtype} on {device}; set optim.fused_loss=null (or false) to use the torch "
-                         "ops")
-    if not compiled.available(kind):
-        raise RuntimeError(f"optim.fused_loss=true, but the {kind} extension could not be built: "
-                           f"{compiled.build_error(kind)}; set optim.fused_loss=null (or false)")
-    return True
+    return compiled.use_compiled("optim.fused_loss", setting, kind, FUSED_LOSS_VERIFIED,
+                                 dtype in compiled.LOSS_DTYPES.get(kind, ()),
+                                 f"the compiled loss runs in float32/float64 on the CPU and float32 on CUDA, this run "
+                                 f"is {dtype} on {device}")

@@ -212,16 +212,10 @@ class HexPlaneField(nn.Module):
         if self.compiled is False or c.requires_grad:
             return None
         kind = c.device.type
-        supported = c.dtype in compiled_backend.HEXPLANE_DTYPES.get(kind, ())
-        if self.compiled is None:
-            return kind if supported and kind in HEXPLANE_COMPILED_VERIFIED and compiled_backend.available(kind) else None
-        if not supported:
-            raise ValueError(f"baseline.hexplane.compiled=true: no compiled HexPlane sampling for {c.dtype} on {kind}; "
-                             "set baseline.hexplane.compiled=null (or false) to use the torch ops")
-        if not compiled_backend.available(kind):
-            raise RuntimeError(f"baseline.hexplane.compiled=true, but the {kind} extension could not be built: "
-                               f"{compiled_backend.build_error(kind)}; set baseline.hexplane.compiled=null (or false)")
-        return kind
+        use = compiled_backend.use_compiled("baseline.hexplane.compiled", self.compiled, kind, HEXPLANE_COMPILED_VERIFIED,
+                                            c.dtype in compiled_backend.HEXPLANE_DTYPES.get(kind, ()),
+                                            f"no compiled HexPlane sampling for {c.dtype} on {kind}")
+        return kind if use else None
 
     def forward(self, xyz: Tensor, t: float) -> Tensor:  # [N, 3] -> [N, feat_dim]
         c = self.normalize(xyz, t)

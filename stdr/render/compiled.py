@@ -30,7 +30,7 @@ from torch.autograd.function import once_differentiable
 CSRC = Path(__file__).resolve().parent / "csrc"
 CPU_SOURCES = [CSRC / "cpu" / "raster_cpu.cpp"]
 CUDA_SOURCES = [CSRC / "cuda" / "raster_cuda.cpp", CSRC / "cuda" / "raster_kernels.cu"]
-HEADERS = [CSRC / "raster_math.h", CSRC / "project_math.h", CSRC / "hexplane_math.h", CSRC / "loss_math.h",
+HEADERS = [CSRC / "hd.h", CSRC / "raster_math.h", CSRC / "project_math.h", CSRC / "hexplane_math.h", CSRC / "loss_math.h",
            CSRC / "cpu" / "raster_simd.h",
            CSRC / "cpu" / "loss_cpu.h",
            CSRC / "cuda" / "raster_kernels.h"]
@@ -188,6 +188,24 @@ def available(kind: str) -> bool:
 
 def build_error(kind: str) -> Optional[str]:
     return _errors.get(kind)
+
+
+def use_compiled(key: str, setting: Optional[bool], kind: str, verified: tuple, supported: bool = True,
+                 unsupported: str = "") -> bool:
+    """A `<key>: null | true | false` switch between a compiled kernel on `kind` ('cpu', 'cuda')
+    and its torch twin: false = the twin; null = the kernel where it has been verified (`kind` in
+    `verified`), the inputs are `supported` and the extension builds; true = the kernel, or an
+    error that names the key and says why not (`unsupported`: what the kernel does not take)."""
+    if setting is False:
+        return False
+    if setting is None:
+        return supported and kind in verified and available(kind)
+    if not supported:
+        raise ValueError(f"{key}=true: {unsupported}; set {key}=null (or false) to use the torch ops")
+    if not available(kind):
+        raise RuntimeError(f"{key}=true, but the {kind} extension could not be built: {build_error(kind)}; "
+                           f"set {key}=null (or false)")
+    return True
 
 
 class _Rasterize(torch.autograd.Function):

@@ -93,18 +93,11 @@ def resolve_compiled_check(g, device: torch.device) -> bool:
     """Whether this run's step check is the compiled call (train.guard.compiled resolved)."""
     from ..render import compiled
 
-    if not g.enabled or g.compiled is False:
+    if not g.enabled:
         return False
     kind = device.type
-    if g.compiled is None:
-        return kind in COMPILED_CHECK_VERIFIED and compiled.available(kind)
-    if kind not in ("cpu", "cuda"):
-        raise ValueError(f"train.guard.compiled=true: there is no compiled check on {device}; set "
-                         "train.guard.compiled=null (or false) to check with torch operators")
-    if not compiled.available(kind):
-        raise RuntimeError(f"train.guard.compiled=true, but the {kind} extension could not be built: "
-                           f"{compiled.build_error(kind)}; set train.guard.compiled=null (or false)")
-    return True
+    return compiled.use_compiled("train.guard.compiled", g.compiled, kind, COMPILED_CHECK_VERIFIED,
+                                 kind in ("cpu", "cuda"), f"there is no compiled check on {device}")
 
 
 class TrainingDiverged(RuntimeError):

@@ -8,13 +8,7 @@
 // channel; the six planes pair the four coordinates (x, y, z, t) as HEX_PAIRS.
 #pragma once
 
-#ifndef STDR_HD
-#ifdef __CUDACC__
-#define STDR_HD __host__ __device__ __forceinline__
-#else
-#define STDR_HD inline
-#endif
-#endif
+#include "hd.h"
 
 #include <cmath>
 #include <cstdint>

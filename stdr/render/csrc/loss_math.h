@@ -3,13 +3,7 @@
 // these to.
 #pragma once
 
-#ifndef STDR_HD
-#ifdef __CUDACC__
-#define STDR_HD __host__ __device__ __forceinline__
-#else
-#define STDR_HD inline
-#endif
-#endif
+#include "hd.h"
 
 #include <cmath>
 #include <cstdint>

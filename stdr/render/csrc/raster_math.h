@@ -15,11 +15,7 @@
 //   [mx, my, a, b, c, o, f_0 .. f_{F-1}]   (PACK_BASE + F values)
 #pragma once
 
-#ifdef __CUDACC__
-#define STDR_HD __host__ __device__ __forceinline__
-#else
-#define STDR_HD inline
-#endif
+#include "hd.h"
 
 #include <cmath>
 #include <cstdint>

@@ -134,15 +134,19 @@ void grad_row(const T* __restrict F, const T* __restrict ar, const T* __restrict
   for (int64_t i = 0; i < RW; ++i) out[i] = stdr::loss_grad<T>(ar[i], br[i], f1[i], f2[i], f3[i], ks, kl);
 }
 
+inline void check_images(const at::Tensor& img, const at::Tensor& gt) {
+  TORCH_CHECK(img.dim() == 3 && img.sizes() == gt.sizes() && img.device().is_cpu() && gt.device().is_cpu() &&
+                  img.scalar_type() == gt.scalar_type(),
+              "stdr image_loss: img and gt must be [H, W, C] CPU tensors of one shape and dtype");
+}
+
 }  // namespace stdr_loss
 
 // img, gt [H, W, C] (contiguous, one floating dtype, CPU). Returns {loss (0-d), stats [3] =
 // (l1, 1 - ssim, psnr in dB), partials [3, H, W, C] (dS/dmu1, dS/ds11, dS/ds12; empty when
 // lam == 0: the backward then needs none)}.
 std::vector<at::Tensor> image_loss_forward(at::Tensor img, at::Tensor gt, double lam, int64_t window, double sigma) {
-  TORCH_CHECK(img.dim() == 3 && img.sizes() == gt.sizes(), "stdr image_loss: img and gt must be [H, W, C] of one shape");
-  TORCH_CHECK(img.scalar_type() == gt.scalar_type(), "stdr image_loss: img and gt must have one dtype");
-  TORCH_CHECK(img.device().is_cpu() && gt.device().is_cpu(), "stdr image_loss: img and gt must be on the CPU");
+  stdr_loss::check_images(img, gt);
   TORCH_CHECK(window % 2 == 1 && window >= 1 && window <= stdr_loss::MAX_WINDOW,
               "stdr image_loss: window must be odd, 1..31");
   img = img.contiguous();
@@ -189,9 +193,7 @@ std::vector<at::Tensor> image_loss_forward(at::Tensor img, at::Tensor gt, double
 // The gradient of g_loss * loss with respect to img. g_loss: 0-d (read here, on the CPU).
 at::Tensor image_loss_backward(at::Tensor g_loss, at::Tensor img, at::Tensor gt, at::Tensor partials, double lam,
                                int64_t window, double sigma) {
-  TORCH_CHECK(img.dim() == 3 && img.sizes() == gt.sizes() && img.device().is_cpu() && gt.device().is_cpu() &&
-                  img.scalar_type() == gt.scalar_type(),
-              "stdr image_loss: img and gt must be [H, W, C] CPU tensors of one shape and dtype");
+  stdr_loss::check_images(img, gt);
   img = img.contiguous();
   gt = gt.contiguous();
   const int64_t H = img.size(0), W = img.size(1), C = img.size(2), RW = W * C, n = H * RW;
