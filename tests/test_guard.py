@@ -77,6 +77,8 @@ def test_nan_gradient_is_recovered_and_logged(tmp_path):
     assert rec["step"] == 15 and rec["restored_to"] == 10 and rec["reason"] == "non-finite grad of means"
     # the CPU's default check is the sync-free one: read at the next snapshot step
     assert g["check"] == "sync-free" and rec["found_at"] == 20
+    # ... and the compiled check, with the compiled loss (the metrics say which forms ran)
+    assert g["compiled_check"] is True and m["train_loss"] == "compiled"
     assert rec["lr_scale"] == g["lr_scale"] == 0.5 and not rec["stopped"]
     assert m["iterations"] == 60 and m["last"]["step"] == 60 and m["best"]["psnr"] >= m["last"]["psnr"]
     ck = load_checkpoint(tmp_path / "nan" / "checkpoints" / "last.pt")

@@ -256,7 +256,8 @@ class Guard:
         return {"recoveries": list(self.recoveries), "n_recoveries": len(self.recoveries),
                 "lr_scale": self.lr_scale, "peak_gaussians": self.peak_gaussians, "max_gaussians": cap,
                 "peak_memory_mb": self.peak_memory_mb, "monitor": self.monitor,
-                "check": ("sync-free" if self.sync_free else "every step") if self.checks else None}
+                "check": ("sync-free" if self.sync_free else "every step") if self.checks else None,
+                "compiled_check": self.compiled if self.checks else None}
 
     # ------------------------------------------------------------------ what the loop calls
     def _step_tensors(self, trainer, loss: Tensor, step: int) -> list[tuple[str, Tensor]]:

@@ -18,9 +18,8 @@ from torch import Tensor
 from ..data.load import load_scene
 from ..device import resolve_device, synchronize
 from ..metrics import fused_loss, image_loss
-from ..render.compiled import image_loss_compiled
 from ..model import build_model, initial_points, model_entry
-from ..render.compiled import camera_values
+from ..render.compiled import camera_values, image_loss_compiled
 from ..scene.gaussians import scene_extent
 from ..scene.ply import save_ply
 from ..scene.prune import prune_event
