@@ -246,7 +246,7 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
     res["train_cpu_utilization"] = (cpu / (trainer.train_seconds * torch.get_num_threads())
                                     if cpu is not None and trainer.train_seconds > 0 else None)
     # the form of the training loss that ran (optim.fused_loss): the compiled pass or the torch twin
-    res["train_loss"] = "compiled" if trainer.image_loss.__name__ == "image_loss_compiled" else "torch"
+    res["train_loss"] = "compiled" if trainer.fused_loss else "torch"
     if trainer.prune_log:  # contribution pruning events: counts, seen per frame, cost (stdr.scene.prune)
         res["prune"] = list(trainer.prune_log)
     write_metrics(trainer.run_dir, split, res, trainer.model, eval_cfg, lp, trainer.scene.meta)

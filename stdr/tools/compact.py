@@ -124,7 +124,10 @@ def main(argv=None) -> None:
     share = pre["share"] if a.share is None else a.share
     if not 0.0 < share < 1.0:
         raise SystemExit(f"stdr-tool compact: --share {share}: use a fraction in (0, 1)")
-    mask_bits = _as_change(a.mask_bits) if a.mask_bits is not None else pre["mask_bits"] if _has_stdr(a.run) else 0
+    if a.mask_bits is not None:
+        mask_bits = _as_change(a.mask_bits)
+    else:  # the preset's mask form applies to an STDR run only
+        mask_bits = pre["mask_bits"] if _has_stdr(a.run) else 0
     tw = pre["time_weight"] if a.time_weight is None else a.time_weight
     compact(a.run, share, a.steps, tw, a.out, a.split, mask_bits=mask_bits)
 

@@ -28,6 +28,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..render import compiled as compiled_backend
+
 
 @dataclass
 class GuardConfig:
@@ -91,12 +93,10 @@ COMPILED_CHECK_VERIFIED = ("cpu",)
 
 def resolve_compiled_check(g, device: torch.device) -> bool:
     """Whether this run's step check is the compiled call (train.guard.compiled resolved)."""
-    from ..render import compiled
-
     if not g.enabled:
         return False
     kind = device.type
-    return compiled.use_compiled("train.guard.compiled", g.compiled, kind, COMPILED_CHECK_VERIFIED,
+    return compiled_backend.use_compiled("train.guard.compiled", g.compiled, kind, COMPILED_CHECK_VERIFIED,
                                  kind in ("cpu", "cuda"), f"there is no compiled check on {device}")
 
 
@@ -162,8 +162,7 @@ def all_finite(tensors: Iterable[Optional[Tensor]], compiled: bool = False) -> b
     skipped. One host sync. compiled: the CPU extension's check (CPU tensors only)."""
     ts = [t for t in tensors if _checkable(t)]
     if compiled and ts and all(t.device.type == "cpu" for t in ts):
-        from ..render.compiled import nonfinite_flags_compiled
-        return not bool(nonfinite_flags_compiled(ts).any())
+        return not bool(compiled_backend.nonfinite_flags_compiled(ts).any())
     return not ts or not bool(nonfinite_flags(ts).any())
 
 
@@ -290,11 +289,12 @@ class Guard:
             self.bad_index = torch.full((), -1, dtype=torch.int64, device=loss.device)
         if not self.names or self.names[-1][1] != names:
             self.names.append((step, names))
-        if self.compiled and (loss.device.type == "cpu" or all(t.dtype == torch.float32 for _, t in named)):
-            from ..render.compiled import guard_update_compiled  # the torch operators' update, in one call
-            guard_update_compiled([t for _, t in named], self.flag, self.bad_step, self.bad_index, step)
+        ts = [t for _, t in named]
+        if self.compiled and (loss.device.type == "cpu" or all(t.dtype == torch.float32 for t in ts)):
+            # the torch operators' update below, in one call
+            compiled_backend.guard_update_compiled(ts, self.flag, self.bad_step, self.bad_index, step)
             return self.flag
-        bad = nonfinite_flags([t for _, t in named])
+        bad = nonfinite_flags(ts)
         anybad = bad.any()
         new = anybad & (self.bad_step < 0)
         self.bad_step = torch.where(new, step, self.bad_step)

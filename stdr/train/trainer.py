@@ -170,7 +170,8 @@ class Trainer:
                            sync_free=resolve_sync_free(cfg.train.guard, self.device, self._fused_adam),
                            compiled=resolve_compiled_check(cfg.train.guard, self.device))
         # the photometric loss as one compiled pass (optim.fused_loss) or its torch twin
-        self.image_loss = image_loss_compiled if fused_loss(cfg.optim.fused_loss, self.device) else image_loss
+        self.fused_loss = fused_loss(cfg.optim.fused_loss, self.device)
+        self.image_loss = image_loss_compiled if self.fused_loss else image_loss
 
     @property
     def step(self) -> int:
