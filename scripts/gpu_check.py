@@ -16,14 +16,17 @@ stage OUT holds everything that finished, in four files (a device call returns a
 
 Stages (GPU): env (GPU, torch, nvcc, Python packages: exit 3 when one is missing) -> build (the
 CUDA extension, failing loudly: exit 4; the CPU extension builds beside it) -> kernels (the CUDA
-parity tests of the projection + SH, the rasterizer, 4dgs's HexPlane sampling, the training loss and the guard's check, CUDA_LAUNCH_BLOCKING=1) -> proj_scale
+parity tests of the projection + SH, the rasterizer, 4dgs's HexPlane sampling, the training loss and the guard's check, CUDA_LAUNCH_BLOCKING=1) -> train_keys
+(compute-sanitizer memcheck over the binning with its two passes made to disagree and short
+trainings with the speed keys through prunes, opacity resets, evaluations and a guard recovery) -> proj_scale
 (CUDA against the CPU extension at 200k and 1M Gaussians, both antialiasing modes) -> train_tests
 (rasterizer at training scale; training + resume on CUDA, all four baselines with STDR) ->
 syncs_cuda (an ordinary training step of every baseline +- STDR makes no synchronizing call the
 CUDA runtime reports; the guard's one) -> run_deform (a budget=cpu D-NeRF run, comparable to
 docs/measurements/gpu_check_h100) -> bench_train -> bench_train_fast (the same with the speed keys
 whose CUDA kernels wait for this check: FAST) -> run_gpu_deform (deform at budget=gpu: a row
-of a D-NeRF table in minutes) -> run_deform_twin (the budget=cpu run with the torch projection +
+of a D-NeRF table in minutes) -> run_gpu_deform_fast (the same with FAST: the full-run half of
+the rule in stdr/verified.py) -> run_gpu_deform_stdr -> run_deform_twin (the budget=cpu run with the torch projection +
 SH: what the compiled one saves) -> bench_raster -> bench_train_compile (baseline.compile=true) ->
 run_4dgs, run_deform_stdr, run_4dgs_stdr, run_scgs, run_spgs -> sanitize (compute-sanitizer
 memcheck over every kernel of the extension) -> run_paper_deform, run_paper_scgs (budget=paper at
@@ -64,6 +67,7 @@ TINY = ["data.procedural.resolution=64", "data.procedural.n_train=40", "data.pro
 # stage checks that kernel
 FAST = ["optim.fused_loss=true", "train.guard.compiled=true", "train.guard.sync_free=true"]
 SANITIZE_PROBE = "--sanitize-probe"
+SPEED_KEYS_TEST = "test_training_with_the_speed_keys_on_cuda_through_prunes_resets_and_a_recovery"
 
 
 @dataclass
@@ -247,6 +251,7 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
                                             "loss_matches_the_torch_twin or compiled_step_update) and cpu"]
         scale = pyt + junit("proj_scale") + ["tests/test_compiled.py", "-k", "cuda_projection_matches_the_cpu_extension_at_scale"]
         ttests = pyt + junit("train_tests") + ["tests/test_device.py", "-k", "device_names_resolve"]
+        train_keys = pyt + junit("train_keys") + ["tests/test_binning.py"]
         syncs = pyt + junit("syncs_cuda") + ["tests/test_syncs.py", "-k", "counter"]
         braster = [py, "-m", "stdr.tools.bench_rasterizer", "--backends", "cpu", "--n", "2000", "--res", "64", "--repeats", "1"]
         btrain_x = ["--experiments", "embedded_deform", "--gaussians", "1000", "--res", "64", "--iters", "2",
@@ -261,6 +266,10 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
         ttests = pyt + junit("train_tests") + ["tests/test_compiled.py", "tests/test_device.py", "-k",
                                                "training_scale or training_on_cuda or (benchmark_row and not cpu)"]
         syncs = pyt + junit("syncs_cuda") + ["tests/test_syncs.py", "-k", "cuda or counter"]
+        # the binning with its passes made to disagree, then short trainings with the speed keys
+        # through prunes, resets, evaluations and a recovery, every kernel checked by memcheck
+        train_keys = ["compute-sanitizer", "--tool", "memcheck", "--error-exitcode", "9", *pyt, *junit("train_keys"),
+                      "tests/test_binning.py", f"tests/test_device.py::{SPEED_KEYS_TEST}"]
         braster = [py, "-m", "stdr.tools.bench_rasterizer", "--backends", "cuda", "--n", "10000", "100000", "1000000",
                    "--res", "400", "800", "--repeats", "20", "--peak-gflops", os.environ.get("STDR_GPU_PEAK_GFLOPS", "67000")]
         btrain_x = ["--experiments", "dnerf_deform", "dnerf_4dgs", "--gaussians", "10000", "50000", "--res", "200", "400",
@@ -271,12 +280,14 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
     braster += ["--json", str(res / "bench_raster.json"), "--markdown", str(res / "bench_raster.md")]
     btrain = [py, "-m", "stdr.cli.tool", "bench-train", "--out", str(res / "bench_train"), *btrain_x]
     # the same rows with every speed key that waits for a GPU check on (what flipping their
-    # *_VERIFIED lists would give), and with the deformation MLP through torch.compile
+    # stdr.verified.VERIFIED entries would give), and with the deformation MLP through torch.compile
     btrain_fast = [py, "-m", "stdr.cli.tool", "bench-train", "--out", str(res / "bench_train_fast"), *btrain_x, *FAST]
     btrain_compile = [py, "-m", "stdr.cli.tool", "bench-train", "--out", str(res / "bench_train_compile"),
                       *btrain_x, *FAST, "baseline.compile=true"]
     rest = [
         Stage("kernels", 45, 150, kernels, env={"CUDA_LAUNCH_BLOCKING": "1"}, facts=pytest_facts),
+        Stage("train_keys", 90, 240, train_keys, env={"CUDA_LAUNCH_BLOCKING": "1", "PYTORCH_NO_CUDA_MEMORY_CACHING": "1"},
+              facts=pytest_facts),
         Stage("proj_scale", 40, 120, scale, facts=pytest_facts),
         Stage("train_tests", 90, 200, ttests, facts=pytest_facts),
         Stage("syncs_cuda", 60, 150, syncs, facts=pytest_facts),
@@ -284,6 +295,8 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
         Stage("bench_train", 70, 150, btrain),
         Stage("bench_train_fast", 70, 150, btrain_fast),
         train("run_gpu_deform", "deform", 330, 420, budget="gpu"),  # the budget=gpu preset: a row
+        # ... with the speed keys: with run_gpu_deform, the full-run pair a CUDA default needs (stdr/verified.py)
+        train("run_gpu_deform_fast", "deform", 330, 420, budget="gpu", extra=FAST),
         train("run_gpu_deform_stdr", "deform_stdr", 360, 450, budget="gpu"),  # ... and its +STDR twin
         train("run_deform_twin", "deform", 80, 150, projection="false"),  # the torch projection: the same run
         Stage("bench_raster", 50, 120, braster),

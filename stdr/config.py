@@ -79,9 +79,9 @@ class OptimConfig:
     fused_adam: bool = True         # torch's fused Adam on CPU and CUDA (false: the for-loop one)
     # the photometric loss ((1 - lambda_dssim) L1 + lambda_dssim D-SSIM, with the step's PSNR) as one
     # compiled pass, forward and backward (stdr.render.compiled.image_loss_compiled), or its torch
-    # twin (stdr.metrics.image_loss). null: compiled where it has been checked (stdr.metrics.
-    # FUSED_LOSS_VERIFIED: the CPU; the CUDA kernel is built, not yet run on a GPU) and the extension
-    # builds; true / false
+    # twin (stdr.metrics.image_loss). null: compiled where it has been checked (stdr.verified.VERIFIED:
+    # the CPU; the CUDA kernel passed its parity tests on an H100, not yet a full run) and the
+    # extension builds; true / false
     fused_loss: Optional[bool] = None
 
 
@@ -100,7 +100,7 @@ class RenderConfig:
     # with a compiled backend, projection and SH shading run in the extension too (forward and
     # backward; csrc/project_math.h); false runs their torch twin (stdr/render/projection.py, sh.py).
     # null (auto): compiled on the backends whose kernels passed their checks on real hardware
-    # (stdr.render.VERIFIED_PROJECTION: the CPU, and CUDA since the H100 check of 2026-11-26)
+    # (stdr.verified.VERIFIED: the CPU, and CUDA since the H100 check of 2026-11-26)
     compiled_projection: Optional[bool] = None
 
 

@@ -115,18 +115,13 @@ def image_loss(img: Tensor, gt: Tensor, lam: float) -> tuple[Tensor, Tensor, Ten
     return loss, loss_l1, loss_dssim, psnr(img.detach(), gt)
 
 
-# the devices where optim.fused_loss=null takes the compiled loss (its parity tests have run there;
-# on CUDA once a GPU check has run tests/test_fused_loss.py)
-FUSED_LOSS_VERIFIED = ("cpu",)
-
-
 def fused_loss(setting, device: torch.device, dtype: torch.dtype = torch.float32) -> bool:
     """Whether a run's loss is the compiled one (optim.fused_loss resolved): null = where it has
     been verified and the extension builds; true insists (an error says why it cannot)."""
     from .render import compiled
 
     kind = device.type
-    return compiled.use_compiled("optim.fused_loss", setting, kind, FUSED_LOSS_VERIFIED,
+    return compiled.use_compiled("optim.fused_loss", setting, kind,
                                  dtype in compiled.LOSS_DTYPES.get(kind, ()),
                                  f"the compiled loss runs in float32/float64 on the CPU and float32 on CUDA, this run "
                                  f"is {dtype} on {device}")

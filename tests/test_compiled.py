@@ -13,6 +13,7 @@ import torch
 
 from stdr import render as render_mod
 from stdr.render import compiled, rasterize, render, resolve_backend
+from stdr.verified import VERIFIED
 from stdr.render.projection import project_and_shade, project_gaussians
 
 from helpers import brute_force_composite, hard_case_scene, look_at_camera, random_gaussians
@@ -522,7 +523,7 @@ def test_compiled_projection_is_a_default_only_where_verified(monkeypatch):
     import stdr.render as R
     from stdr.render import use_compiled_projection
     assert use_compiled_projection("cpu") and use_compiled_projection("cuda")
-    monkeypatch.setattr(R, "VERIFIED_PROJECTION", ("cpu",))  # a backend not yet verified: off by default
+    monkeypatch.setitem(VERIFIED, "render.compiled_projection", ("cpu",))  # a backend not yet verified: off by default
     assert use_compiled_projection("cpu") and not use_compiled_projection("cuda")
     assert use_compiled_projection("cuda", True) and not use_compiled_projection("cpu", False)
     assert not use_compiled_projection("reference", True)

@@ -111,3 +111,34 @@ def test_training_on_cuda_keeps_every_tensor_there_and_resumes(tmp_path, name):
     assert ra["conventions"]["device"].startswith("cuda") and ra["conventions"]["render_backend"] == "cuda"
     assert ra["conventions"]["render_projection"] == "compiled"
     assert abs(ra["psnr"] - rb["psnr"]) < 0.5, (ra["psnr"], rb["psnr"])
+
+
+# the three speed keys whose CUDA kernels a lent GPU checks (scripts/gpu_check.py's FAST)
+SPEED_KEYS = ["optim.fused_loss=true", "train.guard.compiled=true", "train.guard.sync_free=true"]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine (torch.cuda.is_available() is False)")
+@pytest.mark.parametrize("name", ["deform_stdr", "4dgs"])
+def test_training_with_the_speed_keys_on_cuda_through_prunes_resets_and_a_recovery(tmp_path, name):
+    """What a long GPU run has and a parity test does not: 150 steps with the three speed keys
+    on, through six densifications (clone, split, opacity and size prunes: the model's size
+    changes under the kernels), two opacity resets, periodic evaluations in the middle and a guard
+    recovery from an injected NaN (the sync-free check flags it, fused Adam skips, the snapshot is
+    restored). The run must finish with finite parameters and within 1 dB of the same run with the
+    torch forms (CUDA's atomic adds make the two differ in the last bits, then more)."""
+    from stdr.train.trainer import Trainer
+
+    sched = SCHEDULE + [f"experiment=embedded_{name}", "device=cuda", "render.backend=cuda",
+                        "render.compiled_projection=true", "optim.iterations=150", "densify.refine_stop=90",
+                        "train.eval_every=40", "train.guard.snapshot_every=20", "train.guard.inject_nan_grad_at=[57]"]
+    runs = {}
+    for label, keys in (("fast", SPEED_KEYS), ("torch", [k.replace("=true", "=false") for k in SPEED_KEYS])):
+        t = Trainer(_tiny(tmp_path, sched + keys), tmp_path / label, splits=("train", "test"))
+        assert (t.fused_loss, t.guard.compiled, t.guard.sync_free) == ((True,) * 3 if label == "fast" else (False,) * 3)
+        t.train()
+        torch.cuda.synchronize()
+        assert t.step == 150
+        assert all(bool(torch.isfinite(p).all()) for p in t.model.params.values())
+        assert [r["step"] for r in t.guard.recoveries] == [57], t.guard.recoveries
+        runs[label] = t.evaluate("test")["psnr"]
+    assert abs(runs["fast"] - runs["torch"]) < 1.0, runs

@@ -2,7 +2,7 @@
 and to finite differences; and the trainer's choice between the two."""
 import pytest
 import torch
-from stdr.metrics import FUSED_LOSS_VERIFIED, fused_loss, image_loss, l1, psnr, ssim_2d
+from stdr.metrics import fused_loss, image_loss, l1, psnr, ssim_2d
 from stdr.render import compiled
 
 pytestmark = pytest.mark.skipif(not compiled.available("cpu"), reason="the CPU extension cannot be built here")
@@ -115,7 +115,8 @@ def test_bad_inputs_are_rejected_with_what_is_wrong():
 
 
 def test_the_key_resolves_by_device_and_names_itself_when_it_cannot_run():
-    assert FUSED_LOSS_VERIFIED == ("cpu",)  # CUDA: once a GPU check has run these tests there
+    from stdr.verified import VERIFIED
+    assert VERIFIED["optim.fused_loss"] == ("cpu",)  # CUDA: once a GPU check has run these tests there
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
     assert fused_loss(None, cpu) and fused_loss(True, cpu) and not fused_loss(False, cpu)
     assert not fused_loss(None, cuda)  # null: the torch twin there, until verified

@@ -82,7 +82,7 @@ def test_dry_run_runs_every_stage_on_the_cpu(tmp_path):
     assert [r["stage"] for r in recs] == [s.name for s in first + rest]
     assert all(r["status"] == "ok" for r in recs), [(r["stage"], r["status"]) for r in recs]
     runs = [r for r in recs if r["stage"].startswith("run_")]
-    assert {r["stage"] for r in runs} == {"run_deform", "run_gpu_deform", "run_gpu_deform_stdr", "run_deform_twin", "run_deform_stdr", "run_4dgs",
+    assert {r["stage"] for r in runs} == {"run_deform", "run_gpu_deform", "run_gpu_deform_fast", "run_gpu_deform_stdr", "run_deform_twin", "run_deform_stdr", "run_4dgs",
                                           "run_4dgs_stdr", "run_scgs", "run_spgs", "run_paper_deform", "run_paper_scgs"}
     for r in runs:
         assert r["backend"] == "cpu" and r["device"] == "cpu", r
@@ -120,3 +120,25 @@ def test_runs_use_the_lpips_weights_given_and_say_alex_when_no_vgg_weights_came(
         assert runs and all(s.env["STDR_LPIPS_WEIGHTS"] == str(w.resolve()) for s in runs)
         assert all(("eval.lpips_net=alex" in s.cmd) == alex for s in runs)
         assert all(s.cmd[-1].startswith("hydra.run.dir=") for s in runs)
+
+
+def test_the_train_keys_stage_runs_the_binning_and_speed_key_trainings_under_memcheck(tmp_path):
+    """On a GPU, right after the kernels: compute-sanitizer memcheck (uncached allocations, so an
+    access past a tensor is an error, and blocking launches) over the binning tests and the
+    speed-key trainings, which must exist under the names the stage gives."""
+    gc = _module()
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    args = type("A", (), {"work": tmp_path / "w", "scene": scene, "lpips_weights": None})()
+    _, rest = gc.build_stages(args, "python", False)
+    names = [s.name for s in rest]
+    assert names.index("train_keys") == names.index("kernels") + 1
+    st = rest[names.index("train_keys")]
+    assert st.cmd[:3] == ["compute-sanitizer", "--tool", "memcheck"] and "--error-exitcode" in st.cmd
+    assert st.env == {"CUDA_LAUNCH_BLOCKING": "1", "PYTORCH_NO_CUDA_MEMORY_CACHING": "1"}
+    ids = [c for c in st.cmd if str(c).startswith("tests/")]
+    assert ids == ["tests/test_binning.py", f"tests/test_device.py::{gc.SPEED_KEYS_TEST}"]
+    proc = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", *ids], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:]
+    assert f"{gc.SPEED_KEYS_TEST}[deform_stdr]" in proc.stdout and "test_binning.py::" in proc.stdout

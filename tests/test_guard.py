@@ -399,10 +399,10 @@ def test_the_compiled_step_update_is_the_torch_one(backend):
 
 def test_the_compiled_check_is_the_default_on_the_cpu_and_finds_the_same_fault(tmp_path):
     from stdr.render import compiled
-    from stdr.train.guard import COMPILED_CHECK_VERIFIED
+    from stdr.verified import VERIFIED
     if not compiled.available("cpu"):
         pytest.skip("the CPU extension cannot be built here")
-    assert COMPILED_CHECK_VERIFIED == ("cpu",)  # CPU code: CUDA runs keep the torch operators
+    assert VERIFIED["train.guard.compiled"] == ("cpu",)  # CPU code: CUDA runs keep the torch operators
     runs = {}
     for key in ("null", "false"):
         tr = _trainer(tmp_path, key, [f"train.guard.compiled={key}", "train.guard.inject_nan_grad_at=[25]"])

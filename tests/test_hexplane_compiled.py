@@ -2,7 +2,8 @@
 import pytest
 import torch
 
-from stdr.deform.hexplane import HEXPLANE_COMPILED_VERIFIED, HexPlaneField
+from stdr.deform.hexplane import HexPlaneField
+from stdr.verified import VERIFIED
 from stdr.render import compiled
 
 BACKENDS = ["cpu"] + (["cuda"] if torch.cuda.is_available() and torch.version.cuda else [])
@@ -73,7 +74,7 @@ def test_cpu_backward_is_deterministic_and_pure():
 
 
 def test_the_field_uses_it_where_verified_and_the_key_overrides(monkeypatch):
-    assert HEXPLANE_COMPILED_VERIFIED == ("cpu",)  # CUDA: once a GPU check has run these tests there
+    assert VERIFIED["baseline.hexplane.compiled"] == ("cpu",)  # CUDA: once a GPU check has run these tests there
     c = _coords(50, torch.float32, 0.5)
     calls = []
     real = compiled.hexplane_compiled
@@ -90,7 +91,7 @@ def test_the_field_uses_it_where_verified_and_the_key_overrides(monkeypatch):
     _field(torch.float32, compiled_=True)(c[:, :3].clone().requires_grad_(True), 0.5)
     assert calls == []
     # where it has not been verified, null keeps the torch ops
-    monkeypatch.setattr("stdr.deform.hexplane.HEXPLANE_COMPILED_VERIFIED", ())
+    monkeypatch.setitem(VERIFIED, "baseline.hexplane.compiled", ())
     assert _field(torch.float32).compiled_kind(c) is None
     assert _field(torch.float32, compiled_=True).compiled_kind(c) == "cpu"
 

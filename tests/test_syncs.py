@@ -148,7 +148,7 @@ def test_on_cuda_an_ordinary_step_makes_only_the_rasterizers_syncs(name, tmp_pat
 @CUDA
 @pytest.mark.parametrize("sync_free", [True, False])
 def test_on_cuda_the_guard_adds_one_sync_or_none(tmp_path, sync_free):
-    """Read every step (CUDA's default until this test has passed on a GPU: SYNC_FREE_VERIFIED),
+    """Read every step (CUDA's default until this test has passed on a GPU: stdr.verified.VERIFIED),
     the guard adds one sync; sync-free, none."""
     from stdr.train.syncs import RASTERIZER_SYNCS
     counts, sites = _count("deform_stdr", True, str(tmp_path), cuda=True, sync_free=sync_free)
@@ -163,7 +163,7 @@ def test_on_cuda_the_guard_adds_one_sync_or_none(tmp_path, sync_free):
 @CUDA
 def test_on_cuda_the_compiled_loss_and_check_add_no_sync(tmp_path):
     """The CUDA kernels of the loss (its gradient read on the device) and of the guard's check
-    (before they are CUDA defaults: FUSED_LOSS_VERIFIED, COMPILED_CHECK_VERIFIED) leave an
+    (before they are CUDA defaults in stdr.verified.VERIFIED) leave an
     ordinary step with the rasterizer's syncs alone, and the guard's fault recovery unchanged."""
     from stdr.train.syncs import RASTERIZER_SYNCS
     counts, sites = _count("deform_stdr", True, str(tmp_path), cuda=True, sync_free=True,

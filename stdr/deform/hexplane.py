@@ -41,7 +41,7 @@ class HexPlaneConfig:
     l1_time: float = 1e-4
     # the field's sampling (features forward, planes' gradients backward) as one compiled kernel
     # (stdr.render.compiled.hexplane_compiled) instead of the torch ops: null = where it has been
-    # verified (HEXPLANE_COMPILED_VERIFIED: the CPU; the CUDA kernel is built but has not run on a
+    # verified (stdr.verified.VERIFIED: the CPU; the CUDA kernel is built but has not run on a
     # GPU yet), true = required (an error where it cannot be built), false = torch
     compiled: Optional[bool] = None
 
@@ -75,10 +75,6 @@ def hexplane_time_res(b, train_times: Optional[np.ndarray]) -> int:
                          "holds them (stdr.model.load_model), or set baseline.hexplane.time_res")
     return max(2, len(train_times) // 2)
 
-
-# the devices where baseline.hexplane.compiled=null uses the compiled sampling (the parity tests
-# of tests/test_hexplane_compiled.py have run there; on CUDA once a GPU check has run them)
-HEXPLANE_COMPILED_VERIFIED = ("cpu",)
 
 PAIRS = list(itertools.combinations(range(4), 2))  # (0,1) (0,2) (0,3) (1,2) (1,3) (2,3)
 TIME_PLANES = [i for i, p in enumerate(PAIRS) if 3 in p]   # 2, 4, 5
@@ -212,7 +208,7 @@ class HexPlaneField(nn.Module):
         if self.compiled is False or c.requires_grad:
             return None
         kind = c.device.type
-        use = compiled_backend.use_compiled("baseline.hexplane.compiled", self.compiled, kind, HEXPLANE_COMPILED_VERIFIED,
+        use = compiled_backend.use_compiled("baseline.hexplane.compiled", self.compiled, kind,
                                             c.dtype in compiled_backend.HEXPLANE_DTYPES.get(kind, ()),
                                             f"no compiled HexPlane sampling for {c.dtype} on {kind}")
         return kind if use else None

@@ -88,21 +88,15 @@ class RenderOutput:
     projection: Projection
 
 
-#: backends whose compiled projection + SH kernels have passed their parity tests on real hardware
-#: (render.compiled_projection=null uses them there). CUDA: on an H100 on 2026-11-26
-#: (scripts/gpu_check.py; docs/measurements/gpu_check_h100_staged): parity with the torch twin
-#: and the float64 truth, with the CPU extension at 200k and 1M Gaussians, training and resume of
-#: all four baselines with STDR, compute-sanitizer memcheck clean. A backend added later stays off
-#: until the GPU check passes it there.
-VERIFIED_PROJECTION = ("cpu", "cuda")
-
-
 def use_compiled_projection(backend: str, compiled_projection: Optional[bool] = None) -> bool:
     """Whether render() runs projection and SH in the compiled extension: never on the reference
     backend; with compiled_projection None (auto) on the verified backends only."""
     if backend == "reference":
         return False
-    return backend in VERIFIED_PROJECTION if compiled_projection is None else bool(compiled_projection)
+    if compiled_projection is None:
+        from ..verified import verified_on
+        return backend in verified_on("render.compiled_projection")
+    return bool(compiled_projection)
 
 
 def _project(means, quats, scales, opacities, sh, camera, sh_degree, backend, near, eps2d, antialiased,
@@ -139,7 +133,7 @@ def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, sh: 
     tile_size 0 = the backend's default. compiled_projection: with a compiled backend, the
     projection and SH shading run in the extension too (`compiled.project_sh_compiled`); False
     (or the reference backend) runs the torch twin; None (auto) = True on the backends in
-    VERIFIED_PROJECTION (CPU and CUDA: the kernels that passed their checks on real hardware).
+    stdr.verified.VERIFIED (CPU and CUDA: the kernels that passed their checks on real hardware).
     """
     N = means.shape[0]
     for name, x, shape in (("means", means, (N, 3)), ("quats", quats, (N, 4)),

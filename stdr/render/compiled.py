@@ -190,16 +190,19 @@ def build_error(kind: str) -> Optional[str]:
     return _errors.get(kind)
 
 
-def use_compiled(key: str, setting: Optional[bool], kind: str, verified: tuple, supported: bool = True,
+def use_compiled(key: str, setting: Optional[bool], kind: str, supported: bool = True,
                  unsupported: str = "") -> bool:
     """A `<key>: null | true | false` switch between a compiled kernel on `kind` ('cpu', 'cuda')
     and its torch twin: false = the twin; null = the kernel where it has been verified (`kind` in
-    `verified`), the inputs are `supported` and the extension builds; true = the kernel, or an
-    error that names the key and says why not (`unsupported`: what the kernel does not take)."""
+    stdr.verified.VERIFIED[key]), the inputs are `supported` and the extension builds; true = the
+    kernel, or an error that names the key and says why not (`unsupported`: what the kernel does
+    not take)."""
+    from ..verified import verified_on
+
     if setting is False:
         return False
     if setting is None:
-        return supported and kind in verified and available(kind)
+        return supported and kind in verified_on(key) and available(kind)
     if not supported:
         raise ValueError(f"{key}=true: {unsupported}; set {key}=null (or false) to use the torch ops")
     if not available(kind):
@@ -305,7 +308,7 @@ def contribution_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, de
                           width: int, height: int, tile_size: int = 16, kind: str = "cpu") -> Tensor:
     """The score pass [N]: each Gaussian's blending weight alpha * T summed over the image, from
     the extension's forward compositing (same contract and values as `contribution_reference`;
-    no autograd). CPU: deterministic for a thread count; CUDA: atomic adds, so the last bits of a
+    no autograd). CPU: deterministic, the same on any thread count; CUDA: atomic adds, so the last bits of a
     sum may vary from run to run."""
     n = means2d.shape[0] if means2d.dim() >= 1 else -1
     ones = means2d.new_ones(max(n, 0), 1)
@@ -314,6 +317,21 @@ def contribution_compiled(means2d: Tensor, conics: Tensor, opacities: Tensor, de
     with torch.no_grad():
         return ext.score(means2d.detach(), conics.detach(), opacities.detach(), depths.detach(),
                          radii.to(torch.int32).contiguous(), int(width), int(height), int(tile_size))
+
+
+def bin_pairs_split(packed: Tensor, emit: Tensor, vradii: Tensor, width: int, height: int, tile_size: int = 16,
+                    kind: str = "cpu") -> tuple[Tensor, Tensor]:
+    """The CUDA backend's two-pass Gaussian-tile binning (count each packed row's tiles, scan,
+    write the keys, sort) with the count pass reading `packed` and the write pass `emit`, on the
+    CUDA kernels (kind='cuda') or the same shared function on the CPU (kind='cpu'). Rendering always
+    passes one array twice; tests pass two to make the passes disagree, as two differently
+    rounded compilations of one float test can. Returns (pair_ids [P] int32, tile_offsets
+    [n_tiles + 1] int64): tile t's list is pair_ids[tile_offsets[t]:tile_offsets[t + 1]]; ids past
+    tile_offsets[-1] fill slots the write pass did not reach and are in no list.
+
+    packed, emit [V, 6 + F] (rows as the forward packs them, depth order), vradii [V] int32."""
+    return tuple(load_extension(kind).bin_pairs_split(packed, emit, vradii.to(torch.int32), int(width), int(height),
+                                                      int(tile_size)))
 
 
 # ---------------------------------------------------------------- projection and SH shading

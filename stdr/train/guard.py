@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from ..render import compiled as compiled_backend
+from ..verified import verified_on
 
 
 @dataclass
@@ -56,11 +57,11 @@ class GuardConfig:
     # that wait for the device anyway (log, evaluation, checkpoint, snapshot, the end); fused Adam
     # skips every update from the faulty step on (its found_inf), and the read restores the last
     # snapshot, the state an immediate check restores. null: on where it has been checked
-    # (SYNC_FREE_VERIFIED); true / false. Needs optim.fused_adam (false reads the check every step)
+    # (stdr.verified.VERIFIED); true / false. Needs optim.fused_adam (false reads the check every step)
     sync_free: Optional[bool] = None
     # the check of a step's tensors as one compiled call (stdr.render.compiled.guard_update_compiled;
     # instead of two operators a tensor and ten for the verdict) or as torch operators. null: compiled
-    # where it has been checked (COMPILED_CHECK_VERIFIED: the CPU; the CUDA kernel is built, not yet
+    # where it has been checked (stdr.verified.VERIFIED: the CPU; the CUDA kernel is built, not yet
     # run on a GPU) and the extension builds; true / false
     compiled: Optional[bool] = None
     # fault injection, for tests and drills: a NaN in the gradient of the means at each step
@@ -68,17 +69,12 @@ class GuardConfig:
     inject_nan_grad_at: List[int] = field(default_factory=list)
 
 
-# the devices where train.guard.sync_free=null turns the sync-free check on: those it has run on
-# (tests/test_guard.py on the CPU; on CUDA once a GPU check has run tests/test_syncs.py with it)
-SYNC_FREE_VERIFIED = ("cpu",)
-
-
 def resolve_sync_free(g, device: torch.device, fused_adam: bool) -> bool:
     """Whether this run's step check is the sync-free one (train.guard.sync_free resolved)."""
     if not g.enabled:
         return False
     if g.sync_free is None:
-        return fused_adam and device.type in SYNC_FREE_VERIFIED
+        return fused_adam and device.type in verified_on("train.guard.sync_free")
     if g.sync_free and not fused_adam:
         raise ValueError("train.guard.sync_free=true needs optim.fused_adam=true on a CPU or CUDA device: fused Adam "
                          "is what skips a faulty step's update on the device; set train.guard.sync_free=false "
@@ -86,17 +82,12 @@ def resolve_sync_free(g, device: torch.device, fused_adam: bool) -> bool:
     return bool(g.sync_free)
 
 
-# the devices where train.guard.compiled=null checks with the compiled call (tests/test_guard.py
-# pins it to the torch form there; on CUDA once a GPU check has run those tests)
-COMPILED_CHECK_VERIFIED = ("cpu",)
-
-
 def resolve_compiled_check(g, device: torch.device) -> bool:
     """Whether this run's step check is the compiled call (train.guard.compiled resolved)."""
     if not g.enabled:
         return False
     kind = device.type
-    return compiled_backend.use_compiled("train.guard.compiled", g.compiled, kind, COMPILED_CHECK_VERIFIED,
+    return compiled_backend.use_compiled("train.guard.compiled", g.compiled, kind,
                                  kind in ("cpu", "cuda"), f"there is no compiled check on {device}")
 
 

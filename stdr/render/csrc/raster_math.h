@@ -67,15 +67,55 @@ STDR_HD float exp_neg(float x) {
 }
 STDR_HD double exp_neg(double x) { return exp(x); }
 
-// Squared Mahalanobis radius beyond which a Gaussian of opacity o contributes nothing:
-// min(9, 2 ln(255 o)). Negative when o < 1/255 (the Gaussian is invisible everywhere).
-template <typename T> STDR_HD T cutoff_q(T o) {
-  return o > T(0) ? tmin(T(Q_MAX), T(2) * log(T(255) * o)) : T(-1);
+// A product and a sum that no compiler fuses into an FMA (CUDA: __fmul_rn / __fadd_rn; nvcc and
+// ptxas otherwise contract a * b + c wherever they like, differently in two compilations of one
+// expression). The binning's float tests use them, so that its count and write passes round alike.
+STDR_HD float mul_rn(float a, float b) {
+#ifdef __CUDA_ARCH__
+  return __fmul_rn(a, b);
+#else
+  return a * b;
+#endif
+}
+STDR_HD float add_rn(float a, float b) {
+#ifdef __CUDA_ARCH__
+  return __fadd_rn(a, b);
+#else
+  return a + b;
+#endif
+}
+STDR_HD double mul_rn(double a, double b) {
+#ifdef __CUDA_ARCH__
+  return __dmul_rn(a, b);
+#else
+  return a * b;
+#endif
+}
+STDR_HD double add_rn(double a, double b) {
+#ifdef __CUDA_ARCH__
+  return __dadd_rn(a, b);
+#else
+  return a + b;
+#endif
 }
 
 // q = d^T Q d for d = (dx, dy)
 template <typename T> STDR_HD T conic_q(T a, T b, T c, T dx, T dy) {
   return a * dx * dx + T(2) * b * dx * dy + c * dy * dy;
+}
+
+// Squared Mahalanobis radius beyond which a Gaussian of opacity o contributes nothing:
+// min(9, 2 ln(255 o)). Negative when o < 1/255 (the Gaussian is invisible everywhere).
+// Explicitly rounded (mul_rn): the binning evaluates it twice on CUDA.
+template <typename T> STDR_HD T cutoff_q(T o) {
+  return o > T(0) ? tmin(T(Q_MAX), mul_rn(T(2), T(log(mul_rn(T(255), o))))) : T(-1);
+}
+
+// conic_q with explicit rounding (mul_rn / add_rn), for the binning's tests
+template <typename T> STDR_HD T conic_q_rn(T a, T b, T c, T dx, T dy) {
+  const T xx = mul_rn(mul_rn(a, dx), dx), xy = mul_rn(mul_rn(mul_rn(T(2), b), dx), dy);
+  const T yy = mul_rn(mul_rn(c, dy), dy);
+  return add_rn(add_rn(xx, xy), yy);
 }
 
 // alpha at squared distance q (0 outside the footprint); `raw` = o exp(-q/2) before the clamp.
@@ -87,6 +127,7 @@ template <typename T> STDR_HD T pair_alpha(T o, T q, T& raw) {
 
 // Minimum of q over the box [x0, x1] x [y0, y1] (pixel centres), for a positive definite conic.
 // 0 when the mean is inside; otherwise the minimum over the four edges (exact: q is convex).
+// Explicitly rounded (conic_q_rn, mul_rn): the binning evaluates it twice on CUDA.
 template <typename T>
 STDR_HD T box_min_q(T a, T b, T c, T mx, T my, T x0, T x1, T y0, T y1) {
   if (mx >= x0 && mx <= x1 && my >= y0 && my <= y1) return T(0);
@@ -95,14 +136,14 @@ STDR_HD T box_min_q(T a, T b, T c, T mx, T my, T x0, T x1, T y0, T y1) {
   T xs[2] = {x0, x1};
   for (int k = 0; k < 2; ++k) {
     T dx = xs[k] - mx;
-    T dy = tmin(tmax(-b * dx / c, y0 - my), y1 - my);
-    best = tmin(best, conic_q(a, b, c, dx, dy));
+    T dy = tmin(tmax(-mul_rn(b, dx) / c, y0 - my), y1 - my);
+    best = tmin(best, conic_q_rn(a, b, c, dx, dy));
   }
   T ys[2] = {y0, y1};
   for (int k = 0; k < 2; ++k) {
     T dy = ys[k] - my;
-    T dx = tmin(tmax(-b * dy / a, x0 - mx), x1 - mx);
-    best = tmin(best, conic_q(a, b, c, dx, dy));
+    T dx = tmin(tmax(-mul_rn(b, dy) / a, x0 - mx), x1 - mx);
+    best = tmin(best, conic_q_rn(a, b, c, dx, dy));
   }
   return best;
 }
@@ -119,13 +160,15 @@ STDR_HD bool tile_range(const T* g, int radius, int width, int height, int tile,
   const T mx = g[0], my = g[1], a = g[2], b = g[3], c = g[4], o = g[5];
   cut = cutoff_q(o);
   if (!(cut >= T(0))) return false;
-  cut = cut * T(1.0001) + T(1e-4);  // never cull a pixel the per-pixel test would keep
-  const T det = a * c - b * b;
+  // explicitly rounded where a compiler could fuse a product into a sum (mul_rn, add_rn): the
+  // binning evaluates this twice on CUDA (gaussian_tile_keys)
+  cut = add_rn(mul_rn(cut, T(1.0001)), T(1e-4));  // never cull a pixel the per-pixel test would keep
+  const T det = add_rn(mul_rn(a, c), -mul_rn(b, b));
   exact = a > T(0) && c > T(0) && det > T(0);
   T ex, ey;
   if (exact) {
-    ex = sqrt(cut * c / det) + T(1e-3);
-    ey = sqrt(cut * a / det) + T(1e-3);
+    ex = sqrt(mul_rn(cut, c) / det) + T(1e-3);
+    ey = sqrt(mul_rn(cut, a) / det) + T(1e-3);
     ex = tmin(ex, T(radius));
     ey = tmin(ey, T(radius));
   } else {
@@ -151,6 +194,37 @@ STDR_HD bool tile_overlaps(const T* g, T cut, bool exact, int tx, int ty, int ti
   const T x1 = T(tmin((tx + 1) * tile, width) - 1) + T(0.5);
   const T y1 = T(tmin((ty + 1) * tile, height) - 1) + T(0.5);
   return box_min_q(g[2], g[3], g[4], g[0], g[1], x0, x1, y0, y1) <= cut;
+}
+
+// The Gaussian-tile keys of packed row v: ((tile << 32) | v, tile = ty * ntx + tx) for every tile
+// its footprint reaches, in tile order. Returns how many tiles that is. With keys == nullptr it
+// only counts; otherwise it writes to keys[0, cap) and never beyond, and fills the slots it did
+// not reach with `(n_tiles << 32) | v`, a key that sorts after every tile's and so lies in no
+// tile's list. A two-pass binner (count, then write into slots sized by the count) calls this
+// twice on the same row; compiled twice (nvcc --use_fast_math contracts a * b + c into an FMA in
+// one instantiation and not in the other) the float test can disagree by one tile, and the write
+// pass must then stay inside the counted slots and leave none of them unwritten.
+template <typename T>
+STDR_HD int gaussian_tile_keys(const T* g, int radius, int width, int height, int tile, int64_t v,
+                               int64_t* keys, int64_t cap) {
+  int tx0, tx1, ty0, ty1;
+  T cut;
+  bool exact;
+  const int ntx = (width + tile - 1) / tile;
+  const int64_t n_tiles = (int64_t)ntx * ((height + tile - 1) / tile);
+  int n = 0;
+  int64_t at = 0;
+  if (tile_range(g, radius, width, height, tile, tx0, tx1, ty0, ty1, cut, exact)) {
+    for (int ty = ty0; ty < ty1; ++ty)
+      for (int tx = tx0; tx < tx1; ++tx)
+        if (tile_overlaps(g, cut, exact, tx, ty, tile, width, height)) {
+          if (keys && at < cap) keys[at++] = ((int64_t)(ty * ntx + tx) << 32) | v;
+          ++n;
+        }
+  }
+  if (keys)
+    for (; at < cap; ++at) keys[at] = (n_tiles << 32) | v;
+  return n;
 }
 
 // ---- per pixel, front to back ------------------------------------------------------------

@@ -39,9 +39,16 @@ struct Grid {
         nty((int)((h + t - 1) / t)), n_tiles(ntx * nty), pt((int)(t * t)) {}
 };
 
+// The slots of the two loops that sum over tiles (the backward's gradients, the score): a fixed
+// number, whatever the thread count, so that every per-slot partial sum, and their sum in slot
+// order, is bitwise the same on 1 core or 64 (the threads share the slots; beyond 16 threads these
+// two loops leave the extra ones idle). The forward and the binning write each output once, so
+// they split their work by the thread count.
+constexpr int REDUCE_SLOTS = 16;
+
 // Work split shared by every parallel loop: slot s of `slots` handles tiles s, s + slots, ...
 // Interleaving balances dense and empty image regions; a fixed assignment keeps the backward's
-// per-slot gradient sums (and so the result) deterministic for a given thread count.
+// per-slot gradient sums (and so the result) deterministic, with REDUCE_SLOTS, on any thread count.
 template <typename Fn> void for_each_slot(int slots, Fn fn) {
   at::parallel_for(0, slots, 1, [&](int64_t b, int64_t e) {
     for (int64_t s = b; s < e; ++s) fn((int)s);
@@ -466,7 +473,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
 // raster_math.h's forward_pixel with one feature channel of ones, so the "accumulated feature" of
 // a Gaussian at a pixel is its blending weight alpha * T) summed over the pixels of each Gaussian.
 // Each slot sums into its own row of `sums` [slots, V]; the rows are added in slot order, so the
-// result is deterministic for a thread count.
+// result is the same on any thread count (REDUCE_SLOTS).
 template <typename T>
 void score_tiles(const T* packed, const int32_t* ids, const int64_t* off, const Grid& gr, int slots,
                  T* sums, int64_t V) {
@@ -516,28 +523,68 @@ at::Tensor score(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Ten
   depths = depths.contiguous(); radii = radii.contiguous();
   const Grid gr(width, height, tile);
   const int64_t N = means2d.size(0);
-  const int slots = std::max(1, at::get_num_threads());
+  const int slots = std::max(1, at::get_num_threads()), reduce_slots = REDUCE_SLOTS;
   auto out = at::zeros({N}, means2d.options());
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "stdr_score", [&] {
     at::Tensor pair_ids, tile_offsets, packed, order;
     pack_and_bin<scalar_t>(means2d, conics, opac, ones, depths, radii, gr, slots, packed, order, pair_ids,
                            tile_offsets);
     const int64_t V = packed.size(0);
-    std::vector<scalar_t> sums((size_t)slots * V);
+    std::vector<scalar_t> sums((size_t)reduce_slots * V);
     score_tiles<scalar_t>(packed.data_ptr<scalar_t>(), pair_ids.data_ptr<int32_t>(),
-                          tile_offsets.data_ptr<int64_t>(), gr, slots, sums.data(), V);
+                          tile_offsets.data_ptr<int64_t>(), gr, reduce_slots, sums.data(), V);
     // the slots' sums in slot order (deterministic), scattered to input order, as backward() does
     const int64_t* ord = order.data_ptr<int64_t>();
     scalar_t* o = out.data_ptr<scalar_t>();
     at::parallel_for(0, V, 4096, [&](int64_t b, int64_t e) {
       for (int64_t v = b; v < e; ++v) {
         scalar_t total = 0;
-        for (int s = 0; s < slots; ++s) total += sums[(size_t)s * V + v];
+        for (int s = 0; s < reduce_slots; ++s) total += sums[(size_t)s * V + v];
         o[ord[v]] = total;
       }
     });
   });
   return out;
+}
+
+// The CUDA backend's two-pass binning (raster_cuda.cpp's bin_pairs: count, scan, write, sort), run
+// serially with the same shared function (raster_math.h's gaussian_tile_keys), for the tests: the
+// count pass reads `packed`, the write pass `emit`, so a test can make them disagree. Returns
+// (pair_ids [P] int32, tile_offsets [n_tiles + 1]) as the CUDA binding does. This CPU backend's
+// own binning is single-pass (bin_pairs above).
+std::vector<at::Tensor> bin_pairs_split(at::Tensor packed, at::Tensor emit, at::Tensor vradii, int64_t width,
+                                        int64_t height, int64_t tile) {
+  TORCH_CHECK(packed.device().is_cpu() && emit.device().is_cpu() && vradii.device().is_cpu(),
+              "stdr CPU bin_pairs_split: every input must be a CPU tensor");
+  TORCH_CHECK(packed.dim() == 2 && packed.sizes() == emit.sizes() && packed.scalar_type() == emit.scalar_type() &&
+                  packed.size(1) > PACK_BASE && vradii.scalar_type() == at::kInt &&
+                  vradii.numel() == packed.size(0),
+              "stdr CPU bin_pairs_split: packed and emit [V, D] of one dtype, vradii int32 [V]");
+  TORCH_CHECK(width > 0 && height > 0 && tile >= 1 && tile <= 32, "stdr CPU bin_pairs_split: bad image or tile size");
+  packed = packed.contiguous(); emit = emit.contiguous(); vradii = vradii.contiguous();
+  const Grid gr(width, height, tile);
+  const int64_t V = packed.size(0), D = packed.size(1);
+  const int32_t* r = vradii.data_ptr<int32_t>();
+  auto counts = at::zeros({V}, at::kInt);
+  at::Tensor keys;
+  AT_DISPATCH_FLOATING_TYPES(packed.scalar_type(), "stdr_bin_pairs_split", [&] {
+    const scalar_t *P = packed.data_ptr<scalar_t>(), *E = emit.data_ptr<scalar_t>();
+    int32_t* c = counts.data_ptr<int32_t>();
+    for (int64_t v = 0; v < V; ++v)
+      c[v] = stdr::gaussian_tile_keys(P + v * D, r[v], gr.width, gr.height, gr.tile, v, (int64_t*)nullptr, 0);
+    auto ends = at::cumsum(counts, 0, at::kLong);
+    const int64_t total = V > 0 ? ends[-1].item<int64_t>() : 0;
+    const int64_t* end = ends.data_ptr<int64_t>();
+    keys = at::empty({total}, at::kLong);
+    int64_t* k = keys.data_ptr<int64_t>();
+    for (int64_t v = 0; v < V; ++v)
+      stdr::gaussian_tile_keys(E + v * D, r[v], gr.width, gr.height, gr.tile, v, k + end[v] - c[v], (int64_t)c[v]);
+  });
+  auto sorted = std::get<0>(at::sort(keys));
+  auto pair_ids = at::bitwise_and(sorted, 0xffffffffLL).to(at::kInt);
+  auto tiles = at::bitwise_right_shift(sorted, 32);
+  auto tile_offsets = at::searchsorted(tiles, at::arange((int64_t)gr.n_tiles + 1, tiles.options()));
+  return {pair_ids, tile_offsets};
 }
 
 // Gradients for (means2d [N, 2], conics [N, 3], opacities [N], features [N, F]); rows of
@@ -552,7 +599,7 @@ std::vector<at::Tensor> backward(at::Tensor packed, at::Tensor order, int64_t N,
   const int64_t V = packed.size(0), D = packed.size(1), F = D - PACK_BASE;
   TORCH_CHECK(g_acc.size(0) == height && g_acc.size(1) == width && g_acc.size(2) == F,
               "stdr rasterizer backward: gradient shape mismatch");
-  const int slots = std::max(1, at::get_num_threads());
+  const int slots = REDUCE_SLOTS;
   // [slots, V, D] partial sums; each slot zeroes its own part in its thread (backward_tiles*)
   auto grads = at::empty({slots, V, D}, packed.options());
   auto opt = packed.options();
@@ -803,6 +850,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "tile rasterizer forward (CPU)");
   m.def("backward", &backward, "tile rasterizer backward (CPU)");
   m.def("score", &score, "contribution score: blending weight summed per Gaussian (CPU)");
+  m.def("bin_pairs_split", &bin_pairs_split, "the CUDA backend's two-pass binning on the CPU (tests)");
   m.def("project_forward", &project_forward, "projection and SH forward (CPU)");
   m.def("project_backward", &project_backward, "projection and SH backward (CPU)");
   m.def("hexplane_forward", &hexplane_forward, "HexPlane features and the others-products (CPU)");

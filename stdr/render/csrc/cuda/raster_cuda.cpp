@@ -15,18 +15,46 @@
 
 namespace {
 
+// The Gaussian-tile pairs of packed rows, by tile then depth (pair_ids [P] int32, tile_offsets
+// [n_tiles + 1]): a pass counts each row's tiles, a scan gives its slots, a second pass writes
+// its keys there (both passes: raster_math.h's gaussian_tile_keys, which keeps the second inside
+// the first's slots). The second pass reads `emit`, which is `packed` except in the test that
+// makes the two passes disagree on purpose (bin_pairs_split). Keys of slots a row did not fill
+// sort after the last tile: pair_ids may hold a few ids past tile_offsets[n_tiles], in no list.
+void bin_pairs(const at::Tensor& packed, const at::Tensor& emit, const at::Tensor& vradii, int64_t width,
+               int64_t height, int64_t tile, cudaStream_t stream, at::Tensor& pair_ids, at::Tensor& tile_offsets) {
+  const int64_t V = packed.size(0);
+  const int D = (int)packed.size(1);
+  const int ntx = (int)((width + tile - 1) / tile), nty = (int)((height + tile - 1) / tile);
+  const int64_t n_tiles = (int64_t)ntx * nty;
+  auto counts = at::zeros({V}, vradii.options());
+  stdr_cuda::count_tiles(packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D, (int)width, (int)height,
+                         (int)tile, counts.data_ptr<int32_t>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
+  auto ends = at::cumsum(counts, 0, at::kLong);
+  const int64_t P = V > 0 ? ends[-1].item<int64_t>() : 0;
+  auto offsets = ends - counts.to(at::kLong);
+  auto keys = at::empty({P}, packed.options().dtype(at::kLong));
+  stdr_cuda::emit_pairs(emit.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D, (int)width, (int)height,
+                        (int)tile, counts.data_ptr<int32_t>(), offsets.data_ptr<int64_t>(),
+                        keys.data_ptr<int64_t>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
+  auto sorted = std::get<0>(at::sort(keys));  // (tile, depth rank): radix sort on the GPU
+  pair_ids = at::bitwise_and(sorted, 0xffffffffLL).to(at::kInt);
+  auto tiles = at::bitwise_right_shift(sorted, 32);
+  auto bounds = at::arange(n_tiles + 1, tiles.options());
+  tile_offsets = at::searchsorted(tiles, bounds);  // first pair of each tile; the last: end of the lists
+}
+
 // The visible Gaussians front to back, packed one row each (packed [V, 6+F], order [V]: packed row
-// v is Gaussian order[v]), and their Gaussian-tile pairs by tile then depth (pair_ids [P] int32,
-// tile_offsets [n_tiles + 1]): what forward() and score() composite.
+// v is Gaussian order[v]), and their Gaussian-tile pairs (bin_pairs): what forward() and score()
+// composite.
 void pack_and_bin(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac,
                   const at::Tensor& feats, const at::Tensor& depths, const at::Tensor& radii, int64_t width,
                   int64_t height, int64_t tile, cudaStream_t stream, at::Tensor& packed, at::Tensor& order,
                   at::Tensor& pair_ids, at::Tensor& tile_offsets) {
   const int64_t F = feats.size(1);
   const int D = stdr::PACK_BASE + (int)F;
-  const int ntx = (int)((width + tile - 1) / tile), nty = (int)((height + tile - 1) / tile);
-  const int64_t n_tiles = (int64_t)ntx * nty;
-
   auto vis = at::nonzero(radii > 0).squeeze(1);
   order = vis.index_select(0, at::argsort(depths.index_select(0, vis), /*stable=*/true));
   const int64_t V = order.size(0);
@@ -37,23 +65,27 @@ void pack_and_bin(const at::Tensor& means2d, const at::Tensor& conics, const at:
                        radii.data_ptr<int32_t>(), order.data_ptr<int64_t>(), V, (int)F,
                        packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), stream);
   C10_CUDA_CHECK(cudaGetLastError());
-  auto counts = at::zeros({V}, radii.options());
-  stdr_cuda::count_tiles(packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D,
-                         (int)width, (int)height, (int)tile, counts.data_ptr<int32_t>(), stream);
-  C10_CUDA_CHECK(cudaGetLastError());
-  auto ends = at::cumsum(counts, 0, at::kLong);
-  const int64_t P = V > 0 ? ends[-1].item<int64_t>() : 0;
-  auto offsets = ends - counts.to(at::kLong);
-  auto keys = at::empty({P}, means2d.options().dtype(at::kLong));
-  stdr_cuda::emit_pairs(packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D, (int)width,
-                        (int)height, (int)tile, offsets.data_ptr<int64_t>(),
-                        keys.data_ptr<int64_t>(), stream);
-  C10_CUDA_CHECK(cudaGetLastError());
-  auto sorted = std::get<0>(at::sort(keys));  // (tile, depth rank): radix sort on the GPU
-  pair_ids = at::bitwise_and(sorted, 0xffffffffLL).to(at::kInt);
-  auto tiles = at::bitwise_right_shift(sorted, 32);
-  auto bounds = at::arange(n_tiles + 1, tiles.options());
-  tile_offsets = at::searchsorted(tiles, bounds);  // first pair of each tile, and P
+  bin_pairs(packed, packed, vradii, width, height, tile, stream, pair_ids, tile_offsets);
+}
+
+// For the tests: bin_pairs with the count pass reading `packed` and the write pass `emit` (rows
+// of the same shape), so that the two disagree as far as a test wants. Returns (pair_ids,
+// tile_offsets).
+std::vector<at::Tensor> bin_pairs_split(at::Tensor packed, at::Tensor emit, at::Tensor vradii, int64_t width,
+                                        int64_t height, int64_t tile) {
+  TORCH_CHECK(packed.is_cuda() && emit.is_cuda() && vradii.is_cuda(),
+              "stdr CUDA bin_pairs_split: every input must be a CUDA tensor");
+  TORCH_CHECK(packed.scalar_type() == at::kFloat && emit.scalar_type() == at::kFloat &&
+                  vradii.scalar_type() == at::kInt && packed.dim() == 2 && packed.sizes() == emit.sizes() &&
+                  packed.size(1) > stdr::PACK_BASE && vradii.numel() == packed.size(0),
+              "stdr CUDA bin_pairs_split: packed and emit float32 [V, D], vradii int32 [V]");
+  TORCH_CHECK(tile == 8 || tile == 16, "stdr CUDA rasterizer: render.tile_size must be 8 or 16");
+  const at::cuda::CUDAGuard guard(packed.device());
+  auto stream = c10::cuda::getCurrentCUDAStream().stream();
+  at::Tensor pair_ids, tile_offsets;
+  bin_pairs(packed.contiguous(), emit.contiguous(), vradii.contiguous(), width, height, tile, stream, pair_ids,
+            tile_offsets);
+  return {pair_ids, tile_offsets};
 }
 
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
@@ -357,6 +389,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "tile rasterizer forward (CUDA)");
   m.def("backward", &backward, "tile rasterizer backward (CUDA)");
   m.def("score", &score, "contribution score: blending weight summed per Gaussian (CUDA)");
+  m.def("bin_pairs_split", &bin_pairs_split, "Gaussian-tile binning, count and write passes on given rows (tests)");
   m.def("project_forward", &project_forward, "projection and SH forward (CUDA)");
   m.def("project_backward", &project_backward, "projection and SH backward (CUDA)");
   m.def("hexplane_forward", &hexplane_forward, "HexPlane features and the others-products (CUDA)");

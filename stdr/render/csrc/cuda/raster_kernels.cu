@@ -49,29 +49,22 @@ __global__ void pack_kernel(const float* __restrict__ means2d, const float* __re
   vradii[v] = radii[g];
 }
 
-template <bool EMIT>
+// Both binning passes run this one kernel (keys == nullptr: count; else write), so the float
+// test of raster_math.h's gaussian_tile_keys is the same compiled code in both. The write pass
+// is memory-safe even if the two disagreed: it writes only Gaussian v's counted slots
+// [offsets[v], offsets[v] + counts[v]) and fills any it did not reach with a key outside every
+// tile (gaussian_tile_keys).
 __global__ void tiles_kernel(const float* __restrict__ packed, const int32_t* __restrict__ vradii,
                              int64_t V, int D, int width, int height, int tile,
-                             int32_t* __restrict__ counts, const int64_t* __restrict__ offsets,
-                             int64_t* __restrict__ keys) {
+                             int32_t* __restrict__ counts_out, const int32_t* __restrict__ counts,
+                             const int64_t* __restrict__ offsets, int64_t* __restrict__ keys) {
   const int64_t v = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
   if (v >= V) return;
   const float* g = packed + v * D;
-  int tx0, tx1, ty0, ty1;
-  float cut;
-  bool exact;
-  int n = 0;
-  const int ntx = (width + tile - 1) / tile;
-  if (stdr::tile_range(g, vradii[v], width, height, tile, tx0, tx1, ty0, ty1, cut, exact)) {
-    int64_t at = EMIT ? offsets[v] : 0;
-    for (int ty = ty0; ty < ty1; ++ty)
-      for (int tx = tx0; tx < tx1; ++tx)
-        if (stdr::tile_overlaps(g, cut, exact, tx, ty, tile, width, height)) {
-          if (EMIT) keys[at++] = ((int64_t)(ty * ntx + tx) << 32) | (int64_t)v;
-          ++n;
-        }
-  }
-  if (!EMIT) counts[v] = n;
+  if (keys == nullptr)
+    counts_out[v] = stdr::gaussian_tile_keys(g, vradii[v], width, height, tile, v, nullptr, 0);
+  else
+    stdr::gaussian_tile_keys(g, vradii[v], width, height, tile, v, keys + offsets[v], (int64_t)counts[v]);
 }
 
 template <int F>
@@ -439,16 +432,16 @@ void pack_rows(const float* means2d, const float* conics, const float* opac, con
 void count_tiles(const float* packed, const int32_t* vradii, int64_t V, int D, int width,
                  int height, int tile, int32_t* counts, cudaStream_t stream) {
   if (V == 0) return;
-  tiles_kernel<false><<<(unsigned)((V + 255) / 256), 256, 0, stream>>>(
-      packed, vradii, V, D, width, height, tile, counts, nullptr, nullptr);
+  tiles_kernel<<<(unsigned)((V + 255) / 256), 256, 0, stream>>>(
+      packed, vradii, V, D, width, height, tile, counts, nullptr, nullptr, nullptr);
 }
 
 void emit_pairs(const float* packed, const int32_t* vradii, int64_t V, int D, int width,
-                int height, int tile, const int64_t* offsets, int64_t* keys,
+                int height, int tile, const int32_t* counts, const int64_t* offsets, int64_t* keys,
                 cudaStream_t stream) {
   if (V == 0) return;
-  tiles_kernel<true><<<(unsigned)((V + 255) / 256), 256, 0, stream>>>(
-      packed, vradii, V, D, width, height, tile, nullptr, offsets, keys);
+  tiles_kernel<<<(unsigned)((V + 255) / 256), 256, 0, stream>>>(
+      packed, vradii, V, D, width, height, tile, nullptr, counts, offsets, keys);
 }
 
 void forward(const float* packed, int F, const int32_t* pair_ids, const int64_t* tile_offsets,

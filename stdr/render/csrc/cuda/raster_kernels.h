@@ -44,9 +44,10 @@ void pack_rows(const float* means2d, const float* conics, const float* opac, con
 void count_tiles(const float* packed, const int32_t* vradii, int64_t V, int D, int width,
                  int height, int tile, int32_t* counts, cudaStream_t stream);
 
-// keys[offsets[v] + k] = (tile << 32) | v for the k-th touched tile (offsets: exclusive scan)
+// keys[offsets[v] + k] = (tile << 32) | v for the k-th touched tile (offsets: exclusive scan of
+// counts), never beyond counts[v] slots; slots it does not reach get (n_tiles << 32) | v
 void emit_pairs(const float* packed, const int32_t* vradii, int64_t V, int D, int width,
-                int height, int tile, const int64_t* offsets, int64_t* keys,
+                int height, int tile, const int32_t* counts, const int64_t* offsets, int64_t* keys,
                 cudaStream_t stream);
 
 // One block per tile (tile x tile threads): front-to-back compositing.
