@@ -2,6 +2,15 @@
 
 __version__ = "0.1.0"
 
+import os as _os
+
+# Intel MKL's strict reproducibility mode: its matrix products (the deformation networks' weight
+# gradients sum over every Gaussian) then give the same bits on any thread count, so a run's
+# numbers do not depend on the machine's cores (docs/performance.md, "Determinism"; measured
+# cost: ~7 % of such a product). MKL reads it at its first call, so it is set on import, before
+# any training; a value you set yourself wins. Torch builds without MKL ignore it.
+_os.environ.setdefault("MKL_CBWR", "AUTO,STRICT")
+
 
 def user_cache():
     """stdr's folder in the user cache (a pathlib.Path): $XDG_CACHE_HOME/stdr, default

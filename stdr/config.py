@@ -130,6 +130,9 @@ class EvalConfig:
     lpips: str = "auto"         # auto (if weights are found) | true (required) | false
     lpips_net: str = "vgg"
     lpips_weights: Optional[str] = None  # folder with <net>16_features.pth + lpips_v0.1_<net>_lin.pth
+    # with lpips_weights unset and no weights found: download the official files once into the user
+    # cache (SHA-256 pinned; stdr.eval.lpips.fetch_weights). Offline, the run still ends (LPIPS null)
+    lpips_download: bool = True
     lpips_input: str = "[-1,1]"  # official convention; "[0,1]" reproduces the peers' usage
     fps_warmup: int = 3
     # timed passes over the split (the quality pass is the first); fps is the median pass, all

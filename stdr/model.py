@@ -25,7 +25,7 @@ from .cameras import Camera
 from .deform import build_deformation
 from .device import resolve_device
 from .plugins import Plugin
-from .ops import RowView, rows_of
+from .ops import RowView, rows_of, sigmoid
 from .render import RenderOutput, render, resolve_backend
 from .render.reference import ALPHA_MIN
 from .schedule import Schedule, resolve_schedule
@@ -152,7 +152,7 @@ class DynamicGaussians:
         factors = [f for p in self.plugins if (f := p.opacity_factor(self.params, t, step)) is not None]
         rows = None
         if cull and self.can_cull(step):
-            eff = torch.sigmoid(self.params["opacities"])  # the value `apply` gives, times the factors
+            eff = sigmoid(self.params["opacities"])  # the value `apply` gives, times the factors
             for f in factors:
                 eff = eff * f
             keep = active_rows(eff)
@@ -212,7 +212,7 @@ class DynamicGaussians:
             return None
 
         def fn(params):
-            o = torch.sigmoid(params["opacities"].detach())
+            o = sigmoid(params["opacities"].detach())
             for p in self.plugins:
                 f = p.prune_factor(params, step)
                 if f is not None:

@@ -520,7 +520,6 @@ def test_compiled_projection_is_a_default_only_where_verified(monkeypatch):
     """render.compiled_projection=null (auto): the compiled projection on the backends listed as
     verified on real hardware (the CPU; CUDA after its H100 check), the torch twin on any other;
     true or false overrides either; the reference backend never uses it."""
-    import stdr.render as R
     from stdr.render import use_compiled_projection
     assert use_compiled_projection("cpu") and use_compiled_projection("cuda")
     monkeypatch.setitem(VERIFIED, "render.compiled_projection", ("cpu",))  # a backend not yet verified: off by default

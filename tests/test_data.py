@@ -88,9 +88,23 @@ def test_mismatched_image_size(small_scene, tmp_path):
 @pytest.mark.parametrize("edit,match", [
     (lambda m: m.pop("camera_angle_x"), "missing key 'camera_angle_x'"),
     (lambda m: m["frames"][1].pop("time"), r"frames\[1\] has no 'time'"),
-    (lambda m: m["frames"][1].update(time=1.5), r"frames\[1\].time=1.5 is outside"),
+    (lambda m: m["frames"][1].update(time=1.5), r"frames\[1\]: time=1.5 is outside \[0, 1\]"),
     (lambda m: m["frames"][0].update(file_path="../../etc/passwd"), "outside the scene folder"),
     (lambda m: m["frames"][0].update(transform_matrix=[[1, 0], [0, 1]]), r"frames\[0\].transform_matrix"),
+    # bad data is named at load, with its file and frame (a NaN pose used to train until the guard gave up)
+    (lambda m: m["frames"][2]["transform_matrix"][1].__setitem__(3, float("nan")),
+     r"transforms_train\.json: frames\[2\] \(\./train/r_002\): the transform_matrix has non-finite values \(nan\)"),
+    (lambda m: m["frames"][1]["transform_matrix"][0].__setitem__(0, float("inf")), r"frames\[1\].*non-finite values \(inf\)"),
+    (lambda m: m["frames"][1].update(transform_matrix=(2 * np.eye(4)).tolist()),
+     r"frames\[1\].*rotation is not orthonormal \(\|R R\^T - I\| = 3\.0e\+00"),
+    (lambda m: m["frames"][3].update(transform_matrix=np.diag([1.0, 1.0, -1.0, 1.0]).tolist()),
+     r"frames\[3\].*rotation is a reflection \(det < 0\)"),
+    (lambda m: m["frames"][1].update(transform_matrix=[["a", 0, 0, 0]] * 4), r"frames\[1\].*not a matrix of numbers"),
+    (lambda m: m["frames"][1].update(time=float("nan")), r"frames\[1\]: time=nan is outside \[0, 1\]"),
+    (lambda m: m["frames"][1].update(time="late"), r"frames\[1\]: time='late' is not a number"),
+    (lambda m: m.update(camera_angle_x=float("nan")), r"camera_angle_x=nan must be a field of view"),
+    (lambda m: m.update(camera_angle_x=-0.7), r"camera_angle_x=-0\.7 must be a field of view in radians, in \(0, pi\)"),
+    (lambda m: m.update(camera_angle_y=4.0), r"camera_angle_y=4\.0 must be a field of view"),
 ])
 def test_bad_keys(small_scene, tmp_path, edit, match):
     d = _copy(small_scene, tmp_path)

@@ -30,4 +30,6 @@ def test_markers_select_the_tests_that_need_shared_data_or_cuda():
                                                "test_toy_capture_short_training_run"]
     cuda = _collected("cuda", "tests/test_device.py")
     assert sorted(cuda) == [f"tests/test_device.py::test_training_on_cuda_keeps_every_tensor_there_and_resumes[{b}]"
-                            for b in ("4dgs", "deform", "scgs", "spgs")]
+                            for b in ("4dgs", "deform", "scgs", "spgs")] + \
+        [f"tests/test_device.py::test_training_with_the_speed_keys_on_cuda_through_prunes_resets_and_a_recovery[{b}]"
+         for b in ("4dgs", "deform_stdr")]

@@ -218,7 +218,7 @@ def test_stdr_eval_render_keys_change_only_themselves():
 
 @pytest.mark.parametrize("user", [{}, {"MKL_CBWR": "COMPATIBLE", "MKL_DYNAMIC": "TRUE"}])
 def test_stdr_train_sets_mkl_reproducibility_conditions_before_its_first_call(user):
-    """stdr-train's entry sets oneMKL's run-to-run reproducibility conditions (MKL_CBWR=AUTO, a
+    """stdr-train's entry sets oneMKL's reproducibility conditions (MKL_CBWR=AUTO,STRICT, a
     fixed thread count: MKL's dynamic threading off): MKL_VERBOSE then reports CNR:AUTO and Dyn:0
     for a GEMM, with torch's thread count left alone (where MKL's default is Dyn:1). A user's
     values are kept."""
@@ -231,7 +231,7 @@ def test_stdr_train_sets_mkl_reproducibility_conditions_before_its_first_call(us
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     words = (proc.stdout + proc.stderr).split()
-    assert {w for w in words if w.startswith("CNR:")} == {f"CNR:{user.get('MKL_CBWR', 'AUTO')}"}
+    assert {w for w in words if w.startswith("CNR:")} == {f"CNR:{user.get('MKL_CBWR', 'AUTO,STRICT')}"}
     assert {w for w in words if w.startswith("Dyn:")} == {"Dyn:1" if user else "Dyn:0"}
 
 
@@ -246,4 +246,4 @@ def test_the_stdr_train_command_runs_with_mkl_reproducibility_and_records_it(tmp
                           text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     conv = json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]["conventions"]
-    assert conv["mkl_cbwr"] == "AUTO" and conv["mkl_dynamic"] == "FALSE"
+    assert conv["mkl_cbwr"] == "AUTO,STRICT" and conv["mkl_dynamic"] == "FALSE"

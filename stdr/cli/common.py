@@ -17,19 +17,20 @@ def use_fast_allocator_hint() -> None:
 
 
 def reproducible_blas() -> None:
-    """oneMKL's documented conditions for run-to-run reproducible results, unless the user chose
-    otherwise (MKL_CBWR, MKL_DYNAMIC set):
-    * conditional numerical reproducibility on, MKL_CBWR=AUTO. Without it (CNR:OFF) oneMKL
-      documents that results may differ from run to run with the inputs' memory alignment. MKL
-      reads it at its first call, so this runs before any training work;
+    """oneMKL's documented conditions for reproducible results, unless the user chose otherwise
+    (MKL_CBWR, MKL_DYNAMIC set):
+    * conditional numerical reproducibility on, in its strict form: MKL_CBWR=AUTO,STRICT, set when
+      the package is imported (stdr/__init__.py), before MKL's first call. Without CNR (CNR:OFF)
+      oneMKL documents that results may differ from run to run with the inputs' memory alignment;
+      without STRICT a GEMM's sums still differ with the thread count (measured: the weight
+      gradient of a [20000, 90] x [20000, 256] product differs between 1 and 2 threads);
     * a fixed thread count: MKL's dynamic threading off. It is on by default while torch's thread
       count is left alone (MKL_VERBOSE: Dyn:1), and then MKL may run a call on fewer threads than
       asked, while a GEMM's sums differ between 1 and 2 threads. torch.set_num_threads turns it
       off (MKL reads MKL_DYNAMIC when it loads, before this can set it), so the count torch
       already uses is set again; MKL_DYNAMIC=FALSE is then exported for child processes and
       recorded in metrics.json (conventions).
-    Neither cost anything measurable here (docs/performance.md, "Determinism")."""
-    os.environ.setdefault("MKL_CBWR", "AUTO")
+    docs/performance.md, "Determinism", says what they cost."""
     if "MKL_DYNAMIC" not in os.environ:
         import torch
         torch.set_num_threads(torch.get_num_threads())

@@ -3,6 +3,7 @@
     stdr-data list
     stdr-data download dnerf --dest data/dnerf [--scenes standup jumpingjacks]
     stdr-data download hypernerf --scenes vrig_broom --dest data/hypernerf
+    stdr-data download lpips [--net vgg alex]                  # LPIPS weights into the user cache
     stdr-data verify data/dnerf
     stdr-data prepare dnerf-400 data/dnerf data/dnerf_400      # the 400x400 copies the budgets assume
     stdr-data capture my_video.mp4 --out data/my_scene          # a phone video to a dataset (pycolmap)
@@ -32,9 +33,26 @@ def _list() -> None:
         print(f"{'':10s} sources: {', '.join(a.urls[0] for a in d.archives[:1])}"
               + (f" (+{len(d.archives[0].urls) - 1} mirrors)" if len(d.archives[0].urls) > 1 else "")
               + (" ..." if len(d.archives) > 1 else ""))
+    print(f"{'lpips':10s} LPIPS v0.1 weights (torchvision VGG16 / AlexNet trunks, linear heads), SHA-256 pinned; "
+          "fetched on first evaluation, or ahead of time with `stdr-data download lpips`")
+
+
+def _download_lpips(args) -> Path:
+    """`stdr-data download lpips [--net vgg alex] [--dest DIR]`: the LPIPS weights the evaluation
+    would fetch on first use, ahead of time (default: the user cache, where it looks)."""
+    from ..eval.lpips import fetch_dir, fetch_weights
+    dest = Path(args.dest) if args.dest else fetch_dir()
+    for net in args.net:
+        fetch_weights(net, dest)
+        print(f"[stdr-data] LPIPS-{net}: weights in {dest} (SHA-256 ok)")
+    if args.dest:
+        print(f"[stdr-data] not the default folder: set eval.lpips_weights={dest} (or STDR_LPIPS_WEIGHTS)")
+    return dest
 
 
 def _download(args) -> list[Path]:
+    if args.name == "lpips":
+        return [_download_lpips(args)]
     d = fetch.CATALOG.get(args.name)
     if d is None:
         raise SystemExit(f"stdr-data: no dataset {args.name!r}; `stdr-data list` names them: {sorted(fetch.CATALOG)}")
@@ -150,7 +168,9 @@ def main(argv=None) -> None:
     sub = ap.add_subparsers(dest="cmd", required=True)
     sub.add_parser("list", help="the datasets, their scenes and sources")
     d = sub.add_parser("download", help="download, check and unpack a dataset (resumable)")
-    d.add_argument("name", help="dnerf | nerfds | hypernerf")
+    d.add_argument("name", help="dnerf | nerfds | hypernerf | lpips (the LPIPS weights, into the user cache)")
+    d.add_argument("--net", nargs="*", choices=("vgg", "alex"), default=["vgg", "alex"],
+                   help="lpips: which networks' weights (default both)")
     d.add_argument("--dest", default=None, help="folder for the scenes (default data/<name>)")
     d.add_argument("--scenes", nargs="*", default=None, help="only these scenes")
     d.add_argument("--archive", default=None, help="an archive downloaded by hand (checked and unpacked)")

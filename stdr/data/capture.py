@@ -37,6 +37,8 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from .checks import check_intrinsics, check_pose
+
 PYCOLMAP_VERSION = "4.2.1"  # the version this module is written and tested against (pyproject: extra `capture`)
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -347,6 +349,10 @@ def write_dataset(out: Path, records: list[FrameRecord], und_images: Path, und_m
         R = np.asarray(pose.rotation.matrix(), dtype=np.float64)
         t = np.asarray(pose.translation, dtype=np.float64)
         c = -R.T @ t
+        where = f"{und_model_dir}: image {r.id}.png"
+        check_pose(R, c, where, "COLMAP pose")  # what the loader will check, named here where it came from
+        check_intrinsics(float(cam.focal_length_x), float(cam.focal_length_y), float(cam.principal_point_x),
+                         float(cam.principal_point_y), int(cam.width), int(cam.height), where)
         Rs.append(R)
         ts.append(t)
         centres.append(c)

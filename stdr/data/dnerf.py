@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from ..cameras import Camera, focal_from_fov, opengl_c2w_to_opencv_w2c
+from .checks import check_fov, check_intrinsics, check_pose, check_time
 from .images import composite, read_image, resize
 from .types import Frame, SceneData
 
@@ -70,6 +71,7 @@ def load_dnerf_split(root: str | Path, split: str, background=(1.0, 1.0, 1.0),
             raise KeyError(f"{jp}: missing key {key!r}")
     if not isinstance(meta["frames"], list) or not meta["frames"]:
         raise ValueError(f"{jp}: 'frames' must be a non-empty list")
+    fov_x = check_fov(meta["camera_angle_x"], jp, "camera_angle_x")
     frames, size0, name0 = [], None, None
     for i, fr in enumerate(meta["frames"]):
         for key in ("file_path", "transform_matrix"):
@@ -77,9 +79,15 @@ def load_dnerf_split(root: str | Path, split: str, background=(1.0, 1.0, 1.0),
                 raise KeyError(f"{jp}: frames[{i}] is missing key {key!r}")
         if "time" not in fr:
             raise KeyError(f"{jp}: frames[{i}] has no 'time'; D-NeRF frames need a time in [0, 1]")
-        t = float(fr["time"])
-        if not 0.0 <= t <= 1.0:
-            raise ValueError(f"{jp}: frames[{i}].time={t} is outside [0, 1]")
+        where = f"{jp}: frames[{i}] ({fr['file_path']})"
+        t = check_time(fr["time"], f"{jp}: frames[{i}]")
+        try:
+            c2w = np.asarray(fr["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: transform_matrix is not a matrix of numbers") from None
+        if c2w.shape not in ((4, 4), (3, 4)):
+            raise ValueError(f"{jp}: frames[{i}].transform_matrix must be 4x4 or 3x4, got shape {c2w.shape}")
+        check_pose(c2w[:3, :3], c2w[:3, 3], where, "transform_matrix")
         ip = _resolve_image(root, fr["file_path"], jp, i)
         img = read_image(ip)
         H0, W0 = img.shape[:2]
@@ -88,12 +96,10 @@ def load_dnerf_split(root: str | Path, split: str, background=(1.0, 1.0, 1.0),
         elif (W0, H0) != size0:
             raise ValueError(f"{ip}: image is {W0}x{H0} but {name0} is {size0[0]}x{size0[1]}; "
                              "all frames of a D-NeRF scene must have one size")
-        try:
-            R, tvec = opengl_c2w_to_opencv_w2c(np.asarray(fr["transform_matrix"], dtype=np.float64))
-        except ValueError as e:
-            raise ValueError(f"{jp}: frames[{i}].transform_matrix: {e}") from None
-        fx = focal_from_fov(float(meta["camera_angle_x"]), W0)
-        fy = focal_from_fov(float(meta["camera_angle_y"]), H0) if "camera_angle_y" in meta else fx
+        R, tvec = opengl_c2w_to_opencv_w2c(c2w)
+        fx = focal_from_fov(fov_x, W0)
+        fy = focal_from_fov(check_fov(meta["camera_angle_y"], jp, "camera_angle_y"), H0) if "camera_angle_y" in meta else fx
+        check_intrinsics(fx, fy, W0 / 2.0, H0 / 2.0, W0, H0, where)
         cam = Camera(R=torch.from_numpy(R).float(), t=torch.from_numpy(tvec).float(), fx=fx, fy=fy,
                      cx=W0 / 2.0, cy=H0 / 2.0, width=W0, height=H0)
         W, H = output_size(W0, H0, resolution_scale, max_width)

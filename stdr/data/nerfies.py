@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from ..cameras import Camera
+from .checks import check_intrinsics, check_pose, finite_values
 from .colmap import ColmapModel, read_model
 from .dnerf import output_size
 from .distortion import LensCamera, remap, undistortion
@@ -140,10 +141,11 @@ def frame_times(metadata: dict, ids: list[str], path: Path, time_key: str) -> tu
 
 # ----------------------------------------------------------------------------- cameras
 def lens_from_camera_json(cam: dict, path: Path) -> LensCamera:
-    """The 1x intrinsics of a Nerfies camera file."""
-    f = float(_need(cam, "focal_length", path))
-    pp = _need(cam, "principal_point", path)
-    size = _need(cam, "image_size", path)
+    """The 1x intrinsics of a Nerfies camera file (checked: finite, positive focal lengths, the
+    principal point inside the image_size it gives)."""
+    f = float(finite_values(_need(cam, "focal_length", path), path, "focal_length"))
+    pp = list(finite_values(_need(cam, "principal_point", path), path, "principal_point").reshape(-1))
+    size = list(finite_values(_need(cam, "image_size", path), path, "image_size").reshape(-1))
     if len(pp) != 2 or len(size) != 2:
         raise ValueError(f"{path}: principal_point and image_size must have two values [x, y] / [w, h]")
     radial = list(cam.get("radial_distortion", [0.0, 0.0, 0.0]))
@@ -153,9 +155,10 @@ def lens_from_camera_json(cam: dict, path: Path) -> LensCamera:
     tang = cam.get("tangential_distortion", cam.get("tangential", [0.0, 0.0]))
     if len(tang) != 2:
         raise ValueError(f"{path}: tangential_distortion must hold p1, p2, got {tang}")
-    par = float(cam.get("pixel_aspect_ratio", 1.0))
+    par = float(finite_values(cam.get("pixel_aspect_ratio", 1.0), path, "pixel_aspect_ratio"))
     if f <= 0 or par <= 0:
         raise ValueError(f"{path}: focal_length and pixel_aspect_ratio must be positive")
+    check_intrinsics(f, f * par, float(pp[0]), float(pp[1]), int(size[0]), int(size[1]), str(path))
     return LensCamera(fx=f, fy=f * par, cx=float(pp[0]), cy=float(pp[1]), skew=float(cam.get("skew", 0.0)),
                       k=tuple(float(v) for v in radial), p=tuple(float(v) for v in tang),
                       width=int(size[0]), height=int(size[1]))
@@ -184,15 +187,6 @@ def lens_from_colmap(model: ColmapModel, image_name: str, folder: Path) -> LensC
     fx, fy, cx, cy, k, tp = table[c.model]()
     return LensCamera(float(fx), float(fy), float(cx), float(cy), 0.0, tuple(map(float, k)),
                       tuple(map(float, tp)), c.width, c.height)
-
-
-def check_rotation(R: np.ndarray, path: Path) -> None:
-    if R.shape != (3, 3):
-        raise ValueError(f"{path}: orientation must be a 3x3 matrix, got shape {R.shape}")
-    err = np.abs(R @ R.T - np.eye(3)).max()
-    if err > 1e-3 or np.linalg.det(R) < 0:
-        raise ValueError(f"{path}: orientation is not a rotation (|R R^T - I| = {err:.1e}, "
-                         f"det = {np.linalg.det(R):.3f})")
 
 
 def scale_for(w1: int, h1: int, w: int, h: int, image_scale: int, img_path: Path, cam_path: Path) -> None:
@@ -341,10 +335,12 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
         cpath = root / "camera" / f"{fid}.json"
         cam = _read_json(cpath, f"every id needs a camera file (id {fid!r} from {dpath.name})")
         R = np.asarray(_need(cam, "orientation", cpath), dtype=np.float64)
-        check_rotation(R, cpath)
+        if R.shape != (3, 3):
+            raise ValueError(f"{cpath}: orientation must be a 3x3 matrix, got shape {R.shape}")
         pos = np.asarray(_need(cam, "position", cpath), dtype=np.float64)
         if pos.shape != (3,):
             raise ValueError(f"{cpath}: position must have 3 values")
+        check_pose(R, pos, f"{cpath} (id {fid!r})", "camera (orientation, position)")
         lens1 = lens_from_camera_json(cam, cpath)
         ip = img_dir / f"{fid}.png"
         if not ip.is_file():

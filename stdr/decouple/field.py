@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
+from ..ops import BatchNorm1d, Sigmoid
+
 
 class SeparatedField(nn.Module):
     def __init__(self, in_dim: int, width: int = 64, temporal_dim: int = 16, dropout: float = 0.1):
@@ -20,10 +22,10 @@ class SeparatedField(nn.Module):
         self.shared = nn.Sequential(nn.Linear(in_dim, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU())
 
         def branch(out_dim: int, act: nn.Module) -> nn.Sequential:
-            return nn.Sequential(nn.Linear(width, width), nn.BatchNorm1d(width), nn.ReLU(),
+            return nn.Sequential(nn.Linear(width, width), BatchNorm1d(width), nn.ReLU(),
                                  nn.Dropout(dropout), nn.Linear(width, out_dim), act)
         self.temporal = branch(temporal_dim, nn.Tanh())
-        self.motion = branch(1, nn.Sigmoid())
+        self.motion = branch(1, Sigmoid())
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """x [N, in_dim] -> (z [N, temporal_dim] in (-1, 1), d [N, 1] in (0, 1))."""

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..ops import take_rows
+from ..ops import sigmoid, take_rows
 
 
 def knot_times(train_times, time_bins: int = 0) -> Tensor:
@@ -59,13 +59,13 @@ def activated(mask: Tensor) -> Tensor:
     stored in 8 bits (uint8 q, `quantize`), read directly from that form."""
     if mask.dtype == torch.uint8:
         return mask.float() / 255.0
-    return torch.sigmoid(mask)
+    return sigmoid(mask)
 
 
 def quantize(logits: Tensor) -> Tensor:
     """uint8 q = round(255 * sigmoid(m)): the frozen mask in 8 bits (a quarter of float32). An entry
     switched off (sigmoid below 1/510) becomes 0 and reads back as exactly 0."""
-    return torch.round(torch.sigmoid(logits.detach().float()) * 255.0).to(torch.uint8)
+    return torch.round(sigmoid(logits.detach().float()) * 255.0).to(torch.uint8)
 
 
 def logits_of(mask: Tensor) -> Tensor:
@@ -102,7 +102,7 @@ def temporal_loss(logits: Tensor, reduction: str = "mean") -> Tensor:
         raise ValueError(f"stdr.temporal_reduction={reduction!r}: use 'sum' (the paper's formula) or 'mean'")
     if logits.shape[1] < 2 or logits.shape[0] == 0:
         return logits.sum() * 0.0
-    a = torch.sigmoid(logits)  # [N, K]
+    a = sigmoid(logits)  # [N, K]
     d2 = (a[:, 1:] - a[:, :-1]).square()
     return d2.sum() if reduction == "sum" else d2.mean()
 

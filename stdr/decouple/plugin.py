@@ -24,6 +24,7 @@ from typing import Any, Optional
 import torch
 from torch import Tensor
 
+from ..ops import sigmoid
 from ..encoding import positional_encoding, positional_encoding_dim
 from ..plugins import Plugin
 from .field import SeparatedField
@@ -289,7 +290,7 @@ class STDR(Plugin):
             self.cleaned_entries = 0
             return 0
         m = params[MASK_KEY]
-        eff = torch.sigmoid(m) * torch.sigmoid(params["opacities"])[:, None]
+        eff = sigmoid(m) * sigmoid(params["opacities"])[:, None]
         off = eff < thr
         m.masked_fill_(off, -30.0)
         self._p_for = None  # the softmax cache was built from the old values
@@ -317,7 +318,7 @@ class STDR(Plugin):
         if not self.has_mask(params) or not self.opacity_frozen(step):
             return False
         m = params[MASK_KEY]
-        o = torch.sigmoid(params["opacities"])[:, None]
+        o = sigmoid(params["opacities"])[:, None]
         cap = (value / o).clamp(max=1.0 - 1e-6)
         m.copy_(torch.minimum(m, torch.log(cap / (1.0 - cap))))
         self._p_for = None
@@ -491,7 +492,7 @@ class STDR(Plugin):
                 "fraction_time_gated": float((a.amin(1) < 0.5).float().mean()),  # off at some time
                 "fraction_never_off": float((a.amin(1) >= 0.5).float().mean()),
                 # (Gaussian, time) entries with masked opacity in [1/255, 0.05]: faint copies
-                "fraction_faint": faint_fraction(torch.sigmoid(params["opacities"].detach()), m),
+                "fraction_faint": faint_fraction(sigmoid(params["opacities"].detach()), m),
                 "temporal_entropy_mean": float(ent.mean()),
                 "temporal_entropy_quantiles": [float(x) for x in
                                                torch.quantile(ent.float(), torch.tensor([0.1, 0.5, 0.9], device=ent.device))]

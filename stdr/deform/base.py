@@ -20,6 +20,7 @@ import torch
 from omegaconf import II, OmegaConf
 from torch import Tensor, nn
 
+from ..ops import sigmoid
 from ..scene.gaussians import Gaussians
 
 
@@ -127,8 +128,8 @@ def apply_post_activation(params, d: Deltas) -> Gaussians:
         means=_add(params["means"], d.means),
         quats=_add(q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12), d.quats),
         scales=_add(torch.exp(params["scales"]), d.scales),
-        opacities=torch.sigmoid(params["opacities"]) if d.opacities is None
-        else (torch.sigmoid(params["opacities"]) + d.opacities).clamp(0.0, 1.0),
+        opacities=sigmoid(params["opacities"]) if d.opacities is None
+        else (sigmoid(params["opacities"]) + d.opacities).clamp(0.0, 1.0),
         sh=torch.cat([params["sh0"], params["shN"]], 1),
     )
 
@@ -139,7 +140,7 @@ def apply_pre_activation(params, d: Deltas) -> Gaussians:
         means=_add(params["means"], d.means),
         quats=_add(params["quats"], d.quats),
         scales=torch.exp(_add(params["scales"], d.scales)),
-        opacities=torch.sigmoid(_add(params["opacities"], d.opacities)),
+        opacities=sigmoid(_add(params["opacities"], d.opacities)),
         sh=torch.cat([params["sh0"], params["shN"]], 1),
     )
 

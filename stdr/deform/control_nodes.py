@@ -24,7 +24,7 @@ from typing import List, Optional, Sequence
 import torch
 from torch import Tensor, nn
 
-from ..ops import RowView, rows_of, scatter_mean, take_rows
+from ..ops import RowView, rows_of, scatter_mean, sigmoid, take_rows
 from ..scene.knn import knn
 from ..train.syncs import host_only
 from .base import BaselineConfig, Deformation, Deltas, flag_value, mlp_kwargs, set_flag, stage_start
@@ -67,7 +67,7 @@ class ScgsBaselineConfig(BaselineConfig):
 def skinning_weights(d2: Tensor, radius: Tensor, node_weight: Tensor) -> Tensor:
     """w [N, K] from squared distances d2 [N, K] and the neighbours' radii and weight logits
     [N, K]: exp(-d2 / (2 r^2)) * sigmoid(weight), plus 1e-7, normalized to sum 1."""
-    w = torch.exp(-d2 / (2.0 * radius.square())) * torch.sigmoid(node_weight) + 1e-7
+    w = torch.exp(-d2 / (2.0 * radius.square())) * sigmoid(node_weight) + 1e-7
     return w / w.sum(-1, keepdim=True)
 
 
@@ -271,7 +271,7 @@ class ControlNodeDeformation(Deformation):
         means, the blended dq added to the *raw* quaternion, ds after activation (SC-GS)."""
         from ..scene.gaussians import Gaussians
         sh = torch.cat([params["sh0"], params["shN"]], 1)
-        op = torch.sigmoid(params["opacities"])
+        op = sigmoid(params["opacities"])
         if flag_value(self, "stage") == 1:
             s = torch.exp(params["scales"].mean(-1, keepdim=True)).expand(-1, 3)
             q = torch.zeros_like(params["quats"])

@@ -29,17 +29,30 @@ from .lpips import LPIPS
 
 
 def make_lpips(eval_cfg) -> Optional[LPIPS]:
-    """The LPIPS module, None when disabled or (with lpips=auto) when no weights are found."""
+    """The LPIPS module, None when disabled or (with lpips=auto) when no weights can be had. Where
+    eval.lpips_weights is unset and no search folder holds the weights, they are downloaded once
+    into the user cache (eval.lpips_download; stdr.eval.lpips.fetch_weights)."""
+    from ..data.fetch import DataError
+    from .lpips import fetch_weights
+
     mode = str(eval_cfg.lpips).lower()
     if mode in ("false", "off", "0"):
         return None
     try:
         return LPIPS(eval_cfg.lpips_net, eval_cfg.lpips_weights, eval_cfg.lpips_input)
     except FileNotFoundError as e:
-        if mode in ("true", "on", "1"):
-            raise
-        print(f"[stdr] warning: LPIPS skipped (reported as null). {e}")
-        return None
+        missing = e
+    why = ""
+    if eval_cfg.lpips_weights is None and getattr(eval_cfg, "lpips_download", True):
+        try:
+            fetch_weights(eval_cfg.lpips_net)
+            return LPIPS(eval_cfg.lpips_net, None, eval_cfg.lpips_input)
+        except (DataError, OSError) as e:
+            why = f" The download failed: {e}. `stdr-data download lpips` fetches them when online."
+    if mode in ("true", "on", "1"):
+        raise FileNotFoundError(f"{missing}{why}")
+    print(f"[stdr] warning: LPIPS skipped (reported as null). {missing}{why}")
+    return None
 
 
 
@@ -200,7 +213,7 @@ def metric_conventions(eval_cfg, lpips_fn, backend: str, device: torch.device) -
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "machine": machine_name(),
         "torch_threads": torch.get_num_threads(),
-        "mkl_cbwr": os.environ.get("MKL_CBWR"),  # MKL's reproducibility mode (stdr-train sets AUTO)
+        "mkl_cbwr": os.environ.get("MKL_CBWR"),  # MKL's reproducibility mode (stdr sets AUTO,STRICT)
         "mkl_dynamic": os.environ.get("MKL_DYNAMIC"),  # MKL's dynamic threads (stdr-train: FALSE)
         "render_backend": backend,
         "memory": MEMORY_CONVENTION["cuda" if device.type == "cuda" else "cpu"],  # guard.peak_memory_mb

@@ -1,5 +1,8 @@
 """LPIPS v0.1 (Zhang et al. 2018) without torchvision: the VGG16 / AlexNet trunks and the linear
-heads are defined here and loaded from local files. Nothing is downloaded.
+heads are defined here and loaded from local files. Where no folder holds them, `fetch_weights`
+downloads the official files once into the user cache (~/.cache/stdr/lpips), each checked
+against its pinned SHA-256 (`stdr-data download lpips` does it ahead of time; the evaluation does
+it on first use).
 
 Weights (state dicts, loaded with weights_only=True) in one folder:
     vgg16_features.pth   or torchvision's cached vgg16-397923af.pth  (trunk, keys features.*)
@@ -28,6 +31,57 @@ _ALEX_CH = (64, 192, 384, 256, 256)
 TRUNK_FILES = {"vgg": ("vgg16_features.pth", "vgg16-397923af.pth"),
                "alex": ("alexnet_features.pth", "alexnet-owt-7be5be79.pth")}
 LIN_FILES = {"vgg": ("lpips_v0.1_vgg_lin.pth", "vgg.pth"), "alex": ("lpips_v0.1_alex_lin.pth", "alex.pth")}
+
+
+# The official files, SHA-256 pinned: torchvision's ImageNet weights (their names carry the first
+# 8 hex digits of the SHA-256, torchvision's own check) and the LPIPS v0.1 linear heads of the
+# authors' repository (the same bytes as lpips/weights/v0.1/*.pth in the `lpips` 0.1.4 wheel on PyPI,
+# checked there).
+_TV = "https://download.pytorch.org/models/"
+_LIN = "https://raw.githubusercontent.com/richzhang/PerceptualSimilarity/master/lpips/weights/v0.1/"
+WEIGHT_SOURCES: dict[str, tuple[str, str, str]] = {  # file: (url, sha256, size for the message)
+    "vgg16-397923af.pth": (_TV + "vgg16-397923af.pth",
+                           "397923af8e79cdbb6a7127f12361acd7a2f83e06b05044ddf496e83de57a5bf0", "528 MB"),
+    "alexnet-owt-7be5be79.pth": (_TV + "alexnet-owt-7be5be79.pth",
+                                 "7be5be791159472b1fbf3c69796f7cb30dca7ad8466c2df70058c37116cdee02", "233 MB"),
+    "vgg.pth": (_LIN + "vgg.pth", "a78928a0af1e5f0fcb1f3b9e8f8c3a2a5a3de244d830ad5c1feddc79b8432868", "7 KB"),
+    "alex.pth": (_LIN + "alex.pth", "df73285e35b22355a2df87cdb6b70b343713b667eddbda73e1977e0c860835c0", "6 KB"),
+}
+FETCHED = {"vgg": ("vgg16-397923af.pth", "vgg.pth"), "alex": ("alexnet-owt-7be5be79.pth", "alex.pth")}
+
+
+def fetch_dir() -> Path:
+    """Where fetched weights go: the user cache's lpips folder (one of default_search_dirs)."""
+    from .. import user_cache
+    return user_cache() / "lpips"
+
+
+def fetch_weights(net: str, dest: Optional[Path] = None, log=print) -> Path:
+    """Download LPIPS-`net`'s official files into `dest` (default: fetch_dir()), each checked
+    against its pinned SHA-256; files already there with the right hash are kept. Returns the
+    folder. A failed or corrupted download raises stdr.data.fetch.DataError naming the file and
+    leaves nothing in `dest` under the file's name."""
+    from ..data.fetch import DataError, download, sha256
+    if net not in FETCHED:
+        raise ValueError(f"LPIPS net {net!r}: use 'vgg' or 'alex'")
+    dest = Path(dest) if dest is not None else fetch_dir()
+    dest.mkdir(parents=True, exist_ok=True)
+    todo = [f for f in FETCHED[net] if not ((dest / f).is_file() and sha256(dest / f) == WEIGHT_SOURCES[f][1])]
+    if todo:
+        log(f"[stdr] LPIPS-{net} weights: downloading {', '.join(f'{f} ({WEIGHT_SOURCES[f][2]})' for f in todo)} "
+            f"once into {dest} (SHA-256 checked)")
+    for name in todo:
+        url, want, _ = WEIGHT_SOURCES[name]
+        tmp = dest / f".{name}.download"
+        download([url], tmp, log=log)
+        got = sha256(tmp)
+        if got != want:
+            tmp.unlink()
+            raise DataError(f"LPIPS weights {name} from {url}: SHA-256 {got} is not the pinned {want}; the file "
+                            "was corrupted in transfer or the source changed. Nothing was kept; run again, or put "
+                            f"the official file in {dest} by hand")
+        tmp.replace(dest / name)
+    return dest
 
 
 def _vgg16_features() -> nn.Sequential:

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from ..ops import sigmoid
 from ..render.sh import num_sh_bases, rgb_to_sh
 from .knn import knn
 
@@ -81,7 +82,7 @@ def activate(params) -> Gaussians:
         means=params["means"],
         quats=params["quats"],
         scales=torch.exp(params["scales"]),
-        opacities=torch.sigmoid(params["opacities"]),
+        opacities=sigmoid(params["opacities"]),
         sh=torch.cat([params["sh0"], params["shN"]], 1),
     )
 

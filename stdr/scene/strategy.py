@@ -25,6 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from .gaussians import inverse_sigmoid
+from ..ops import sigmoid
 from ..render.projection import quat_to_rotmat
 from ..render.reference import ALPHA_MIN
 
@@ -268,7 +269,7 @@ class DensifyStrategy:
         spl = torch.cat([spl, torch.zeros(n_dup, dtype=torch.bool, device=spl.device)])
         split(params, optimizers, state, spl, generator=generator)
 
-        opa = torch.sigmoid(params["opacities"]) if opacity_fn is None else opacity_fn(params)
+        opa = sigmoid(params["opacities"]) if opacity_fn is None else opacity_fn(params)
         prune = opa < self.prune_opa
         if step > self.prune_big_after:
             big = torch.exp(params["scales"]).amax(-1) > self.prune_scale3d * extent
