@@ -179,18 +179,33 @@ def test_saved_configs_load_onto_their_baselines_typed_defaults(tmp_path):
 
 @pytest.mark.parametrize("name", sorted(BASELINES))
 @pytest.mark.parametrize("stdr", ["", "_stdr"])
-def test_longer_cpu_preset_is_the_cpu_preset_run_longer(name, stdr):
-    """budget=cpu_long keeps every budget=cpu value (networks, warm-ups, densification, cap) and
-    only lengthens the run and its lr decays by the same number of iterations (docs/budgets.md)."""
+def test_longer_cpu_preset_is_the_cpu_preset_on_the_paper_schedule_scaled_to_10k(name, stdr):
+    """budget=cpu_long (docs/budgets.md): budget=cpu's sizes (resolution, initial points, cap,
+    networks, thresholds) and every schedule milestone of the baseline's paper run scaled by
+    10k / its paper iterations (to within rounding to 100 steps), the rule budget=gpu follows
+    for 20k; SC-GS's ARAP steps scale with it."""
     from stdr.eval.table import flatten
     exp = [f"experiment=dnerf_{name}{stdr}", "data.path=/x"]
-    short = flatten(OmegaConf.to_container(make_cfg(exp + ["budget=cpu"]), resolve=True))
-    long = flatten(OmegaConf.to_container(make_cfg(exp + ["budget=cpu_long"]), resolve=True))
-    changed = {k for k in short.keys() | long.keys() if short.get(k) != long.get(k) and not k.startswith("schedule.")}
-    assert changed == {"budget", "optim.iterations", "optim.means_lr_max_steps", "baseline.lr_max_steps"}
-    extra = long["optim.iterations"] - short["optim.iterations"]
-    assert extra > 0 and long["optim.means_lr_max_steps"] - short["optim.means_lr_max_steps"] == extra
-    assert long["baseline.lr_max_steps"] - short["baseline.lr_max_steps"] == extra
+    cfgs = {b: flatten(OmegaConf.to_container(make_cfg(exp + [f"budget={b}"]), resolve=True))
+            for b in ("cpu", "cpu_long", "paper")}
+    cpu, long, paper = cfgs["cpu"], cfgs["cpu_long"], cfgs["paper"]
+    assert long["optim.iterations"] == 10000
+    f = 10000 / paper["optim.iterations"]
+    for k in MILESTONES - {"optim.iterations"}:
+        if paper.get(k):
+            assert abs(long[k] - paper[k] * f) <= 50, (k, long[k], paper[k] * f)
+    assert long["densify.reset_white_at_start"] == paper["densify.reset_white_at_start"] is True
+    scaled = MILESTONES | {"budget", "densify.reset_white_at_start", "baseline.scgs.arap_steps"}
+    changed = {k for k in cpu.keys() | long.keys() if cpu.get(k) != long.get(k) and not k.startswith("schedule.")}
+    assert changed <= scaled, changed - scaled  # sizes, networks and thresholds stay budget=cpu's
+    if name == "scgs":
+        arap = long["baseline.scgs.arap_steps"]
+        assert all(abs(a - b * f) <= 1 for a, b in zip(arap, paper["baseline.scgs.arap_steps"])), arap
+    if stdr:  # STDR's phases follow the baseline's static warm-up: the paper's 3000 / 6000 of 40k, scaled
+        from stdr.schedule import resolve_schedule
+        sc = resolve_schedule(make_cfg(exp + ["budget=cpu_long"]))
+        assert sc.plugins["stdr"]["warmup_end"] == long["baseline.warmup"]
+        assert sc.plugins["stdr"]["freeze_at"] >= 2 * long["baseline.warmup"]
 
 
 MILESTONES = {"optim.iterations", "optim.means_lr_max_steps", "model.sh_interval", "densify.refine_start",

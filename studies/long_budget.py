@@ -1,0 +1,196 @@
+"""STDR at the longer CPU budget: deform ± STDR at `budget=cpu_long` on the shared D-NeRF scenes,
+with train, val and test PSNR along the learning curve (docs/measurements/stdr_long).
+
+    # the queue: resumable (a finished run's record is skipped; a run stopped midway resumes from
+    # its last checkpoint); one run at a time, each at --threads torch threads
+    python studies/long_budget.py run DNERF_ROOT --work WORK [--seeds 0 1] [--threads 1]
+    # the table from the committed records (generated, stamped)
+    python studies/long_budget.py table
+
+Each run trains in segments (`train.stop_at` at every --points step, then to the end; a stopped
+run resumes bit-exactly) and after each segment renders the whole train, val and test splits from
+the checkpoint (PSNR, SSIM). Its record, `records/<method>/<scene>_s<seed>.json`, holds those curve
+points, the final test metrics (with LPIPS) from the run's metrics.json, the command, the code
+commit and the machine. Choices are made on val; test is reported as measured.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORDS = ROOT / "docs" / "measurements" / "stdr_long"
+SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
+METHODS = ("deform", "deform_stdr")
+POINTS = (2500, 5000, 7500)
+SPLITS = ("train", "val", "test")
+ITERATIONS = 10000
+
+
+def commit() -> str:
+    try:
+        out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+        dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True).stdout.strip()
+        return out.stdout.strip() + ("+dirty" if dirty else "")
+    except OSError:
+        return "unknown"
+
+
+def evaluate_splits(run_dir: Path, splits=SPLITS) -> dict:
+    """PSNR and SSIM of every frame of each split, rendered from the run's last checkpoint."""
+    sys.path.insert(0, str(ROOT))
+    from stdr.config import load_config
+    from stdr.data.load import load_scene
+    from stdr.eval.evaluate import evaluate_model
+    from stdr.model import model_from_checkpoint
+    from stdr.train.checkpoint import load_checkpoint
+
+    cfg = load_config(run_dir / "config.yaml")
+    ck = load_checkpoint(run_dir / "checkpoints" / "last.pt")
+    scene = load_scene(cfg.data, splits, base=str(ROOT), seed=cfg.seed)
+    model = model_from_checkpoint(ck, "cpu", cfg, None, str(run_dir / "checkpoints" / "last.pt"))
+    out = {"step": int(model.step)}
+    for sp in splits:
+        res = evaluate_model(model, scene.frames(sp), fps_repeats=1, fps_warmup=0)
+        out[sp] = {"psnr": res["psnr"], "ssim": res["ssim"], "frames": res["num_frames"]}
+    out["num_gaussians"] = int(res["num_gaussians"])
+    return out
+
+
+def train(root: Path, scene: str, seed: int, method: str, run_dir: Path, threads: int, stop_at: int | None,
+          extra=()) -> list[str]:
+    cmd = [sys.executable, "-m", "stdr.cli.train", f"experiment=dnerf_{method}", "budget=cpu_long",
+           f"data.path={root / scene}", f"seed={seed}", f"hydra.run.dir={run_dir}", "train.progress=false",
+           "eval.save_images=false", f"train.threads={threads}", "train.checkpoint_every=2500"]
+    cmd += list(extra)
+    if stop_at is not None:
+        cmd.append(f"train.stop_at={stop_at}")
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    with open(run_dir.parent / f"{run_dir.name}.log", "a") as log:
+        subprocess.run(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, check=True)
+    return cmd
+
+
+def run_queue(args) -> None:
+    from stdr.eval.evaluate import machine_name
+
+    for seed in args.seeds:
+        for scene in args.scenes:
+            for method in args.methods:
+                rec_path = args.records / "records" / method / f"{scene}_s{seed}.json"
+                if rec_path.is_file():
+                    continue
+                run_dir = args.work / method / f"{scene}_s{seed}"
+                run_dir.parent.mkdir(parents=True, exist_ok=True)
+                state_path = run_dir.parent / f"{run_dir.name}.curve.json"
+                state = json.loads(state_path.read_text()) if state_path.is_file() else {"points": []}
+                done = {p["step"] for p in state["points"]}
+                t0 = time.time()
+                print(f"[long_budget] {method} {scene} seed {seed}: start ({sorted(done) or 'new'})", flush=True)
+                cmd = None
+                for p in (*args.points, None):
+                    if (p if p is not None else args.iterations) in done:
+                        continue
+                    cmd = train(args.root, scene, seed, method, run_dir, args.threads, p, args.extra)
+                    point = evaluate_splits(run_dir)
+                    state["points"].append(point)
+                    state_path.write_text(json.dumps(state, indent=1))
+                    print(f"[long_budget]   step {point['step']}: " + ", ".join(
+                        f"{sp} {point[sp]['psnr']:.2f}" for sp in SPLITS), flush=True)
+                m = json.loads((run_dir / "metrics.json").read_text())["test"]
+                rec = {"scene": scene, "seed": seed, "method": method, "budget": "cpu_long",
+                       "command": " ".join(cmd[1:]) if cmd else None, "code": commit(), "machine": machine_name(),
+                       "threads": args.threads, "wall_seconds_this_session": round(time.time() - t0, 1),
+                       "points": sorted(state["points"], key=lambda q: q["step"]),
+                       "extra": list(args.extra),
+                       "final_test": {k: m.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds",
+                                                            "model_mb", "iterations")}}
+                rec_path.parent.mkdir(parents=True, exist_ok=True)
+                rec_path.write_text(json.dumps(rec, indent=1) + "\n")
+                print(f"[long_budget] {method} {scene} seed {seed}: recorded {rec_path}", flush=True)
+
+
+def load_records(records: Path) -> list[dict]:
+    return [json.loads(p.read_text()) for p in sorted((records / "records").glob("*/*.json"))]
+
+
+def _at(rec: dict, step: int) -> dict:
+    return next(p for p in rec["points"] if p["step"] == step)
+
+
+def table(records: Path) -> str:
+    """The table: per scene and seed, each method's PSNR on train / val / test at every point and the
+    train - test gap; then means over the pairs both methods have (STDR - plain on each split)."""
+    recs = load_records(records)
+    by = {(r["scene"], r["seed"], r["method"]): r for r in recs}
+    steps = sorted({p["step"] for r in recs for p in r["points"]})
+    lines = ["# deform ± STDR at budget=cpu_long (generated by studies/long_budget.py table)", "",
+             f"Records: {len(recs)} runs; code {', '.join(sorted({r['code'] for r in recs}))}; machine "
+             f"{'; '.join(sorted({r['machine'] for r in recs}))}; threads {sorted({r['threads'] for r in recs})}.", "",
+             "PSNR (dB) rendered from each checkpoint over the whole split; gap = train - test.", "",
+             "| scene | seed | method | " + " | ".join(f"{s} train / val / test" for s in steps) + " | gap at end | final test SSIM, LPIPS | Gaussians | train s |",
+             "|---|---|---|" + "---|" * len(steps) + "---|---|---|---|"]
+    for (scene, seed, method), r in sorted(by.items()):
+        pts = {p["step"]: p for p in r["points"]}
+        cells = [" / ".join(f"{pts[s][sp]['psnr']:.2f}" for sp in SPLITS) if s in pts else "–" for s in steps]
+        last = pts[max(pts)]
+        f = r["final_test"]
+        lp = "n/a" if f.get("lpips") is None else f"{f['lpips']:.4f}"
+        lines.append(f"| {scene} | {seed} | {method} | " + " | ".join(cells) +
+                     f" | {last['train']['psnr'] - last['test']['psnr']:.2f} | {f['ssim']:.4f}, {lp} | "
+                     f"{f['num_gaussians']:,} | {f['train_seconds']:.0f} |")
+    pairs = [(by[(sc, sd, "deform")], by[(sc, sd, "deform_stdr")]) for (sc, sd, m) in by if m == "deform"
+             and (sc, sd, "deform_stdr") in by]
+    names = ", ".join(sorted(f"{a['scene']} s{a['seed']}" for a, _ in pairs))
+    lines += ["", f"## STDR - plain, mean over {len(pairs)} scene/seed pairs ({names})", ""]
+    if pairs:
+        lines += ["| step | Δ train | Δ val | Δ test | plain gap | STDR gap |", "|---|---|---|---|---|---|"]
+        for s in steps:
+            both = [(a, b) for a, b in pairs if any(p["step"] == s for p in a["points"]) and
+                    any(p["step"] == s for p in b["points"])]
+            if not both:
+                continue
+            d = {sp: statistics.mean(_at(b, s)[sp]["psnr"] - _at(a, s)[sp]["psnr"] for a, b in both) for sp in SPLITS}
+            g = [statistics.mean(_at(r, s)["train"]["psnr"] - _at(r, s)["test"]["psnr"] for r in rs)
+                 for rs in ([a for a, _ in both], [b for _, b in both])]
+            lines.append(f"| {s} | {d['train']:+.2f} | {d['val']:+.2f} | {d['test']:+.2f} | {g[0]:.2f} | {g[1]:.2f} |")
+    lines += ["", f"Generated {time.strftime('%Y-%m-%d')} from {len(recs)} records by "
+              f"`python studies/long_budget.py table` (code {commit()})."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run", help="the resumable queue")
+    r.add_argument("root", type=Path, help="a folder of D-NeRF scenes (e.g. ../shared/data/dnerf)")
+    r.add_argument("--work", type=Path, required=True, help="run folders (outside the repository)")
+    r.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    r.add_argument("--scenes", nargs="+", default=list(SCENES))
+    r.add_argument("--methods", nargs="+", default=list(METHODS))
+    r.add_argument("--points", type=int, nargs="+", default=list(POINTS))
+    r.add_argument("--threads", type=int, default=1)
+    r.add_argument("--records", type=Path, default=RECORDS)
+    r.add_argument("--iterations", type=int, default=ITERATIONS, help="the run's length (with --extra optim.iterations=N)")
+    r.add_argument("--extra", nargs="*", default=[], help="more overrides (smoke tests only: a record names them)")
+    t = sub.add_parser("table", help="the table from the records")
+    t.add_argument("--records", type=Path, default=RECORDS)
+    args = ap.parse_args(argv)
+    if args.cmd == "run":
+        args.root = args.root.resolve()
+        run_queue(args)
+    else:
+        text = table(args.records)
+        (args.records / "table.md").write_text(text)
+        print(text)
+
+
+if __name__ == "__main__":
+    main()
