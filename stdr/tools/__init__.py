@@ -11,4 +11,5 @@ TOOLS = {
     "identity-check": "identity_check",      # bit-identity of training / composed configs between commits
     "variants": "variants",                  # variants of one method side by side (plain, +STDR, +cull, ...)
     "compact": "compact",                    # prune a trained run by contribution, fine-tune, save as a new run
+    "queue": "queue",                        # a resumable queue of runs, several at once, time-boxed calls
 }

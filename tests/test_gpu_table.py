@@ -1,0 +1,65 @@
+"""scripts/gpu_table.py: the budget=gpu D-NeRF table from a GPU queue's archives."""
+import importlib.util
+import io
+import json
+import sys
+import tarfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("gpu_table", ROOT / "scripts" / "gpu_table.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _archive(path: Path, runs: dict, extra=()):
+    with tarfile.open(path, "w:gz") as tar:
+        for rid, (exp, scene, psnr, budget) in runs.items():
+            files = {"metrics.json": json.dumps({"test": {"psnr": psnr, "ssim": 0.98, "lpips": 0.02, "train_seconds": 80.0,
+                                                          "conventions": {"device_name": "NVIDIA H100"},
+                                                          "code": {"commit": "abc1234"}}}),
+                     "config.yaml": f"experiment: {exp}\nbudget: {budget}\nseed: 0\ndata:\n  name: {scene}\n"}
+            for name, text in files.items():
+                b = text.encode()
+                info = tarfile.TarInfo(f"{rid}/{name}")
+                info.size = len(b)
+                tar.addfile(info, io.BytesIO(b))
+        for name in extra:
+            info = tarfile.TarInfo(name)
+            info.size = 1
+            tar.addfile(info, io.BytesIO(b"x"))
+
+
+def test_runs_from_archives_make_the_stamped_table_with_the_paper_beside(tmp_path):
+    gt = _module()
+    _archive(tmp_path / "a.tgz", {"dnerf_deform__jumpingjacks__s0": ("dnerf_deform", "jumpingjacks", 36.0, "gpu"),
+                                  "dnerf_deform__standup__s0": ("dnerf_deform", "standup", 38.0, "gpu")})
+    _archive(tmp_path / "b.tgz", {"dnerf_deform_stdr__jumpingjacks__s0": ("dnerf_deform_stdr", "jumpingjacks", 36.5, "gpu")})
+    for a in ("a.tgz", "b.tgz"):
+        gt.add(tmp_path / a, tmp_path / "t")
+    text, data = gt.table(tmp_path / "t")
+    assert "| method | jumpingjacks | standup | mean PSNR |" in text
+    assert "| deform | 36.00 | 38.00 | 37.00 | 0.9800 | 0.0200 | 80 |" in text
+    assert "| deform_stdr | 36.50 | – | 36.50 |" in text
+    assert f"| ↳ paper | {gt.PAPER[('deform', 'jumpingjacks')]:.2f} |  |" in text  # context where transcribed
+    assert "GPU NVIDIA H100" in text and "code abc1234" in text
+    assert data["deform"]["scenes"] == {"jumpingjacks": 36.0, "standup": 38.0}
+
+
+def test_other_budgets_and_escaping_members_are_refused(tmp_path):
+    gt = _module()
+    _archive(tmp_path / "c.tgz", {"x__y__s0": ("dnerf_deform", "y", 30.0, "cpu")})
+    gt.add(tmp_path / "c.tgz", tmp_path / "t")
+    with pytest.raises(SystemExit, match="budget=gpu only"):
+        gt.table(tmp_path / "t")
+    _archive(tmp_path / "d.tgz", {}, extra=["../evil.txt"])
+    with pytest.raises(SystemExit, match="refused"):
+        gt.add(tmp_path / "d.tgz", tmp_path / "u")
+    assert not (tmp_path / "evil.txt").exists()
