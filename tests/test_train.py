@@ -247,3 +247,34 @@ def test_the_stdr_train_command_runs_with_mkl_reproducibility_and_records_it(tmp
     assert proc.returncode == 0, proc.stderr[-2000:]
     conv = json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]["conventions"]
     assert conv["mkl_cbwr"] == "AUTO,STRICT" and conv["mkl_dynamic"] == "FALSE"
+
+
+def test_stdr_eval_reevaluation_keeps_every_field_of_the_training_entry(tmp_path, monkeypatch, capsys):
+    """One builder of a split's metrics.json entry for stdr-train and stdr-eval: re-evaluating a
+    trained run leaves every key of the first entry in place, with the same values except what is
+    measured again (timings, the code stamp) and the curve's last point (this evaluation)."""
+    from stdr.cli import eval as eval_cli
+    from stdr.cli import train as train_cli
+    from stdr.testing import TINY_SCENE
+    run = tmp_path / "run"
+    monkeypatch.setattr(sys, "argv", ["stdr-train", "experiment=embedded_deform_stdr", *TINY_SCENE,
+                                      f"data.cache_dir={tmp_path / 'cache'}", "device=cpu", "model.init_num=500",
+                                      "eval.lpips=false", "train.progress=false", "eval.save_images=false",
+                                      "train.image_every=0", "optim.iterations=40", "baseline.warmup=10",
+                                      "stdr.warmup_end=15", "stdr.freeze_at=25", f"hydra.run.dir={run}"])
+    train_cli.main()
+    first = json.loads((run / "metrics.json").read_text())["test"]
+    assert first["train_loss"] in ("compiled", "torch") and first["train_cpu_seconds"] > 0
+    assert 0 < first["train_cpu_utilization"] <= 1.5
+    monkeypatch.setattr(sys, "argv", ["stdr-eval", str(run), f"out={tmp_path / 'table'}", "eval.lpips=false",
+                                      "eval.save_images=false"])
+    eval_cli.main()
+    capsys.readouterr()
+    again = json.loads((run / "metrics.json").read_text())["test"]
+    assert set(first) <= set(again), set(first) - set(again)
+    remeasured = {"fps", "fps_passes", "render_seconds", "frame_seconds", "code", "curve", "last", "best", "conventions"}
+    for k in set(first) - remeasured:
+        if isinstance(first[k], float):
+            assert again[k] == pytest.approx(first[k], rel=1e-6, abs=1e-9), k
+        else:
+            assert again[k] == first[k], k

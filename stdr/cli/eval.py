@@ -67,7 +67,7 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
 def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     """Rebuild the run's model from its checkpoint (public API: stdr.model), render `split` and
     merge the numbers into its metrics.json."""
-    from ..eval.evaluate import evaluate_model, final_entry, history_record, make_lpips, write_metrics
+    from ..eval.evaluate import evaluate_model, final_entry, history_record, make_lpips, training_facts, write_metrics
     from ..train.guard import Guard
 
     ck, model, scene = _load_for_eval(rd, cfg, split, base)
@@ -78,17 +78,14 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     save_dir = rd / "renders" / split if eval_cfg.save_images else None
     res = evaluate_model(model, scene.frames(split), lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup,
                          fps_repeats=eval_cfg.fps_repeats, seen=True)
-    if ck.get("prune_log"):  # the training's contribution pruning events
-        res["prune"] = list(ck["prune_log"])
     seconds = float(ck["train_seconds"])
     guard = None
     if "guard" in ck:  # the training's recoveries (checkpoints from before the guard have none)
-        g = Guard()
-        g.load_state_dict(ck["guard"])
-        guard = g.summary(int(cfg.densify.max_gaussians) or None)
+        guard = Guard.from_state(ck["guard"]).summary(int(cfg.densify.max_gaussians) or None)
     # the learning curve: the training's own evaluations (kept in the checkpoint), then this one
     history = list(ck.get("history", [])) + [history_record("final", model.step, split, seconds, res)]
     final_entry(res, split, history, seconds, model.step, guard)
+    res.update(training_facts(ck))
     write_metrics(rd, split, res, model, eval_cfg, lp, scene.meta)
     return res
 

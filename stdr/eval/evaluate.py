@@ -241,6 +241,25 @@ def final_entry(res: dict[str, Any], split: str, history: list[dict[str, Any]], 
     return res
 
 
+def training_facts(payload: dict[str, Any]) -> dict[str, Any]:
+    """What a split's metrics.json entry says about the training, from the run's state (a live
+    trainer's checkpoint payload or a loaded checkpoint: the same keys), so that `stdr-train`'s
+    evaluation and `stdr-eval`'s re-evaluation write the same fields:
+    * train_cpu_seconds, and train_cpu_utilization = that / (train_seconds x the training's thread
+      count): near 1, the run had the cores to itself; e.g. 0.5, another job took half the machine.
+      None: unknown (a checkpoint from before it was recorded);
+    * train_loss: the form of the training loss that ran (optim.fused_loss), `compiled` or `torch`
+      (None: not recorded);
+    * prune: the contribution-pruning events (stdr.scene.prune), when there were any."""
+    cpu, secs, threads = payload.get("train_cpu_seconds"), float(payload.get("train_seconds") or 0.0), payload.get("train_threads")
+    out = {"train_cpu_seconds": cpu,
+           "train_cpu_utilization": cpu / (secs * threads) if cpu is not None and threads and secs > 0 else None,
+           "train_loss": payload.get("train_loss")}
+    if payload.get("prune_log"):
+        out["prune"] = list(payload["prune_log"])
+    return out
+
+
 def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
     """Final evaluation of a trained run; merges the result into run_dir/metrics.json."""
     lp = make_lpips(eval_cfg)
@@ -251,17 +270,7 @@ def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
                            fps_repeats=eval_cfg.fps_repeats, seen=True)
     final_entry(res, split, trainer.history, trainer.train_seconds, trainer.step,
                 trainer.guard.summary(int(trainer.strategy.max_gaussians) or None))
-    # whether the training had the cores to itself: CPU seconds of the process over the training
-    # seconds x threads (near 1: yes; e.g. 0.5: another job took half the machine). None: unknown
-    # (resumed from a checkpoint that did not record it)
-    cpu = trainer.train_cpu_seconds
-    res["train_cpu_seconds"] = cpu
-    res["train_cpu_utilization"] = (cpu / (trainer.train_seconds * torch.get_num_threads())
-                                    if cpu is not None and trainer.train_seconds > 0 else None)
-    # the form of the training loss that ran (optim.fused_loss): the compiled pass or the torch twin
-    res["train_loss"] = "compiled" if trainer.fused_loss else "torch"
-    if trainer.prune_log:  # contribution pruning events: counts, seen per frame, cost (stdr.scene.prune)
-        res["prune"] = list(trainer.prune_log)
+    res.update(training_facts(trainer.checkpoint_payload()))
     write_metrics(trainer.run_dir, split, res, trainer.model, eval_cfg, lp, trainer.scene.meta)
     (trainer.run_dir / "history.json").write_text(json.dumps(trainer.history, indent=1))
     return res

@@ -225,8 +225,21 @@ class Guard:
     names: list = field(default_factory=list)
 
     def state_dict(self) -> dict[str, Any]:
+        # forms: how this run checked its steps, for the report of a re-evaluation (`from_state`);
+        # a resumed run checks as its own config says (load_state_dict leaves them alone)
         return {"lr_scale": self.lr_scale, "recoveries": list(self.recoveries), "peak_gaussians": self.peak_gaussians,
-                "peak_memory_mb": self.peak_memory_mb, "monitor": self.monitor}
+                "peak_memory_mb": self.peak_memory_mb, "monitor": self.monitor,
+                "forms": {"checks": self.checks, "sync_free": self.sync_free, "compiled": self.compiled}}
+
+    @classmethod
+    def from_state(cls, s: dict[str, Any]) -> "Guard":
+        """The guard of a saved run, for its report (metrics.json -> guard): its state and how it
+        checked its steps, as the checkpoint recorded them."""
+        g = cls()
+        g.load_state_dict(s)
+        forms = s.get("forms") or {}
+        g.checks, g.sync_free, g.compiled = (bool(forms.get(k, False)) for k in ("checks", "sync_free", "compiled"))
+        return g
 
     def load_state_dict(self, s: dict[str, Any]) -> None:
         self.lr_scale = float(s.get("lr_scale", 1.0))

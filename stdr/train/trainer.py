@@ -270,6 +270,8 @@ class Trainer:
             "rng": rng_state(),
             "train_seconds": self.train_seconds,
             "train_cpu_seconds": self.train_cpu_seconds,
+            "train_threads": torch.get_num_threads(),
+            "train_loss": "compiled" if self.fused_loss else "torch",
             "history": self.history,
             "guard": self.guard.state_dict(),
             "prune_log": self.prune_log,
