@@ -286,6 +286,23 @@ def experiment_names() -> list[str]:
     return sorted(_experiment_files() | {e for b in BASELINES for e in derived_experiments(b)})
 
 
+def experiment_table() -> list[dict[str, Any]]:
+    """Every experiment with what it composes: {name, data, baseline, plugins (those on), source}.
+    source: `derived` (made here for each data option x baseline x plug-in: derived_experiments),
+    or the YAML file under stdr/configs/experiment/ that defines it (and overrides a derived one
+    of the same name); data / baseline / plugins are None for a file (its defaults say)."""
+    rows = []
+    for b in BASELINES:
+        for name, node in derived_experiments(b).items():
+            picks = {k.split("/")[-1]: v for d in node["defaults"] for k, v in d.items() if k.startswith("override /")}
+            rows.append({"name": name, "data": picks["data"], "baseline": picks["baseline"],
+                         "plugins": [p for p, v in picks.items() if v == "on"], "source": "derived"})
+    for f in sorted(_experiment_files()):
+        rows.append({"name": f, "data": None, "baseline": None, "plugins": None,
+                     "source": f"stdr/configs/experiment/{f}.yaml"})
+    return sorted(rows, key=lambda r: r["name"])
+
+
 _STORED: dict[str, set[str]] = {"baseline": set(), "experiment": set(), "plugin": set(), "densify": set()}
 _SYNCED: list = [None]  # the registries' contents at the last _sync_store
 

@@ -11,5 +11,6 @@ TOOLS = {
     "identity-check": "identity_check",      # bit-identity of training / composed configs between commits
     "variants": "variants",                  # variants of one method side by side (plain, +STDR, +cull, ...)
     "compact": "compact",                    # prune a trained run by contribution, fine-tune, save as a new run
-    "queue": "queue",                        # a resumable queue of runs, several at once, time-boxed calls
+    "queue": "queue",
+    "experiments": "experiments",            # every experiment stdr-train accepts, with what it composes                        # a resumable queue of runs, several at once, time-boxed calls
 }
