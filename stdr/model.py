@@ -92,6 +92,10 @@ class DynamicGaussians:
         """The plug-in called `name`, or None when it is off."""
         return next((p for p in self.plugins if p.name == name), None)
 
+    def frozen_keys(self) -> set[str]:
+        """Parameter keys the plug-ins hold fixed for good (Plugin.frozen_keys): no optimizer."""
+        return set().union(*(p.frozen_keys(self.params) for p in self.plugins))
+
     @property
     def cond_dim(self) -> int:
         return sum(p.cond_dim for p in self.plugins)

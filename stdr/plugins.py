@@ -87,7 +87,14 @@ class Plugin:
 
     # ---------------------------------------------------------------- per step
     def configure_step(self, params, step: int) -> None:
-        """Before the step's forward pass: which parameters train in this phase."""
+        """Before the step's forward pass: which parameters train in this phase (requires_grad)."""
+
+    def frozen_keys(self, params) -> set[str]:
+        """The keys of the per-Gaussian parameter dict this plug-in holds fixed for good: no
+        gradient, no optimizer, the values kept as stored (e.g. STDR's mask once stored in 8 bits).
+        The trainer drops their optimizers. A key frozen for a phase only is configure_step's
+        (requires_grad) instead. Default: none."""
+        return set()
 
     def conditioning(self, params, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
         """(cond [N, cond_dim] or None, delta scale [N, 1] or None) at `step`."""

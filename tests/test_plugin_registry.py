@@ -170,3 +170,25 @@ def test_the_core_names_no_plugin():
             if re.search(r"stdr", rest, re.IGNORECASE):
                 found.append(f"{f.relative_to(ROOT)}:{i}: {line.strip()}")
     assert found == []
+
+
+def test_a_plugins_frozen_keys_lose_their_optimizer_whatever_their_dtype(tmp_path, monkeypatch):
+    """Frozen parameters are an interface (Plugin.frozen_keys), not a dtype: a float key a plug-in
+    declares frozen gets no optimizer from that step on and keeps its values."""
+    import torch
+    from stdr.decouple.plugin import STDR as STDRPlugin
+    from stdr.testing import tiny_config
+    from stdr.train.trainer import Trainer
+
+    monkeypatch.setattr(STDRPlugin, "frozen_keys", lambda self, params: {"sh0"} if self._frozen_now else set())
+    STDRPlugin._frozen_now = False
+    t = Trainer(tiny_config(tmp_path, ["experiment=embedded_deform_stdr", "optim.iterations=20", "baseline.warmup=5",
+                                       "stdr.warmup_end=5", "stdr.freeze_at=10", "train.stop_at=12"]), tmp_path / "r")
+    assert "sh0" in t.optimizers
+    t.train()
+    STDRPlugin._frozen_now = True
+    before = t.model.params["sh0"].detach().clone()
+    t.cfg.train.stop_at = 16
+    t.train()
+    assert "sh0" not in t.optimizers and "means" in t.optimizers
+    assert torch.equal(t.model.params["sh0"], before) and t.step == 16

@@ -278,6 +278,10 @@ class STDR(Plugin):
             params["opacities"].requires_grad_(not self.opacity_frozen(step))
             params[MASK_KEY].requires_grad_(ph != Phase.FROZEN)
 
+    def frozen_keys(self, params) -> set[str]:
+        """The mask once stored in 8 bits (stdr.mask_bits=8, from the freeze on): fixed for good."""
+        return {MASK_KEY} if self.has_mask(params) and not params[MASK_KEY].is_floating_point() else set()
+
     @torch.no_grad()
     def cleanup(self, params) -> int:
         """At the freeze: mask entries whose masked opacity sigmoid(o) * sigmoid(m) is below

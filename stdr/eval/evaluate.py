@@ -213,7 +213,7 @@ def metric_conventions(eval_cfg, lpips_fn, backend: str, device: torch.device) -
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "machine": machine_name(),
         "torch_threads": torch.get_num_threads(),
-        "mkl_cbwr": os.environ.get("MKL_CBWR"),  # MKL's reproducibility mode (stdr sets AUTO,STRICT)
+        "mkl_cbwr": os.environ.get("MKL_CBWR"),  # MKL's reproducibility mode (set on import: AUTO,STRICT)
         "mkl_dynamic": os.environ.get("MKL_DYNAMIC"),  # MKL's dynamic threads (stdr-train: FALSE)
         "render_backend": backend,
         "memory": MEMORY_CONVENTION["cuda" if device.type == "cuda" else "cpu"],  # guard.peak_memory_mb

@@ -223,9 +223,10 @@ class Trainer:
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         """One Adam per per-Gaussian parameter, including those a plug-in freezes for a phase, so the
         optimizer set does not depend on the step; a parameter without a gradient is not updated."""
+        frozen = self.model.frozen_keys()
         return {k: torch.optim.Adam([{"params": [p], "lr": self._lr(k, 0), "name": k}], eps=1e-15,
                                     fused=self._fused_adam)
-                for k, p in self.model.params.items() if p.is_floating_point()}  # (not an 8-bit mask)
+                for k, p in self.model.params.items() if k not in frozen}
 
     @property
     def _fused_adam(self) -> bool:
@@ -336,8 +337,9 @@ class Trainer:
         model.train(True)
         for p in model.plugins:
             p.configure_step(params, it)
-        for k in [k for k in self.optimizers if k not in params or not params[k].is_floating_point()]:
-            del self.optimizers[k]  # a plug-in stored a tensor in integer form (e.g. an 8-bit mask): no more updates
+        frozen = model.frozen_keys()
+        for k in [k for k in self.optimizers if k not in params or k in frozen]:
+            del self.optimizers[k]  # a plug-in holds it fixed from now on (e.g. an 8-bit mask): no more updates
         with prof("deform"):
             # one conditioning per step: the render, SC-GS's node resampling and its ARAP see the same
             cs = model.conditioning(it)
