@@ -10,6 +10,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .ops import fixed_mean
+
 _WINDOWS: dict = {}
 
 
@@ -74,7 +76,7 @@ def ssim(img1: Tensor, img2: Tensor, window_size: int = 11, sigma: float = 1.5) 
     fb = _blur(torch.cat([b, b * b], 1), window_size, sigma)
     mu1, s1, s12 = fa[:, :C], fa[:, C:2 * C], fa[:, 2 * C:]
     mu2, s2 = fb[:, :C], fb[:, C:]
-    return _ssim_map(mu1, mu2, s1, s2, s12).mean()
+    return fixed_mean(_ssim_map(mu1, mu2, s1, s2, s12))
 
 
 def ssim_2d(img1: Tensor, img2: Tensor, window_size: int = 11, sigma: float = 1.5) -> Tensor:
@@ -86,17 +88,17 @@ def ssim_2d(img1: Tensor, img2: Tensor, window_size: int = 11, sigma: float = 1.
 
     def blur(x):
         return F.conv2d(x, w, padding=pad, groups=C)
-    return _ssim_map(blur(a), blur(b), blur(a * a), blur(b * b), blur(a * b)).mean()
+    return fixed_mean(_ssim_map(blur(a), blur(b), blur(a * a), blur(b * b), blur(a * b)))
 
 
 def psnr(img1: Tensor, img2: Tensor) -> Tensor:
     """PSNR in dB for data range 1, over all pixels and channels."""
-    mse = torch.mean((img1 - img2) ** 2)
+    mse = fixed_mean((img1 - img2) ** 2)
     return 10.0 * torch.log10(1.0 / mse.clamp_min(1e-20))
 
 
 def l1(img1: Tensor, img2: Tensor) -> Tensor:
-    return (img1 - img2).abs().mean()
+    return fixed_mean((img1 - img2).abs())
 
 
 def image_loss(img: Tensor, gt: Tensor, lam: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:

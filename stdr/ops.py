@@ -33,6 +33,40 @@ def sigmoid(x: Tensor) -> Tensor:
     return _Sigmoid.apply(x)
 
 
+ROW = 1024  # fixed_mean's row length
+
+
+def fixed_sum(x: Tensor, dims: tuple[int, ...] | None = None, keepdim: bool = False) -> Tensor:
+    """x.sum(dims) (all dimensions when None) added in an order fixed by the shape alone: the
+    reduced elements of each output in rows of 1024 (each row summed, then the rows in order, then
+    the remainder), so the result is bitwise the same on any CPU thread count. torch's CPU sum of
+    one large reduction splits it between threads, and so its last bits follow the thread count
+    (measured: the PSNR of a 200x200 image in the 8th digit). Differentiable (sums and views).
+    Off the CPU (deterministic there per launch configuration) it is torch's sum, one kernel."""
+    if x.device.type != "cpu" or x.dim() == 0:
+        return x.sum() if dims is None else x.sum(dims, keepdim=keepdim)
+    if dims is None:
+        dims = tuple(range(x.dim()))
+    dims = tuple(sorted(d % x.dim() for d in dims)) if x.dim() else ()
+    keep = [d for d in range(x.dim()) if d not in dims]
+    y = x.permute(*keep, *dims).reshape(*[x.shape[d] for d in keep], -1)  # [..., reduced]
+    n = y.shape[-1]
+    full = n // ROW * ROW
+    out = y[..., :full].reshape(*y.shape[:-1], -1, ROW).sum(-1).sum(-1) if full else y.new_zeros(y.shape[:-1])
+    if full < n:
+        out = out + y[..., full:].sum(-1)
+    if keepdim:
+        for d in dims:
+            out = out.unsqueeze(d)
+    return out
+
+
+def fixed_mean(x: Tensor, dims: tuple[int, ...] | None = None, keepdim: bool = False) -> Tensor:
+    """x.mean(dims) with fixed_sum's order: the same bits on any CPU thread count."""
+    count = x.numel() if dims is None else int(torch.tensor([x.shape[d] for d in dims]).prod())
+    return fixed_sum(x, dims, keepdim) / max(count, 1)
+
+
 class Sigmoid(nn.Module):
     """`sigmoid` as a module (for nn.Sequential)."""
 

@@ -145,3 +145,23 @@ def test_a_short_stdr_run_trains_to_the_same_bits_on_one_and_two_threads(tmp_pat
     assert params[1].keys() == params[2].keys()
     for k in params[1]:
         assert torch.equal(params[1][k], params[2][k]), k
+
+
+def test_image_metrics_give_the_same_bits_on_any_thread_count(restore_threads):
+    """PSNR, SSIM, L1 and LPIPS of a 200x200 image: their means add in an order fixed by the
+    shape (stdr.ops.fixed_mean), within float rounding of the float64 truth."""
+    from stdr.metrics import l1, psnr, ssim
+    from stdr.ops import fixed_mean
+    g = torch.Generator().manual_seed(2)
+    a, b = torch.rand(200, 200, 3, generator=g), torch.rand(200, 200, 3, generator=g)
+    metrics = [lambda: (psnr(a, b), ssim(a, b), l1(a, b), fixed_mean(a, (0, 1)))]
+    try:
+        from stdr.eval.lpips import LPIPS
+        lp = LPIPS("alex")
+        metrics.append(lambda: (lp(a, b).reshape(()),))
+    except FileNotFoundError:
+        pass  # no LPIPS weights here: the other metrics still count
+    for fn in metrics:
+        _assert_same(_each_thread_count(fn), "metrics")
+    assert float(psnr(a, b)) == pytest.approx(float(10 * torch.log10(1 / ((a.double() - b.double()) ** 2).mean())), abs=1e-5)
+    assert torch.allclose(fixed_mean(a, (0, 1)).double(), a.double().mean((0, 1)), atol=1e-6)

@@ -22,6 +22,8 @@ from typing import Optional
 import torch
 from torch import Tensor, nn
 
+from ..ops import fixed_mean
+
 _VGG_CFG = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512]
 _VGG_TAPS = (3, 8, 15, 22, 29)        # relu1_2, relu2_2, relu3_3, relu4_3, relu5_3 (torchvision indices)
 _VGG_CH = (64, 128, 256, 512, 512)
@@ -181,5 +183,5 @@ class LPIPS(nn.Module):
         for lin, f1, f2 in zip(self.lins, self._feats(img1), self._feats(img2)):
             n1 = f1 / (f1.square().sum(1, keepdim=True).sqrt() + 1e-10)
             n2 = f2 / (f2.square().sum(1, keepdim=True).sqrt() + 1e-10)
-            total = total + lin((n1 - n2) ** 2).mean((2, 3))
+            total = total + fixed_mean(lin((n1 - n2) ** 2), (2, 3))
         return total.view(-1)
