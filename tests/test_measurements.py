@@ -1,0 +1,66 @@
+"""scripts/measurements.py: a study's per-run records in one archive, read through records_dir."""
+import importlib.util
+import io
+import subprocess
+import sys
+import tarfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _module(monkeypatch, tmp_path):
+    spec = importlib.util.spec_from_file_location("measurements", ROOT / "scripts" / "measurements.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    monkeypatch.setattr(mod, "M", tmp_path / "m")
+    monkeypatch.setenv("STDR_MEASUREMENTS_CACHE", str(tmp_path / "cache"))
+    return mod
+
+
+def test_pack_keeps_what_a_reader_opens_and_records_dir_reads_the_rest(tmp_path, monkeypatch):
+    mm = _module(monkeypatch, tmp_path)
+    st = tmp_path / "m" / "study"
+    for rel, text in {"README.md": "r", "table.json": "{}", "charts/a.png": "png", "charts/a.svg": "svg",
+                      "runs/x/s0/metrics.json": '{"psnr": 1}', "runs/y/s1/metrics.json": '{"psnr": 2}',
+                      "big.json": "x" * 200_000}.items():
+        (st / rel).parent.mkdir(parents=True, exist_ok=True)
+        (st / rel).write_text(text)
+    assert mm.pack(st) == 4  # two run records, the SVG and the bulk table
+    assert sorted(p.relative_to(st).as_posix() for p in st.rglob("*") if p.is_file()) == \
+        ["README.md", "charts/a.png", "records.tar.xz", "table.json"]
+    runs = mm.records_dir("study", "runs")
+    assert runs.is_dir() and (runs / "y" / "s1" / "metrics.json").read_text() == '{"psnr": 2}'
+    assert mm.record_file("study", "big.json").read_text() == "x" * 200_000
+    assert mm.records_dir("study", "runs") == runs  # unpacked once per archive content
+    # a study continued: extract, add a record, pack again (merged)
+    mm.extract_to(st / mm.ARCHIVE, st)
+    (st / "runs" / "z" / "s0").mkdir(parents=True)
+    (st / "runs" / "z" / "s0" / "metrics.json").write_text('{"psnr": 3}')
+    assert mm.pack(st) == 5 and not (st / "runs").exists()
+    assert sorted(p.name for p in mm.records_dir("study", "runs").iterdir()) == ["x", "y", "z"]
+
+
+def test_an_archive_member_that_leaves_the_destination_is_refused(tmp_path, monkeypatch):
+    mm = _module(monkeypatch, tmp_path)
+    bad = tmp_path / "bad.tar.xz"
+    with tarfile.open(bad, "w:xz") as tar:
+        info = tarfile.TarInfo("../escape.txt")
+        info.size = 1
+        tar.addfile(info, io.BytesIO(b"x"))
+    with pytest.raises(SystemExit, match="refused"):
+        mm.extract_to(bad, tmp_path / "dest")
+    assert not (tmp_path / "escape.txt").exists()
+
+
+def test_the_repository_is_code_with_its_records_archived():
+    """At most 600 tracked files and 6 MB of them; every study's records in its archive."""
+    files = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, text=True).stdout.split("\0")
+    files = [f for f in files if f and (ROOT / f).is_file()]
+    if not files:
+        pytest.skip("not a git checkout")
+    assert len(files) <= 600, len(files)
+    assert sum((ROOT / f).stat().st_size for f in files) <= 6 * 2 ** 20
+    assert not [f for f in files if f.startswith("docs/measurements/") and f.endswith(".svg")]
