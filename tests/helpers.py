@@ -85,3 +85,15 @@ def hard_case_scene(dtype=torch.float64, extra_rows=()):
     quats = torch.tensor([[1.0, 0, 0, 0]], dtype=dtype).repeat(len(rows), 1)
     colors = torch.rand(len(rows), 3, dtype=dtype, generator=torch.Generator().manual_seed(0))
     return means, quats, scales, opac, colors
+
+
+def load_script(path, name: str):
+    """A script of the checkout (e.g. scripts/results.py) imported as module `name` (registered in
+    sys.modules, where dataclasses look their module up)."""
+    import importlib.util
+    import sys
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod

@@ -1,22 +1,17 @@
 """scripts/gpu_table.py: the budget=gpu D-NeRF table from a GPU queue's archives."""
-import importlib.util
 import io
 import json
-import sys
 import tarfile
 from pathlib import Path
 
 import pytest
+from helpers import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("gpu_table", ROOT / "scripts" / "gpu_table.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(ROOT / "scripts" / "gpu_table.py", "gpu_table")
 
 
 def _archive(path: Path, runs: dict, extra=()):

@@ -1,20 +1,17 @@
 """scripts/measurements.py: a study's per-run records in one archive, read through records_dir."""
-import importlib.util
 import io
 import subprocess
-import sys
 import tarfile
 from pathlib import Path
 
 import pytest
+from helpers import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module(monkeypatch, tmp_path):
-    spec = importlib.util.spec_from_file_location("measurements", ROOT / "scripts" / "measurements.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script(ROOT / "scripts" / "measurements.py", "measurements_script")
     monkeypatch.setattr(mod, "M", tmp_path / "m")
     monkeypatch.setenv("STDR_MEASUREMENTS_CACHE", str(tmp_path / "cache"))
     return mod

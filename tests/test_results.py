@@ -1,22 +1,17 @@
 """scripts/results.py's headline table from the rerun's records: shown only once every method has
 every scene at one seed, averaging only seeds that are complete over the whole grid."""
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
+from helpers import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _results():
-    spec = importlib.util.spec_from_file_location("results_script", ROOT / "scripts" / "results.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(ROOT / "scripts" / "results.py", "results_script")
 
 
 def _record(root: Path, baseline: str, stdr: bool, scene: str, seed: int, psnr: float, gaussians: int = 1000,

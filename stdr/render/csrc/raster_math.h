@@ -70,30 +70,18 @@ STDR_HD double exp_neg(double x) { return exp(x); }
 // A product and a sum that no compiler fuses into an FMA (CUDA: __fmul_rn / __fadd_rn; nvcc and
 // ptxas otherwise contract a * b + c wherever they like, differently in two compilations of one
 // expression). The binning's float tests use them, so that its count and write passes round alike.
-STDR_HD float mul_rn(float a, float b) {
+template <typename T> STDR_HD T mul_rn(T a, T b) {
 #ifdef __CUDA_ARCH__
-  return __fmul_rn(a, b);
+  if constexpr (sizeof(T) == sizeof(float)) return __fmul_rn(a, b);
+  else return __dmul_rn(a, b);
 #else
   return a * b;
 #endif
 }
-STDR_HD float add_rn(float a, float b) {
+template <typename T> STDR_HD T add_rn(T a, T b) {
 #ifdef __CUDA_ARCH__
-  return __fadd_rn(a, b);
-#else
-  return a + b;
-#endif
-}
-STDR_HD double mul_rn(double a, double b) {
-#ifdef __CUDA_ARCH__
-  return __dmul_rn(a, b);
-#else
-  return a * b;
-#endif
-}
-STDR_HD double add_rn(double a, double b) {
-#ifdef __CUDA_ARCH__
-  return __dadd_rn(a, b);
+  if constexpr (sizeof(T) == sizeof(float)) return __fadd_rn(a, b);
+  else return __dadd_rn(a, b);
 #else
   return a + b;
 #endif
