@@ -75,7 +75,12 @@ def fetch_weights(net: str, dest: Optional[Path] = None, log=print) -> Path:
     for name in todo:
         url, want, _ = WEIGHT_SOURCES[name]
         tmp = dest / f".{name}.download"
-        download([url], tmp, log=log)
+        try:
+            download([url], tmp, log=lambda m: None)
+        except DataError as e:
+            why = str(e).split("\n")[1].strip() if "\n" in str(e) else str(e)  # "<url>: <reason>"
+            raise DataError(f"LPIPS weights {name} could not be downloaded ({why}); offline? put the official "
+                            f"file in {dest}") from None
         got = sha256(tmp)
         if got != want:
             tmp.unlink()
