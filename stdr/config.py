@@ -17,7 +17,7 @@ from .data.stress import StressConfig
 # every baseline's config dataclass lives beside its module (stdr.deform.registry)
 from .deform import BASELINES, BaselineConfig, DeformConfig, HexPlaneConfig, ScgsConfig, SpgsConfig  # noqa: F401
 from .deform.registry import add_listener, discover_baselines, get_baseline
-from .plugins import PLUGINS, add_listener as add_plugin_listener, registered_plugins
+from .plugins import PLUGINS, add_listener as add_plugin_listener, registered_plugins, set_reserved_keys
 from .scene.prune import PruneConfig
 from .scene.strategy import STRATEGIES, DensifyStrategy, add_listener as add_strategy_listener, get_strategy
 from .train.guard import GuardConfig
@@ -174,6 +174,7 @@ class Config:
 RESERVED_KEYS = frozenset({f for f in Config.__dataclass_fields__} | {
     "experiment", "experiment_data", "budget_baseline", "stress", "sweep", "hydra", "defaults", "runs",
     "split", "out", "reevaluate", "remeasure", "base_config", "base_eval"})
+set_reserved_keys(RESERVED_KEYS)  # the plug-in registry checks names against them (without importing this module)
 
 
 def _overrides_of(cls, name: str, doc: str, skip=()):

@@ -149,6 +149,18 @@ PLUGINS: dict[str, PluginSpec] = {}
 # called with (spec, added) on every (un)registration; stdr.config.register() adds the one that
 # keeps Hydra's ConfigStore in step
 _LISTENERS: list[Callable[[PluginSpec, bool], None]] = []
+#: the config's own sections and stdr-train's groups (names a plug-in may not take); stdr.config
+#: sets it when it loads (set_reserved_keys), so this module never imports the config
+_RESERVED: set[str] = set()
+
+
+def set_reserved_keys(keys) -> None:
+    """The names no plug-in may take (stdr.config's RESERVED_KEYS). A plug-in registered before
+    they were known, under one of them, is an error now."""
+    _RESERVED.update(keys)
+    clash = sorted(set(PLUGINS) & _RESERVED)
+    if clash:
+        raise ValueError(f"plug-in(s) {clash} registered under a config section's name; choose another name")
 #: modules whose import registers the plug-ins that ship with stdr
 BUILTIN = ("stdr.decouple",)
 #: entry-point group through which another distribution adds plug-ins (stdr.entry_points)
@@ -166,12 +178,11 @@ def register_plugin(name: str, plugin: type, config: type, label: Optional[str] 
     `from_config`; `config` a dataclass whose `enabled` defaults to False (its other fields are
     the plug-in's typed keys, `<name>.<key>`); `label` (default '+<name>') follows the baseline's
     name in table rows and chart legends."""
-    from .config import RESERVED_KEYS
     discover_plugins()  # the built-in and installed ones first, so a clash is seen either way
     if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
         raise ValueError(f"register_plugin({name!r}): the name must be lower-case letters, digits and '_' "
                          "(it is a config key and an experiment suffix)")
-    if name in RESERVED_KEYS:
+    if name in _RESERVED:
         raise ValueError(f"register_plugin({name!r}): {name!r} is a config section of its own; choose another name")
     if not (isinstance(plugin, type) and issubclass(plugin, Plugin)):
         raise TypeError(f"register_plugin({name!r}): plugin must be a Plugin subclass, got {plugin!r}")
@@ -249,7 +260,6 @@ def method_suffix(cfg: dict) -> str:
     """What follows the baseline's name in a row label: each enabled plug-in's label and its
     row tags (e.g. '+STDR w/o spatial_reg'). `cfg` is a run's config as a plain dict; a plug-in
     node of a plug-in not registered in this process is labelled '+<name>'."""
-    from .config import RESERVED_KEYS
     out = ""
     known = {s.name: s for s in registered_plugins()}
     for key, node in cfg.items():
@@ -257,7 +267,7 @@ def method_suffix(cfg: dict) -> str:
             continue
         spec = known.get(key)
         if spec is None:
-            if key in RESERVED_KEYS:
+            if key in _RESERVED:
                 continue
             out += f"+{key}"
             continue

@@ -33,3 +33,37 @@ def test_markers_select_the_tests_that_need_shared_data_or_cuda():
                             for b in ("4dgs", "deform", "scgs", "spgs")] + \
         [f"tests/test_device.py::test_training_with_the_speed_keys_on_cuda_through_prunes_resets_and_a_recovery[{b}]"
          for b in ("4dgs", "deform_stdr")]
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """stdr's relative imports, module -> modules (function-level imports included)."""
+    import ast
+    edges: dict[str, set[str]] = {}
+    for f in (ROOT / "stdr").rglob("*.py"):
+        parts = f.relative_to(ROOT).with_suffix("").parts
+        mod = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        pkg = mod if f.name == "__init__.py" else mod.rsplit(".", 1)[0]
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level:
+                base = pkg.split(".")[:len(pkg.split(".")) - node.level + 1]
+                edges.setdefault(mod, set()).add(".".join(base + ([node.module] if node.module else [])))
+    return edges
+
+
+def test_the_config_sits_on_no_import_circle():
+    """stdr.config imports the registries (plugins, deform, scene.strategy) and the schedule; none of
+    them imports it back, not even inside a function (the plug-in registry gets the reserved names
+    from it: plugins.set_reserved_keys)."""
+    edges = _import_graph()
+
+    def reaches(a, b, seen):
+        for n in edges.get(a, ()):
+            if n == b:
+                return True
+            if n not in seen:
+                seen.add(n)
+                if reaches(n, b, seen):
+                    return True
+        return False
+    for mod in ("stdr.plugins", "stdr.schedule", "stdr.deform", "stdr.scene.strategy"):
+        assert not reaches(mod, "stdr.config", set()), mod
