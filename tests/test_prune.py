@@ -95,7 +95,7 @@ def test_an_event_removes_the_least_significant_rows_and_keeps_state_aligned(tmp
                  tmp_path / "r")
     tr.train()
     assert tr.model.schedule.prune_steps == [30] and not tr.prune_log  # due once 30 steps are done
-    ev = prune_mod.prune_event(tr, 30)
+    ev = prune_mod.prune_event(tr.model, tr.scene.frames("train"), tr.optimizers, tr.strategy_state, tr.cfg.prune, 30)
     assert ev["step"] == 30
     assert ev["after"] == ev["before"] - int(0.25 * ev["before"])
     S, mask = seen["S"], seen["mask"]

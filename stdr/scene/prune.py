@@ -135,21 +135,20 @@ def seen_per_frame(S: Tensor) -> float:
     return float((S > 0).float().mean(0).mean())
 
 
-def prune_event(trainer, step: int) -> dict[str, Any]:
-    """Score the trainer's model on its training frames, remove the prune.share least significant
-    rows (and their optimizer and densification state), return the event's record: step, before,
-    after, seen per frame (fraction of the model contributing at one time) before and after, and
-    the seconds of the score pass and of the whole event."""
+def prune_event(model, frames, optimizers, strategy_state, p, step: int) -> dict[str, Any]:
+    """Score `model` on the training `frames`, remove the `p.share` least significant rows (`p`:
+    the prune config; the rows go from the parameter dict, their `optimizers`' moments and the
+    densification's `strategy_state`), return the event's record: step, before, after, seen per
+    frame (fraction of the model contributing at one time) before and after, and the seconds of the
+    score pass and of the whole event."""
     from .strategy import remove
-    p = trainer.cfg.prune
     t0 = time.perf_counter()
-    model = trainer.model
-    S, _ = significance(model, trainer.scene.frames("train"), step=step)
+    S, _ = significance(model, frames, step=step)
     t_score = time.perf_counter() - t0
     mask = select_pruned(ranking(S, float(p.time_weight)), float(p.share))
     before = model.num_gaussians
     rec = {"step": int(step), "before": before, "seen_before": seen_per_frame(S),
-           "seen_after": seen_per_frame(S[~mask]), "frames": len(trainer.scene.frames("train"))}
-    remove(model.params, trainer.optimizers, trainer.strategy_state, mask)
+           "seen_after": seen_per_frame(S[~mask]), "frames": len(frames)}
+    remove(model.params, optimizers, strategy_state, mask)
     rec.update(after=model.num_gaussians, score_seconds=t_score, seconds=time.perf_counter() - t0)
     return rec

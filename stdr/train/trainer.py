@@ -325,7 +325,8 @@ class Trainer:
             # the event, so a run resumed from it (or branched from it with other prune.* keys)
             # prunes exactly as an uninterrupted one
             with prof("prune"):
-                pruned = prune_event(self, it)
+                pruned = prune_event(model, self.scene.frames("train"), self.optimizers, self.strategy_state,
+                                     cfg.prune, it)
             self.prune_log.append(pruned)
             print(f"[stdr] step {it}: contribution pruning removed {pruned['before'] - pruned['after']} of "
                   f"{pruned['before']} Gaussians (seen per frame {pruned['seen_before']:.1%} -> "
