@@ -74,3 +74,11 @@ def test_variants_are_runs_of_their_own_side_by_side(tmp_path):
     assert q.runs[1].overrides[-3:] == ["budget=gpu", "optim.fused_loss=true", "train.guard.compiled=true"]
     with pytest.raises(ValueError, match="LABEL:KEY=VALUE"):
         qm.parse_variant("optim.fused_loss=true")
+
+
+def test_plan_from_the_command_line_takes_the_overrides_after_the_dashes(tmp_path, capsys):
+    qm.main(["plan", str(tmp_path / "q.json"), "--experiments", "dnerf_deform", "--scenes", str(tmp_path / "s1"),
+             "--seeds", "0", "1", "--est-seconds", "300", "--variants", "a:seed=0", "--", "budget=gpu", "device=cuda"])
+    q = qm.Queue.load(tmp_path / "q.json")
+    assert len(q.runs) == 2 and all(r.overrides[-3:-1] == ["budget=gpu", "device=cuda"] for r in q.runs)
+    assert "2 runs planned" in capsys.readouterr().out

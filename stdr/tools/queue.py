@@ -202,7 +202,7 @@ def main(argv=None) -> None:
     p.add_argument("--seeds", type=int, nargs="+", default=[0])
     p.add_argument("--est-seconds", type=float, required=True, help="a run's expected wall seconds (concurrent)")
     p.add_argument("--variants", nargs="*", default=[], help="LABEL:KEY=V,KEY=V ... each a run of its own")
-    p.add_argument("overrides", nargs="*", help="after --: overrides every run gets")
+    p.epilog = "After --: the overrides every run gets (e.g. -- budget=gpu device=cuda)."
     r = sub.add_parser("run", help="run pending runs until the budget; pack the results")
     r.add_argument("queue", type=Path)
     r.add_argument("--work", type=Path, required=True)
@@ -212,7 +212,10 @@ def main(argv=None) -> None:
     r.add_argument("--cores", type=int, default=None, help="CPU cores to split between the runs (default: all)")
     s = sub.add_parser("status", help="the queue's counts and runs")
     s.add_argument("queue", type=Path)
-    args = ap.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    overrides = argv[argv.index("--") + 1:] if "--" in argv else []
+    args = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
+    args.overrides = overrides
     if args.cmd == "plan":
         if args.queue.exists():
             raise SystemExit(f"stdr-tool queue: {args.queue} exists; a plan never overwrites a queue's state")
