@@ -19,8 +19,8 @@ def _toy(tmp_path, iterations=20):
 
 def test_a_grid_runs_two_at_a_time_and_comes_back_in_one_archive(tmp_path):
     q = qm.plan(["embedded_deform", "embedded_4dgs"], [], [0, 1], _toy(tmp_path), est_s=5)
-    assert [r.id for r in q.runs] == ["embedded_deform__default__s0", "embedded_deform__default__s1",
-                                      "embedded_4dgs__default__s0", "embedded_4dgs__default__s1"]
+    assert [r.id for r in q.runs] == ["embedded_deform__default__s0", "embedded_4dgs__default__s0",
+                                      "embedded_deform__default__s1", "embedded_4dgs__default__s1"]
     q.save(tmp_path / "q.json")
     proc = subprocess.run([sys.executable, "-m", "stdr.cli.tool", "queue", "run", str(tmp_path / "q.json"),
                            "--work", str(tmp_path / "work"), "--out", str(tmp_path / "out"), "--concurrent", "2",

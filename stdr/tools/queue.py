@@ -78,14 +78,15 @@ def parse_variant(text: str) -> tuple[str, list[str]]:
 
 
 def plan(experiments, scenes, seeds, overrides, est_s: float, variants=()) -> Queue:
-    """Every experiment x scene x seed (x variant), in that order (one method's scenes together), as a
-    queue. No scenes: the experiments' own data (e.g. the embedded scene). variants: (label,
+    """Every seed x scene x experiment (x variant), in that order: the methods of one scene and seed
+    run next to each other, so a call that ends early leaves complete pairs, not one method's
+    column. No scenes: the experiments' own data (e.g. the embedded scene). variants: (label,
     overrides) pairs, each a run of its own with its label in the id (e.g. the torch forms and the
     speed keys side by side)."""
     runs = []
-    for exp in experiments:
+    for seed in seeds:
         for scene in scenes or [None]:
-            for seed in seeds:
+            for exp in experiments:
                 data = [f"data.path={Path(scene).resolve()}", f"data.name={Path(scene).name}"] if scene else []
                 for label, extra in variants or [("", [])]:
                     rid = run_id(exp, scene, seed) + (f"__{label}" if label else "")
