@@ -35,3 +35,21 @@ def test_the_table_pairs_runs_and_averages_the_differences_and_gaps(tmp_path):
     assert "| 5 | +0.50 | +0.25 | -0.50 | 2.50 | 3.50 |" in text
     assert "| c | 0 | deform | 25.00 / 25.00 / 25.00 | – | 0.00 |" in text
     assert "code abc1234" in text and "threads [1]" in text
+
+
+def test_the_unseen_times_table_pairs_seeds_and_measures_distances(tmp_path):
+    from studies import unseen_times as ut
+    for exp, psnrs in (("embedded_deform", [30.0, 32.0]), ("embedded_deform_stdr", [29.0, 32.5])):
+        d = tmp_path / f"{exp}__default__s0"
+        d.mkdir()
+        (d / "metrics.json").write_text(json.dumps({"val": {
+            "psnr": sum(psnrs) / 2, "per_frame_psnr": psnrs, "per_frame_time": [0.1, 0.55],
+            "code": {"commit": "abcdef0123"}, "conventions": {"machine": "M"}}}))
+    lone = tmp_path / "embedded_deform__default__s1"
+    lone.mkdir()
+    (lone / "metrics.json").write_text((tmp_path / "embedded_deform__default__s0" / "metrics.json").read_text())
+    text = ut.table(tmp_path, train_times=[0.0, 0.5, 1.0])
+    # s0: plain 31.00, STDR 30.75, Δ -0.25; per frame -1.00 / +0.50; distances 0.1 and 0.05
+    assert "| 0 | 31.00 | 30.75 | -0.25 | -1.00 / +0.50 | 2 | 0.0500 / 0.1000 |" in text
+    assert "Without their pair (not in the mean): embedded_deform s1 (31.00 dB)" in text
+    assert "Mean Δ over 1 seed(s): -0.25 dB." in text and "code abcdef0" in text
