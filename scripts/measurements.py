@@ -89,15 +89,12 @@ def pack(study: Path) -> int:
     return n
 
 
-def extract_to(archive: Path, dest: Path, only: str | None = None) -> None:
-    """Unpack `archive` (or only its subfolder `only`) into dest; members that would leave dest
-    are refused."""
+def extract_to(archive: Path, dest: Path) -> None:
+    """Unpack `archive` into dest; members that would leave dest are refused."""
     dest.mkdir(parents=True, exist_ok=True)
     root = dest.resolve()
     with tarfile.open(archive) as tar:
         for m in tar.getmembers():
-            if only is not None and not (m.name == only or m.name.startswith(only + "/")):
-                continue
             target = (dest / m.name).resolve()
             if not m.isfile() or os.path.isabs(m.name) or ".." in Path(m.name).parts or root not in target.parents:
                 raise SystemExit(f"{archive}: member {m.name!r} is not a plain file inside the archive; refused")
