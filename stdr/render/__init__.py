@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera
+from ..verified import verified_on
 from .projection import Projection, project_and_shade
 from . import compiled
 from .reference import contribution_reference, rasterize_reference
@@ -94,7 +95,6 @@ def use_compiled_projection(backend: str, compiled_projection: Optional[bool] = 
     if backend == "reference":
         return False
     if compiled_projection is None:
-        from ..verified import verified_on
         return backend in verified_on("render.compiled_projection")
     return bool(compiled_projection)
 

@@ -27,6 +27,8 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from ..verified import verified_on
+
 CSRC = Path(__file__).resolve().parent / "csrc"
 CPU_SOURCES = [CSRC / "cpu" / "raster_cpu.cpp"]
 CUDA_SOURCES = [CSRC / "cuda" / "raster_cuda.cpp", CSRC / "cuda" / "raster_kernels.cu"]
@@ -197,8 +199,6 @@ def use_compiled(key: str, setting: Optional[bool], kind: str, supported: bool =
     stdr.verified.VERIFIED[key]), the inputs are `supported` and the extension builds; true = the
     kernel, or an error that names the key and says why not (`unsupported`: what the kernel does
     not take)."""
-    from ..verified import verified_on
-
     if setting is False:
         return False
     if setting is None:
