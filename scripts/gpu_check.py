@@ -218,7 +218,7 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
                 "print('missing python packages:', missing) if missing else print('python packages: ok'); "
                 "raise SystemExit(3 if missing else 0)")
     kind = "cpu" if dry else "cuda"
-    build_code = ("import time; from stdr.render import compiled as c; t = time.time(); "
+    build_code = ("import time; from stdr import extension as c; t = time.time(); "
                   f"m = c.load_extension('{kind}', verbose=True); "
                   f"print('{kind} extension in %.1f s: %s' % (time.time() - t, m.__file__))")
     first = [Stage("env", 15, 60, ["bash", "-c", ("nvidia-smi -L && nvidia-smi --query-gpu=name,driver_version,memory.total,"
@@ -336,7 +336,7 @@ def sanitize_probe(kind: str) -> None:
                      compiled_projection=True)
         (out.image.square().sum() + out.depth.sum() + out.alpha.sum()).backward()
     # 4dgs's HexPlane sampling (forward and the planes' backward), points inside and outside
-    from stdr.render.compiled import hexplane_compiled
+    from stdr.deform.hexplane import hexplane_compiled
     g = torch.Generator().manual_seed(3)
     planes = [torch.rand(8, h, w, generator=g).to(kind).requires_grad_(True)
               for h, w in ((32, 32), (32, 32), (25, 32), (32, 32), (25, 32), (25, 32)) * 2]
@@ -344,7 +344,8 @@ def sanitize_probe(kind: str) -> None:
     (hexplane_compiled(coords, planes, kind) ** 2).sum().backward()
     # the training loss (forward, backward) and the guard's check (a clean list, then a NaN in a
     # tensor beyond the first block's elements)
-    from stdr.render.compiled import guard_update_compiled, image_loss_compiled
+    from stdr.metrics import image_loss_compiled
+    from stdr.train.guard import guard_update_compiled
     img = torch.rand(37, 53, 3, generator=g).to(kind).requires_grad_(True)
     image_loss_compiled(img, torch.rand(37, 53, 3, generator=g).to(kind), 0.2)[0].backward()
     flag, step, index = (torch.zeros((), device=kind), torch.full((), -1, device=kind),
@@ -397,7 +398,7 @@ def main(argv=None) -> int:
         return 3
     cpu_build = None
     if not args.dry_run:  # the CPU extension (the CUDA-vs-CPU tests need it) builds beside the CUDA one
-        cpu_build = subprocess.Popen([args.python, "-c", "from stdr.render import compiled; compiled.load_extension('cpu')"],
+        cpu_build = subprocess.Popen([args.python, "-c", "from stdr import extension; extension.load_extension('cpu')"],
                                      cwd=ROOT, stdout=open(args.work / "res" / "build_cpu.log", "w"),
                                      stderr=subprocess.STDOUT)
     if not runner.run(first[1], always=True):

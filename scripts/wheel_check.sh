@@ -21,7 +21,7 @@ VPY=$here/.venv/bin/python
 echo "[wheel] building the wheel"
 "$VPY" -m pip wheel -q --no-deps --no-build-isolation -w "$WORK/dist" "$here"
 whl=$(ls "$WORK"/dist/stdr-*.whl)
-echo "[wheel] $whl: $(unzip -l "$whl" | grep -c 'stdr/configs/.*\.yaml') config files, $(unzip -l "$whl" | grep -c 'stdr/render/csrc/') kernel sources"
+echo "[wheel] $whl: $(unzip -l "$whl" | grep -c 'stdr/configs/.*\.yaml') config files, $(unzip -l "$whl" | grep -c 'stdr/csrc/') kernel sources"
 
 echo "[wheel] a fresh venv with the wheel"
 base=$("$VPY" -c "import sys; print(sys.base_prefix)")/bin/python3

@@ -78,7 +78,7 @@ class OptimConfig:
     shN_lr: float = 1.25e-4
     fused_adam: bool = True         # torch's fused Adam on CPU and CUDA (false: the for-loop one)
     # the photometric loss ((1 - lambda_dssim) L1 + lambda_dssim D-SSIM, with the step's PSNR) as one
-    # compiled pass, forward and backward (stdr.render.compiled.image_loss_compiled), or its torch
+    # compiled pass, forward and backward (stdr.metrics.image_loss_compiled), or its torch
     # twin (stdr.metrics.image_loss). null: compiled where it has been checked (stdr.verified.VERIFIED:
     # the CPU; the CUDA kernel passed its parity tests on an H100, not yet a full run) and the
     # extension builds; true / false

@@ -9,7 +9,9 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
+from . import extension
 from .ops import fixed_mean
 
 _WINDOWS: dict = {}
@@ -105,7 +107,7 @@ def image_loss(img: Tensor, gt: Tensor, lam: float) -> tuple[Tensor, Tensor, Ten
     """The photometric training loss: (loss, l1, dssim, psnr), 0-d tensors, with
     loss = (1 - lam) * l1(img, gt) + lam * (1 - ssim(img, gt)). With lam = 0 the D-SSIM is
     computed without a gradient (for the log only). The torch twin of
-    `stdr.render.compiled.image_loss_compiled` (`fused_loss`)."""
+    `image_loss_compiled` (below; `fused_loss`)."""
     loss_l1 = l1(img, gt)
     if lam > 0:
         loss_dssim = 1.0 - ssim(img, gt)
@@ -120,10 +122,58 @@ def image_loss(img: Tensor, gt: Tensor, lam: float) -> tuple[Tensor, Tensor, Ten
 def fused_loss(setting, device: torch.device, dtype: torch.dtype = torch.float32) -> bool:
     """Whether a run's loss is the compiled one (optim.fused_loss resolved): null = where it has
     been verified and the extension builds; true insists (an error says why it cannot)."""
-    from .render import compiled
-
     kind = device.type
-    return compiled.use_compiled("optim.fused_loss", setting, kind,
-                                 dtype in compiled.LOSS_DTYPES.get(kind, ()),
-                                 f"the compiled loss runs in float32/float64 on the CPU and float32 on CUDA, this run "
-                                 f"is {dtype} on {device}")
+    return extension.use_compiled("optim.fused_loss", setting, kind,
+                                  dtype in LOSS_DTYPES.get(kind, ()),
+                                  f"the compiled loss runs in float32/float64 on the CPU and float32 on CUDA, this run "
+                                  f"is {dtype} on {device}")
+
+
+# ----------------------------------------------------------------- its compiled form (stdr/csrc/cpu/loss_cpu.h)
+class _ImageLoss(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, img, gt, lam, window, sigma, ext):
+        loss, stats, partials = ext.image_loss_forward(img, gt, lam, window, sigma)
+        ctx.save_for_backward(img, gt, partials)
+        ctx.args = (lam, window, sigma, ext)
+        ctx.mark_non_differentiable(stats)
+        return loss, stats
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_loss, g_stats):
+        img, gt, partials = ctx.saved_tensors
+        lam, window, sigma, ext = ctx.args
+        return ext.image_loss_backward(g_loss, img, gt, partials, lam, window, sigma), None, None, None, None, None
+
+
+# the dtypes each loss kernel takes (the CUDA one is float32 only)
+LOSS_DTYPES = {"cpu": (torch.float32, torch.float64), "cuda": (torch.float32,)}
+
+
+def image_loss_compiled(img: Tensor, gt: Tensor, lam: float, window: int = 11,
+                        sigma: float = 1.5) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The photometric training loss in one compiled pass: (loss, l1, dssim, psnr), 0-d tensors,
+    where loss = (1 - lam) * l1 + lam * dssim and only loss has a gradient (img's). The torch
+    twin is `image_loss` (above); tests/test_fused_loss.py pins the two together. The CPU
+    kernel is one call each way; the CUDA one three launches forward and two backward, with no
+    host sync (the loss gradient is read on the device). Both are deterministic.
+
+    img, gt [H, W, C] on one device (CPU: float32 or float64; CUDA: float32); gt is a target (no
+    gradient)."""
+    if img.dim() != 3 or img.shape != gt.shape:
+        raise ValueError(f"stdr image_loss: img and gt must be [H, W, C] of one shape, got {list(img.shape)} and "
+                         f"{list(gt.shape)}")
+    kind = img.device.type
+    want = LOSS_DTYPES.get(kind, ())
+    for name, t in (("img", img), ("gt", gt)):
+        if t.device != img.device or t.dtype not in want or t.dtype != img.dtype:
+            raise ValueError(f"stdr image_loss: {name} is {t.dtype} on {t.device}; both must be on one device, of one "
+                             "dtype: float32 or float64 on the CPU, float32 on CUDA")
+    if gt.requires_grad:
+        raise ValueError("stdr image_loss: gt needs a gradient; the compiled loss differentiates img only")
+    if not 1 <= window <= 31 or window % 2 == 0:
+        raise ValueError(f"stdr image_loss: window={window} must be odd, 1..31")
+    ext = extension.load_extension(kind)
+    loss, stats = _ImageLoss.apply(img.contiguous(), gt.contiguous(), float(lam), int(window), float(sigma), ext)
+    return loss, stats[0], stats[1], stats[2]

@@ -15,6 +15,7 @@ same shared function everywhere.
 import pytest
 import torch
 
+from stdr import extension
 from stdr.render import compiled
 from stdr.render.projection import project_gaussians
 
@@ -29,7 +30,7 @@ def _packed(tile: int):
     cam = look_at_camera((2.5, 0.3, 0.8), width=W, height=H)
     means, quats, scales, opac, colors = random_gaussians(600, seed=4)
     p = project_gaussians(means, quats, scales, opac, cam)
-    ext = compiled.load_extension("cpu")
+    ext = extension.load_extension("cpu")
     feats = torch.cat([colors, p.depths[:, None]], -1)
     _, _, _, ids, offsets, packed, order = ext.forward(p.means2d, p.conics, p.opacities, feats, p.depths,
                                                        p.radii.to(torch.int32), W, H, tile)

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from stdr import render as render_mod
+from stdr import extension
 from stdr.render import compiled, rasterize, render, resolve_backend
 from stdr.verified import VERIFIED
 from stdr.render.projection import project_and_shade, project_gaussians
@@ -202,20 +203,20 @@ def test_auto_prefers_compiled_and_falls_back_with_one_warning(monkeypatch):
     with pytest.raises(ValueError, match="render.backend"):
         resolve_backend("opengl")
     # simulate a machine without a compiler: a fresh module cache and a failing build
-    monkeypatch.setattr(compiled, "_modules", {})
-    monkeypatch.setattr(compiled, "_errors", {})
+    monkeypatch.setattr(extension, "_modules", {})
+    monkeypatch.setattr(extension, "_errors", {})
     monkeypatch.setattr(render_mod, "_warned", set())
 
     def no_compiler(kind, verbose=False):
-        raise compiled.BuildError(f"could not build the {kind} rasterizer: no C++ compiler")
-    monkeypatch.setattr(compiled, "_compile", no_compiler)
+        raise extension.BuildError(f"could not build the {kind} extension: no C++ compiler")
+    monkeypatch.setattr(extension, "_compile", no_compiler)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         assert resolve_backend("auto", "cpu") == "reference"
         assert resolve_backend("auto", "cpu") == "reference"
     msgs = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
     assert len(msgs) == 1 and "no C++ compiler" in msgs[0] and "reference" in msgs[0]
-    with pytest.raises(compiled.BuildError, match="no C\\+\\+ compiler"):
+    with pytest.raises(extension.BuildError, match="no C\\+\\+ compiler"):
         resolve_backend("cpu")  # asked for by name: an error, never a silent fallback
 
 
@@ -265,7 +266,7 @@ def test_extension_checks_raise_with_literal_messages():
         ext.forward(z(2, 2), z(3, 3), z(2), z(2, 3), z(2), torch.ones(2, dtype=torch.int32), 8, 8, 16)
     with pytest.raises(RuntimeError, match="render.tile_size must be in"):
         ext.forward(z(2, 2), z(2, 3), z(2), z(2, 3), z(2), torch.ones(2, dtype=torch.int32), 8, 8, 64)
-    sources = [p for p in compiled.CSRC.rglob("*") if p.suffix in (".cpp", ".cu", ".h")]
+    sources = [p for p in extension.CSRC.rglob("*") if p.suffix in (".cpp", ".cu", ".h")]
     calls = 0
     for src in sources:
         text = src.read_text()
@@ -287,7 +288,7 @@ def test_extension_checks_raise_with_literal_messages():
             assert re.fullmatch(r'("([^"\\]|\\.)*"\s*)+', msg), f"{src.name}: formatted TORCH_CHECK message {msg!r}"
             calls += 1
     assert calls >= 15
-    header = (compiled.CSRC / "raster_math.h").read_text()
+    header = (extension.CSRC / "raster_math.h").read_text()
     assert f"constexpr int MAX_CHANNELS = {compiled.MAX_CHANNELS};" in header
 
 
@@ -298,7 +299,7 @@ NVCC = shutil.which("nvcc")
 @pytest.mark.parametrize("arch", ["sm_80", "sm_90"])
 def test_cuda_kernels_compile_with_nvcc(tmp_path, arch):
     """Every .cu compiles on its own (no torch headers in kernel translation units)."""
-    sources = sorted((compiled.CSRC / "cuda").glob("*.cu"))
+    sources = sorted((extension.CSRC / "cuda").glob("*.cu"))
     assert sources
     for src in sources:
         text = src.read_text()
@@ -358,7 +359,7 @@ def test_cuda_binding_compiles_against_torch_headers(tmp_path):
     (stub / "cuda_cmake_macros.h").write_text("#pragma once\n")
     incs = [f"-I{p}" for p in include_paths()] + [f"-I{sysconfig.get_paths()['include']}",
                                                    f"-I{tmp_path / 'stub'}", f"-I{cuda_inc}"]
-    src = compiled.CSRC / "cuda" / "raster_cuda.cpp"
+    src = extension.CSRC / "cuda" / "ops_cuda.cpp"
     proc = subprocess.run(["g++", "-fsyntax-only", "-std=c++17", "-DTORCH_EXTENSION_NAME=x",
                            *incs, str(src)], capture_output=True, text=True, timeout=300)
     errors = [ln for ln in proc.stderr.splitlines() if "error" in ln]
@@ -378,7 +379,7 @@ def test_a_lock_left_by_a_killed_build_is_cleared_not_waited_on_forever(tmp_path
     import os
     import time as _time
 
-    from stdr.render.compiled import clear_stale_lock
+    from stdr.extension import clear_stale_lock
     lock = tmp_path / "lock"
     assert not clear_stale_lock(tmp_path)  # no lock: nothing to do
     lock.touch()

@@ -58,7 +58,6 @@ def test_no_step_creates_a_tensor_on_a_hard_coded_device(tmp_path, name):
     """Training (densification, opacity reset, STDR's phases and field, the baseline's stages),
     a checkpoint, a resume and the evaluation run with the default device set to 'meta', and end
     bit-identical to the same run without it."""
-    from stdr.eval.evaluate import evaluate_run
     from stdr.train.trainer import Trainer
 
     sched = SCHEDULE + [f"experiment=embedded_{name}_stdr", "device=cpu"]
@@ -68,7 +67,7 @@ def test_no_step_creates_a_tensor_on_a_hard_coded_device(tmp_path, name):
     b = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "b", splits=("train", "test"))
     with _DefaultDevice("meta"):
         b.train()  # resumes at 35 from the checkpoint
-        res = evaluate_run(b, "test", b.cfg.eval)
+        res = b.evaluate_final("test")
     assert b.step == a.step == 60
     for k in a.model.params:
         assert b.model.params[k].device.type == "cpu" and torch.equal(a.model.params[k], b.model.params[k]), k
@@ -87,7 +86,6 @@ def test_training_on_cuda_keeps_every_tensor_there_and_resumes(tmp_path, name):
     projection + SH kernels are used (pinned, so a broken build fails instead of falling back);
     a stopped run resumes on the GPU. The CUDA backward accumulates with atomics, so the resumed
     run is compared within a tolerance."""
-    from stdr.eval.evaluate import evaluate_run
     from stdr.train.trainer import Trainer
 
     sched = SCHEDULE + [f"experiment=embedded_{name}_stdr", "device=cuda", "render.backend=cuda",
@@ -107,7 +105,7 @@ def test_training_on_cuda_keeps_every_tensor_there_and_resumes(tmp_path, name):
     b = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "b", splits=("train", "test"))
     b.train()
     assert b.step == 60
-    ra, rb = evaluate_run(a, "test", a.cfg.eval), evaluate_run(b, "test", b.cfg.eval)
+    ra, rb = a.evaluate_final("test"), b.evaluate_final("test")
     assert ra["conventions"]["device"].startswith("cuda") and ra["conventions"]["render_backend"] == "cuda"
     assert ra["conventions"]["render_projection"] == "compiled"
     assert abs(ra["psnr"] - rb["psnr"]) < 0.5, (ra["psnr"], rb["psnr"])

@@ -98,7 +98,7 @@ def test_recovery_restores_the_snapshot_exactly_and_lowers_every_lr(tmp_path):
     tr.guard.snapshot = tr.guard.best_snapshot = None
     tr2 = _trainer(tmp_path, "tr2", ["train.stop_at=17"])
     tr2.train()  # last snapshot: step 10
-    tr2.guard.recover(tr2, "a test")
+    tr2.guard.recover(tr2.state, tr2.log, "a test")
     assert tr2.step == 10 and tr2.guard.lr_scale == 0.5
     _same_params(ref, tr2)
     tr2._update_lrs(tr2.step)
@@ -170,19 +170,19 @@ def test_the_sync_free_check_needs_fused_adam(tmp_path):
 def test_divergence_restores_the_best_evaluation(tmp_path):
     tr = _trainer(tmp_path, "div", ["optim.iterations=20", "baseline.warmup=10", "train.guard.divergence_db=5"])
     tr.train()
-    tr.guard.after_evaluation(tr, 20.0)  # the best so far, at step 20
+    tr.guard.after_evaluation(tr.state, tr.log, 20.0)  # the best so far, at step 20
     best_params = {k: v.detach().clone() for k, v in tr.model.params.items()}
     tr.cfg.optim.iterations = 30
     tr.train()  # resumes from its own checkpoint (step 20) and goes on to 30
     assert tr.step == 30
-    tr.guard.after_evaluation(tr, 16.0)  # 4 dB down: within the tolerance
+    tr.guard.after_evaluation(tr.state, tr.log, 16.0)  # 4 dB down: within the tolerance
     assert tr.step == 30 and tr.guard.recoveries == []
-    tr.guard.after_evaluation(tr, 14.0)  # 6 dB down: diverged
+    tr.guard.after_evaluation(tr.state, tr.log, 14.0)  # 6 dB down: diverged
     assert tr.step == 20 and len(tr.guard.recoveries) == 1
     assert tr.guard.recoveries[0]["reason"].startswith("divergence") and tr.guard.lr_scale == 0.5
     for k, v in best_params.items():
         assert torch.equal(tr.model.params[k], v), k
-    tr.guard.after_evaluation(tr, float("nan"))  # a non-finite evaluation is a recovery too
+    tr.guard.after_evaluation(tr.state, tr.log, float("nan"))  # a non-finite evaluation is a recovery too
     assert "non-finite evaluation" in tr.guard.recoveries[-1]["reason"]
 
 
@@ -343,16 +343,16 @@ def _faulty_tensors():
 
 
 def test_the_compiled_check_agrees_with_the_torch_one():
-    from stdr.render import compiled
-    from stdr.train.guard import nonfinite_flags
-    if not compiled.available("cpu"):
+    from stdr import extension
+    from stdr.train.guard import nonfinite_flags, nonfinite_flags_compiled
+    if not extension.available("cpu"):
         pytest.skip("the CPU extension cannot be built here")
     ts = _faulty_tensors()
     checked = [t for t in ts if t.numel()]
     want = nonfinite_flags(checked)
     assert want.sum() > 0 and (~want).sum() > 0
-    assert torch.equal(compiled.nonfinite_flags_compiled(checked), want)
-    assert not compiled.nonfinite_flags_compiled([torch.tensor([])]).any()  # empty: nothing to find
+    assert torch.equal(nonfinite_flags_compiled(checked), want)
+    assert not nonfinite_flags_compiled([torch.tensor([])]).any()  # empty: nothing to find
     assert all_finite([ts[-4]], compiled=True) and not all_finite([ts[0]], compiled=True)
 
 
@@ -362,9 +362,9 @@ def test_the_compiled_step_update_is_the_torch_one(backend):
     compiled against the torch operators: the same flag, first faulty step and index."""
     from types import SimpleNamespace
 
-    from stdr.render import compiled
+    from stdr import extension
     from stdr.train.guard import Guard
-    if not compiled.available(backend):
+    if not extension.available(backend):
         pytest.skip(f"the {backend} extension cannot be built here")
     bad = torch.ones(5)
     bad[3] = float("nan")
@@ -375,32 +375,29 @@ def test_the_compiled_step_update_is_the_torch_one(backend):
     steps = {k: [t.to(backend) for t in v] for k, v in steps.items()}
     states = {}
     for compiled_ in (False, True):
-        g = Guard(checks=True, sync_free=True, compiled=compiled_)
+        g = Guard(checks=True, sync_free=True, compiled=compiled_, cfg=SimpleNamespace(inject_nan_grad_at=[]))
         seen = []
         for step, (p, q) in steps.items():
             params = {"means": SimpleNamespace(grad=p), "scales": SimpleNamespace(grad=q)}
-            trainer = SimpleNamespace(model=SimpleNamespace(params=params), network_params=lambda: [],
-                                      cfg=SimpleNamespace(train=SimpleNamespace(guard=SimpleNamespace(
-                                          inject_nan_grad_at=[]))))
-            flag = g.flag_step(trainer, torch.tensor(0.5, device=backend), step)
+            state = SimpleNamespace(model=SimpleNamespace(params=params), network_params=lambda: [])
+            flag = g.flag_step(state, torch.tensor(0.5, device=backend), step)
             seen.append((float(flag), int(g.bad_step), int(g.bad_index)))
         states[compiled_] = (seen, g.poll())
     assert states[True] == states[False]
     assert states[True][0] == [(0.0, -1, -1), (1.0, 2, 2), (1.0, 2, 2), (1.0, 2, 2)]
     assert states[True][1] == (2, "non-finite grad of scales")
     # a fault at the very end of a large tensor, found by the compiled update alone
-    g = Guard(checks=True, sync_free=True, compiled=True)
+    g = Guard(checks=True, sync_free=True, compiled=True, cfg=SimpleNamespace(inject_nan_grad_at=[]))
     params = {"means": SimpleNamespace(grad=torch.ones(3, device=backend)), "scales": SimpleNamespace(grad=big.to(backend))}
-    trainer = SimpleNamespace(model=SimpleNamespace(params=params), network_params=lambda: [],
-                              cfg=SimpleNamespace(train=SimpleNamespace(guard=SimpleNamespace(inject_nan_grad_at=[]))))
-    g.flag_step(trainer, torch.tensor(0.5, device=backend), 7)
+    state = SimpleNamespace(model=SimpleNamespace(params=params), network_params=lambda: [])
+    g.flag_step(state, torch.tensor(0.5, device=backend), 7)
     assert g.poll() == (7, "non-finite grad of scales")
 
 
 def test_the_compiled_check_is_the_default_on_the_cpu_and_finds_the_same_fault(tmp_path):
-    from stdr.render import compiled
+    from stdr import extension
     from stdr.verified import VERIFIED
-    if not compiled.available("cpu"):
+    if not extension.available("cpu"):
         pytest.skip("the CPU extension cannot be built here")
     assert VERIFIED["train.guard.compiled"] == ("cpu",)  # CPU code: CUDA runs keep the torch operators
     runs = {}

@@ -4,7 +4,7 @@ import torch
 
 from stdr.deform.hexplane import HexPlaneField
 from stdr.verified import VERIFIED
-from stdr.render import compiled
+from stdr.deform import hexplane as hexplane_mod
 
 BACKENDS = ["cpu"] + (["cuda"] if torch.cuda.is_available() and torch.version.cuda else [])
 NO_CUDA = "no CUDA device on this machine (torch.cuda.is_available() is False)"
@@ -37,7 +37,7 @@ def _features_and_grads(field, c, t, kind, weights):
     else:
         dev = "cuda" if kind == "cuda" else "cpu"
         planes = [p.detach().to(dev).requires_grad_(True) for p in planes]
-        out = compiled.hexplane_compiled(c.to(dev), planes, kind)
+        out = hexplane_mod.hexplane_compiled(c.to(dev), planes, kind)
     (out * weights.to(out.device, out.dtype)).sum().backward()
     return out.detach().cpu(), [p.grad.detach().cpu() for p in planes]
 
@@ -77,8 +77,8 @@ def test_the_field_uses_it_where_verified_and_the_key_overrides(monkeypatch):
     assert VERIFIED["baseline.hexplane.compiled"] == ("cpu",)  # CUDA: once a GPU check has run these tests there
     c = _coords(50, torch.float32, 0.5)
     calls = []
-    real = compiled.hexplane_compiled
-    monkeypatch.setattr(compiled, "hexplane_compiled", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+    real = hexplane_mod.hexplane_compiled
+    monkeypatch.setattr(hexplane_mod, "hexplane_compiled", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
     for setting, used in ((None, ["cpu"]), (True, ["cpu"]), (False, [])):
         calls.clear()
         field = _field(torch.float32, compiled_=setting)
@@ -107,13 +107,13 @@ def test_bad_inputs_are_rejected_with_what_is_wrong():
     planes = [p for planes in field.grids for p in planes]
     c = _coords(10, torch.float32, 0.5)
     with pytest.raises(ValueError, match=r"coords must be \[N, 4\]"):
-        compiled.hexplane_compiled(c[:, :3], planes)
+        hexplane_mod.hexplane_compiled(c[:, :3], planes)
     with pytest.raises(ValueError, match="6 per scale"):
-        compiled.hexplane_compiled(c, planes[:5])
+        hexplane_mod.hexplane_compiled(c, planes[:5])
     with pytest.raises(ValueError, match="float64"):
-        compiled.hexplane_compiled(c, [p.double() for p in planes])
+        hexplane_mod.hexplane_compiled(c, [p.double() for p in planes])
     with pytest.raises(ValueError, match=r"C=5"):
-        compiled.hexplane_compiled(c, planes[:-1] + [torch.zeros(4, 3, 3)])
+        hexplane_mod.hexplane_compiled(c, planes[:-1] + [torch.zeros(4, 3, 3)])
 
 
 def test_4dgs_trains_with_it_and_the_key_composes(tmp_path, monkeypatch):
@@ -123,8 +123,8 @@ def test_4dgs_trains_with_it_and_the_key_composes(tmp_path, monkeypatch):
     from stdr.train.trainer import Trainer
 
     calls = []
-    real = compiled.hexplane_compiled
-    monkeypatch.setattr(compiled, "hexplane_compiled", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+    real = hexplane_mod.hexplane_compiled
+    monkeypatch.setattr(hexplane_mod, "hexplane_compiled", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
     loss = {}
     for setting in ("null", "false"):
         calls.clear()

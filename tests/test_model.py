@@ -104,7 +104,6 @@ def tagger():
 
 @pytest.mark.slow
 def test_a_plugin_trains_through_the_hooks_alone(tmp_path, tagger):
-    from stdr.eval.evaluate import evaluate_run
     from stdr.train.trainer import Trainer
     t = Trainer(_tiny(tmp_path, SCHED + ["experiment=embedded_deform", "tagger=on"]), tmp_path / "run",
                 splits=("train", "test"))
@@ -127,7 +126,7 @@ def test_a_plugin_trains_through_the_hooks_alone(tmp_path, tagger):
     t._update_lrs(10)
     assert {g["name"]: g["lr"] for g in t.net_opt.param_groups}["tagger_net"] == pytest.approx(1e-2)
     # statistics under its name in metrics.json
-    res = evaluate_run(t, "test", t.cfg.eval)
+    res = t.evaluate_final("test")
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]["tagger"]["tag_mean"] == \
         res["tagger"]["tag_mean"]
 

@@ -320,7 +320,7 @@ def test_tensorboard_shows_phase_losses_histograms_and_mask_image(tmp_path):
     t = Trainer(_stdr_cfg(tmp_path, ["optim.iterations=16", "train.log_every=4", "train.image_every=8"]),
                 tmp_path / "run")
     t.train()
-    t.writer.flush()
+    t.log.writer.flush()
     ev = EventAccumulator(str(tmp_path / "run" / "tb"), size_guidance={"histograms": 0, "images": 0}).Reload()
     tags = ev.Tags()
     for k in ("stdr/phase", "loss/stdr_temporal", "loss/stdr_spatial", "stdr/mask_mean"):

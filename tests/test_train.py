@@ -264,6 +264,7 @@ def test_stdr_eval_reevaluation_keeps_every_field_of_the_training_entry(tmp_path
                                       "stdr.warmup_end=15", "stdr.freeze_at=25", f"hydra.run.dir={run}"])
     train_cli.main()
     first = json.loads((run / "metrics.json").read_text())["test"]
+    history = json.loads((run / "history.json").read_text())
     assert first["train_loss"] in ("compiled", "torch") and first["train_cpu_seconds"] > 0
     assert 0 < first["train_cpu_utilization"] <= 1.5
     monkeypatch.setattr(sys, "argv", ["stdr-eval", str(run), f"out={tmp_path / 'table'}", "eval.lpips=false",
@@ -272,6 +273,10 @@ def test_stdr_eval_reevaluation_keeps_every_field_of_the_training_entry(tmp_path
     capsys.readouterr()
     again = json.loads((run / "metrics.json").read_text())["test"]
     assert set(first) <= set(again), set(first) - set(again)
+    # the learning curve on disk keeps the training's evaluations and gains this one
+    again_history = json.loads((run / "history.json").read_text())
+    assert again_history[:-1] == history and again_history[-1]["tag"] == "final"
+    assert again_history[-1]["psnr"] == again["psnr"] and again["curve"][-1]["psnr"] == again["psnr"]
     remeasured = {"fps", "fps_passes", "render_seconds", "frame_seconds", "code", "curve", "last", "best", "conventions"}
     for k in set(first) - remeasured:
         if isinstance(first[k], float):

@@ -13,7 +13,7 @@ import time
 
 import torch
 
-from ..render import compiled
+from .. import extension
 
 
 def main(argv=None) -> int:
@@ -22,13 +22,13 @@ def main(argv=None) -> int:
     ap.add_argument("--verbose", action="store_true", help="print the compiler's output")
     args = ap.parse_args(argv)
     kinds = ["cpu"] + (["cuda"] if torch.cuda.is_available() and torch.version.cuda else [])
-    print(f"[stdr-build] cache: {compiled.cache_root()} (set STDR_EXT_DIR to move it)")
+    print(f"[stdr-build] cache: {extension.cache_root()} (set STDR_EXT_DIR to move it)")
     failed = False
     for kind in kinds:
         t0 = time.perf_counter()
         try:
-            mod = compiled.load_extension(kind, verbose=args.verbose)
-        except compiled.BuildError as e:
+            mod = extension.load_extension(kind, verbose=args.verbose)
+        except extension.BuildError as e:
             print(f"[stdr-build] {kind}: FAILED: {e}", file=sys.stderr)
             failed = True
             continue

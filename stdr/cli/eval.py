@@ -65,29 +65,15 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
 
 
 def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
-    """Rebuild the run's model from its checkpoint (public API: stdr.model), render `split` and
-    merge the numbers into its metrics.json."""
-    from ..eval.evaluate import evaluate_model, final_entry, history_record, make_lpips, training_facts, write_metrics
-    from ..train.guard import Guard
+    """Load the run's state from its checkpoint (its model through the public API, stdr.model),
+    and evaluate it as stdr-train does (stdr.eval.evaluate.evaluate_run: render `split`, merge the
+    numbers into its metrics.json)."""
+    from ..eval.evaluate import evaluate_run
+    from ..train.state import RunState
 
     ck, model, scene = _load_for_eval(rd, cfg, split, base)
-    dev = model.device
-    lp = make_lpips(eval_cfg)
-    if lp is not None:
-        lp = lp.to(dev)
-    save_dir = rd / "renders" / split if eval_cfg.save_images else None
-    res = evaluate_model(model, scene.frames(split), lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup,
-                         fps_repeats=eval_cfg.fps_repeats, seen=True)
-    seconds = float(ck["train_seconds"])
-    guard = None
-    if "guard" in ck:  # the training's recoveries (checkpoints from before the guard have none)
-        guard = Guard.from_state(ck["guard"]).summary(int(cfg.densify.max_gaussians) or None)
-    # the learning curve: the training's own evaluations (kept in the checkpoint), then this one
-    history = list(ck.get("history", [])) + [history_record("final", model.step, split, seconds, res)]
-    final_entry(res, split, history, seconds, model.step, guard)
-    res.update(training_facts(ck))
-    write_metrics(rd, split, res, model, eval_cfg, lp, scene.meta)
-    return res
+    state = RunState.from_checkpoint(ck, model, rd)
+    return evaluate_run(state, scene, split, eval_cfg, max_gaussians=cfg.densify.max_gaussians)
 
 
 def apply_overrides(cfg, section: str, overrides) -> None:

@@ -14,7 +14,6 @@ register()
 
 
 def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict | None:
-    from ..eval.evaluate import evaluate_run
     from ..train.trainer import Trainer
 
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -33,7 +32,7 @@ def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict | 
     trainer.train()
     if trainer.step < cfg.optim.iterations:  # train.stop_at: an unfinished run is not evaluated
         return None
-    res = evaluate_run(trainer, split, cfg.eval)
+    res = trainer.evaluate_final(split, cfg.eval)
     warm = [h for h in trainer.history if h["tag"] == "static_warmup"]
     lp = "n/a" if res["lpips"] is None else f"{res['lpips']:.4f}"
     print(f"[stdr] {split}: PSNR {res['psnr']:.2f} dB  SSIM {res['ssim']:.4f}  LPIPS {lp}  "

@@ -20,8 +20,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from torch.autograd.function import once_differentiable
 
-from ..render import compiled as compiled_backend
+from .. import extension
 from .base import BaselineConfig, Deformation, Deltas, apply_pre_activation
 from .registry import register_baseline
 
@@ -40,7 +41,7 @@ class HexPlaneConfig:
     time_smooth: float = 1e-2
     l1_time: float = 1e-4
     # the field's sampling (features forward, planes' gradients backward) as one compiled kernel
-    # (stdr.render.compiled.hexplane_compiled) instead of the torch ops: null = where it has been
+    # (hexplane_compiled, below) instead of the torch ops: null = where it has been
     # verified (stdr.verified.VERIFIED: the CPU; the CUDA kernel is built but has not run on a
     # GPU yet), true = required (an error where it cannot be built), false = torch
     compiled: Optional[bool] = None
@@ -166,6 +167,55 @@ def second_difference_smoothness(plane: Tensor) -> Tensor:
     return d2.square().mean()
 
 
+# ----------------------------------------------------------------- the compiled sampling (stdr/csrc/cpu/hexplane_cpu.h)
+# the dtypes each HexPlane kernel takes (the CUDA one is float32 only)
+HEXPLANE_DTYPES = {"cpu": (torch.float32, torch.float64), "cuda": (torch.float32,)}
+
+
+class _HexPlane(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, coords, ext, *planes):
+        feats, others = ext.hexplane_forward(coords, list(planes))
+        ctx.save_for_backward(coords, others, *planes)
+        ctx.ext = ext
+        return feats
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g):
+        coords, others, *planes = ctx.saved_tensors
+        grads = ctx.ext.hexplane_backward(coords, list(planes), others, g.to(coords.dtype).contiguous())
+        return (None, None, *grads)
+
+
+def hexplane_compiled(coords: Tensor, planes: list[Tensor], kind: str = "cpu") -> Tensor:
+    """A HexPlane field's features in one compiled pass, forward and backward (the planes'
+    gradients; the coordinates get none): [N, M*C] = for each scale m (6 planes each, in the
+    order of `stdr.deform.hexplane.PAIRS`), the product over its planes of the bilinear samples
+    at the coordinate pairs, zero outside the planes (grid_sample, align_corners=True). The
+    torch twin is `stdr.deform.hexplane.HexPlaneField.features_torch`; tests/test_compiled.py
+    pins the two together. The CPU backward is deterministic; the CUDA one adds atomically.
+
+    coords [N, 4] in [-1, 1] (x, y, z, t), planes 6*M tensors [C, H, W] (one C)."""
+    want = HEXPLANE_DTYPES["cuda" if kind == "cuda" else "cpu"]
+    if coords.dim() != 2 or coords.shape[1] != 4:
+        raise ValueError(f"stdr hexplane: coords must be [N, 4], got {list(coords.shape)}")
+    if not planes or len(planes) % 6 or len(planes) > 48:
+        raise ValueError(f"stdr hexplane: planes must be 6 per scale (at most 8 scales), got {len(planes)}")
+    dev = "cuda" if kind == "cuda" else "cpu"
+    for i, t in enumerate([coords, *planes]):
+        name = "coords" if i == 0 else f"plane {i - 1}"
+        if t.dtype != coords.dtype or t.dtype not in want:
+            raise ValueError(f"stdr {kind} hexplane: {name} is {t.dtype}; every input must be one of {want}")
+        if t.device.type != dev or t.device != coords.device:
+            raise ValueError(f"stdr {kind} hexplane: {name} is on {t.device}; every input must be on {coords.device} "
+                             f"({dev})")
+        if i and (t.dim() != 3 or t.shape[0] != planes[0].shape[0]):
+            raise ValueError(f"stdr hexplane: {name} must be [C, H, W] with C={planes[0].shape[0]}, got {list(t.shape)}")
+    ext = extension.load_extension(kind)
+    return _HexPlane.apply(coords.detach().contiguous(), ext, *[p.contiguous() for p in planes])
+
+
 class HexPlaneField(nn.Module):
     def __init__(self, base_res: int = 64, multires: Sequence[int] = (1, 2), channels: int = 32,
                  time_res: int = 25, compiled: Optional[bool] = None):
@@ -208,16 +258,16 @@ class HexPlaneField(nn.Module):
         if self.compiled is False or c.requires_grad:
             return None
         kind = c.device.type
-        use = compiled_backend.use_compiled("baseline.hexplane.compiled", self.compiled, kind,
-                                            c.dtype in compiled_backend.HEXPLANE_DTYPES.get(kind, ()),
-                                            f"no compiled HexPlane sampling for {c.dtype} on {kind}")
+        use = extension.use_compiled("baseline.hexplane.compiled", self.compiled, kind,
+                                     c.dtype in HEXPLANE_DTYPES.get(kind, ()),
+                                     f"no compiled HexPlane sampling for {c.dtype} on {kind}")
         return kind if use else None
 
     def forward(self, xyz: Tensor, t: float) -> Tensor:  # [N, 3] -> [N, feat_dim]
         c = self.normalize(xyz, t)
         kind = self.compiled_kind(c)
         if kind is not None:
-            return compiled_backend.hexplane_compiled(c, [p for planes in self.grids for p in planes], kind)
+            return hexplane_compiled(c, [p for planes in self.grids for p in planes], kind)
         return self.features_torch(c, t)
 
     def features_torch(self, c: Tensor, t: float) -> Tensor:

@@ -228,51 +228,70 @@ def history_record(tag: str, iteration: int, split: str, train_seconds: float, r
             "frames": res["num_frames"], **{k: res[k] for k in ("psnr", "ssim", "lpips", "num_gaussians")}}
 
 
-def final_entry(res: dict[str, Any], split: str, history: list[dict[str, Any]], train_seconds: float,
-                iterations: int, guard: Optional[dict[str, Any]]) -> dict[str, Any]:
-    """The metrics.json entry of a run's final evaluation `res` (evaluate_model's result), the one
-    builder for stdr-train and stdr-eval: adds the training seconds and iterations, the learning
-    curve of `history` (which ends with this evaluation's record), its best and last points, and
-    the guard's summary (None: a run from before the guard)."""
-    curve = learning_curve(history, split)
-    res.update({"train_seconds": train_seconds, "iterations": iterations, "curve": curve, **best_and_last(curve)})
-    if guard is not None:
-        res["guard"] = guard
+def evaluate_state(state, frames, split: str, tag: str = "final", step: Optional[int] = None, log=None,
+                   lpips_fn=None, save_dir: Optional[Path] = None, fps_warmup: int = 3, fps_repeats: int = 1,
+                   seen: bool = False) -> dict[str, Any]:
+    """Evaluate a run's model (`state.model`, a stdr.train.state.RunState) on `frames` of `split`
+    (evaluate_model) and make the evaluation a point of its learning curve (`state.history`, with
+    the training seconds so far); into an open `log` (RunLog), eval_<split>/* scalars."""
+    res = evaluate_model(state.model, frames, step=state.step if step is None else step, lpips_fn=lpips_fn,
+                         save_dir=save_dir, fps_warmup=fps_warmup, fps_repeats=fps_repeats, seen=seen)
+    rec = history_record(tag, state.step, split, state.train_seconds, res)
+    state.history.append(rec)
+    if log is not None:
+        for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds"):
+            if rec[k] is not None:
+                log.scalar_if_open(f"eval_{split}/{k}", rec[k], state.step)
     return res
 
 
-def training_facts(payload: dict[str, Any]) -> dict[str, Any]:
-    """What a split's metrics.json entry says about the training, from the run's state (a live
-    trainer's checkpoint payload or a loaded checkpoint: the same keys), so that `stdr-train`'s
-    evaluation and `stdr-eval`'s re-evaluation write the same fields:
+def training_facts(state) -> dict[str, Any]:
+    """What a split's metrics.json entry says about the training, from the run's state:
     * train_cpu_seconds, and train_cpu_utilization = that / (train_seconds x the training's thread
       count): near 1, the run had the cores to itself; e.g. 0.5, another job took half the machine.
       None: unknown (a checkpoint from before it was recorded);
     * train_loss: the form of the training loss that ran (optim.fused_loss), `compiled` or `torch`
       (None: not recorded);
     * prune: the contribution-pruning events (stdr.scene.prune), when there were any."""
-    cpu, secs, threads = payload.get("train_cpu_seconds"), float(payload.get("train_seconds") or 0.0), payload.get("train_threads")
+    cpu, secs, threads = state.train_cpu_seconds, float(state.train_seconds or 0.0), state.train_threads
     out = {"train_cpu_seconds": cpu,
            "train_cpu_utilization": cpu / (secs * threads) if cpu is not None and threads and secs > 0 else None,
-           "train_loss": payload.get("train_loss")}
-    if payload.get("prune_log"):
-        out["prune"] = list(payload["prune_log"])
+           "train_loss": state.train_loss}
+    if state.prune_log:
+        out["prune"] = list(state.prune_log)
     return out
 
 
-def evaluate_run(trainer, split: str, eval_cfg) -> dict[str, Any]:
-    """Final evaluation of a trained run; merges the result into run_dir/metrics.json."""
+def metrics_entry(res: dict[str, Any], split: str, state, max_gaussians: Optional[int]) -> dict[str, Any]:
+    """The metrics.json entry of a run's final evaluation `res` of `split` (evaluate_model's
+    result) from its state, live (stdr-train) or loaded (stdr-eval): the one builder. Adds the
+    training seconds and iterations, the learning curve of `state.history` (which ends with this
+    evaluation's record), its best and last points, the guard's summary (none for a run from
+    before the guard) and the training facts (training_facts)."""
+    curve = learning_curve(state.history, split)
+    res.update({"train_seconds": state.train_seconds, "iterations": state.step, "curve": curve,
+                **best_and_last(curve)})
+    if state.guard is not None:
+        res["guard"] = state.guard.summary(max_gaussians)
+    res.update(training_facts(state))
+    return res
+
+
+def evaluate_run(state, scene, split: str, eval_cfg, max_gaussians: Optional[int] = None, log=None) -> dict[str, Any]:
+    """The final evaluation of a run (a RunState, live or loaded) on `split` of `scene`: renders it,
+    builds the metrics entry (metrics_entry), merges it into run_dir/metrics.json and writes the
+    learning curve to run_dir/history.json. `max_gaussians`: densify.max_gaussians (0/None: no
+    cap), for the guard's report."""
     lp = make_lpips(eval_cfg)
     if lp is not None:
-        lp = lp.to(trainer.device)
-    save_dir = trainer.run_dir / "renders" / split if eval_cfg.save_images else None
-    res = trainer.evaluate(split, tag="final", lpips_fn=lp, save_dir=save_dir, fps_warmup=eval_cfg.fps_warmup,
-                           fps_repeats=eval_cfg.fps_repeats, seen=True)
-    final_entry(res, split, trainer.history, trainer.train_seconds, trainer.step,
-                trainer.guard.summary(int(trainer.strategy.max_gaussians) or None))
-    res.update(training_facts(trainer.checkpoint_payload()))
-    write_metrics(trainer.run_dir, split, res, trainer.model, eval_cfg, lp, trainer.scene.meta)
-    (trainer.run_dir / "history.json").write_text(json.dumps(trainer.history, indent=1))
+        lp = lp.to(state.model.device)
+    run_dir = Path(state.run_dir)
+    save_dir = run_dir / "renders" / split if eval_cfg.save_images else None
+    res = evaluate_state(state, scene.frames(split), split, tag="final", log=log, lpips_fn=lp, save_dir=save_dir,
+                         fps_warmup=eval_cfg.fps_warmup, fps_repeats=eval_cfg.fps_repeats, seen=True)
+    metrics_entry(res, split, state, int(max_gaussians or 0) or None)
+    write_metrics(run_dir, split, res, state.model, eval_cfg, lp, scene.meta)
+    (run_dir / "history.json").write_text(json.dumps(state.history, indent=1))
     return res
 
 

@@ -1,10 +1,10 @@
-"""Compiled rasterizer backends: C++ (CPU, vectorized, multi-threaded) and CUDA, with the
-projection and SH shading (`project_sh_compiled`, math in `csrc/project_math.h`).
-
-Both are built just in time on first use with `torch.utils.cpp_extension` into a cache keyed by
-the sources, flags, torch version and CPU, or ahead of time with `stdr-build`. The CUDA backend is
-built only when torch has CUDA. They share one math header (`csrc/raster_math.h`) and the
-semantics of `reference.py`, which the tests pin them to.
+"""The rasterizer family's compiled form (C++ on the CPU, CUDA) and its bindings: the tile
+rasterizer with its hand-written backward, the contribution score, the CUDA binning's two passes
+(tests), and the projection with SH shading (`project_sh_compiled`, math in
+`stdr/csrc/project_math.h`). The torch twins are `reference.py`, `projection.py` and `sh.py`, which
+the tests pin these to. The extension itself (sources, build, loading, the verified-device
+switch) is `stdr.extension`; its other families are bound beside their own twins (HexPlane:
+stdr.deform.hexplane, the training loss: stdr.metrics, the guard's check: stdr.train.guard).
 
 The extension sorts the visible Gaussians by depth (a stable radix sort), packs one row per
 visible Gaussian, [mx, my, a, b, c, o, f_0..f_{F-1}], bins Gaussian-tile pairs with an exact
@@ -13,202 +13,28 @@ ellipse/tile test, composites, and in the backward scatters gradients straight b
 """
 from __future__ import annotations
 
-import hashlib
-import os
-import platform
-import sys
-import threading
-import time
-import warnings
-from pathlib import Path
 from typing import Optional
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from ..verified import verified_on
+from ..extension import (BuildError, available, build_error, cache_root, clear_stale_lock,  # noqa: F401
+                         load_extension, use_compiled)
 
-CSRC = Path(__file__).resolve().parent / "csrc"
-CPU_SOURCES = [CSRC / "cpu" / "raster_cpu.cpp"]
-CUDA_SOURCES = [CSRC / "cuda" / "raster_cuda.cpp", CSRC / "cuda" / "raster_kernels.cu"]
-HEADERS = [CSRC / "hd.h", CSRC / "raster_math.h", CSRC / "project_math.h", CSRC / "hexplane_math.h", CSRC / "loss_math.h",
-           CSRC / "cpu" / "raster_simd.h",
-           CSRC / "cpu" / "loss_cpu.h",
-           CSRC / "cuda" / "raster_kernels.h"]
-PORTABLE_ENV = "STDR_PORTABLE_BUILD"  # =1: no -march=native (e.g. a cache shared by machines)
-
-_lock = threading.Lock()
-_modules: dict[str, object] = {}
-_errors: dict[str, str] = {}
+# moved to the family's own module (stdr.extension's table); the old names keep working
+_MOVED = {"hexplane_compiled": "stdr.deform.hexplane", "HEXPLANE_DTYPES": "stdr.deform.hexplane",
+          "image_loss_compiled": "stdr.metrics", "LOSS_DTYPES": "stdr.metrics",
+          "nonfinite_flags_compiled": "stdr.train.guard", "guard_update_compiled": "stdr.train.guard"}
 
 
-class BuildError(RuntimeError):
-    pass
-
-
-def cache_root() -> Path:
-    """Where compiled extensions live: $STDR_EXT_DIR, else the user cache's extensions folder
-    (~/.cache/stdr/extensions; $XDG_CACHE_HOME moves it)."""
-    from .. import user_cache
-    env = os.environ.get("STDR_EXT_DIR")
-    return Path(env) if env else user_cache() / "extensions"
-
-
-def _cpu_id() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("flags"):
-                return line
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _cpu_flags(native: bool) -> list[str]:
-    # -fopenmp: ATen's parallel_for is inline OpenMP code, serial without it. The extension then
-    # needs libgomp.so.1, which resolves to the copy torch has already loaded (same soname), so
-    # torch and the rasterizer share one thread pool.
-    flags = ["-O3", "-fopenmp", "-std=c++17"]
-    if native:
-        flags += ["-march=native", "-mprefer-vector-width=512"]
-    return flags + os.environ.get("STDR_EXTRA_CFLAGS", "").split()
-
-
-def _key(kind: str, sources: list[Path], flags: list[str]) -> str:
-    h = hashlib.sha1()
-    # torch's JIT loader rebuilds when a build directory was last built from sources at other
-    # paths, so each checkout gets its own entry (no rebuild ping-pong between clones)
-    h.update(str(CSRC).encode())
-    for p in sources + HEADERS:
-        if p.exists():
-            h.update(p.read_bytes())
-    h.update(" ".join(flags).encode())
-    h.update(torch.__version__.encode())
-    h.update(str(torch.version.cuda).encode())
-    h.update(_cpu_id().encode())
-    h.update(sys.version.encode())
-    return f"stdr_raster_{kind}_{h.hexdigest()[:12]}"
-
-
-STALE_LOCK_SECONDS = 900  # a build takes ~15-60 s on the CPU, a few minutes with nvcc
-
-
-def clear_stale_lock(build_dir: Path, max_age: float = STALE_LOCK_SECONDS) -> bool:
-    """torch's extension builder holds `build_dir/lock` while it compiles, and every other
-    process waits for it to disappear, with no time limit. A build killed midway (Ctrl-C during
-    the first run) leaves the file behind, and every later run would hang silently. A lock older
-    than `max_age` seconds is removed with a warning; a younger one is announced (another
-    process may be building right now). Returns True when a stale lock was removed."""
-    lock = build_dir / "lock"
-    try:
-        age = time.time() - lock.stat().st_mtime
-    except FileNotFoundError:
-        return False
-    if age > max_age:
-        warnings.warn(f"removing {lock}: left {age / 60:.0f} min ago by a build that did not finish "
-                      "(killed?); building again", RuntimeWarning, stacklevel=2)
-        lock.unlink(missing_ok=True)
-        return True
-    print(f"[stdr] waiting for another process's build of the rasterizer ({lock}, {age:.0f} s old); if no "
-          "build is running, delete that file", file=sys.stderr, flush=True)
-    return False
-
-
-def _compile(kind: str, verbose: bool = False):
-    import shutil
-
-    from torch.utils import cpp_extension
-
-    # the `ninja` pip package installs next to the interpreter, which may not be on PATH
-    bindir = str(Path(sys.executable).parent)
-    if shutil.which("ninja") is None and (Path(bindir) / "ninja").exists():
-        os.environ["PATH"] = bindir + os.pathsep + os.environ.get("PATH", "")
-
-    native = os.environ.get(PORTABLE_ENV, "0") != "1" and platform.machine() in ("x86_64", "AMD64")
-    attempts = [native, False] if native else [False]
-    last_err: Optional[BaseException] = None
-    for use_native in attempts:
-        cflags = _cpu_flags(use_native)
-        if kind == "cpu":
-            sources, extra = CPU_SOURCES, {}
-        else:
-            sources = CUDA_SOURCES
-            extra = {"extra_cuda_cflags": ["-O3", "--use_fast_math", "-std=c++17"],
-                     "with_cuda": True}
-        name = _key(kind, sources, cflags + extra.get("extra_cuda_cflags", []))
-        build_dir = cache_root() / name
-        build_dir.mkdir(parents=True, exist_ok=True)
-        clear_stale_lock(build_dir)
-        cached = any(build_dir.glob(f"{name}*.so"))
-        if not cached:
-            print(f"[stdr] compiling the {kind.upper()} rasterizer into {build_dir} "
-                  f"(first use only; ~20-60 s)...", file=sys.stderr, flush=True)
-        t0 = time.perf_counter()
-        try:
-            mod = cpp_extension.load(name=name, sources=[str(s) for s in sources],
-                                     extra_cflags=cflags, extra_ldflags=["-fopenmp"],
-                                     build_directory=str(build_dir),
-                                     verbose=verbose, **extra)
-        except Exception as e:  # compiler missing, unsupported flag, ...
-            last_err = e
-            continue
-        if not cached:
-            print(f"[stdr] {kind.upper()} rasterizer built in {time.perf_counter() - t0:.0f} s",
-                  file=sys.stderr, flush=True)
-        return mod
-    raise BuildError(f"could not build the {kind} rasterizer: {last_err}")
-
-
-def load_extension(kind: str, verbose: bool = False):
-    """The compiled module for `kind` ('cpu' or 'cuda'), building it if needed (cached)."""
-    if kind not in ("cpu", "cuda"):
-        raise ValueError(f"unknown compiled backend {kind!r}")
-    with _lock:
-        if kind in _modules:
-            return _modules[kind]
-        if kind in _errors:
-            raise BuildError(_errors[kind])
-        if kind == "cuda" and not (torch.cuda.is_available() and torch.version.cuda):
-            _errors[kind] = "torch has no CUDA here; the CUDA rasterizer is not built"
-            raise BuildError(_errors[kind])
-        try:
-            _modules[kind] = _compile(kind, verbose=verbose)
-        except BuildError as e:
-            _errors[kind] = str(e)
-            raise
-        return _modules[kind]
-
-
-def available(kind: str) -> bool:
-    try:
-        load_extension(kind)
-        return True
-    except BuildError:
-        return False
-
-
-def build_error(kind: str) -> Optional[str]:
-    return _errors.get(kind)
-
-
-def use_compiled(key: str, setting: Optional[bool], kind: str, supported: bool = True,
-                 unsupported: str = "") -> bool:
-    """A `<key>: null | true | false` switch between a compiled kernel on `kind` ('cpu', 'cuda')
-    and its torch twin: false = the twin; null = the kernel where it has been verified (`kind` in
-    stdr.verified.VERIFIED[key]), the inputs are `supported` and the extension builds; true = the
-    kernel, or an error that names the key and says why not (`unsupported`: what the kernel does
-    not take)."""
-    if setting is False:
-        return False
-    if setting is None:
-        return supported and kind in verified_on(key) and available(kind)
-    if not supported:
-        raise ValueError(f"{key}=true: {unsupported}; set {key}=null (or false) to use the torch ops")
-    if not available(kind):
-        raise RuntimeError(f"{key}=true, but the {kind} extension could not be built: {build_error(kind)}; "
-                           f"set {key}=null (or false)")
-    return True
+def __getattr__(name: str):
+    if name in _MOVED:
+        import importlib
+        import warnings
+        warnings.warn(f"stdr.render.compiled.{name} moved to {_MOVED[name]}.{name}", DeprecationWarning, stacklevel=2)
+        return getattr(importlib.import_module(_MOVED[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class _Rasterize(torch.autograd.Function):
@@ -413,116 +239,3 @@ def project_sh_compiled(means: Tensor, quats: Tensor, scales: Tensor, opacities:
         means, quats, scales, opacities, sh, cam, int(camera.width), int(camera.height), bool(antialiased),
         int(sh_degree), ext)
     return Projection(means2d=means2d, depths=depths, conics=conics, opacities=opac, radii=radii), colors
-
-
-# the dtypes each HexPlane kernel takes (the CUDA one is float32 only)
-HEXPLANE_DTYPES = {"cpu": (torch.float32, torch.float64), "cuda": (torch.float32,)}
-
-
-class _HexPlane(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, coords, ext, *planes):
-        feats, others = ext.hexplane_forward(coords, list(planes))
-        ctx.save_for_backward(coords, others, *planes)
-        ctx.ext = ext
-        return feats
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, g):
-        coords, others, *planes = ctx.saved_tensors
-        grads = ctx.ext.hexplane_backward(coords, list(planes), others, g.to(coords.dtype).contiguous())
-        return (None, None, *grads)
-
-
-def hexplane_compiled(coords: Tensor, planes: list[Tensor], kind: str = "cpu") -> Tensor:
-    """A HexPlane field's features in one compiled pass, forward and backward (the planes'
-    gradients; the coordinates get none): [N, M*C] = for each scale m (6 planes each, in the
-    order of `stdr.deform.hexplane.PAIRS`), the product over its planes of the bilinear samples
-    at the coordinate pairs, zero outside the planes (grid_sample, align_corners=True). The
-    torch twin is `stdr.deform.hexplane.HexPlaneField.features_torch`; tests/test_compiled.py
-    pins the two together. The CPU backward is deterministic; the CUDA one adds atomically.
-
-    coords [N, 4] in [-1, 1] (x, y, z, t), planes 6*M tensors [C, H, W] (one C)."""
-    want = HEXPLANE_DTYPES["cuda" if kind == "cuda" else "cpu"]
-    if coords.dim() != 2 or coords.shape[1] != 4:
-        raise ValueError(f"stdr hexplane: coords must be [N, 4], got {list(coords.shape)}")
-    if not planes or len(planes) % 6 or len(planes) > 48:
-        raise ValueError(f"stdr hexplane: planes must be 6 per scale (at most 8 scales), got {len(planes)}")
-    dev = "cuda" if kind == "cuda" else "cpu"
-    for i, t in enumerate([coords, *planes]):
-        name = "coords" if i == 0 else f"plane {i - 1}"
-        if t.dtype != coords.dtype or t.dtype not in want:
-            raise ValueError(f"stdr {kind} hexplane: {name} is {t.dtype}; every input must be one of {want}")
-        if t.device.type != dev or t.device != coords.device:
-            raise ValueError(f"stdr {kind} hexplane: {name} is on {t.device}; every input must be on {coords.device} "
-                             f"({dev})")
-        if i and (t.dim() != 3 or t.shape[0] != planes[0].shape[0]):
-            raise ValueError(f"stdr hexplane: {name} must be [C, H, W] with C={planes[0].shape[0]}, got {list(t.shape)}")
-    ext = load_extension(kind)
-    return _HexPlane.apply(coords.detach().contiguous(), ext, *[p.contiguous() for p in planes])
-
-
-# ----------------------------------------------------------------------------- the training loss
-class _ImageLoss(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, img, gt, lam, window, sigma, ext):
-        loss, stats, partials = ext.image_loss_forward(img, gt, lam, window, sigma)
-        ctx.save_for_backward(img, gt, partials)
-        ctx.args = (lam, window, sigma, ext)
-        ctx.mark_non_differentiable(stats)
-        return loss, stats
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, g_loss, g_stats):
-        img, gt, partials = ctx.saved_tensors
-        lam, window, sigma, ext = ctx.args
-        return ext.image_loss_backward(g_loss, img, gt, partials, lam, window, sigma), None, None, None, None, None
-
-
-# the dtypes each loss kernel takes (the CUDA one is float32 only)
-LOSS_DTYPES = {"cpu": (torch.float32, torch.float64), "cuda": (torch.float32,)}
-
-
-def image_loss_compiled(img: Tensor, gt: Tensor, lam: float, window: int = 11,
-                        sigma: float = 1.5) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The photometric training loss in one compiled pass: (loss, l1, dssim, psnr), 0-d tensors,
-    where loss = (1 - lam) * l1 + lam * dssim and only loss has a gradient (img's). The torch
-    twin is `stdr.metrics.image_loss`; tests/test_fused_loss.py pins the two together. The CPU
-    kernel is one call each way; the CUDA one three launches forward and two backward, with no
-    host sync (the loss gradient is read on the device). Both are deterministic.
-
-    img, gt [H, W, C] on one device (CPU: float32 or float64; CUDA: float32); gt is a target (no
-    gradient)."""
-    if img.dim() != 3 or img.shape != gt.shape:
-        raise ValueError(f"stdr image_loss: img and gt must be [H, W, C] of one shape, got {list(img.shape)} and "
-                         f"{list(gt.shape)}")
-    kind = img.device.type
-    want = LOSS_DTYPES.get(kind, ())
-    for name, t in (("img", img), ("gt", gt)):
-        if t.device != img.device or t.dtype not in want or t.dtype != img.dtype:
-            raise ValueError(f"stdr image_loss: {name} is {t.dtype} on {t.device}; both must be on one device, of one "
-                             "dtype: float32 or float64 on the CPU, float32 on CUDA")
-    if gt.requires_grad:
-        raise ValueError("stdr image_loss: gt needs a gradient; the compiled loss differentiates img only")
-    if not 1 <= window <= 31 or window % 2 == 0:
-        raise ValueError(f"stdr image_loss: window={window} must be odd, 1..31")
-    ext = load_extension(kind)
-    loss, stats = _ImageLoss.apply(img.contiguous(), gt.contiguous(), float(lam), int(window), float(sigma), ext)
-    return loss, stats[0], stats[1], stats[2]
-
-
-def nonfinite_flags_compiled(tensors: list[Tensor]) -> Tensor:
-    """One bool per CPU tensor: whether it has a NaN or an infinity (the torch form is
-    `stdr.train.guard.nonfinite_flags`)."""
-    return load_extension("cpu").nonfinite_flags([t.detach() for t in tensors])
-
-
-def guard_update_compiled(tensors: list[Tensor], flag: Tensor, bad_step: Tensor, bad_index: Tensor, step: int) -> None:
-    """The sync-free guard's per-step update in one call, in place (the torch form is in
-    `stdr.train.guard.Guard.flag_step`): when a tensor is non-finite, flag = 1 and, if no step was
-    recorded yet (bad_step < 0), bad_step = step and bad_index = the first such tensor's index.
-    On the flag's device: the CPU (any floating dtype) or CUDA (float32 tensors; a fill and two
-    launches, no host sync)."""
-    load_extension(flag.device.type).guard_update([t.detach() for t in tensors], flag, bad_step, bad_index, int(step))

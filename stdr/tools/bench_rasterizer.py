@@ -78,7 +78,7 @@ def pair_work(p, width, height, tile: int = 16) -> tuple[int, int]:
     Evaluations = sum over tiles of (tile pixels) x (tile list entries up to the tile's last
     composited one): the alpha evaluations every pixel of the tile performs in the forward.
     """
-    from stdr.render.compiled import load_extension
+    from stdr.extension import load_extension
     c = lambda x: x.detach().cpu().contiguous()  # noqa: E731
     _, _, last, ids, *_ = load_extension("cpu").forward(
         c(p.means2d), c(p.conics), c(p.opacities), c(p.depths[:, None]), c(p.depths),

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..render import compiled as compiled_backend
+from .. import extension
 from ..verified import verified_on
 
 
@@ -59,7 +59,7 @@ class GuardConfig:
     # snapshot, the state an immediate check restores. null: on where it has been checked
     # (stdr.verified.VERIFIED); true / false. Needs optim.fused_adam (false reads the check every step)
     sync_free: Optional[bool] = None
-    # the check of a step's tensors as one compiled call (stdr.render.compiled.guard_update_compiled;
+    # the check of a step's tensors as one compiled call (guard_update_compiled, below;
     # instead of two operators a tensor and ten for the verdict) or as torch operators. null: compiled
     # where it has been checked (stdr.verified.VERIFIED: the CPU; the CUDA kernel is built, not yet
     # run on a GPU) and the extension builds; true / false
@@ -87,8 +87,8 @@ def resolve_compiled_check(g, device: torch.device) -> bool:
     if not g.enabled:
         return False
     kind = device.type
-    return compiled_backend.use_compiled("train.guard.compiled", g.compiled, kind,
-                                 kind in ("cpu", "cuda"), f"there is no compiled check on {device}")
+    return extension.use_compiled("train.guard.compiled", g.compiled, kind,
+                                  kind in ("cpu", "cuda"), f"there is no compiled check on {device}")
 
 
 class TrainingDiverged(RuntimeError):
@@ -153,8 +153,24 @@ def all_finite(tensors: Iterable[Optional[Tensor]], compiled: bool = False) -> b
     skipped. One host sync. compiled: the CPU extension's check (CPU tensors only)."""
     ts = [t for t in tensors if _checkable(t)]
     if compiled and ts and all(t.device.type == "cpu" for t in ts):
-        return not bool(compiled_backend.nonfinite_flags_compiled(ts).any())
+        return not bool(nonfinite_flags_compiled(ts).any())
     return not ts or not bool(nonfinite_flags(ts).any())
+
+
+# ----------------------------------------------------------------- the compiled check (stdr/csrc/cpu/guard_cpu.h)
+def nonfinite_flags_compiled(tensors: list[Tensor]) -> Tensor:
+    """One bool per CPU tensor: whether it has a NaN or an infinity (the torch form is
+    `nonfinite_flags`)."""
+    return extension.load_extension("cpu").nonfinite_flags([t.detach() for t in tensors])
+
+
+def guard_update_compiled(tensors: list[Tensor], flag: Tensor, bad_step: Tensor, bad_index: Tensor, step: int) -> None:
+    """The sync-free guard's per-step update in one call, in place (the torch form is in
+    `Guard.flag_step`): when a tensor is non-finite, flag = 1 and, if no step was
+    recorded yet (bad_step < 0), bad_step = step and bad_index = the first such tensor's index.
+    On the flag's device: the CPU (any floating dtype) or CUDA (float32 tensors; a fill and two
+    launches, no host sync)."""
+    extension.load_extension(flag.device.type).guard_update([t.detach() for t in tensors], flag, bad_step, bad_index, int(step))
 
 
 def first_nonfinite(named: Iterable[tuple[str, Optional[Tensor]]]) -> Optional[str]:
@@ -201,8 +217,9 @@ class Guard:
     """The guard the training loop calls: its state (saved in checkpoints, except the snapshots)
     and what it does with it. The loop asks it to `check_step` after each backward, to take a
     `snapshot` every train.guard.snapshot_every steps, to judge each monitor evaluation
-    (`after_evaluation`) and to `recover`. It reaches the run through the trainer it is given:
-    parameters and gradients, `checkpoint_payload` / `load_payload`, `save`, TensorBoard."""
+    (`after_evaluation`) and to `recover`. It reaches the run through the `RunState` it is given
+    (stdr.train.state: parameters and gradients, `payload` / `restore`, `save`) and writes to the
+    run's `RunLog`; `cfg` is the run's train.guard node (None: a guard read back for a report)."""
 
     lr_scale: float = 1.0
     recoveries: list[dict[str, Any]] = field(default_factory=list)
@@ -223,6 +240,7 @@ class Guard:
     bad_step: Optional[Tensor] = None
     bad_index: Optional[Tensor] = None
     names: list = field(default_factory=list)
+    cfg: Any = None  # train.guard of the run (not saved)
 
     def state_dict(self) -> dict[str, Any]:
         # forms: how this run checked its steps, for the report of a re-evaluation (`from_state`);
@@ -263,29 +281,29 @@ class Guard:
                 "compiled_check": self.compiled if self.checks else None}
 
     # ------------------------------------------------------------------ what the loop calls
-    def _step_tensors(self, trainer, loss: Tensor, step: int) -> list[tuple[str, Tensor]]:
+    def _step_tensors(self, state, loss: Tensor, step: int) -> list[tuple[str, Tensor]]:
         """The loss and every gradient of step `step`, named; train.guard.inject_nan_grad_at puts a
         NaN into the gradient of the means first."""
-        params = trainer.model.params
-        if step in trainer.cfg.train.guard.inject_nan_grad_at and ("nan", step) not in self.fired:
+        params = state.model.params
+        if step in self.cfg.inject_nan_grad_at and ("nan", step) not in self.fired:
             self.fired.add(("nan", step))
             if params["means"].grad is not None:
                 params["means"].grad[0, 0] = float("nan")
         named = [("loss", loss)] + [(f"grad of {k}", p.grad) for k, p in params.items()] + \
-            [(f"grad of {k}", p.grad) for k, p in trainer.network_params()]
+            [(f"grad of {k}", p.grad) for k, p in state.network_params()]
         return [(n, t) for n, t in named if _checkable(t)]
 
-    def check_step(self, trainer, loss: Tensor, step: int) -> Optional[str]:
+    def check_step(self, state, loss: Tensor, step: int) -> Optional[str]:
         """After the backward of step `step`: what is non-finite (the loss, or the gradient of a
         named parameter), or None. One host sync."""
-        named = self._step_tensors(trainer, loss, step)
+        named = self._step_tensors(state, loss, step)
         return None if all_finite((t for _, t in named), self.compiled) else f"non-finite {first_nonfinite(named)}"
 
-    def flag_step(self, trainer, loss: Tensor, step: int) -> Tensor:
+    def flag_step(self, state, loss: Tensor, step: int) -> Tensor:
         """The sync-free form of `check_step`: the verdict stays on the device. Returns the flag
         for fused Adam's found_inf (1 from the first faulty step on, so that no update is applied
         until `poll` reads it); the first faulty step and what failed are kept for `poll`."""
-        named = self._step_tensors(trainer, loss, step)
+        named = self._step_tensors(state, loss, step)
         names = tuple(n for n, _ in named)
         if self.flag is None:
             self.flag = torch.zeros((), dtype=torch.float32, device=loss.device)
@@ -296,7 +314,7 @@ class Guard:
         ts = [t for _, t in named]
         if self.compiled and (loss.device.type == "cpu" or all(t.dtype == torch.float32 for t in ts)):
             # the torch operators' update below, in one call
-            compiled_backend.guard_update_compiled(ts, self.flag, self.bad_step, self.bad_index, step)
+            guard_update_compiled(ts, self.flag, self.bad_step, self.bad_index, step)
             return self.flag
         bad = nonfinite_flags(ts)
         anybad = bad.any()
@@ -323,60 +341,59 @@ class Guard:
         self.flag = self.bad_step = self.bad_index = None
         self.names = []
 
-    def take_snapshot(self, trainer) -> None:
+    def take_snapshot(self, state, log) -> None:
         """Keep the current state as the last good one (after checking the parameters)."""
-        named = [(f"parameter {k}", p) for k, p in trainer.model.params.items()] + \
-            [(f"parameter of {k}", p) for k, p in trainer.network_params()]
+        named = [(f"parameter {k}", p) for k, p in state.model.params.items()] + \
+            [(f"parameter of {k}", p) for k, p in state.network_params()]
         if not all_finite(t for _, t in named):
-            self.recover(trainer, f"non-finite {first_nonfinite(named)}")
+            self.recover(state, log, f"non-finite {first_nonfinite(named)}")
         else:
-            self.snapshot = clone_tree(trainer.checkpoint_payload())
+            self.snapshot = clone_tree(state.payload())
 
-    def after_evaluation(self, trainer, psnr: float) -> None:
+    def after_evaluation(self, state, log, psnr: float) -> None:
         """The divergence detector: a new best is kept (with its state); a drop of more than
         train.guard.divergence_db below the best restores the best one's state."""
-        gc = trainer.cfg.train.guard
+        gc = self.cfg
         if not np.isfinite(psnr):
-            self.recover(trainer, f"non-finite evaluation PSNR ({psnr})")
+            self.recover(state, log, f"non-finite evaluation PSNR ({psnr})")
         elif self.best is None or psnr > self.best["psnr"]:
-            self.best = {"step": trainer.step, "psnr": float(psnr)}
-            self.best_snapshot = clone_tree(trainer.checkpoint_payload())
+            self.best = {"step": state.step, "psnr": float(psnr)}
+            self.best_snapshot = clone_tree(state.payload())
         elif gc.divergence_db > 0 and psnr < self.best["psnr"] - gc.divergence_db:
-            self.recover(trainer, f"divergence: evaluation PSNR {psnr:.2f} dB is more than {gc.divergence_db:g} dB "
-                                  f"below the best, {self.best['psnr']:.2f} dB at step {self.best['step']}", best=True)
+            self.recover(state, log, f"divergence: evaluation PSNR {psnr:.2f} dB is more than {gc.divergence_db:g} dB "
+                                     f"below the best, {self.best['psnr']:.2f} dB at step {self.best['step']}", best=True)
 
-    def recover(self, trainer, reason: str, best: bool = False, step: Optional[int] = None) -> None:
+    def recover(self, state, log, reason: str, best: bool = False, step: Optional[int] = None) -> None:
         """Restore the last good state (the best evaluation's with best=True), lower every lr
         by train.guard.lr_factor and log it; past train.guard.max_recoveries, save the last good
         state as the checkpoint and stop (TrainingDiverged). `step`: the faulty step when it came
         before the step that found it (the sync-free check; default: now)."""
-        gc = trainer.cfg.train.guard
-        found_at = trainer.step
+        gc = self.cfg
+        found_at = state.step
         detected = found_at if step is None else step
         self.clear()
         snap = self.best_snapshot if best and self.best_snapshot is not None else self.snapshot
         if snap is None:
             raise TrainingDiverged(f"{reason} at step {detected}, before any good state was kept")
-        seconds, history = trainer.train_seconds, trainer.history  # time spent and evaluations made stay
-        trainer.load_payload(clone_tree(snap), "guard snapshot")
-        trainer.train_seconds, trainer.history = seconds, history
+        seconds, history = state.train_seconds, state.history  # time spent and evaluations made stay
+        state.restore(clone_tree(snap), "guard snapshot")
+        state.train_seconds, state.history = seconds, history
         if best:
             self.snapshot = clone_tree(snap)  # later states are not good ones
         stop = len(self.recoveries) >= gc.max_recoveries
         if not stop:
             self.lr_scale *= gc.lr_factor
-        rec = {"step": detected, "found_at": found_at, "restored_to": trainer.step, "reason": reason,
-               "lr_scale": self.lr_scale, "train_seconds": trainer.train_seconds, "stopped": stop}
+        rec = {"step": detected, "found_at": found_at, "restored_to": state.step, "reason": reason,
+               "lr_scale": self.lr_scale, "train_seconds": state.train_seconds, "stopped": stop}
         self.recoveries.append(rec)
-        tb = trainer._tb()
-        tb.add_scalar("guard/recoveries", len(self.recoveries), detected)
-        tb.add_scalar("guard/lr_scale", self.lr_scale, detected)
+        log.scalar("guard/recoveries", len(self.recoveries), detected)
+        log.scalar("guard/lr_scale", self.lr_scale, detected)
         if stop:
-            trainer.save()
+            state.save()
             raise TrainingDiverged(
                 f"training stopped at step {detected}: {reason}, after {len(self.recoveries) - 1} recoveries "
-                f"(train.guard.max_recoveries={gc.max_recoveries}). The last good state (iteration {trainer.step}) is "
-                f"saved in {trainer.checkpoint_path}; lower the learning rates (optim.*, baseline.lr_init) or raise "
+                f"(train.guard.max_recoveries={gc.max_recoveries}). The last good state (iteration {state.step}) is "
+                f"saved in {state.checkpoint_path}; lower the learning rates (optim.*, baseline.lr_init) or raise "
                 "train.guard.max_recoveries, then run again to resume from it")
-        print(f"[stdr] guard: {reason} at step {detected}; restored iteration {trainer.step}, learning rates x "
+        print(f"[stdr] guard: {reason} at step {detected}; restored iteration {state.step}, learning rates x "
               f"{self.lr_scale:g} (recovery {len(self.recoveries)} of at most {gc.max_recoveries})", flush=True)

@@ -17,21 +17,20 @@ from torch import Tensor
 
 from ..data.load import load_scene
 from ..device import resolve_device, synchronize
-from ..metrics import fused_loss, image_loss
-from ..model import build_model, initial_points, model_entry
-from ..render.compiled import camera_values, image_loss_compiled
+from ..metrics import fused_loss, image_loss, image_loss_compiled
+from ..model import build_model, initial_points
+from ..render.compiled import camera_values
 from ..scene.gaussians import scene_extent
 from ..scene.ply import save_ply
 from ..scene.prune import prune_event
 from ..scene.strategy import build_strategy
-from .adam import adam_step, clear_grads
-from .checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from .adam import adam_step
+from .checkpoint import load_checkpoint
 from .guard import Guard, check_guard_config, monitor_split, resolve_compiled_check, resolve_sync_free
-from .syncs import host_only
 from .schedule import exp_lr
+from .state import CKPT, PAYLOAD_KEYS, CameraSampler, RunLog, RunState
 
-CKPT = "checkpoints/last.pt"
-PAYLOAD_KEYS = ("model", "optimizers", "net_opt", "strategy_state", "sampler", "rng", "train_seconds")
+__all__ = ["CKPT", "PAYLOAD_KEYS", "CameraSampler", "Profiler", "RunLog", "RunState", "Trainer"]
 
 
 class Profiler:
@@ -89,28 +88,6 @@ class Profiler:
         self._marks.clear()
 
 
-class CameraSampler:
-    """Training frames drawn without replacement per epoch, from its own generator."""
-
-    def __init__(self, n: int, seed: int):
-        self.n = n
-        self.gen = torch.Generator().manual_seed(seed)
-        self.stack: list[int] = []
-
-    def next(self) -> int:
-        if not self.stack:
-            with host_only():  # a CPU generator's permutation: host work, no device to wait for
-                self.stack = torch.randperm(self.n, generator=self.gen, device="cpu").tolist()
-        return self.stack.pop()
-
-    def state_dict(self):
-        return {"gen": self.gen.get_state(), "stack": list(self.stack)}
-
-    def load_state_dict(self, s):
-        self.gen.set_state(s["gen"])
-        self.stack = list(s["stack"])
-
-
 class Trainer:
     """Optimization of a `DynamicGaussians` model on a scene: optimizers and learning-rate
     schedules, the densification strategy, the camera sampler and the loop. The model is
@@ -141,37 +118,51 @@ class Trainer:
         pts, colors = initial_points(cfg.model, self.scene.init_points, self.scene.init_colors, cfg.seed,
                                      where=str(self.scene.root))
         background = torch.tensor(self.scene.background, dtype=torch.float32)
-        self.model = build_model(cfg, train_times, background, self.device, pts, colors)
-        self.optimizers = self._make_optimizers()
-        self.net_groups = self._net_groups()
-        self.net_opt = torch.optim.Adam([{k: v for k, v in g.items() if k == "params" or k == "name"}
-                                         for g in self.net_groups], lr=cfg.baseline.lr_init, eps=1e-15,
-                                        fused=self._fused_adam)
+        model = build_model(cfg, train_times, background, self.device, pts, colors)
         self.strategy = build_strategy(cfg.densify)  # densify=<name> (stdr.scene.strategy)
-        self.cull_train = self.model.cull_mode() == "train"
+        self.cull_train = model.cull_mode() == "train"
         if self.cull_train and self.strategy.count_invisible:
             raise ValueError("render.cull=train renders only the rows that can reach opacity 1/255, so "
                              "densification cannot count the others as seen: set densify.count_invisible=false "
                              "as well, or render.cull=eval to cull outside training only")
         extent = scene_extent(self.scene.camera_centers("train")) if has_train else 1.0
         white = all(float(c) >= 1.0 for c in self.scene.background)
-        self.strategy_state = self.strategy.initialize_state(len(pts), extent, white_background=white,
-                                                             device=self.device)
-        self.sampler = CameraSampler(len(self.scene.splits.get("train", [])), cfg.seed)
-        self.train_seconds = 0.0
-        # the process's CPU seconds over the same steps (every thread): train_cpu_seconds / (train_seconds x
-        # threads) near 1 says the steps had the cores to themselves; well below, the machine was shared
-        self.train_cpu_seconds: Optional[float] = 0.0
-        self.profile = Profiler()
-        self.history: list[dict[str, Any]] = []
-        self.prune_log: list[dict[str, Any]] = []  # contribution pruning events (stdr.scene.prune.prune_event)
-        self.writer = None
-        self.guard = Guard(peak_gaussians=len(pts), monitor=self.monitor, checks=bool(cfg.train.guard.enabled),
-                           sync_free=resolve_sync_free(cfg.train.guard, self.device, self._fused_adam),
-                           compiled=resolve_compiled_check(cfg.train.guard, self.device))
+        guard = Guard(peak_gaussians=len(pts), monitor=self.monitor, checks=bool(cfg.train.guard.enabled),
+                      sync_free=resolve_sync_free(cfg.train.guard, self.device, self._fused_adam),
+                      compiled=resolve_compiled_check(cfg.train.guard, self.device), cfg=cfg.train.guard)
         # the photometric loss as one compiled pass (optim.fused_loss) or its torch twin
         self.fused_loss = fused_loss(cfg.optim.fused_loss, self.device)
         self.image_loss = image_loss_compiled if self.fused_loss else image_loss
+        # the run's state (stdr.train.state): what a checkpoint holds, what the guard and the evaluations see
+        self.state = RunState(model=model, run_dir=self.run_dir, guard=guard,
+                              strategy_state=self.strategy.initialize_state(len(pts), extent, white_background=white,
+                                                                            device=self.device),
+                              sampler=CameraSampler(len(self.scene.splits.get("train", [])), cfg.seed),
+                              train_threads=torch.get_num_threads(),
+                              train_loss="compiled" if self.fused_loss else "torch",
+                              make_optimizers=self._make_optimizers)
+        self.state.optimizers = self._make_optimizers()
+        self.net_groups = self._net_groups()
+        self.state.net_opt = torch.optim.Adam([{k: v for k, v in g.items() if k == "params" or k == "name"}
+                                               for g in self.net_groups], lr=cfg.baseline.lr_init, eps=1e-15,
+                                              fused=self._fused_adam)
+        self.log = RunLog(self.run_dir)  # TensorBoard (run_dir/tb), opened by the loop or the guard
+        self.profile = Profiler()
+
+    # the run's state, by name (trainer.model is trainer.state.model, and so on)
+    model = property(lambda self: self.state.model)
+    guard = property(lambda self: self.state.guard)
+    optimizers = property(lambda self: self.state.optimizers, lambda self, v: setattr(self.state, "optimizers", v))
+    net_opt = property(lambda self: self.state.net_opt)
+    strategy_state = property(lambda self: self.state.strategy_state,
+                              lambda self, v: setattr(self.state, "strategy_state", v))
+    sampler = property(lambda self: self.state.sampler)
+    history = property(lambda self: self.state.history, lambda self, v: setattr(self.state, "history", v))
+    prune_log = property(lambda self: self.state.prune_log)
+    train_seconds = property(lambda self: self.state.train_seconds,
+                             lambda self, v: setattr(self.state, "train_seconds", v))
+    train_cpu_seconds = property(lambda self: self.state.train_cpu_seconds,
+                                 lambda self, v: setattr(self.state, "train_cpu_seconds", v))
 
     @property
     def step(self) -> int:
@@ -260,60 +251,22 @@ class Trainer:
 
     # ----------------------------------------------------------------- checkpoints
     def checkpoint_payload(self) -> dict[str, Any]:
-        """The model's own entry (enough to render it: `stdr.model.load_model`) and the state of
-        the optimization, so a resumed run repeats the uninterrupted one exactly."""
-        return {
-            "model": self.model.state_dict(),
-            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
-            "net_opt": self.net_opt.state_dict(),
-            "strategy_state": self.strategy_state,
-            "sampler": self.sampler.state_dict(),
-            "rng": rng_state(),
-            "train_seconds": self.train_seconds,
-            "train_cpu_seconds": self.train_cpu_seconds,
-            "train_threads": torch.get_num_threads(),
-            "train_loss": "compiled" if self.fused_loss else "torch",
-            "history": self.history,
-            "guard": self.guard.state_dict(),
-            "prune_log": self.prune_log,
-        }
+        """The checkpoint's dict (RunState.payload)."""
+        return self.state.payload()
 
     def save(self) -> None:
         """checkpoints/last.pt (atomic, checksummed; the one it replaces is kept as last.previous.pt)."""
-        save_checkpoint(self.checkpoint_path, self.checkpoint_payload(), keep_previous=True)
+        self.state.save()
 
     def load(self, path: str | Path) -> None:
         """Resume: the model, the optimizers, the strategy, the sampler, every RNG and the guard."""
         ck = load_checkpoint(path, require=PAYLOAD_KEYS)
-        self.load_payload(ck, str(path))
+        self.state.restore(ck, str(path))
         self.guard.load_state_dict(ck.get("guard", {}))
         self.guard.clear()
         self.guard.monitor = self.monitor  # this run's detector split, whatever the checkpoint's run had
 
-    def load_payload(self, ck: dict[str, Any], where: str) -> None:
-        """The optimization state of a checkpoint payload (a file's, or a guard snapshot's)."""
-        self.model.load_state_dict(model_entry(ck, where), where)
-        self.train_seconds = float(ck["train_seconds"])
-        cpu = ck.get("train_cpu_seconds")  # None: a checkpoint from before it was recorded (unknown from then on)
-        self.train_cpu_seconds = None if cpu is None else float(cpu)
-        self.history = list(ck.get("history", []))
-        self.prune_log = list(ck.get("prune_log", []))
-        self.optimizers = self._make_optimizers()
-        for k, o in self.optimizers.items():
-            o.load_state_dict(ck["optimizers"][k])
-        self.net_opt.load_state_dict(ck["net_opt"])
-        self.strategy_state = {k: v.to(self.device) if torch.is_tensor(v) else v
-                               for k, v in ck["strategy_state"].items()}
-        self.sampler.load_state_dict(ck["sampler"])
-        set_rng_state(ck["rng"])
-
     # ----------------------------------------------------------------- training
-    def _tb(self):
-        if self.writer is None:
-            from torch.utils.tensorboard import SummaryWriter
-            self.writer = SummaryWriter(str(self.run_dir / "tb"))
-        return self.writer
-
     def train_step(self) -> dict[str, Any]:
         """One optimization step. Returns 0-d tensors (loss, l1, dssim, psnr), `densify` (the
         strategy's counts), `losses` (each regularizer's weighted value: plug-in terms as
@@ -371,10 +324,10 @@ class Trainer:
         found_inf = None  # the sync-free guard's flag: fused Adam applies no update while it is 1
         if self.guard.sync_free:
             with prof("guard"):
-                found_inf = self.guard.flag_step(self, loss, it + 1)
+                found_inf = self.guard.flag_step(self.state, loss, it + 1)
         elif cfg.train.guard.enabled:
             with prof("guard"):
-                bad = self.guard.check_step(self, loss, it + 1)
+                bad = self.guard.check_step(self.state, loss, it + 1)
             if bad is not None:  # nothing is applied: the caller restores the last good state
                 self.zero_grads()
                 self.step = it + 1
@@ -397,17 +350,16 @@ class Trainer:
                 "psnr": step_psnr.detach(), "densify": info,
                 "losses": {k: v.detach() for k, v in terms.items()}, "out": out, "frame": frame}
 
-    # ----------------------------------------------------------------- for the guard (stdr.train.guard)
     def network_params(self) -> list[tuple[str, Tensor]]:
-        """(group name, parameter) of every network the run trains (the deformation's, the plug-ins')."""
-        return [(g.get("name", "network"), p) for g in self.net_opt.param_groups for p in g["params"]]
+        """(group name, parameter) of every network the run trains (RunState.network_params)."""
+        return self.state.network_params()
 
     def zero_grads(self) -> None:
-        clear_grads([*self.optimizers.values(), self.net_opt])
+        self.state.zero_grads()
 
     @property
     def checkpoint_path(self) -> Path:
-        return self.run_dir / CKPT
+        return self.state.checkpoint_path
 
     def train(self) -> None:
         cfg = self.cfg
@@ -417,11 +369,11 @@ class Trainer:
             print(f"[stdr] resumed from {ckpt} at iteration {self.step}")
         guard = cfg.train.guard
         if guard.enabled:
-            self.guard.take_snapshot(self)
+            self.guard.take_snapshot(self.state, self.log)
         if self.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(self.device)  # guard.peak_memory_mb: this run's peak
         total = cfg.optim.iterations
-        tb = self._tb()
+        tb = self.log.open()
         bar = None
         if cfg.train.progress:
             from tqdm import tqdm
@@ -438,7 +390,7 @@ class Trainer:
             if self.train_cpu_seconds is not None:
                 self.train_cpu_seconds += time.process_time() - c0
             if "rejected" in logs:
-                self.guard.recover(self, logs["rejected"])
+                self.guard.recover(self.state, self.log, logs["rejected"])
                 if bar is not None:
                     bar.n = self.step
                     bar.refresh()
@@ -447,7 +399,7 @@ class Trainer:
             if self.guard.sync_free and self._waits_for_the_device(it, end):
                 hit = self.guard.poll()  # the sync-free check, read where the loop waits anyway
                 if hit is not None:
-                    self.guard.recover(self, hit[1], step=hit[0])
+                    self.guard.recover(self.state, self.log, hit[1], step=hit[0])
                     if bar is not None:
                         bar.n = self.step
                         bar.refresh()
@@ -473,7 +425,7 @@ class Trainer:
                 res = self.evaluate(cfg.data.eval_split, tag="periodic", frames=self.curve_frames(cfg.data.eval_split),
                                     lpips_fn=self._curve_lpips())
             if res is not None and self.monitor is not None:
-                self.guard.after_evaluation(self, self._monitor_psnr(res))
+                self.guard.after_evaluation(self.state, self.log, self._monitor_psnr(res))
                 if self.step != it:  # recovered: go on from the restored step
                     if bar is not None:
                         bar.n = self.step
@@ -482,7 +434,7 @@ class Trainer:
             if cfg.train.checkpoint_every and it % cfg.train.checkpoint_every == 0 and it < total:
                 self.save()
             if guard.enabled and it % guard.snapshot_every == 0 and it < total:
-                self.guard.take_snapshot(self)
+                self.guard.take_snapshot(self.state, self.log)
         if bar is not None:
             bar.close()
         if self.step < total:
@@ -574,20 +526,17 @@ class Trainer:
                  lpips_fn=None, save_dir: Optional[Path] = None, fps_warmup: int = 3,
                  frames: Optional[list[int]] = None, fps_repeats: int = 1, seen: bool = False) -> dict[str, Any]:
         """Render `split` (or the frames at indices `frames` of it) at the model's state and
-        compute metrics (see stdr.eval.evaluate). Each evaluation is a point of the run's
-        learning curve (`history`), with the training seconds so far (evaluation excluded)."""
-        from ..eval.evaluate import evaluate_model, history_record
+        compute metrics (stdr.eval.evaluate.evaluate_state): a point of the run's learning curve
+        (`history`), with the training seconds so far (evaluation excluded)."""
+        from ..eval.evaluate import evaluate_state
         fr = self.scene.frames(split)
         if frames is not None:
             fr = [fr[i] for i in frames]
-        res = evaluate_model(self.model, fr, step=self.step if step is None else step,
-                             lpips_fn=lpips_fn, save_dir=save_dir, fps_warmup=fps_warmup,
-                             fps_repeats=fps_repeats, seen=seen)
-        rec = history_record(tag, self.step, split, self.train_seconds, res)
-        self.history.append(rec)
-        if self.writer is not None:
-            for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds"):
-                v = rec[k]
-                if v is not None:
-                    self.writer.add_scalar(f"eval_{split}/{k}", v, self.step)
-        return res
+        return evaluate_state(self.state, fr, split, tag=tag, step=step, log=self.log, lpips_fn=lpips_fn,
+                              save_dir=save_dir, fps_warmup=fps_warmup, fps_repeats=fps_repeats, seen=seen)
+
+    def evaluate_final(self, split: str, eval_cfg=None) -> dict[str, Any]:
+        """The run's final evaluation of `split` into metrics.json (stdr.eval.evaluate.evaluate_run)."""
+        from ..eval.evaluate import evaluate_run
+        return evaluate_run(self.state, self.scene, split, self.cfg.eval if eval_cfg is None else eval_cfg,
+                            max_gaussians=getattr(self.strategy, "max_gaussians", 0), log=self.log)

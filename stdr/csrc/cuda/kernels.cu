@@ -1,6 +1,8 @@
-// CUDA kernels of the rasterizer. The per-Gaussian and per-pixel arithmetic is the shared
-// header's (raster_math.h), the same functions the CPU backend runs and the CPU tests check.
-#include "raster_kernels.h"
+// CUDA kernels of every family: rasterizer, HexPlane, training loss, guard (their host sides:
+// raster_cuda.h, hexplane_cuda.h, loss_cuda.h, guard_cuda.h). The per-Gaussian and per-pixel
+// arithmetic is the shared header's (raster_math.h), the same functions the CPU backend runs and
+// the CPU tests check.
+#include "kernels.h"
 
 #include <climits>
 #include "../raster_math.h"

@@ -1,6 +1,6 @@
-// Launchers for the CUDA rasterizer kernels. Plain C++ on raw device pointers: no torch headers,
-// so raster_kernels.cu compiles with nvcc alone in seconds (tests do `nvcc -c` on it), and the
-// torch binding (raster_cuda.cpp) does allocation, sorting and scans with ATen.
+// Launchers for the CUDA kernels of every family (rasterizer, HexPlane, training loss, guard).
+// Plain C++ on raw device pointers: no torch headers, so kernels.cu compiles with nvcc alone in seconds (tests do `nvcc -c` on it), and the
+// torch binding (ops_cuda.cpp and the family headers) does allocation, sorting and scans with ATen.
 #pragma once
 
 #include <cstdint>

@@ -1,17 +1,20 @@
-// Torch binding of the CUDA rasterizer: same functions and return values as the CPU backend
-// (raster_cpu.cpp), so stdr/render/compiled.py drives both the same way. Sorting (depth order,
-// Gaussian-tile keys) and scans use ATen; the kernels live in raster_kernels.cu.
+// The rasterizer family of the CUDA extension's host side (ops_cuda.cpp binds it): the same
+// functions and return values as the CPU backend (../cpu/raster_cpu.h), so stdr/render/compiled.py
+// drives both the same way. Sorting (depth order, Gaussian-tile keys) and scans use ATen; the
+// kernels live in kernels.cu.
+#pragma once
+
 #include <torch/extension.h>
 #include <c10/cuda/CUDAException.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 
-#include "../raster_math.h"
-#include "../hexplane_math.h"
-#include "raster_kernels.h"
-
 #include <algorithm>
 #include <climits>
+#include <vector>
+
+#include "kernels.h"
+#include "../raster_math.h"
 
 namespace {
 
@@ -227,174 +230,4 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
   return {gm, gq, gs, go, gh};
 }
 
-// ---------------------------------------------------------------- HexPlane sampling
-
-stdr_cuda::HexPlanes hex_planes(const at::Tensor& coords, const std::vector<at::Tensor>& planes,
-                                const std::vector<at::Tensor>* grads) {
-  TORCH_CHECK(coords.is_cuda() && coords.is_contiguous() && coords.scalar_type() == at::kFloat &&
-                  coords.dim() == 2 && coords.size(1) == 4,
-              "stdr CUDA hexplane: coords must be a contiguous float32 [N, 4] CUDA tensor");
-  TORCH_CHECK(!planes.empty() && planes.size() % stdr::HEX_PLANES == 0 &&
-                  (int)planes.size() <= stdr_cuda::HEX_MAX_PLANES,
-              "stdr CUDA hexplane: planes must be 6 per scale, at most 8 scales");
-  stdr_cuda::HexPlanes pl;
-  pl.M = (int)(planes.size() / stdr::HEX_PLANES);
-  pl.C = (int)planes[0].size(0);
-  for (size_t q = 0; q < planes.size(); ++q) {
-    const auto& t = planes[q];
-    TORCH_CHECK(t.is_cuda() && t.get_device() == coords.get_device() && t.is_contiguous() &&
-                    t.scalar_type() == at::kFloat && t.dim() == 3 && t.size(0) == pl.C,
-                "stdr CUDA hexplane: planes must be contiguous float32 [C, H, W] tensors on the coords' GPU");
-    pl.ptr[q] = t.data_ptr<float>();
-    pl.grad[q] = grads ? (*grads)[q].data_ptr<float>() : nullptr;
-    pl.H[q] = (int)t.size(1);
-    pl.W[q] = (int)t.size(2);
-  }
-  return pl;
-}
-
-std::vector<at::Tensor> hexplane_forward(at::Tensor coords, std::vector<at::Tensor> planes) {
-  const auto pl = hex_planes(coords, planes, nullptr);
-  const at::cuda::CUDAGuard guard(coords.device());
-  auto stream = c10::cuda::getCurrentCUDAStream().stream();
-  const int64_t N = coords.size(0);
-  auto feats = at::empty({N, (int64_t)pl.M * pl.C}, coords.options());
-  auto others = at::empty({N, (int64_t)pl.M, stdr::HEX_PLANES, (int64_t)pl.C}, coords.options());
-  stdr_cuda::hexplane_forward(pl, N, coords.data_ptr<float>(), feats.data_ptr<float>(), others.data_ptr<float>(),
-                              stream);
-  C10_CUDA_CHECK(cudaGetLastError());
-  return {feats, others};
-}
-
-std::vector<at::Tensor> hexplane_backward(at::Tensor coords, std::vector<at::Tensor> planes, at::Tensor others,
-                                          at::Tensor g_feats) {
-  std::vector<at::Tensor> grads;
-  for (const auto& t : planes) grads.push_back(at::zeros_like(t));
-  const auto pl = hex_planes(coords, planes, &grads);
-  const int64_t N = coords.size(0);
-  TORCH_CHECK(others.is_cuda() && others.is_contiguous() && others.numel() == N * pl.M * stdr::HEX_PLANES * pl.C,
-              "stdr CUDA hexplane backward: others must be the forward's");
-  TORCH_CHECK(g_feats.is_cuda() && g_feats.is_contiguous() && g_feats.scalar_type() == at::kFloat &&
-                  g_feats.numel() == N * pl.M * pl.C,
-              "stdr CUDA hexplane backward: g_feats must be a contiguous float32 [N, M*C] CUDA tensor");
-  const at::cuda::CUDAGuard guard(coords.device());
-  auto stream = c10::cuda::getCurrentCUDAStream().stream();
-  stdr_cuda::hexplane_backward(pl, N, coords.data_ptr<float>(), others.data_ptr<float>(), g_feats.data_ptr<float>(),
-                               stream);
-  C10_CUDA_CHECK(cudaGetLastError());
-  return grads;
-}
-
-// ---------------------------------------------------------------- the training loss and the guard's check
-
-void check_loss_images(const at::Tensor& img, const at::Tensor& gt) {
-  TORCH_CHECK(img.is_cuda() && gt.is_cuda() && img.get_device() == gt.get_device() &&
-                  img.scalar_type() == at::kFloat && gt.scalar_type() == at::kFloat && img.dim() == 3 &&
-                  img.sizes() == gt.sizes(),
-              "stdr CUDA image_loss: img and gt must be float32 [H, W, C] tensors of one shape on one GPU");
-}
-
-std::vector<at::Tensor> image_loss_forward(at::Tensor img, at::Tensor gt, double lam, int64_t window, double sigma) {
-  check_loss_images(img, gt);
-  TORCH_CHECK(window % 2 == 1 && window >= 1 && window <= stdr::LOSS_MAX_WINDOW,
-              "stdr CUDA image_loss: window must be odd, 1..31");
-  img = img.contiguous();
-  gt = gt.contiguous();
-  const at::cuda::CUDAGuard guard(img.device());
-  auto stream = c10::cuda::getCurrentCUDAStream().stream();
-  const int64_t H = img.size(0), W = img.size(1), C = img.size(2), n = H * W * C;
-  const bool grad = lam != 0.0;
-  auto loss = at::empty({}, img.options());
-  auto stats = at::empty({3}, img.options());
-  auto partials = grad ? at::empty({3, H, W, C}, img.options()) : at::empty({0}, img.options());
-  auto vt = at::empty({5 * n}, img.options());
-  auto sums = at::empty({3 * stdr_cuda::loss_blocks(n)}, img.options().dtype(at::kDouble));
-  if (n > 0) {
-    stdr_cuda::image_loss_forward(img.data_ptr<float>(), gt.data_ptr<float>(), H, W, C,
-                                  stdr_cuda::loss_window_f(window, sigma), lam, vt.data_ptr<float>(),
-                                  grad ? partials.data_ptr<float>() : nullptr, sums.data_ptr<double>(),
-                                  loss.data_ptr<float>(), stats.data_ptr<float>(), stream);
-    C10_CUDA_CHECK(cudaGetLastError());
-  }
-  return {loss, stats, partials};
-}
-
-at::Tensor image_loss_backward(at::Tensor g_loss, at::Tensor img, at::Tensor gt, at::Tensor partials, double lam,
-                               int64_t window, double sigma) {
-  check_loss_images(img, gt);
-  TORCH_CHECK(g_loss.is_cuda() && g_loss.get_device() == img.get_device() && g_loss.numel() == 1 &&
-                  g_loss.scalar_type() == at::kFloat,
-              "stdr CUDA image_loss: the loss gradient must be a float32 scalar on the images' GPU");
-  img = img.contiguous();
-  gt = gt.contiguous();
-  g_loss = g_loss.contiguous();
-  const int64_t H = img.size(0), W = img.size(1), C = img.size(2), n = H * W * C;
-  const bool grad = lam != 0.0;
-  TORCH_CHECK(!grad || (partials.is_cuda() && partials.is_contiguous() && partials.numel() == 3 * n),
-              "stdr CUDA image_loss: partials do not match the image");
-  const at::cuda::CUDAGuard guard(img.device());
-  auto stream = c10::cuda::getCurrentCUDAStream().stream();
-  auto out = at::empty_like(img);
-  auto vt = at::empty({grad ? 3 * n : 0}, img.options());
-  if (n > 0) {
-    stdr_cuda::image_loss_backward(img.data_ptr<float>(), gt.data_ptr<float>(),
-                                   grad ? partials.data_ptr<float>() : nullptr, H, W, C,
-                                   stdr_cuda::loss_window_f(window, sigma), lam, g_loss.data_ptr<float>(),
-                                   vt.data_ptr<float>(), out.data_ptr<float>(), stream);
-    C10_CUDA_CHECK(cudaGetLastError());
-  }
-  return out;
-}
-
-// The sync-free guard's per-step update, in place, on the device (as the CPU's guard_update):
-// float32 tensors only (the caller sends others to the torch form).
-void guard_update(std::vector<at::Tensor> ts, at::Tensor flag, at::Tensor bad_step, at::Tensor bad_index,
-                  int64_t step) {
-  TORCH_CHECK(flag.is_cuda() && flag.numel() == 1 && flag.scalar_type() == at::kFloat && bad_step.is_cuda() &&
-                  bad_step.numel() == 1 && bad_step.scalar_type() == at::kLong && bad_index.is_cuda() &&
-                  bad_index.numel() == 1 && bad_index.scalar_type() == at::kLong,
-              "stdr CUDA guard: flag must be a float32 CUDA scalar, bad_step and bad_index int64 CUDA scalars");
-  const at::cuda::CUDAGuard guard(flag.device());
-  auto stream = c10::cuda::getCurrentCUDAStream().stream();
-  std::vector<at::Tensor> keep;  // contiguous copies live until the launches are queued
-  auto first = at::full({1}, INT_MAX, flag.options().dtype(at::kInt));
-  stdr_cuda::GuardTable table;
-  int count = 0;
-  int64_t max_numel = 0;
-  for (size_t i = 0; i < ts.size(); ++i) {
-    const auto& t0 = ts[i];
-    if (!t0.defined() || t0.numel() == 0) continue;
-    TORCH_CHECK(t0.is_cuda() && t0.get_device() == flag.get_device() && t0.scalar_type() == at::kFloat,
-                "stdr CUDA guard: every tensor must be float32 on the flag's GPU");
-    keep.push_back(t0.contiguous());
-    table.ptr[count] = keep.back().data_ptr();
-    table.numel[count] = keep.back().numel();
-    table.index[count] = (int)i;
-    max_numel = std::max(max_numel, table.numel[count]);
-    if (++count == stdr_cuda::GUARD_MAX) {
-      stdr_cuda::guard_check(table, count, max_numel, first.data_ptr<int>(), stream);
-      count = 0;
-      max_numel = 0;
-    }
-  }
-  stdr_cuda::guard_check(table, count, max_numel, first.data_ptr<int>(), stream);
-  stdr_cuda::guard_finish(first.data_ptr<int>(), flag.data_ptr<float>(), bad_step.data_ptr<int64_t>(),
-                          bad_index.data_ptr<int64_t>(), step, stream);
-  C10_CUDA_CHECK(cudaGetLastError());
-}
-
 }  // namespace
-
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("forward", &forward, "tile rasterizer forward (CUDA)");
-  m.def("backward", &backward, "tile rasterizer backward (CUDA)");
-  m.def("score", &score, "contribution score: blending weight summed per Gaussian (CUDA)");
-  m.def("bin_pairs_split", &bin_pairs_split, "Gaussian-tile binning, count and write passes on given rows (tests)");
-  m.def("project_forward", &project_forward, "projection and SH forward (CUDA)");
-  m.def("project_backward", &project_backward, "projection and SH backward (CUDA)");
-  m.def("hexplane_forward", &hexplane_forward, "HexPlane features and the others-products (CUDA)");
-  m.def("hexplane_backward", &hexplane_backward, "HexPlane plane gradients (CUDA, atomic adds)");
-  m.def("image_loss_forward", &image_loss_forward, "(1 - lam) L1 + lam (1 - SSIM), its stats and partials (CUDA)");
-  m.def("image_loss_backward", &image_loss_backward, "the image gradient of image_loss (CUDA, deterministic)");
-  m.def("guard_update", &guard_update, "the sync-free guard's per-step update, in place (CUDA)");
-}
