@@ -292,7 +292,7 @@ def _section_tables(md: Path) -> list[str]:
 
 
 def compact_preset() -> list[str]:
-    """The section of the compact preset's test table (studies/compact.py test-table), once it exists."""
+    """The section of the compact preset's test table (studies/compact_prune.py test-table), once it exists."""
     md = M / "compact_prune" / "table_test.md"
     if not md.is_file():
         return []

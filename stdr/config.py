@@ -14,12 +14,12 @@ from omegaconf import OmegaConf
 
 from .data.procedural import SceneOptions
 from .data.stress import StressConfig
-# every baseline's config dataclass lives beside its module (stdr.deform.registry)
-from .deform import BASELINES, BaselineConfig, DeformConfig, HexPlaneConfig, ScgsConfig, SpgsConfig  # noqa: F401
-from .deform.registry import add_listener, discover_baselines, get_baseline
+# every baseline's config dataclass lives beside its module (stdr.baselines.registry)
+from .baselines import BASELINES, BaselineConfig, DeformConfig, HexPlaneConfig, ScgsConfig, SpgsConfig  # noqa: F401
+from .baselines.registry import add_listener, discover_baselines, get_baseline
 from .plugins import PLUGINS, add_listener as add_plugin_listener, registered_plugins, set_reserved_keys
-from .scene.prune import PruneConfig
-from .scene.strategy import STRATEGIES, DensifyStrategy, add_listener as add_strategy_listener, get_strategy
+from .densify.prune import PruneConfig
+from .densify.strategy import STRATEGIES, DensifyStrategy, add_listener as add_strategy_listener, get_strategy
 from .train.guard import GuardConfig
 
 #: the YAML config groups; they ship inside the package, so an installed wheel has them too
@@ -158,7 +158,7 @@ class Config:
     optim: OptimConfig = field(default_factory=OptimConfig)
     # the option densify=<name> (default `default`) types it as that registered strategy (a subclass)
     densify: DensifyStrategy = field(default_factory=DensifyStrategy)
-    # contribution pruning at scheduled steps (stdr/scene/prune.py; off while prune.share=0)
+    # contribution pruning at scheduled steps (stdr/densify/prune.py; off while prune.share=0)
     prune: PruneConfig = field(default_factory=PruneConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     train: TrainConfig = field(default_factory=TrainConfig)

@@ -22,14 +22,14 @@ from omegaconf import OmegaConf
 from torch import Tensor
 
 from .cameras import Camera
-from .deform import build_deformation
+from .baselines import build_deformation
 from .device import resolve_device
 from .plugins import Plugin
 from .ops import RowView, rows_of, sigmoid
 from .render import RenderOutput, render, resolve_backend
 from .render.reference import ALPHA_MIN
 from .schedule import Schedule, resolve_schedule
-from .scene.gaussians import Gaussians, activate, init_params, num_gaussians, random_cube_points
+from .gaussians import Gaussians, activate, init_params, num_gaussians, random_cube_points
 
 CHECKPOINT_FORMAT = 2
 CULL_MODES = ("off", "eval", "train")

@@ -92,9 +92,9 @@ class NeverTrains(ValueError):
 
 def resolve_schedule(cfg) -> Schedule:
     """Every boundary of a run from its config (a Config or DictConfig)."""
-    from .deform import get_baseline
+    from .baselines import get_baseline
     from .plugins import enabled_plugins, plugin_node
-    from .scene.strategy import get_strategy
+    from .densify.strategy import get_strategy
 
     b = cfg.baseline
     total = int(cfg.optim.iterations)
@@ -113,7 +113,7 @@ def resolve_schedule(cfg) -> Schedule:
     s.events += [Event(*e) for e in events]
     s.notes += notes
     if getattr(cfg, "prune", None) is not None:  # configs saved before contribution pruning have no node
-        from .scene.prune import prune_steps
+        from .densify.prune import prune_steps
         s.prune_steps = prune_steps(cfg.prune, total, int(cfg.densify.refine_stop))
         s.events += [Event(k, "prune.at", f"contribution pruning: the {float(cfg.prune.share):.0%} least "
                                           "significant Gaussians removed") for k in s.prune_steps]

@@ -25,7 +25,7 @@ def applicable(overrides, baseline: str) -> list[str]:
     """`overrides` without the `baseline.<sub>.*` keys that baseline `baseline`'s config does not
     have (e.g. baseline.scgs.num_nodes for deform), so one short schedule serves every baseline.
     stdr-train itself rejects such keys."""
-    from .deform import get_baseline
+    from .baselines import get_baseline
     fields = get_baseline(baseline).config.__dataclass_fields__
     return [o for o in overrides if not ((m := _NESTED.match(o)) and m.group(1) not in fields)]
 

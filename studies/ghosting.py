@@ -20,7 +20,7 @@ from omegaconf import OmegaConf
 from stdr.cli.common import CONFIG_DIR
 from stdr.config import register
 from stdr.data.procedural import JUMP_A, JUMP_B, SceneOptions, jump_at_a
-from stdr.decouple import MASK_KEY
+from stdr.plugins.stdr import MASK_KEY
 from stdr.train.trainer import Trainer
 
 

@@ -1,10 +1,10 @@
-"""stdr.train.adam: several fused Adams stepped at once equal each one's own step(), bit for bit."""
+"""stdr.train.optim: several fused Adams stepped at once equal each one's own step(), bit for bit."""
 import copy
 
 import pytest
 import torch
 
-from stdr.train.adam import adam_step, clear_grads
+from stdr.train.optim import adam_step, clear_grads
 from stdr.train.syncs import OpCounter
 
 

@@ -6,14 +6,14 @@ import math
 import pytest
 import torch
 
-from stdr.deform.control_nodes import (FEATURE_KEY, ControlNodeDeformation, arap_energy, blend_translation,
+from stdr.baselines.control_nodes import (FEATURE_KEY, ControlNodeDeformation, arap_energy, blend_translation,
                                        log_interp_schedule, skinning_weights)
-from stdr.deform.geometry import farthest_point_sampling, quat_multiply, quat_to_rotmat, so3_exp, so3_exp_quat, so3_log
-from stdr.deform.hexplane import PAIRS, HexPlaneDeformation, HexPlaneField, sample_plane
-from stdr.deform.superpoints import ASSOC_KEY, SuperpointDeformation
-from stdr.deform import BASELINES
-from stdr.scene.gaussians import init_params
-from stdr.scene.strategy import duplicate, split
+from stdr.baselines.geometry import farthest_point_sampling, quat_multiply, quat_to_rotmat, so3_exp, so3_exp_quat, so3_log
+from stdr.baselines.hexplane import PAIRS, HexPlaneDeformation, HexPlaneField, sample_plane
+from stdr.baselines.superpoints import ASSOC_KEY, SuperpointDeformation
+from stdr.baselines import BASELINES
+from stdr.gaussians import init_params
+from stdr.densify.strategy import duplicate, split
 
 torch.manual_seed(0)
 
@@ -41,7 +41,7 @@ def test_so3_exp_log_round_trip_and_properties():
     torch.testing.assert_close(torch.linalg.det(R), torch.ones(500, dtype=torch.float64))
     torch.testing.assert_close(so3_log(R), w, atol=1e-9, rtol=1e-7)
     # exp(w) rotates about w by |w| (Rodrigues, checked against the matrix exponential)
-    from stdr.deform.geometry import hat
+    from stdr.baselines.geometry import hat
     torch.testing.assert_close(R, torch.linalg.matrix_exp(hat(w)), atol=1e-12, rtol=0)
     # the quaternion of exp(w) gives the same matrix, and products compose
     torch.testing.assert_close(quat_to_rotmat(so3_exp_quat(w)), R, atol=1e-12, rtol=0)
@@ -87,7 +87,7 @@ def test_blend_skinning_reproduces_a_rigid_motion_exactly():
 
 def test_arap_energy_zero_for_rigid_and_positive_for_stretch():
     p = torch.rand(40, 3, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
-    from stdr.scene.knn import knn
+    from stdr.knn import knn
     _, nbr = knn(p, p, 6, exclude_self=True)
     R = random_rotations(1, seed=7)[0]
     assert arap_energy(p, p @ R.T + 1.0, nbr) < 1e-20
@@ -291,7 +291,7 @@ def test_4dgs_starts_at_identity_and_applies_before_activation():
 def test_4dgs_time_resolution_follows_the_training_frames():
     from omegaconf import OmegaConf
 
-    from stdr.deform import HexPlaneBaselineConfig
+    from stdr.baselines import HexPlaneBaselineConfig
     b = OmegaConf.structured(HexPlaneBaselineConfig)
     import numpy as np
     kw = HexPlaneDeformation.config_kwargs(b, 0, np.linspace(0, 1, 150))
@@ -413,7 +413,7 @@ def test_scgs_resampling_and_arap_use_the_given_conditioning():
     gen = torch.Generator().manual_seed(m.seed * 1_000_003 + 6)
     t1 = float(torch.rand((), generator=gen)) * (1.0 - m.arap_dt)
     p = m.nodes[:, :3].detach()
-    from stdr.scene.knn import knn
+    from stdr.knn import knn
     _, nbr = knn(p, p, min(m.arap_k, m.m - 1), exclude_self=True)
     lam = log_interp_schedule(6 - m.node_stage_end, m.arap_steps, m.arap_weights)
     hand = lam * arap_energy(p + m.node_deltas(p, t1, cond_n)[0], p + m.node_deltas(p, t1 + m.arap_dt, cond_n)[0], nbr)
@@ -424,7 +424,7 @@ def test_hexplane_sampling_equals_grid_sample_with_gradients():
     """The HexPlane field's gather / index_add sampling (and the time planes' row-blended line)
     equal F.grid_sample(align_corners=True, zeros padding), values and plane gradients,
     including points outside the plane and on its edges."""
-    from stdr.deform.hexplane import _grid_sample, sample_plane, sample_plane_row
+    from stdr.baselines.hexplane import _grid_sample, sample_plane, sample_plane_row
     g = torch.Generator().manual_seed(0)
     plane = torch.randn(8, 13, 17, generator=g, dtype=torch.float64, requires_grad=True)
     uv = torch.rand(500, 2, generator=g, dtype=torch.float64) * 2.6 - 1.3

@@ -1,4 +1,4 @@
-"""The contribution-pruning study's decision rule (studies/compact.py, protocol.md), on
+"""The contribution-pruning study's decision rule (studies/compact_prune.py, protocol.md), on
 synthetic records: the rule as written, checked case by case."""
 import sys
 from pathlib import Path
@@ -7,7 +7,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from studies.compact import EXPERIMENTS, SCENES, SCRATCH_VARIANTS, STDR_VARIANTS, VARIANTS, decide  # noqa: E402
+from studies.compact_prune import EXPERIMENTS, SCENES, SCRATCH_VARIANTS, STDR_VARIANTS, VARIANTS, decide  # noqa: E402
 
 
 def _recs(delta):
@@ -70,11 +70,11 @@ def test_time_bins_takes_the_fewest_columns_that_keep_every_stdr_method():
 
 
 def _queue(tmp_path, monkeypatch, scenes, step_of):
-    """studies.compact.run_queue with the training and checkpoint reads replaced: `step_of(scene)`
+    """studies.compact_prune.run_queue with the training and checkpoint reads replaced: `step_of(scene)`
     is the step of a trunk's last.previous.pt; each branch 'trains' by writing its metrics.json."""
     import argparse
 
-    import studies.compact as c
+    import studies.compact_prune as c
     monkeypatch.setattr(c, "SCENES", scenes)
     calls = []
 
@@ -179,7 +179,7 @@ def _decision(m8: float):
 
 
 def test_the_compact_run_is_the_chosen_variant_or_a_preset_branch_with_8_bits():
-    from studies.compact import preset_of
+    from studies.compact_prune import preset_of
     d = _decision(-0.01)  # rule 5 admits 8 bits: +STDR methods need a branch no val variant has
     assert d["choice"] == "s30" and d["mask_bits_8"] is True
     assert preset_of(d, "dnerf_scgs") == ("s30", VARIANTS["s30"])
@@ -189,12 +189,12 @@ def test_the_compact_run_is_the_chosen_variant_or_a_preset_branch_with_8_bits():
 
 
 def _test_stage(tmp_path, monkeypatch, m8: float):
-    """studies.compact.run_test over val records of one decision, with training and evaluation
+    """studies.compact_prune.run_test over val records of one decision, with training and evaluation
     replaced by writers of their records."""
     import argparse
     import json
 
-    import studies.compact as c
+    import studies.compact_prune as c
     recs = _recs({"s30": lambda e: -0.02, "s30_tw1": lambda e: -0.03, "s50": lambda e: -0.4,
                   "s50_tw1": lambda e: -0.4, "m8": lambda e: m8})
     monkeypatch.setattr(c, "load_records", lambda root: recs)
@@ -259,7 +259,7 @@ def test_the_test_stage_refuses_an_undecided_study(tmp_path, monkeypatch):
 def test_the_test_table_checks_each_target_on_per_scene_ratios(tmp_path, monkeypatch):
     import json
 
-    import studies.compact as c
+    import studies.compact_prune as c
     monkeypatch.setattr(c, "SCENES", ("a", "b"))
     root = tmp_path / "test"
     # per scene: (psnr, gaussians, fps, model_mb, train_seconds), full then compact
@@ -303,7 +303,7 @@ def test_follow_with_scratch_goes_on_to_the_scratch_runs_after_the_last_branches
 
 
 def test_the_bytes_split_recovers_a_fixed_part_and_per_gaussian_bytes():
-    from studies.compact import bytes_split
+    from studies.compact_prune import bytes_split
     mib = 2 ** 20
 
     def rec(n, mask_bytes_per_g):  # 0.5 MiB fixed, 236 bytes a Gaussian, the mask on top

@@ -3,9 +3,9 @@ deformation, projection and rasterizer, with the image and the rendered rows' gr
 import pytest
 import torch
 
-from stdr.deform import BASELINES
+from stdr.baselines import BASELINES
 from stdr.model import active_rows
-from stdr.scene.strategy import DensifyStrategy
+from stdr.densify.strategy import DensifyStrategy
 from stdr.testing import tiny_config as _tiny
 from stdr.tools import identity_check as _ic
 

@@ -1,8 +1,8 @@
 import torch
 
-from stdr.deform import DeformMLP, Deltas, apply_post_activation, apply_pre_activation
+from stdr.baselines import DeformMLP, Deltas, apply_post_activation, apply_pre_activation
 from stdr.encoding import positional_encoding
-from stdr.scene.gaussians import init_params
+from stdr.gaussians import init_params
 
 
 def test_positional_encoding_layout():
@@ -88,7 +88,7 @@ def test_blockwise_trunk_equals_the_concatenated_mlp_with_gradients():
 def test_bf16_precision_is_an_option_with_fp32_deltas():
     import pytest
 
-    from stdr.deform.base import check_precision
+    from stdr.baselines.base import check_precision
     torch.manual_seed(0)
     net = DeformMLP(depth=3, width=64, skips=(1,), head_init_std=None)
     params = init_params(torch.rand(200, 3), torch.rand(200, 3), sh_degree=0)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 
-from stdr.deform import BASELINES
+from stdr.baselines import BASELINES
 from stdr.device import resolve_device
 from stdr.testing import tiny_config as _tiny
 from stdr.tools import identity_check as _ic

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from stdr.deform import BaselineConfig, Deformation, Deltas, register_baseline
+from stdr.baselines import BaselineConfig, Deformation, Deltas, register_baseline
 
 
 @dataclass
@@ -134,7 +134,7 @@ def test_a_baseline_and_a_plugin_from_another_distribution_train_tabulate_and_re
 def test_a_broken_entry_point_is_an_error_that_names_it(tmp_path):
     _distribution(tmp_path / "site", "stdr_wobble:missing_function")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), str(ROOT)])}
-    p = _run(["-c", "from stdr.deform.registry import discover_baselines; discover_baselines()"], env)
+    p = _run(["-c", "from stdr.baselines.registry import discover_baselines; discover_baselines()"], env)
     assert p.returncode != 0
     assert ("entry point 'wobble' = 'stdr_wobble:missing_function' (group 'stdr.baselines', "
             "distribution stdr-wobble 0.1) failed") in p.stderr

@@ -11,8 +11,8 @@ from stdr.testing import tiny_config
 def test_an_exported_time_renders_like_the_model(tmp_path, name):
     from stdr.cli.view import export_main
     from stdr.model import load_model
-    from stdr.scene.gaussians import activate
-    from stdr.scene.ply import load_ply
+    from stdr.gaussians import activate
+    from stdr.io.ply import load_ply
     from stdr.train.trainer import Trainer
     sched = [f"experiment=embedded_{name}", "optim.iterations=30", "baseline.warmup=10", "densify.refine_start=5",
              "densify.refine_every=5", "train.checkpoint_every=0", "train.eval_at_warmup_end=false",
@@ -37,6 +37,6 @@ def test_an_exported_time_renders_like_the_model(tmp_path, name):
 
 
 def test_a_time_outside_the_run_is_an_error(tmp_path):
-    from stdr.scene.export import export_times
+    from stdr.io.export import export_times
     with pytest.raises(ValueError, match=r"time 1.5: the model's times run over \[0, 1\]"):
         export_times(object(), [1.5], tmp_path)

@@ -65,5 +65,26 @@ def test_the_config_sits_on_no_import_circle():
                 if reaches(n, b, seen):
                     return True
         return False
-    for mod in ("stdr.plugins", "stdr.schedule", "stdr.deform", "stdr.scene.strategy"):
+    for mod in ("stdr.plugins", "stdr.schedule", "stdr.baselines", "stdr.densify.strategy"):
         assert not reaches(mod, "stdr.config", set()), mod
+
+
+def test_no_module_below_the_loop_takes_the_trainer():
+    """The guard, densification, pruning and evaluation take the run's state (stdr.train.state),
+    never the trainer: no function in stdr/train (but the trainer's own module), stdr/densify or
+    stdr/eval has a parameter named `trainer`, and none imports stdr.train.trainer."""
+    import ast
+    bad = []
+    for pkg in ("train", "densify", "eval"):
+        for path in sorted((ROOT / "stdr" / pkg).glob("*.py")):
+            if path.name == "trainer.py":
+                continue
+            tree = ast.parse(path.read_text())
+            for node in ast.walk(tree):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    names = [a.arg for a in node.args.args + node.args.kwonlyargs + node.args.posonlyargs]
+                    if "trainer" in names:
+                        bad.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}(trainer)")
+                if isinstance(node, ast.ImportFrom) and (node.module or "").endswith("trainer"):
+                    bad.append(f"{path.relative_to(ROOT)}:{node.lineno} imports {node.module}")
+    assert not bad, bad

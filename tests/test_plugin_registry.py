@@ -150,7 +150,7 @@ def test_a_saved_config_with_an_unregistered_plugin_is_refused_by_name(tmp_path)
         load_config(raw, "run.yaml")
 
 
-# the core modules: outside stdr/decouple/ and the registries, no module names the plug-in
+# the core modules: outside stdr/plugins/stdr/ and the registries, no module names the plug-in
 CORE = ["stdr/config.py", "stdr/model.py", "stdr/schedule.py", "stdr/cli/eval.py", "stdr/eval", "stdr/train"]
 # what "stdr" may be there: the package (its module paths but the plug-in's, CLIs, log prefix, resolvers, cache folder,
 # environment variables, file formats, prose naming the package)
@@ -176,7 +176,7 @@ def test_a_plugins_frozen_keys_lose_their_optimizer_whatever_their_dtype(tmp_pat
     """Frozen parameters are an interface (Plugin.frozen_keys), not a dtype: a float key a plug-in
     declares frozen gets no optimizer from that step on and keeps its values."""
     import torch
-    from stdr.decouple.plugin import STDR as STDRPlugin
+    from stdr.plugins.stdr.plugin import STDR as STDRPlugin
     from stdr.testing import tiny_config
     from stdr.train.trainer import Trainer
 

@@ -8,7 +8,7 @@ import torch
 from omegaconf import OmegaConf
 from PIL import Image
 from stdr.data.load import scene_folder
-from stdr.deform import BASELINES
+from stdr.baselines import BASELINES
 from stdr.testing import make_cfg, tiny_config
 from stdr.train.guard import monitor_split
 

@@ -1,10 +1,10 @@
-"""Contribution pruning (stdr/scene/prune.py): the schedule keys, the ranking, the significance
+"""Contribution pruning (stdr/densify/prune.py): the schedule keys, the ranking, the significance
 matrix against the rendered opacity, state kept aligned through an event, and exact resume."""
 import pytest
 import torch
 from omegaconf import OmegaConf
 
-from stdr.scene.prune import (PruneConfig, prune_steps, ranking, seen_per_frame, select_pruned,
+from stdr.densify.prune import (PruneConfig, prune_steps, ranking, seen_per_frame, select_pruned,
                               significance)
 from stdr.testing import tiny_config
 
@@ -74,8 +74,8 @@ def test_significance_sums_to_the_rendered_opacity(tmp_path, backend):
 
 
 def test_an_event_removes_the_least_significant_rows_and_keeps_state_aligned(tmp_path, monkeypatch):
-    import stdr.scene.prune as prune_mod
-    import stdr.scene.strategy as strategy_mod
+    import stdr.densify.prune as prune_mod
+    import stdr.densify.strategy as strategy_mod
     from stdr.train.trainer import Trainer
     seen = {}
     score, remove = prune_mod.significance, strategy_mod.remove

@@ -8,7 +8,7 @@ import tarfile
 import pytest
 
 from stdr.testing import TINY_SCENE
-from stdr.tools import queue as qm
+from stdr.tools import runqueue as qm
 
 
 def _toy(tmp_path, iterations=20):

@@ -10,8 +10,8 @@ from omegaconf import OmegaConf
 from torch import nn
 
 from stdr.config import data_options, experiment_names, load_config
-from stdr.deform import BASELINES, BaselineConfig, Deformation, Deltas, get_baseline, register_baseline
-from stdr.deform.registry import unregister_baseline
+from stdr.baselines import BASELINES, BaselineConfig, Deformation, Deltas, get_baseline, register_baseline
+from stdr.baselines.registry import unregister_baseline
 from stdr.testing import applicable, make_cfg, tiny_config
 
 
@@ -86,7 +86,7 @@ def test_composing_sees_a_registry_change_that_bypassed_the_listeners(monkeypatc
     time; a change made without register_baseline (no listener call) is still seen."""
     from hydra.errors import ConfigCompositionException
 
-    from stdr.deform.registry import BaselineSpec
+    from stdr.baselines.registry import BaselineSpec
     with pytest.raises(ConfigCompositionException, match="drift"):
         make_cfg(["baseline=drift"])
     monkeypatch.setitem(BASELINES, "drift", BaselineSpec("drift", Drift, DriftConfig))

@@ -2,10 +2,10 @@ import pytest
 import torch
 from torch import nn
 
-from stdr.scene.gaussians import init_params
-from stdr.scene.knn import knn
-from stdr.scene.ply import load_ply, save_ply
-from stdr.scene.strategy import DensifyStrategy, duplicate, remove, split
+from stdr.gaussians import init_params
+from stdr.knn import knn
+from stdr.io.ply import load_ply, save_ply
+from stdr.densify.strategy import DensifyStrategy, duplicate, remove, split
 
 
 def _params(n=20, seed=0):

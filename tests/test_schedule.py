@@ -8,7 +8,7 @@ from omegaconf import OmegaConf
 from stdr.testing import make_cfg
 from stdr.testing import tiny_config as _tiny
 
-from stdr.deform import BASELINES
+from stdr.baselines import BASELINES
 from stdr.schedule import resolve_schedule
 
 

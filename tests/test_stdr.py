@@ -7,14 +7,14 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from stdr.decouple import StdrConfig
-from stdr.decouple import (MASK_KEY, Phase, SeparatedField, interp_weights, knot_times, mask_at,
+from stdr.plugins.stdr import StdrConfig
+from stdr.plugins.stdr import (MASK_KEY, Phase, SeparatedField, interp_weights, knot_times, mask_at,
                            phase_at, resolve_phases, sample_neighbours, spatial_kl, temporal_entropy,
                            temporal_loss)
-from stdr.deform import DeformMLP
+from stdr.baselines import DeformMLP
 from stdr.eval.table import method_name
-from stdr.scene.gaussians import init_params
-from stdr.scene.strategy import DensifyStrategy
+from stdr.gaussians import init_params
+from stdr.densify.strategy import DensifyStrategy
 from stdr.schedule import resolve_schedule
 
 from stdr.testing import TINY_SCENE, make_cfg
@@ -34,6 +34,29 @@ def test_interpolation_is_exact_at_knots_and_linear_between():
     # outside the knots: the end columns
     assert torch.equal(mask_at(logits, -0.5, knots), a[:, 0])
     assert torch.equal(mask_at(logits, 1.5, knots), a[:, 3])
+
+
+def test_the_mask_between_two_knots_by_each_rule():
+    """stdr.mask_between: at a knot every rule reads its column; between two, linear mixes the
+    activated columns, nearest takes the nearer one, logit activates the mixed logits (an entry on
+    at one knot and off at the next: linear holds it at half, logit crosses 1/2 at the middle)."""
+    from stdr.plugins.stdr.mask import activated, mask_at
+    knots = torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64)
+    logits = torch.tensor([[6.0, -6.0, 6.0], [0.0, 2.0, -1.0]])
+    a = activated(logits)
+    for rule in ("linear", "nearest", "logit"):
+        assert torch.equal(mask_at(logits, 0.5, knots, rule), a[:, 1])
+    w = 0.3  # t = 0.15: 30 % of the way from knot 0 to knot 1
+    torch.testing.assert_close(mask_at(logits, 0.15, knots, "linear"), (1 - w) * a[:, 0] + w * a[:, 1])
+    assert torch.equal(mask_at(logits, 0.15, knots, "nearest"), a[:, 0])
+    assert torch.equal(mask_at(logits, 0.40, knots, "nearest"), a[:, 1])
+    torch.testing.assert_close(mask_at(logits, 0.15, knots, "logit"),
+                               torch.sigmoid((1 - w) * logits[:, 0] + w * logits[:, 1]))
+    mid_linear, mid_logit = mask_at(logits, 0.25, knots, "linear"), mask_at(logits, 0.25, knots, "logit")
+    assert abs(float(mid_linear[0]) - 0.5) < 1e-6 and abs(float(mid_logit[0]) - 0.5) < 1e-6
+    assert float(mask_at(logits, 0.2, knots, "logit")[0]) > float(mask_at(logits, 0.2, knots, "linear")[0])
+    with pytest.raises(ValueError, match="stdr.mask_between"):
+        mask_at(logits, 0.15, knots, "cubic")
 
 
 def test_knots_are_distinct_training_times_or_bins():
@@ -332,11 +355,11 @@ def test_tensorboard_shows_phase_losses_histograms_and_mask_image(tmp_path):
 
 # ----------------------------------------------------------------------------- fidelity fixes (the fidelity study)
 def _plugin(**over):
-    from stdr.decouple import STDR
+    from stdr.plugins.stdr import STDR
     cfg = OmegaConf.structured(StdrConfig)
     for k, v in over.items():
         setattr(cfg, k, v)
-    from stdr.decouple import resolve_phases
+    from stdr.plugins.stdr import resolve_phases
     from stdr.schedule import Schedule
     w, f = resolve_phases(cfg, 10, 100)
     sched = Schedule(iterations=100, static_warmup_end=10, plugins={"stdr": {"warmup_end": w, "freeze_at": f,
@@ -383,7 +406,7 @@ def test_freeze_cleanup_switches_off_faint_entries_only():
     s.configure_step(p, s.freeze_at + 1)  # once
     assert s.cleaned_entries == int(off.sum())
     # the statistic that motivates it: entries with masked opacity in [1/255, 0.05]
-    from stdr.decouple.mask import faint_fraction
+    from stdr.plugins.stdr.mask import faint_fraction
     assert faint_fraction(torch.tensor([0.5, 0.5]), torch.tensor([[-5.0, -3.0], [0.0, -2.5]])) == 0.5
 
 
@@ -470,7 +493,7 @@ def test_freeze_colliding_with_a_stage_switch_is_moved_by_rule_or_rejected_when_
     """SC-GS at budget=cpu: static to 500, node->skinning switch at 1000 (+100 detached steps).
     The default freeze (2 x 500 = 1000) lands on it and moves to the midpoint 750; an explicit
     freeze_at inside the window is an error; one outside is kept."""
-    from stdr.deform.control_nodes import ControlNodeDeformation
+    from stdr.baselines.control_nodes import ControlNodeDeformation
     from stdr.schedule import keep_out_of_windows
 
     def place_freeze(step, floor, windows, explicit):
@@ -580,7 +603,7 @@ def test_conditioning_is_computed_once_outside_training_and_follows_every_change
 
 
 def test_8bit_mask_round_trip():
-    from stdr.decouple.mask import OFF_LOGIT, activated, logits_of, quantize
+    from stdr.plugins.stdr.mask import OFF_LOGIT, activated, logits_of, quantize
     m = torch.cat([torch.linspace(-12, 12, 1001), torch.tensor([OFF_LOGIT, -30.0, 30.0])])[:, None]
     q = quantize(m)
     assert q.dtype == torch.uint8
@@ -598,7 +621,7 @@ def test_mask_bits_8_stores_the_frozen_mask_in_8_bits_and_resumes_exactly(tmp_pa
     """After the freeze: uint8 in the parameter dict, no optimizer, a quarter of the bytes in
     model_mb; densification after the freeze keeps its rows; resume across the freeze and
     load_model give exactly what the uninterrupted run has."""
-    from stdr.decouple.mask import logits_of
+    from stdr.plugins.stdr.mask import logits_of
     from stdr.eval.evaluate import model_bytes
     from stdr.model import load_model
     from stdr.train.trainer import Trainer

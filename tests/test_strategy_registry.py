@@ -1,4 +1,4 @@
-"""Densification strategies are registered like baselines (stdr.scene.strategy): a second one,
+"""Densification strategies are registered like baselines (stdr.densify.strategy): a second one,
 written in this test, becomes `densify=<name>` with typed keys, joins the schedule and trains
 through the one loop; the default is unchanged."""
 from dataclasses import dataclass
@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import pytest
 import torch
 
-from stdr.scene.strategy import STRATEGIES, DensifyStrategy, get_strategy, register_strategy, unregister_strategy
+from stdr.densify.strategy import STRATEGIES, DensifyStrategy, get_strategy, register_strategy, unregister_strategy
 from stdr.schedule import resolve_schedule
 from stdr.testing import make_cfg, tiny_config
 
@@ -25,7 +25,7 @@ class Thinning(DensifyStrategy):
 
     def step_post_backward(self, params, optimizers, state, step, means2d, radii, width, height, generator=None,
                            opacity_fn=None, reset_fn=None, rows=None, opacities=None):
-        from stdr.scene.strategy import remove
+        from stdr.densify.strategy import remove
         if step % self.every:
             return {}
         n = params["means"].shape[0]

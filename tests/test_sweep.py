@@ -8,7 +8,7 @@ import sys
 import pytest
 from omegaconf import OmegaConf
 
-from stdr.deform import BASELINES
+from stdr.baselines import BASELINES
 from stdr.testing import make_cfg
 
 

@@ -93,7 +93,7 @@ def _load_for_eval(rd: Path, cfg, split: str, base: str):
     from ..device import resolve_device
     from ..model import has_model_entry, model_from_checkpoint
     from ..train.checkpoint import load_checkpoint
-    from ..train.trainer import CKPT
+    from ..train.state import CKPT
 
     ck = load_checkpoint(rd / CKPT)
     dev = resolve_device(cfg.device)

@@ -104,7 +104,7 @@ def render_main(argv=None) -> None:
 def export_main(argv=None) -> None:
     """stdr-export RUN --times 0 0.5 1 --out DIR: the model at each time as a 3DGS PLY."""
     from ..model import load_model
-    from ..scene.export import export_times
+    from ..io.export import export_times
     ap = argparse.ArgumentParser(prog="stdr-export", description="A trained run at given times as standard 3DGS "
                                  "PLY files (deformed, opacity with the plug-ins' factors), for splat viewers.")
     ap.add_argument("run", type=Path, help="a run directory (checkpoints/last.pt) or a checkpoint file")

@@ -23,7 +23,7 @@ from typing import Any, List, Optional
 import numpy as np
 import torch
 
-from ..deform.geometry import so3_exp
+from ..baselines.geometry import so3_exp
 from .types import Frame, SceneData
 
 
@@ -83,7 +83,7 @@ def check_stress(cfg) -> None:
 
 
 def scene_radius(frames: list[Frame]) -> float:
-    from ..scene.gaussians import scene_extent
+    from ..gaussians import scene_extent
     return scene_extent(np.stack([f.camera.center.double().cpu().numpy() for f in frames]))
 
 

@@ -1,14 +1,4 @@
-"""STDR (spatio-temporal decoupling): the mask, its phases and regularizers, the separated field."""
-from __future__ import annotations
+"""Old name of `stdr.plugins.stdr` (the STDR plug-in's package), kept working: stdr/_moved.py."""
+from .._moved import alias
 
-from ..plugins import register_plugin
-from .config import StdrConfig
-from .field import SeparatedField
-from .mask import interp_weights, knot_times, mask_at, sample_neighbours, spatial_kl, temporal_entropy, temporal_loss
-from .plugin import MASK_KEY, STDR, Phase, phase_at, resolve_phases
-
-register_plugin("stdr", STDR, StdrConfig, label="+STDR")
-
-__all__ = ["MASK_KEY", "STDR", "StdrConfig", "Phase", "SeparatedField", "interp_weights", "knot_times", "mask_at",
-           "phase_at", "resolve_phases", "sample_neighbours", "spatial_kl", "temporal_entropy",
-           "temporal_loss"]
+alias(__name__, "stdr.plugins.stdr", {m: f"stdr.plugins.stdr.{m}" for m in ("config", "field", "mask", "plugin")}, same=True)

@@ -1,16 +1,5 @@
-"""Deformation modules: one per baseline, all behind the interface in `base`, listed in one
-registry (`registry.BASELINES`: name -> module and config dataclass)."""
-from __future__ import annotations
+"""Old name of `stdr.baselines` (the baselines' package), kept working: stdr/_moved.py."""
+from .._moved import alias
 
-from .base import BaselineConfig, Deformation, Deltas, apply_post_activation, apply_pre_activation
-from .control_nodes import ControlNodeDeformation, ScgsBaselineConfig, ScgsConfig
-from .deform3dgs import DeformConfig, DeformMLP
-from .hexplane import HexPlaneBaselineConfig, HexPlaneConfig, HexPlaneDeformation, hexplane_time_res
-from .registry import BASELINES, BaselineSpec, build_deformation, get_baseline, register_baseline, unregister_baseline
-from .superpoints import SpgsBaselineConfig, SpgsConfig, SuperpointDeformation
-
-__all__ = ["Deformation", "Deltas", "BaselineConfig", "DeformMLP", "ControlNodeDeformation", "SuperpointDeformation",
-           "HexPlaneDeformation", "DeformConfig", "ScgsBaselineConfig", "ScgsConfig", "SpgsBaselineConfig",
-           "SpgsConfig", "HexPlaneBaselineConfig", "HexPlaneConfig", "BASELINES", "BaselineSpec", "build_deformation",
-           "get_baseline", "register_baseline", "unregister_baseline", "hexplane_time_res",
-           "apply_post_activation", "apply_pre_activation"]
+alias(__name__, "stdr.baselines", {m: f"stdr.baselines.{m}" for m in (
+    "base", "control_nodes", "deform3dgs", "geometry", "hexplane", "registry", "superpoints")}, same=True)

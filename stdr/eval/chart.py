@@ -143,7 +143,7 @@ def _style(baselines: list[str]):
     """One colour per baseline, stable across charts: the registry's order, then any other."""
     import matplotlib
 
-    from ..deform import BASELINES
+    from ..baselines import BASELINES
     cmap = matplotlib.colormaps["tab10"]
     order = sorted(BASELINES) + sorted(set(baselines) - set(BASELINES))
     present = set(baselines)

@@ -120,7 +120,7 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
     iteration `step` (default: the model's), and measure PSNR/SSIM/LPIPS and the render FPS
     (the quality pass and `fps_repeats` - 1 timing-only passes; see the module docstring).
     seen: also `seen_per_frame`, the mean share of the model that contributes to a frame
-    (a score pass per frame after the timed passes; stdr.scene.prune.seen_per_frame)."""
+    (a score pass per frame after the timed passes; stdr.densify.prune.seen_per_frame)."""
     _check_repeats(fps_repeats)
     model.eval()
     step = model.step if step is None else step
@@ -146,7 +146,7 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
     passes += [timed_pass(model, frames, step)["fps"] for _ in range(int(fps_repeats) - 1)]
     seen_frac = None
     if seen:
-        from ..scene.prune import seen_per_frame, significance
+        from ..densify.prune import seen_per_frame, significance
         seen_frac = seen_per_frame(significance(model, frames, step)[0])
     return {
         "seen_per_frame": seen_frac,
@@ -252,7 +252,7 @@ def training_facts(state) -> dict[str, Any]:
       None: unknown (a checkpoint from before it was recorded);
     * train_loss: the form of the training loss that ran (optim.fused_loss), `compiled` or `torch`
       (None: not recorded);
-    * prune: the contribution-pruning events (stdr.scene.prune), when there were any."""
+    * prune: the contribution-pruning events (stdr.densify.prune), when there were any."""
     cpu, secs, threads = state.train_cpu_seconds, float(state.train_seconds or 0.0), state.train_threads
     out = {"train_cpu_seconds": cpu,
            "train_cpu_utilization": cpu / (secs * threads) if cpu is not None and threads and secs > 0 else None,

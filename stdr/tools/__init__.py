@@ -2,7 +2,8 @@
 `python -m stdr.tools.<module>`): what users of the framework need. Every table they write comes
 from stdr.eval.table. The code of one study each lives in the checkout's studies/ folder."""
 
-#: stdr-tool subcommand -> module in this package
+#: stdr-tool subcommand -> module in this package (no module may shadow a standard-library one, e.g.
+#: `queue`: a tool run by its path puts this folder first on sys.path)
 TOOLS = {
     "runs": "runs",                          # per-run table: metrics, STDR statistics, groups, screening rule
     "densify-trace": "densify_trace",        # where a run's Gaussians come from, how opaque they end
@@ -11,6 +12,6 @@ TOOLS = {
     "identity-check": "identity_check",      # bit-identity of training / composed configs between commits
     "variants": "variants",                  # variants of one method side by side (plain, +STDR, +cull, ...)
     "compact": "compact",                    # prune a trained run by contribution, fine-tune, save as a new run
-    "queue": "queue",
-    "experiments": "experiments",            # every experiment stdr-train accepts, with what it composes                        # a resumable queue of runs, several at once, time-boxed calls
+    "queue": "runqueue",                     # a resumable queue of runs, several at once, time-boxed calls
+    "experiments": "experiments",            # every experiment stdr-train accepts, with what it composes
 }

@@ -41,7 +41,7 @@ from ..device import synchronize
 from ..eval.evaluate import code_version, machine_name
 from ..eval.table import fmt_value as fmt
 from ..eval.table import markdown_table, write_outputs
-from ..scene.gaussians import GAUSSIAN_KEYS
+from ..gaussians import GAUSSIAN_KEYS
 from ..train.trainer import Profiler, Trainer
 
 SECTIONS = ("deform", "render_fwd", "loss", "stdr_reg", "deform_reg", "backward", "optimizer", "densify")
@@ -60,7 +60,7 @@ def replicate(params: dict, n: int, gen: torch.Generator) -> dict:
     """Resample the Gaussians of `params` to n: copies jittered by half their scale."""
     import math
 
-    from ..scene.gaussians import GAUSSIAN_KEYS
+    from ..gaussians import GAUSSIAN_KEYS
     n0 = params["means"].shape[0]
     idx = torch.randint(0, n0, (n,), generator=gen) if n < n0 else torch.arange(n) % n0
     copies = max(1.0, n / n0)

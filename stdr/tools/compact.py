@@ -8,7 +8,7 @@ preset's events remove together, its time weight, and its mask form for an STDR 
 
 The run's checkpoint is copied to the new run folder (default RUN_DIR_compact) and training goes
 on from it for --steps more iterations with `prune.share=SHARE prune.at=[<its step>]`: the
-contribution pruning of a run trained with those keys (stdr/scene/prune.py), then a short
+contribution pruning of a run trained with those keys (stdr/densify/prune.py), then a short
 fine-tune at the learning rates the schedules give past the old end. The phase boundaries the
 run already crossed are pinned to their values (a boundary that scales with optim.iterations
 would move otherwise); the new folder is a complete run (config.yaml, checkpoint, metrics.json
@@ -86,7 +86,7 @@ def compact(run_dir: Path, share: float, steps: int = 300, time_weight: float = 
     from ..cli.train import run
     from ..config import load_config
     from ..train.checkpoint import load_checkpoint
-    from ..train.trainer import CKPT
+    from ..train.state import CKPT
     run_dir = Path(run_dir)
     out = Path(out) if out is not None else run_dir.with_name(run_dir.name + "_compact")
     src = run_dir / CKPT
@@ -113,7 +113,7 @@ def main(argv=None) -> None:
                     "(default: what the compact preset's events remove together)")
     ap.add_argument("--steps", type=int, default=300, help="fine-tuning iterations after the pruning")
     ap.add_argument("--time-weight", type=float, default=None,
-                    help="prune.time_weight (stdr/scene/prune.py; default: the compact preset's)")
+                    help="prune.time_weight (stdr/densify/prune.py; default: the compact preset's)")
     ap.add_argument("--out", type=Path, default=None, help="the new run folder (default RUN_compact)")
     ap.add_argument("--split", default=None, help="evaluation split (default: the run's data.eval_split)")
     ap.add_argument("--mask-bits", type=int, default=None, choices=(0, 8, 32),

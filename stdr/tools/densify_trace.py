@@ -61,7 +61,7 @@ def peak_opacity(run: Path) -> dict:
     p = payload["model"]["params"] if "model" in payload else payload["params"]
     peak = torch.sigmoid(p["opacities"].float())
     if "stdr_mask" in p:  # float logits, or the 8-bit form (stdr.mask_bits=8)
-        from ..decouple.mask import activated
+        from ..plugins.stdr.mask import activated
         peak = peak * activated(p["stdr_mask"]).float().amax(1)
     q = torch.quantile(peak, torch.tensor(QUANTILES))
     return {"n": int(peak.numel()), "quantiles": {str(k): float(v) for k, v in zip(QUANTILES, q)},

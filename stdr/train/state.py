@@ -24,7 +24,7 @@ from typing import Any, Callable, Optional
 import torch
 from torch import Tensor
 
-from .adam import clear_grads
+from .optim import clear_grads
 from .checkpoint import rng_state, save_checkpoint, set_rng_state
 from .guard import Guard
 from .syncs import host_only
@@ -100,7 +100,7 @@ class RunState:
     train_threads: Optional[int] = None  # torch threads of the training (a live state: this process's)
     train_loss: Optional[str] = None     # the photometric loss's form: "compiled" | "torch"
     history: list[dict[str, Any]] = field(default_factory=list)    # evaluations: the learning curve
-    prune_log: list[dict[str, Any]] = field(default_factory=list)  # stdr.scene.prune.prune_event's records
+    prune_log: list[dict[str, Any]] = field(default_factory=list)  # stdr.densify.prune.prune_event's records
     make_optimizers: Optional[Callable[[], dict[str, torch.optim.Optimizer]]] = None
 
     @property

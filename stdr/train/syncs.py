@@ -36,8 +36,8 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 SYNC_FUNCS = frozenset({"item", "tolist", "cpu", "numpy", "__bool__", "__float__", "__int__", "__index__", "nonzero",
                         "argwhere", "unique", "unique_consecutive", "masked_select", "equal", "allclose"})
-# What the CUDA rasterizer's forward reads back to size its buffers (stdr/render/csrc/cuda/
-# raster_cuda.cpp: the visible rows, by nonzero, and the number of tile intersections, as the
+# What the CUDA rasterizer's forward reads back to size its buffers (stdr/csrc/cuda/raster_cuda.h:
+# the visible rows, by nonzero, and the number of tile intersections, as the
 # 3DGS and gsplat rasterizers do): syncs inside compiled code, which SyncCounter cannot see and
 # DeviceSyncCounter does (measured on an H100, docs/measurements/gpu_check_h100_syncfree).
 RASTERIZER_SYNCS = 2

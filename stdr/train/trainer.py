@@ -1,6 +1,6 @@
 """The single training loop shared by every baseline.
 
-Baselines differ only in the deformation module (stdr.deform) and their config.
+Baselines differ only in the deformation module (stdr.baselines) and their config.
 """
 from __future__ import annotations
 
@@ -20,14 +20,14 @@ from ..device import resolve_device, synchronize
 from ..metrics import fused_loss, image_loss, image_loss_compiled
 from ..model import build_model, initial_points
 from ..render.compiled import camera_values
-from ..scene.gaussians import scene_extent
-from ..scene.ply import save_ply
-from ..scene.prune import prune_event
-from ..scene.strategy import build_strategy
-from .adam import adam_step
+from ..gaussians import scene_extent
+from ..io.ply import save_ply
+from ..densify.prune import prune_event
+from ..densify.strategy import build_strategy
+from .optim import adam_step
 from .checkpoint import load_checkpoint
 from .guard import Guard, check_guard_config, monitor_split, resolve_compiled_check, resolve_sync_free
-from .schedule import exp_lr
+from .optim import exp_lr
 from .state import CKPT, PAYLOAD_KEYS, CameraSampler, RunLog, RunState
 
 __all__ = ["CKPT", "PAYLOAD_KEYS", "CameraSampler", "Profiler", "RunLog", "RunState", "Trainer"]
@@ -119,7 +119,7 @@ class Trainer:
                                      where=str(self.scene.root))
         background = torch.tensor(self.scene.background, dtype=torch.float32)
         model = build_model(cfg, train_times, background, self.device, pts, colors)
-        self.strategy = build_strategy(cfg.densify)  # densify=<name> (stdr.scene.strategy)
+        self.strategy = build_strategy(cfg.densify)  # densify=<name> (stdr.densify.strategy)
         self.cull_train = model.cull_mode() == "train"
         if self.cull_train and self.strategy.count_invisible:
             raise ValueError("render.cull=train renders only the rows that can reach opacity 1/255, so "
@@ -333,7 +333,7 @@ class Trainer:
                 self.step = it + 1
                 return {"rejected": bad, "loss": float(loss.detach())}
         with prof("optimizer"):
-            # every optimizer's step() at once (stdr.train.adam: the same fused kernels, fewer
+            # every optimizer's step() at once (stdr.train.optim: the same fused kernels, fewer
             # launches); found_inf is read by torch's fused Adam as GradScaler sets it
             adam_step([*self.optimizers.values(), *([self.net_opt] if it >= model.warmup else [])], found_inf)
             self.zero_grads()

@@ -69,7 +69,7 @@ def open_run(run_dir: str | Path, device: Optional[str] = None, base: Optional[s
     from ..device import resolve_device
     from ..model import model_from_checkpoint
     from ..train.checkpoint import load_checkpoint
-    from ..train.trainer import CKPT
+    from ..train.state import CKPT
 
     rd = Path(run_dir)
     if not rd.is_dir():
@@ -211,8 +211,8 @@ def render_view(model, camera: Camera, t: float, view: str = "rgb") -> np.ndarra
         raise ValueError(f"view {view!r} needs an STDR run (stdr.enabled=true); this run has no STDR plug-in")
     params = model.params
     if view == "mask":
-        from ..decouple.mask import mask_at
-        from ..decouple.plugin import MASK_KEY
+        from ..plugins.stdr.mask import mask_at
+        from ..plugins.stdr.plugin import MASK_KEY
         if MASK_KEY not in params:
             raise ValueError("view 'mask': this STDR run has no mask (stdr.mask=false)")
         return to_uint8(_recoloured(model, t, mask_at(params[MASK_KEY].detach(), t, stdr.knots), camera).image)
@@ -228,7 +228,7 @@ def available_views(run: ViewRun) -> list[str]:
     """The views this run can show (mask and dynamic need STDR, dynamic its frozen field)."""
     views = ["rgb", "depth", "alpha"]
     if run.has_stdr:
-        from ..decouple.plugin import MASK_KEY
+        from ..plugins.stdr.plugin import MASK_KEY
         if MASK_KEY in run.model.params:
             views.append("mask")
         p = run.model.plugin("stdr")

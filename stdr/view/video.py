@@ -65,7 +65,7 @@ def write_video(frames: list[np.ndarray], stem: Path, fps: float, fmt: str = "au
 
 def _rotate_about(cam, pivot: np.ndarray, axis: np.ndarray, angle: float):
     """The camera turned by `angle` about the line through `pivot` along `axis` (world frame)."""
-    from ..deform.geometry import so3_exp
+    from ..baselines.geometry import so3_exp
     D = so3_exp(torch.tensor(axis / np.linalg.norm(axis) * angle, dtype=torch.float64)).numpy()  # world rotation
     R = cam.R.detach().double().cpu().numpy()
     c = cam.center.detach().double().cpu().numpy()

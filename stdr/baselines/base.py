@@ -21,7 +21,7 @@ from omegaconf import II, OmegaConf
 from torch import Tensor, nn
 
 from ..ops import sigmoid
-from ..scene.gaussians import Gaussians
+from ..gaussians import Gaussians
 
 
 #: the static warm-up's share of the run when no budget file sets baseline.warmup: Deformable
@@ -65,7 +65,7 @@ if not OmegaConf.has_resolver("stdr_share"):  # at import: saved configs may hol
 class BaselineConfig:
     """Keys every baseline has (`baseline.*`). A baseline's own config subclasses this with its
     defaults (the published values) and its own sub-config (`baseline.scgs.*`, ...); it is
-    registered with the module (stdr.deform.registry.register_baseline) and becomes the Hydra
+    registered with the module (stdr.baselines.registry.register_baseline) and becomes the Hydra
     option `baseline=<name>`. Budget files (stdr/configs/budget_baseline/<name>_<budget>.yaml) are
     optional deltas on top. The schedule keys scale with the run unless a budget file sets them:
     `warmup` = WARMUP_SHARE x optim.iterations, `lr_max_steps` = optim.iterations (a baseline

@@ -24,11 +24,11 @@ from typing import Any, Optional
 import torch
 from torch import Tensor
 
-from ..ops import sigmoid
-from ..encoding import positional_encoding, positional_encoding_dim
-from ..plugins import Plugin
+from ...ops import sigmoid
+from ...encoding import positional_encoding, positional_encoding_dim
+from .. import Plugin
 from .field import SeparatedField
-from .mask import (activated, faint_fraction, knot_times, logits_of, mask_at, quantize, sample_neighbours,
+from .mask import (BETWEEN, activated, faint_fraction, knot_times, logits_of, mask_at, quantize, sample_neighbours,
                    spatial_kl, temporal_entropy, temporal_loss)
 
 MASK_KEY = "stdr_mask"
@@ -121,7 +121,7 @@ class STDR(Plugin):
     def stages(cls, pcfg, cfg, schedule) -> dict:
         """Mask warm-up, regularized phase and freeze (resolve_phases), the freeze kept out of the
         baseline's switch windows (stdr.schedule.keep_out_of_windows)."""
-        from ..schedule import Event, keep_out_of_windows
+        from ...schedule import Event, keep_out_of_windows
         total = schedule.iterations
         w, f = resolve_phases(pcfg, schedule.static_warmup_end, total)
         f, moved = keep_out_of_windows(f, w, schedule.windows, "stdr.freeze_at", explicit=pcfg.freeze_at is not None)
@@ -160,6 +160,8 @@ class STDR(Plugin):
         baseline's switch windows)."""
         if int(cfg.mask_bits) not in (8, 32):
             raise ValueError(f"stdr.mask_bits={cfg.mask_bits}: use 32 (float logits) or 8 (uint8 after the freeze)")
+        if getattr(cfg, "mask_between", "linear") not in BETWEEN:
+            raise ValueError(f"stdr.mask_between={cfg.mask_between!r}: use one of {BETWEEN}")
         self.cfg = cfg
         self.device = torch.device(device)  # of the separated field; the knots stay on the CPU (host-side lookups)
         self.iterations = int(schedule.iterations)
@@ -335,7 +337,7 @@ class STDR(Plugin):
         """Activated mask [N] at time t, or None when the mask does not modulate opacity now."""
         if not self.has_mask(params) or not self.mask_modulates(step):
             return None
-        return mask_at(params[MASK_KEY], t, self.knot_values)
+        return mask_at(params[MASK_KEY], t, self.knot_values, getattr(self.cfg, "mask_between", "linear"))
 
     def probabilities(self, params) -> Tensor:
         """p = softmax_t(m) [N, K], computed once per mask tensor and version (uniform without a mask)."""

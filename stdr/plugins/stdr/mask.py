@@ -2,9 +2,9 @@
 
 The mask is a per-Gaussian row of K logits, m [N, K], one column per *knot time*
 tau_0 < ... < tau_{K-1} (the distinct training timestamps, or `time_bins` evenly spaced bins).
-It is activated with a sigmoid like opacity; at time t the activated mask is interpolated
-linearly between the two neighbouring knots (exact at knots, clamped outside [tau_0, tau_{K-1}]),
-and multiplies the Gaussian's opacity.
+It is activated with a sigmoid like opacity; at time t the activated mask is read between the two
+neighbouring knots (linearly by default, `mask_at`; exact at knots, clamped outside
+[tau_0, tau_{K-1}]), and multiplies the Gaussian's opacity.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..ops import sigmoid, take_rows
+from ...ops import sigmoid, take_rows
 
 
 def knot_times(train_times, time_bins: int = 0) -> Tensor:
@@ -80,14 +80,26 @@ def logits_of(mask: Tensor) -> Tensor:
     return (torch.log(q) - torch.log(255.0 - q)).clamp(OFF_LOGIT, -OFF_LOGIT)
 
 
-def mask_at(logits: Tensor, t: float, knots) -> Tensor:
-    """Activated mask [N] at time t from logits [N, K] (or an 8-bit mask): linear interpolation of
-    the activated knot columns."""
+#: how `mask_at` reads the mask between two knots (stdr.mask_between)
+BETWEEN = ("linear", "nearest", "logit")
+
+
+def mask_at(logits: Tensor, t: float, knots, between: str = "linear") -> Tensor:
+    """Activated mask [N] at time t from logits [N, K] (or an 8-bit mask). At a knot, its column;
+    between two knots (weight w of the later one), by `between`: linear = (1 - w) a0 + w a1 of the
+    activated columns; nearest = the nearer column (the earlier one at w = 1/2); logit = the
+    activation of (1 - w) m0 + w m1 (the logits interpolated: an entry on at one knot and off at
+    the next crosses 1/2 once, where linear holds both halves)."""
+    if between not in BETWEEN:
+        raise ValueError(f"stdr.mask_between={between!r}: use one of {BETWEEN}")
     j0, j1, w = interp_weights(t, knots)
-    a = activated(logits[:, j0])
     if w == 0.0:
-        return a
-    return (1.0 - w) * a + w * activated(logits[:, j1])
+        return activated(logits[:, j0])
+    if between == "nearest":
+        return activated(logits[:, j1 if w > 0.5 else j0])
+    if between == "logit":
+        return sigmoid((1.0 - w) * logits_of(logits[:, j0]).float() + w * logits_of(logits[:, j1]).float())
+    return (1.0 - w) * activated(logits[:, j0]) + w * activated(logits[:, j1])
 
 
 def temporal_loss(logits: Tensor, reduction: str = "mean") -> Tensor:
@@ -144,7 +156,7 @@ def sample_neighbours(means: Tensor, n_query: int, n_candidates: int, k: int,
     the candidates; neighbours are searched among the candidates (the query itself excluded).
     Returns empty tensors when there are not more than k candidates.
     """
-    from ..scene.knn import knn
+    from ...knn import knn
 
     N = means.shape[0]
     dev = means.device

@@ -14,7 +14,7 @@ import torch
 from plyfile import PlyData, PlyElement
 from torch import nn
 
-from .gaussians import GAUSSIAN_KEYS
+from ..gaussians import GAUSSIAN_KEYS
 
 
 def save_ply(params, path: str | Path) -> None:

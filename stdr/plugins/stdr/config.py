@@ -1,4 +1,4 @@
-"""STDR's config: the typed `stdr.*` keys (registered with the plug-in: stdr/decouple/__init__.py)."""
+"""STDR's config: the typed `stdr.*` keys (registered with the plug-in: stdr/plugins/stdr/__init__.py)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -17,6 +17,11 @@ class StdrConfig:
     separated_field: bool = True
     # the mask
     time_bins: int = 0            # 0: one column per distinct training time; else K evenly spaced bins
+    # the mask at a time between two columns (never a training time when time_bins=0): linear = the
+    # activated columns interpolated linearly (this implementation's choice; the paper does not say);
+    # nearest = the nearer column's; logit = the logits interpolated, then activated. A render-time
+    # choice: stdr-eval's `stdr.mask_between=...` re-evaluates a trained run with another
+    mask_between: str = "linear"
     mask_init: Optional[float] = 2.0  # initial logit; null: sigmoid(o) * sigmoid(m) = model.init_opacity
     opacity_init: Optional[float] = None  # opacity held during the warm-up; null: model.init_opacity
     mask_lr: float = 0.05         # Adam lr of the mask logits (that of opacity logits)

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from ..ops import rows_of, scatter_mean, take_rows
-from ..scene.knn import knn
+from ..knn import knn
 from .base import (BaselineConfig, Deformation, Deltas, apply_post_activation, flag_value, mlp_kwargs, set_flag,
                    stage_start)
 from .deform3dgs import DeformMLP

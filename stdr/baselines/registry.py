@@ -92,7 +92,7 @@ def discover_baselines() -> list[str]:
         return []
     _discovered = True
     from ..entry_points import load_group
-    return load_group(ENTRY_POINT_GROUP, lambda: BASELINES, "stdr.deform.register_baseline")
+    return load_group(ENTRY_POINT_GROUP, lambda: BASELINES, "stdr.baselines.register_baseline")
 
 
 def get_baseline(name: str) -> BaselineSpec:
@@ -100,7 +100,7 @@ def get_baseline(name: str) -> BaselineSpec:
         discover_baselines()
     if name not in BASELINES:
         raise ValueError(f"baseline.name={name!r} is not a registered baseline; choose one of {sorted(BASELINES)} "
-                         "(stdr.deform.registry.register_baseline adds one)")
+                         "(stdr.baselines.registry.register_baseline adds one)")
     return BASELINES[name]
 
 

@@ -21,8 +21,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from ..ops import sigmoid
-from ..render.sh import num_sh_bases, rgb_to_sh
+from .ops import sigmoid
+from .render.sh import num_sh_bases, rgb_to_sh
 from .knn import knn
 
 GAUSSIAN_KEYS = ("means", "scales", "quats", "opacities", "sh0", "shN")

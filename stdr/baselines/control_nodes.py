@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from ..ops import RowView, rows_of, scatter_mean, sigmoid, take_rows
-from ..scene.knn import knn
+from ..knn import knn
 from ..train.syncs import host_only
 from .base import BaselineConfig, Deformation, Deltas, flag_value, mlp_kwargs, set_flag, stage_start
 from .deform3dgs import DeformMLP
@@ -269,7 +269,7 @@ class ControlNodeDeformation(Deformation):
     def apply(self, params, d: Deltas):
         """Node stage: isotropic, unrotated Gaussians moved by dxyz. Skinning: dxyz added to the
         means, the blended dq added to the *raw* quaternion, ds after activation (SC-GS)."""
-        from ..scene.gaussians import Gaussians
+        from ..gaussians import Gaussians
         sh = torch.cat([params["sh0"], params["shN"]], 1)
         op = sigmoid(params["opacities"])
         if flag_value(self, "stage") == 1:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
-from ..ops import BatchNorm1d, Sigmoid
+from ...ops import BatchNorm1d, Sigmoid
 
 
 class SeparatedField(nn.Module):

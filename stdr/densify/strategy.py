@@ -24,7 +24,7 @@ from typing import Any, Callable, Optional
 import torch
 from torch import Tensor, nn
 
-from .gaussians import inverse_sigmoid
+from ..gaussians import inverse_sigmoid
 from ..ops import sigmoid
 from ..render.projection import quat_to_rotmat
 from ..render.reference import ALPHA_MIN
@@ -309,7 +309,7 @@ def register_strategy(name: str, cls: type) -> type:
     import dataclasses
     if not (isinstance(cls, type) and issubclass(cls, DensifyStrategy) and dataclasses.is_dataclass(cls)):
         raise TypeError(f"register_strategy({name!r}): the strategy must be a dataclass subclassing "
-                        f"stdr.scene.strategy.DensifyStrategy, got {cls!r}")
+                        f"stdr.densify.strategy.DensifyStrategy, got {cls!r}")
     if cls().name != name:
         raise ValueError(f"register_strategy({name!r}): {cls.__name__}.name defaults to {cls().name!r}; "
                          f"set `name: str = {name!r}`")
@@ -331,7 +331,7 @@ def get_strategy(name: Optional[str]) -> type:
     name = name or "default"
     if name not in STRATEGIES:
         raise ValueError(f"densify.name={name!r} is not a registered densification strategy; choose one of "
-                         f"{sorted(STRATEGIES)} (stdr.scene.strategy.register_strategy adds one)")
+                         f"{sorted(STRATEGIES)} (stdr.densify.strategy.register_strategy adds one)")
     return STRATEGIES[name]
 
 

@@ -162,7 +162,7 @@ def set_reserved_keys(keys) -> None:
     if clash:
         raise ValueError(f"plug-in(s) {clash} registered under a config section's name; choose another name")
 #: modules whose import registers the plug-ins that ship with stdr
-BUILTIN = ("stdr.decouple",)
+BUILTIN = ("stdr.plugins.stdr",)
 #: entry-point group through which another distribution adds plug-ins (stdr.entry_points)
 ENTRY_POINT_GROUP = "stdr.plugins"
 _discovered = False
@@ -222,7 +222,7 @@ def discover_plugins() -> list[str]:
     before = set(PLUGINS)
     for mod in BUILTIN:
         importlib.import_module(mod)
-    from .entry_points import load_group
+    from ..entry_points import load_group
     load_group(ENTRY_POINT_GROUP, lambda: PLUGINS, "stdr.plugins.register_plugin")
     return sorted(set(PLUGINS) - before)
 

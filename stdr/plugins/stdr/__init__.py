@@ -1,0 +1,14 @@
+"""STDR (spatio-temporal decoupling): the mask, its phases and regularizers, the separated field."""
+from __future__ import annotations
+
+from .. import register_plugin
+from .config import StdrConfig
+from .field import SeparatedField
+from .mask import interp_weights, knot_times, mask_at, sample_neighbours, spatial_kl, temporal_entropy, temporal_loss
+from .plugin import MASK_KEY, STDR, Phase, phase_at, resolve_phases
+
+register_plugin("stdr", STDR, StdrConfig, label="+STDR")
+
+__all__ = ["MASK_KEY", "STDR", "StdrConfig", "Phase", "SeparatedField", "interp_weights", "knot_times", "mask_at",
+           "phase_at", "resolve_phases", "sample_neighbours", "spatial_kl", "temporal_entropy",
+           "temporal_loss"]

@@ -1,0 +1,99 @@
+"""The optimizers' helpers: one step over several fused Adams with fewer operator launches
+(`adam_step`, `clear_grads`), and the learning-rate schedule (`exp_lr`).
+
+The trainer keeps one `torch.optim.Adam` per per-Gaussian parameter (densification edits each
+one's state by key, as gsplat's strategies do) and one for the networks. Stepping them one by one
+launches, per optimizer, a step-count increment, the fused Adam kernel, a decrement when a
+`found_inf` flag is given, and two profiler records for `step()` and two for `zero_grad()`.
+`adam_step` launches one increment over every step count, one fused kernel per parameter group
+(each group has its own learning rate) and one decrement: the same kernels on the same tensors,
+so the result is bit-identical to calling each optimizer's `step()` (tests/test_adam.py).
+"""
+from __future__ import annotations
+
+import math
+from typing import Iterable, Optional
+
+import torch
+from torch import Tensor
+
+
+def _fusable(opt: torch.optim.Optimizer) -> bool:
+    """A plain torch Adam whose every group is fused, not differentiable, without capturable
+    state and without amsgrad (so the fused kernel's arguments are the group's)."""
+    return type(opt) is torch.optim.Adam and all(
+        g.get("fused") and not g.get("differentiable") and not g.get("amsgrad") and not g.get("capturable")
+        for g in opt.param_groups)
+
+
+@torch.no_grad()
+def adam_step(optimizers: Iterable[torch.optim.Optimizer], found_inf: Optional[Tensor] = None) -> None:
+    """Step every optimizer of `optimizers` as its own `step()` would, with `found_inf` (a 0-d
+    float tensor, 1 where this step's gradients are not to be applied: torch's fused Adam then
+    leaves parameters, moments and step counts as they were) read by each. Optimizers that are
+    not plain fused Adams are stepped by their own `step()`; parameters without a gradient are
+    not updated and get no state, as in `step()`."""
+    work = []  # (group, params, grads, exp_avgs, exp_avg_sqs, steps)
+    for opt in optimizers:
+        if not _fusable(opt):
+            opt.found_inf = found_inf
+            opt.step()
+            continue
+        for group in opt.param_groups:
+            params, grads, avgs, sqs, steps = [], [], [], [], []
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                if p.grad.is_sparse:
+                    raise RuntimeError("adam_step: sparse gradients are not supported (torch's Adam neither)")
+                state = opt.state[p]
+                if len(state) == 0:  # as Adam._init_group creates it for a fused group
+                    state["step"] = torch.zeros((), dtype=torch.float32, device=p.device)
+                    state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                    state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                params.append(p)
+                grads.append(p.grad)
+                avgs.append(state["exp_avg"])
+                sqs.append(state["exp_avg_sq"])
+                steps.append(state["step"])
+            if params:
+                work.append((group, params, grads, avgs, sqs, steps))
+    if not work:
+        return
+    by_device: dict[torch.device, list[Tensor]] = {}
+    for *_, steps in work:
+        for s in steps:
+            by_device.setdefault(s.device, []).append(s)
+    flags = {} if found_inf is None else {d: found_inf.to(d, non_blocking=True) for d in by_device}
+    for steps in by_device.values():
+        torch._foreach_add_(steps, 1)
+    for group, params, grads, avgs, sqs, steps in work:
+        beta1, beta2 = group["betas"]
+        kernel = torch._fused_adamw_ if group.get("decoupled_weight_decay") else torch._fused_adam_
+        devices = {p.device for p in params}
+        if len(devices) != 1 or len({p.dtype for p in params}) != 1:
+            raise RuntimeError("adam_step: a parameter group spans devices or dtypes; keep each group on one "
+                               "device and dtype (the trainer's groups are)")
+        dev = devices.pop()
+        kernel(params, grads, avgs, sqs, [], steps, amsgrad=False, lr=group["lr"], beta1=float(beta1),
+               beta2=float(beta2), weight_decay=group["weight_decay"], eps=group["eps"],
+               maximize=group["maximize"], grad_scale=None, found_inf=flags.get(dev))
+    for d, steps in by_device.items():
+        if d in flags:
+            torch._foreach_sub_(steps, [flags[d]] * len(steps))
+
+
+def clear_grads(optimizers: Iterable[torch.optim.Optimizer]) -> None:
+    """`zero_grad(set_to_none=True)` of each optimizer, without its profiler records."""
+    for opt in optimizers:
+        for group in opt.param_groups:
+            for p in group["params"]:
+                p.grad = None
+
+
+def exp_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> float:
+    """Log-linear interpolation from lr_init (step 0) to lr_final (step >= max_steps), as in 3DGS."""
+    if max_steps <= 0 or lr_init == lr_final:
+        return lr_final
+    s = min(max(step / max_steps, 0.0), 1.0)
+    return math.exp(math.log(lr_init) * (1 - s) + math.log(lr_final) * s)
