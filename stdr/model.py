@@ -320,7 +320,8 @@ def model_entry(ck: dict[str, Any], where: str) -> dict[str, Any]:
 
 def load_model(path: str | Path, device: str | torch.device = "auto", cfg=None,
                train_times: Optional[np.ndarray] = None) -> DynamicGaussians:
-    """Rebuild a model from a checkpoint file on `device` ("auto", "cpu", "cuda", ...).
+    """Rebuild a model from a checkpoint file, or a compact model file (`model.stdrc`,
+    stdr.io.compact_file), on `device` ("auto", "cpu", "cuda", ...).
 
     cfg: the config to build with (default: the one saved in the checkpoint; a run's own
     config.yaml may override render settings). A checkpoint written before format 2 has no
@@ -335,6 +336,9 @@ def model_from_checkpoint(ck: dict[str, Any], device: str | torch.device = "auto
     from .config import load_config
     from .plugins import registered_plugins
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
+    from .io.compact_file import decode_model, is_compact
+    if is_compact(ck):  # a compact model file (stdr.io.compact_file): its entry, decoded
+        ck = {"model": decode_model(ck, path)}
     if has_model_entry(ck):
         s = ck["model"]
     elif "params" in ck and cfg is not None and train_times is not None:  # format 1: a trainer payload

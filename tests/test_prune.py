@@ -185,6 +185,13 @@ def test_stdr_tool_compact_prunes_a_trained_run_into_a_new_one(tmp_path):
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["test"] == before
     assert m["stdr"]["freeze_at"] == before["stdr"]["freeze_at"]
     assert before["stdr"]["mask_bits"] == 32 and m["stdr"]["mask_bits"] == 8  # quantized at the first fine-tuning step
+    # and its compact model file, measured against the full model on the run's split, opens in the viewer's loader
+    packed = json.loads((out / "pack.json").read_text())
+    assert (out / "model.stdrc").is_file() and packed["bytes"] < packed["full_bytes"] and packed["split"] == "test"
+    assert packed["spec"]["stdr_mask"] == "raw" and abs(packed["delta_psnr"]) < 0.05
+    from stdr.view.core import open_run
+    view = open_run(out, device="cpu", model_file=out / "model.stdrc")
+    assert view.model.num_gaussians == m["num_gaussians"] and view.model.params["stdr_mask"].dtype == torch.uint8
     with pytest.raises(FileExistsError, match="run_compact exists"):
         compact(tmp_path / "run", share=0.4, steps=10)
     with pytest.raises(SystemExit, match="--share 1.5"):

@@ -115,6 +115,16 @@ class SuperpointDeformation(Deformation):
             a.scatter_(1, nearest, 1.0)
         set_flag(self, "ready", True)
 
+    def compact_columns(self, params) -> dict[str, Tensor]:
+        """The association logits a trained model's renders read: each Gaussian's K nearest
+        superpoints (`assignment`: the canonical means and the centres no longer move), K of the
+        baseline.spgs.num_superpoints columns. Before the superpoints are placed, every column."""
+        if not flag_value(self, "ready"):
+            return {}
+        with torch.no_grad():
+            _, idx = knn(params["means"].detach(), self.centers, min(self.k, self.m))
+        return {ASSOC_KEY: idx}
+
     def assignment(self, params) -> tuple[Tensor, Tensor, Tensor]:
         """(knn indices [N, K], soft weights [N, K], hard superpoint [N]) for the current centres."""
         x = params["means"].detach()

@@ -16,6 +16,8 @@ def view_main(argv=None) -> None:
     ap.add_argument("--port", type=int, default=8080)
     ap.add_argument("--host", default="127.0.0.1", help="127.0.0.1 (default: this machine only) or 0.0.0.0")
     ap.add_argument("--device", default=None, help="cpu | cuda | auto (default: the run's own)")
+    ap.add_argument("--model", type=Path, default=None, help="a model file to show instead of the checkpoint, "
+                    "e.g. RUN/model.stdrc (stdr-tool pack)")
     ap.add_argument("--max-width", type=int, default=None, help="initial image width (default: the run's)")
     ap.add_argument("--view", default="rgb", choices=VIEWS, help="the view to start with")
     ap.add_argument("--screenshot", type=Path, default=None,
@@ -25,7 +27,7 @@ def view_main(argv=None) -> None:
     from ..view.server import Viewer, check_port
     try:
         check_port(a.host, a.port)  # before loading the model: fail fast
-        run = open_run(a.run, device=a.device)
+        run = open_run(a.run, device=a.device, model_file=a.model)
         viewer = Viewer(run, host=a.host, port=a.port, max_width=a.max_width)
     except (FileNotFoundError, RuntimeError, ValueError) as e:
         raise SystemExit(f"stdr-view: {e}") from None
@@ -78,6 +80,8 @@ def render_main(argv=None) -> None:
                     help="a camera path (nerfstudio's camera_path.json, e.g. saved by stdr-view): render it "
                     "instead of --kinds, at its size (or --width) and fps (or --fps when given)")
     ap.add_argument("--device", default=None)
+    ap.add_argument("--model", type=Path, default=None, help="a model file to render instead of the checkpoint, "
+                    "e.g. RUN/model.stdrc (stdr-tool pack)")
     a = ap.parse_args(argv)
     fps_given = any(x == "--fps" or x.startswith("--fps=") for x in (argv if argv is not None else sys.argv[1:]))
     from ..view.core import open_run
@@ -86,7 +90,7 @@ def render_main(argv=None) -> None:
         if a.path is not None:
             from ..view.camera_path import read_camera_path
             cp = read_camera_path(a.path, width=a.width)  # before loading the model: fail fast
-        run = open_run(a.run, device=a.device)
+        run = open_run(a.run, device=a.device, model_file=a.model)
         if a.path is not None:
             imgs = path_frames(run, cp.cameras, cp.times, a.view)
             paths = {"path": write_video(imgs, (a.out or a.run / "videos") / f"{a.path.stem}_{a.view}",
@@ -107,7 +111,8 @@ def export_main(argv=None) -> None:
     from ..io.export import export_times
     ap = argparse.ArgumentParser(prog="stdr-export", description="A trained run at given times as standard 3DGS "
                                  "PLY files (deformed, opacity with the plug-ins' factors), for splat viewers.")
-    ap.add_argument("run", type=Path, help="a run directory (checkpoints/last.pt) or a checkpoint file")
+    ap.add_argument("run", type=Path, help="a run directory (checkpoints/last.pt), a checkpoint file or a compact "
+                    "model file (model.stdrc, stdr-tool pack)")
     ap.add_argument("--times", type=float, nargs="+", required=True, help="times in [0, 1]")
     ap.add_argument("--out", type=Path, default=None, help="folder (default: RUN/export)")
     ap.add_argument("--device", default="cpu")

@@ -12,7 +12,8 @@ contribution pruning of a run trained with those keys (stdr/densify/prune.py), t
 fine-tune at the learning rates the schedules give past the old end. The phase boundaries the
 run already crossed are pinned to their values (a boundary that scales with optim.iterations
 would move otherwise); the new folder is a complete run (config.yaml, checkpoint, metrics.json
-with both the prune event and the final evaluation), and the original stays untouched.
+with both the prune event and the final evaluation, and the compact model file model.stdrc with
+its pack.json: stdr-tool pack), and the original stays untouched.
 """
 from __future__ import annotations
 
@@ -102,7 +103,11 @@ def compact(run_dir: Path, share: float, steps: int = 300, time_weight: float = 
     new.name = f"{cfg.name}_compact"
     (out / CKPT).parent.mkdir(parents=True)
     shutil.copy2(src, out / CKPT)
-    return run(new, out, data_base)
+    res = run(new, out, data_base)
+    from .pack import pack
+    rec = pack(out, split=new.data.eval_split, data_base=data_base)  # out/model.stdrc, out/pack.json
+    print(f"[stdr] {rec['file']}: {rec['bytes'] / 2**20:.2f} MiB ({rec['ratio']:.1%} of the model's tensors)")
+    return res
 
 
 def main(argv=None) -> None:

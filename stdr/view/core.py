@@ -61,10 +61,10 @@ class ViewRun:
 
 
 def open_run(run_dir: str | Path, device: Optional[str] = None, base: Optional[str] = None,
-             splits=SPLITS) -> ViewRun:
-    """The model of a run folder (config.yaml + checkpoints/last.pt) on `device` (default: the
-    run's own), and the frames of `splits` when its data can be read; errors name what is
-    missing."""
+             splits=SPLITS, model_file: Optional[str | Path] = None) -> ViewRun:
+    """The model of a run folder (config.yaml + checkpoints/last.pt, or `model_file`: e.g. the
+    run's compact model file model.stdrc) on `device` (default: the run's own), and the frames of
+    `splits` when its data can be read; errors name what is missing."""
     from ..config import load_config
     from ..device import resolve_device
     from ..model import model_from_checkpoint
@@ -75,7 +75,10 @@ def open_run(run_dir: str | Path, device: Optional[str] = None, base: Optional[s
     if not rd.is_dir():
         raise FileNotFoundError(f"{rd}: no such folder (give a run directory: the folder with config.yaml "
                                 "and checkpoints/last.pt that stdr-train wrote)")
-    missing = [p for p in ("config.yaml", CKPT) if not (rd / p).is_file()]
+    ckpt = Path(model_file) if model_file is not None else rd / CKPT
+    if model_file is not None and not ckpt.is_file():
+        raise FileNotFoundError(f"--model {ckpt}: no such file (a compact model file is written by stdr-tool pack RUN)")
+    missing = [p for p in ("config.yaml", CKPT) if not (rd / p).is_file() and not (p == CKPT and model_file)]
     if missing:
         raise FileNotFoundError(f"{rd} is not a trained run: {', '.join(missing)} missing (a run directory of "
                                 "stdr-train holds config.yaml and checkpoints/last.pt)")
@@ -83,8 +86,8 @@ def open_run(run_dir: str | Path, device: Optional[str] = None, base: Optional[s
     if device is not None:
         cfg.device = device
     dev = resolve_device(cfg.device)
-    ck = load_checkpoint(rd / CKPT)
-    model = model_from_checkpoint(ck, dev, cfg, path=str(rd / CKPT))
+    ck = load_checkpoint(ckpt)
+    model = model_from_checkpoint(ck, dev, cfg, path=str(ckpt))
     model.eval()
     run = ViewRun(rd, cfg, model)
     try:

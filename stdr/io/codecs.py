@@ -1,0 +1,97 @@
+"""Codecs for a model's tensors in the compact file (stdr.io.compact_file): stateless functions
+with shape contracts, each an `encode` to a dict of tensors (loadable with weights_only=True) and a
+`decode` back to a float32 tensor of the original shape.
+
+| codec | stores | decode error |
+|---|---|---|
+| `raw` | the tensor as it is, any dtype (an integer tensor such as STDR's 8-bit mask, float64 time knots) | exact |
+| `f32` | float32 | exact for float32 |
+| `f16` | float16 | \\|x\\| 2^-11 relative in float16's normal range (\\|x\\| >= 6.1e-5), 2^-25 absolute below it; values beyond +-65504 are refused |
+| `q8` | uint8 per element, with a float32 (lo, hi) per column of the last dimension (one column for a vector) | at most (hi - lo) / 510 per element, half a quantization step |
+| `cols` | the K given columns of each row [N, K] (values in float32, their indices in int16/int32) and a fill | exact on those columns; every other column reads `fill` |
+
+`cols` is for a per-Gaussian table that rendering reads only at some columns of each row (SP-GS's
+association logits: a row's K nearest superpoints, fixed once training ends).
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+CODECS = ("raw", "f32", "f16", "q8", "cols")
+F16_MAX = 65504.0
+
+
+def _columns(shape) -> int:
+    """q8's columns: the last dimension of a tensor of two or more, else one column."""
+    return int(shape[-1]) if len(shape) >= 2 else 1
+
+
+def encode(x: Tensor, codec: str, cols: Tensor | None = None) -> dict:
+    """x [...] -> the codec's dict (`raw`: any dtype; the others: float). `cols` [N, K] int: the
+    columns `cols` keeps of x [N, M]."""
+    x = x.detach().cpu()
+    if codec == "raw":
+        return {"codec": "raw", "data": x.clone()}
+    if codec == "f32":
+        if not x.is_floating_point():
+            raise ValueError(f"codec 'f32' encodes float tensors, got {x.dtype}; use 'raw'")
+        return {"codec": "f32", "data": x.float().clone()}
+    if not x.is_floating_point():
+        raise ValueError(f"codec {codec!r} encodes float tensors, got {x.dtype}")
+    if not torch.isfinite(x).all():
+        raise ValueError(f"codec {codec!r}: the tensor has non-finite values")
+    if codec == "f16":
+        if x.numel() and float(x.abs().max()) > F16_MAX:
+            raise ValueError(f"codec 'f16': values up to {float(x.abs().max()):.4g} exceed float16's range "
+                             f"({F16_MAX}); use 'f32' or 'q8' for this tensor")
+        return {"codec": "f16", "data": x.half()}
+    if codec == "q8":
+        flat = x.float().reshape(-1, _columns(x.shape))
+        lo = flat.min(0).values if flat.shape[0] else torch.zeros(flat.shape[1])
+        hi = flat.max(0).values if flat.shape[0] else torch.zeros(flat.shape[1])
+        step = (hi - lo) / 255.0
+        q = torch.where(step > 0, torch.round((flat - lo) / torch.where(step > 0, step, 1.0)), 0.0)
+        return {"codec": "q8", "data": q.clamp(0, 255).to(torch.uint8).reshape(x.shape), "lo": lo, "hi": hi}
+    if codec == "cols":
+        if cols is None or x.dim() != 2 or cols.dim() != 2 or cols.shape[0] != x.shape[0]:
+            raise ValueError("codec 'cols' needs x [N, M] and cols [N, K]")
+        m = x.shape[1]
+        if cols.numel() and (int(cols.min()) < 0 or int(cols.max()) >= m):
+            raise ValueError(f"codec 'cols': column indices outside [0, {m})")
+        vals = x.float().gather(1, cols.long())
+        fill = (float(vals.min()) if vals.numel() else 0.0) - 30.0  # a logit that softmax reads as 0
+        idx = cols.to(torch.int16 if m <= 32767 else torch.int32)
+        return {"codec": "cols", "data": vals, "cols": idx, "width": torch.tensor(m), "fill": torch.tensor(fill)}
+    raise ValueError(f"unknown codec {codec!r}: one of {CODECS}")
+
+
+def decode(e: dict) -> Tensor:
+    """The codec's dict -> the tensor (float32; `raw`: as it was stored)."""
+    codec = e.get("codec")
+    if codec == "raw":
+        return e["data"].clone()
+    if codec == "f32":
+        return e["data"].float()
+    if codec == "f16":
+        return e["data"].float()
+    if codec == "q8":
+        step = (e["hi"] - e["lo"]) / 255.0
+        q = e["data"]
+        return (e["lo"] + q.reshape(-1, _columns(q.shape)).float() * step).reshape(q.shape)
+    if codec == "cols":
+        vals, idx = e["data"], e["cols"].long()
+        out = torch.full((vals.shape[0], int(e["width"])), float(e["fill"]))
+        return out.scatter_(1, idx, vals.float())
+    raise ValueError(f"unknown codec {codec!r} in the compact file: one of {CODECS} (a file from a newer stdr?)")
+
+
+def nbytes(e) -> int:
+    """Bytes of an encoded dict's tensors (or of a tensor / nested dict)."""
+    if isinstance(e, Tensor):
+        return e.numel() * e.element_size()
+    if isinstance(e, dict):
+        return sum(nbytes(v) for v in e.values())
+    if isinstance(e, (list, tuple)):
+        return sum(nbytes(v) for v in e)
+    return 0

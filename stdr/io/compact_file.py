@@ -1,0 +1,110 @@
+"""The compact model file: a trained model in fewer bytes, for viewers and for shipping.
+
+One file per model (`model.stdrc`, written by `stdr-tool pack RUN` and at the end of
+`stdr-tool compact RUN`), read by `stdr.model.load_model` and so by `stdr-export`, `stdr-render`
+and `stdr-eval`'s model loading. It is a checkpoint file (atomic, SHA-256 checked,
+weights_only) whose payload is
+
+    {"format": "stdr-compact", "version": 1, "spec": {...},
+     "model": the model's entry (stdr.model.DynamicGaussians.state_dict) with every tensor
+              replaced by its codec's dict (stdr.io.codecs)}
+
+`spec` says which codec holds what: per-Gaussian parameter keys, and `state` for the deformation
+module's and the plug-ins' tensors (networks, HexPlane grids, STDR's field). A baseline may name,
+per parameter, the columns its renders read (`Deformation.compact_columns`: SP-GS's association
+logits at each Gaussian's K nearest superpoints); those are stored with the `cols` codec. A file
+with a higher version than this code reads is refused with an error that says so.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Optional
+
+import torch
+from torch import Tensor
+
+from . import codecs
+
+FORMAT = "stdr-compact"
+VERSION = 1
+SUFFIX = ".stdrc"
+MARK = "__codec__"  # an encoded tensor's dict carries it (a state dict's own keys never do)
+
+#: the default codecs: positions exact, the other attributes in half precision, the SH rest (45 of
+#: 59 floats a Gaussian at degree 3) in 8 bits per coefficient with a per-coefficient range, an
+#: integer mask as it is, every other per-Gaussian tensor in half precision; networks and grids float32
+#: (integer and float64 tensors are always stored as they are: flags, an 8-bit mask, time knots)
+DEFAULT_SPEC = {"means": "f32", "scales": "f16", "quats": "f16", "opacities": "f16", "sh0": "f16", "shN": "q8",
+                "*": "f16", "state": "f32"}
+
+
+def _enc(x: Tensor, codec: str, cols: Optional[Tensor] = None) -> dict:
+    if not x.is_floating_point() or x.dtype == torch.float64:
+        codec = "raw"  # an integer tensor (an 8-bit mask, a flag) or a float64 one (time knots) as it is
+    return {MARK: True, **codecs.encode(x, codec, cols)}
+
+
+def _walk_encode(x: Any, codec: str) -> Any:
+    if isinstance(x, Tensor):
+        return _enc(x, codec)
+    if isinstance(x, dict):
+        return {k: _walk_encode(v, codec) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_walk_encode(v, codec) for v in x)
+    return x
+
+
+def _walk_decode(x: Any) -> Any:
+    if isinstance(x, dict):
+        if x.get(MARK):
+            return codecs.decode({k: v for k, v in x.items() if k != MARK})
+        return {k: _walk_decode(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_walk_decode(v) for v in x)
+    return x
+
+
+def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
+    """The compact file's payload of a `DynamicGaussians` (its state_dict, encoded by `spec`,
+    DEFAULT_SPEC's entries where `spec` names none)."""
+    spec = {**DEFAULT_SPEC, **(spec or {})}
+    for k, c in spec.items():
+        if c not in codecs.CODECS:
+            raise ValueError(f"compact spec {k}={c!r}: use one of {codecs.CODECS}")
+    entry = model.state_dict()
+    cols = model.deform.compact_columns(model.params)
+    params = {}
+    for k, v in entry["params"].items():
+        if k in cols:
+            params[k] = _enc(v, "cols", cols[k])
+        else:
+            params[k] = _enc(v, spec.get(k, spec["*"]))
+    used = {k: e["codec"] for k, e in params.items()}  # what each was stored as (an integer tensor: raw)
+    model_entry = {**entry, "params": params, "deform": _walk_encode(entry["deform"], spec["state"]),
+                   "plugins": _walk_encode(entry["plugins"], spec["state"])}
+    return {"format": FORMAT, "version": VERSION, "spec": {**used, "state": spec["state"]}, "model": model_entry}
+
+
+def is_compact(payload: Any) -> bool:
+    return isinstance(payload, dict) and payload.get("format") == FORMAT
+
+
+def decode_model(payload: dict[str, Any], where: str = "compact file") -> dict[str, Any]:
+    """The model entry (as `DynamicGaussians.state_dict` gives it) of a compact file's payload."""
+    v = payload.get("version")
+    if not isinstance(v, int) or v < 1:
+        raise ValueError(f"{where}: not a readable {FORMAT} file (version {v!r})")
+    if v > VERSION:
+        raise ValueError(f"{where}: a {FORMAT} file of version {v}, written by a newer stdr; this stdr reads "
+                         f"versions up to {VERSION}: upgrade stdr (pip install -U stdr) to load it")
+    return _walk_decode(payload["model"])
+
+
+def write_compact(model, path: str | Path, spec: Optional[dict] = None) -> dict[str, Any]:
+    """Write the compact file of `model` to `path` (atomic, checksummed). Returns {bytes (of its
+    tensors), full_bytes (the model's own tensors), spec}."""
+    from ..eval.evaluate import model_bytes
+    from ..train.checkpoint import save_checkpoint
+    payload = encode_model(model, spec)
+    save_checkpoint(path, payload)
+    return {"bytes": codecs.nbytes(payload["model"]), "full_bytes": model_bytes(model), "spec": payload["spec"]}

@@ -1,0 +1,130 @@
+"""The compact model file (stdr.io.compact_file) and its codecs (stdr.io.codecs): each codec's
+promise (exact where it says exact, within its bound where not), the file's round trip through
+load_model for a model with every kind of tensor (SP-GS's association table, STDR's mask and
+field), and the refusal of a file from a newer version."""
+import pytest
+import torch
+
+from stdr.io import codecs
+from stdr.io.compact_file import FORMAT, VERSION, decode_model, encode_model, write_compact
+
+
+def test_raw_and_f32_are_exact():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(50, 7, generator=g)
+    for t in (x, x.double(), (x * 40).to(torch.uint8), torch.tensor(True)):
+        y = codecs.decode(codecs.encode(t, "raw"))
+        assert y.dtype == t.dtype and torch.equal(y, t)
+    assert torch.equal(codecs.decode(codecs.encode(x, "f32")), x)
+    with pytest.raises(ValueError, match="'raw'"):
+        codecs.encode(torch.zeros(3, dtype=torch.int64), "f32")
+
+
+def test_f16_is_within_half_precision_and_refuses_what_it_cannot_hold():
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(4000, generator=g) * torch.logspace(-4, 4, 4000)
+    e = codecs.encode(x, "f16")
+    assert e["data"].dtype == torch.float16 and codecs.nbytes(e) == 2 * x.numel()
+    y = codecs.decode(e)
+    normal = x.abs() >= 6.104e-5
+    assert ((y - x).abs()[normal] <= x.abs()[normal] * 2.0 ** -11).all()
+    assert ((y - x).abs()[~normal] <= 2.0 ** -25).all()
+    with pytest.raises(ValueError, match="float16's range"):
+        codecs.encode(torch.tensor([1.0, 7e4]), "f16")
+    with pytest.raises(ValueError, match="non-finite"):
+        codecs.encode(torch.tensor([1.0, float("nan")]), "f16")
+
+
+def test_q8_is_within_half_a_step_per_column():
+    g = torch.Generator().manual_seed(2)
+    x = torch.randn(300, 15, 3, generator=g) * torch.tensor([0.1, 1.0, 5.0])  # columns of different ranges
+    x[:, 0, 0] = 0.25  # one constant column: exact
+    e = codecs.encode(x, "q8")
+    assert e["data"].dtype == torch.uint8 and e["lo"].shape == (3,) and codecs.nbytes(e) == x.numel() + 24
+    y = codecs.decode(e)
+    assert y.shape == x.shape
+    bound = (x.reshape(-1, 3).amax(0) - x.reshape(-1, 3).amin(0)) / 510
+    assert ((y - x).abs().reshape(-1, 3) <= bound * (1 + 1e-5) + 1e-7).all()
+    # the error reaches a good part of its bound (it is a quantization, not an identity)
+    assert float(((y - x).abs().reshape(-1, 3) / bound).max()) > 0.9
+    v = torch.linspace(-2, 3, 101)  # a vector is one column
+    ev = codecs.encode(v, "q8")
+    assert ev["lo"].shape == (1,) and float((codecs.decode(ev) - v).abs().max()) <= 5 / 510 + 1e-6
+
+
+def test_cols_keeps_the_given_columns_exactly_and_fills_the_rest():
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(40, 300, generator=g)
+    cols = torch.stack([torch.randperm(300, generator=g)[:5] for _ in range(40)])
+    e = codecs.encode(x, "cols", cols)
+    assert e["cols"].dtype == torch.int16 and codecs.nbytes(e) < x.numel() * 4 // 20
+    y = codecs.decode(e)
+    assert torch.equal(y.gather(1, cols), x.gather(1, cols))
+    rest = torch.ones_like(x, dtype=torch.bool).scatter_(1, cols, False)
+    assert (y[rest] == float(e["fill"])).all() and float(e["fill"]) < float(x.gather(1, cols).min()) - 20
+    # a softmax over the kept columns is the original's
+    assert torch.equal(torch.softmax(y.gather(1, cols), -1), torch.softmax(x.gather(1, cols), -1))
+    with pytest.raises(ValueError, match="outside"):
+        codecs.encode(x, "cols", cols + 300)
+
+
+def _trained(tmp_path, experiment, extra=()):
+    from stdr.testing import tiny_config
+    from stdr.train.trainer import Trainer
+    cfg = tiny_config(tmp_path, [f"experiment={experiment}", "model.init_num=400", "optim.iterations=30",
+                                 "baseline.warmup=10", "stdr.warmup_end=12", "stdr.freeze_at=20",
+                                 "densify.refine_start=1000", "baseline.spgs.num_superpoints=50", *extra])
+    t = Trainer(cfg, tmp_path / "run", splits=("train", "test"))
+    t.train()
+    return t
+
+
+@pytest.mark.parametrize("experiment", ["embedded_spgs_stdr", "embedded_deform_stdr"])
+def test_the_compact_file_round_trips_through_load_model(tmp_path, experiment):
+    """Write, load, render: the model read back renders within 0.05 dB PSNR of the full model on
+    every test frame, in fewer bytes; means, integer tensors and float64 knots come back exact."""
+    from stdr.eval.evaluate import evaluate_model
+    from stdr.model import load_model
+    t = _trained(tmp_path, experiment)
+    full = t.model
+    path = tmp_path / "model.stdrc"
+    rec = write_compact(full, path)
+    assert rec["bytes"] < rec["full_bytes"]
+    # the per-Gaussian part (networks are kept in float32 by default): SH rest in 8 bits, the rest
+    # of the attributes in half precision, SP-GS's table at its 5 read columns of 50
+    per_gaussian = codecs.nbytes(encode_model(full)["model"]["params"]) / codecs.nbytes(full.state_dict()["params"])
+    assert per_gaussian < 0.45, per_gaussian
+    small = load_model(path, "cpu")
+    assert small.step == full.step and set(small.params) == set(full.params)
+    assert torch.equal(small.params["means"], full.params["means"])
+    knots = [p for p in small.plugins if p.name == "stdr"][0].state_dict()["knots"]
+    assert knots.dtype == torch.float64
+    frames = t.scene.frames("test")
+    a, b = evaluate_model(full, frames, fps_warmup=0), evaluate_model(small, frames, fps_warmup=0)
+    for pa, pb in zip(a["per_frame_psnr"], b["per_frame_psnr"]):
+        assert abs(pa - pb) < 0.05, (pa, pb)
+    if experiment.startswith("embedded_spgs"):
+        from stdr.baselines.superpoints import ASSOC_KEY
+        assert rec["spec"][ASSOC_KEY] == "cols"
+        idx, G, hard = full.deform.assignment(full.params)
+        idx2, G2, hard2 = small.deform.assignment(small.params)
+        assert torch.equal(idx, idx2) and torch.equal(G, G2) and torch.equal(hard, hard2)
+
+
+def test_a_file_from_a_newer_version_is_refused_with_a_clear_error(tmp_path):
+    from stdr.model import load_model
+    from stdr.train.checkpoint import load_checkpoint, save_checkpoint
+    t = _trained(tmp_path, "embedded_deform")
+    payload = encode_model(t.model)
+    assert payload["format"] == FORMAT and payload["version"] == VERSION
+    payload["version"] = VERSION + 1
+    save_checkpoint(tmp_path / "new.stdrc", payload)
+    with pytest.raises(ValueError, match=f"version {VERSION + 1}, written by a newer stdr"):
+        load_model(tmp_path / "new.stdrc", "cpu")
+    with pytest.raises(ValueError, match="unknown codec"):
+        p = load_checkpoint(tmp_path / "new.stdrc")
+        p["version"] = VERSION
+        p["model"]["params"]["scales"]["codec"] = "zstd"
+        decode_model(p)
+    with pytest.raises(ValueError, match="compact spec shN='q4'"):
+        encode_model(t.model, {"shN": "q4"})
