@@ -35,7 +35,7 @@ def test_f16_is_within_half_precision_and_refuses_what_it_cannot_hold():
         codecs.encode(torch.tensor([1.0, float("nan")]), "f16")
 
 
-def test_q8_is_within_half_a_step_per_column():
+def test_q8_and_q16_are_within_half_a_step_per_column():
     g = torch.Generator().manual_seed(2)
     x = torch.randn(300, 15, 3, generator=g) * torch.tensor([0.1, 1.0, 5.0])  # columns of different ranges
     x[:, 0, 0] = 0.25  # one constant column: exact
@@ -47,6 +47,12 @@ def test_q8_is_within_half_a_step_per_column():
     assert ((y - x).abs().reshape(-1, 3) <= bound * (1 + 1e-5) + 1e-7).all()
     # the error reaches a good part of its bound (it is a quantization, not an identity)
     assert float(((y - x).abs().reshape(-1, 3) / bound).max()) > 0.9
+    e16 = codecs.encode(x, "q16")
+    assert e16["data"].dtype == torch.int16 and codecs.nbytes(e16) == 2 * x.numel() + 24
+    err16 = (codecs.decode(e16) - x).abs().reshape(-1, 3)
+    # half a step of 65 535, plus float32's rounding of lo + q * step (a few ulps of the column's values)
+    ulps = 4 * torch.finfo(torch.float32).eps * x.reshape(-1, 3).abs().amax(0)
+    assert (err16 <= bound * 255 / 65535 + ulps).all() and float((err16 / bound).max()) < 0.01
     v = torch.linspace(-2, 3, 101)  # a vector is one column
     ev = codecs.encode(v, "q8")
     assert ev["lo"].shape == (1,) and float((codecs.decode(ev) - v).abs().max()) <= 5 / 510 + 1e-6

@@ -8,6 +8,7 @@ with shape contracts, each an `encode` to a dict of tensors (loadable with weigh
 | `f32` | float32 | exact for float32 |
 | `f16` | float16 | \\|x\\| 2^-11 relative in float16's normal range (\\|x\\| >= 6.1e-5), 2^-25 absolute below it; values beyond +-65504 are refused |
 | `q8` | uint8 per element, with a float32 (lo, hi) per column of the last dimension (one column for a vector) | at most (hi - lo) / 510 per element, half a quantization step |
+| `q16` | as `q8` with 65 536 levels (int16) | at most (hi - lo) / 131 070 per element (positions: ~1e-5 of the scene's extent), plus float32's rounding |
 | `cols` | the K given columns of each row [N, K] (values in float32, their indices in int16/int32) and a fill | exact on those columns; every other column reads `fill` |
 
 `cols` is for a per-Gaussian table that rendering reads only at some columns of each row (SP-GS's
@@ -18,12 +19,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-CODECS = ("raw", "f32", "f16", "q8", "cols")
+CODECS = ("raw", "f32", "f16", "q8", "q16", "cols")
 F16_MAX = 65504.0
 
 
 def _columns(shape) -> int:
-    """q8's columns: the last dimension of a tensor of two or more, else one column."""
+    """q8's and q16's columns: the last dimension of a tensor of two or more, else one column."""
     return int(shape[-1]) if len(shape) >= 2 else 1
 
 
@@ -46,13 +47,16 @@ def encode(x: Tensor, codec: str, cols: Tensor | None = None) -> dict:
             raise ValueError(f"codec 'f16': values up to {float(x.abs().max()):.4g} exceed float16's range "
                              f"({F16_MAX}); use 'f32' or 'q8' for this tensor")
         return {"codec": "f16", "data": x.half()}
-    if codec == "q8":
+    if codec in ("q8", "q16"):
+        levels = 255.0 if codec == "q8" else 65535.0
         flat = x.float().reshape(-1, _columns(x.shape))
         lo = flat.min(0).values if flat.shape[0] else torch.zeros(flat.shape[1])
         hi = flat.max(0).values if flat.shape[0] else torch.zeros(flat.shape[1])
-        step = (hi - lo) / 255.0
-        q = torch.where(step > 0, torch.round((flat - lo) / torch.where(step > 0, step, 1.0)), 0.0)
-        return {"codec": "q8", "data": q.clamp(0, 255).to(torch.uint8).reshape(x.shape), "lo": lo, "hi": hi}
+        step = (hi - lo) / levels
+        q = torch.where(step > 0, torch.round((flat - lo) / torch.where(step > 0, step, 1.0)), 0.0).clamp(0, levels)
+        # q16 in int16 (offset by 32 768: torch's uint16 lacks arithmetic)
+        data = q.to(torch.uint8) if codec == "q8" else (q.to(torch.int32) - 32768).to(torch.int16)
+        return {"codec": codec, "data": data.reshape(x.shape), "lo": lo, "hi": hi}
     if codec == "cols":
         if cols is None or x.dim() != 2 or cols.dim() != 2 or cols.shape[0] != x.shape[0]:
             raise ValueError("codec 'cols' needs x [N, M] and cols [N, K]")
@@ -75,10 +79,11 @@ def decode(e: dict) -> Tensor:
         return e["data"].float()
     if codec == "f16":
         return e["data"].float()
-    if codec == "q8":
-        step = (e["hi"] - e["lo"]) / 255.0
+    if codec in ("q8", "q16"):
+        step = (e["hi"] - e["lo"]) / (255.0 if codec == "q8" else 65535.0)
         q = e["data"]
-        return (e["lo"] + q.reshape(-1, _columns(q.shape)).float() * step).reshape(q.shape)
+        qf = q.float() if codec == "q8" else q.to(torch.int32).add(32768).float()
+        return (e["lo"] + qf.reshape(-1, _columns(q.shape)) * step).reshape(q.shape)
     if codec == "cols":
         vals, idx = e["data"], e["cols"].long()
         out = torch.full((vals.shape[0], int(e["width"])), float(e["fill"]))
