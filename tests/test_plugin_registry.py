@@ -157,7 +157,7 @@ CORE = ["stdr/config.py", "stdr/model.py", "stdr/schedule.py", "stdr/cli/eval.py
 _MODULES = "|".join(sorted(p.stem for p in (ROOT / "stdr").iterdir()
                            if (p.suffix == ".py" or (p / "__init__.py").is_file()) and p.stem != "decouple"))
 ALLOWED = re.compile(rf"(?<![\w.])stdr\.({_MODULES})\b|stdr-[a-z0-9-]+|\[stdr\]|stdr_(schedule|experiments|scene_path|share)"
-                     r"|\bstdr/[\w/.]+|/stdr\b|STDR_[A-Z_]+|\bstdr (run|checkpoint|package)\b|stdr/configs|\$\{stdr_|docs/stdr\.md")
+                     r"|\bstdr/[\w/.]+|/stdr\b|STDR_[A-Z_]+|\bstdr (run|checkpoint|package)\b|stdr/configs|\$\{stdr_|docs/stdr\.md|\.stdrc\b")
 
 
 def test_the_core_names_no_plugin():
