@@ -190,15 +190,8 @@ def machine_name(cpuinfo: str | None = None) -> str:
 def model_bytes(model) -> int:
     """Bytes of the model's tensors (Gaussians, deformation module, plug-in state): the size a
     saved model takes without optimizer state."""
-    def walk(x):
-        if isinstance(x, torch.Tensor):
-            return x.numel() * x.element_size()
-        if isinstance(x, dict):
-            return sum(walk(v) for v in x.values())
-        if isinstance(x, (list, tuple)):
-            return sum(walk(v) for v in x)
-        return 0
-    return int(walk(model.state_dict()))
+    from ..io.codecs import nbytes
+    return int(nbytes(model.state_dict()))
 
 
 def metric_conventions(eval_cfg, lpips_fn, backend: str, device: torch.device) -> dict[str, Any]:
