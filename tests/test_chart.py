@@ -49,6 +49,9 @@ def test_chart_writes_images_and_the_plotted_numbers(tmp_path, capsys):
     for name in ("speed_accuracy_psnr", "size_accuracy_psnr", "learning_curves_psnr"):
         for ext in ("png", "svg", "csv"):
             assert (out / f"{name}.{ext}").stat().st_size > 1000 or ext == "csv", name
+        from PIL import Image
+        with Image.open(out / f"{name}.png") as im:  # a palette PNG (palette_png): a third of the bytes
+            assert im.mode == "P" and len(im.getcolors(256) or []) > 8, name
     rows = _csv(out / "speed_accuracy_psnr.csv")
     mean = {r["method"]: r for r in rows if r["scene"] == "mean"}
     assert set(mean) == {"deform", "deform+STDR", "4dgs", "4dgs+STDR"}

@@ -222,10 +222,20 @@ def _legend(fig, colors, pts, pareto_line=True):
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False, fontsize=8)
 
 
+def palette_png(path: Path) -> None:
+    """Rewrite a chart's PNG with a palette of 256 colours (a plot has far fewer): about a third of
+    the bytes, the same picture to the eye. The SVG beside it stays exact."""
+    from PIL import Image
+    with Image.open(path) as im:
+        q = im.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT)
+    q.save(path, format="PNG", optimize=True)
+
+
 def _save(fig, out: Path, name: str, header: list[str], data: list[list[Any]]) -> dict[str, Path]:
     out.mkdir(parents=True, exist_ok=True)
     paths = {ext: out / f"{name}.{ext}" for ext in ("png", "svg", "csv")}
     fig.savefig(paths["png"], dpi=130, bbox_inches="tight")
+    palette_png(paths["png"])
     fig.savefig(paths["svg"], bbox_inches="tight")
     with open(paths["csv"], "w", newline="") as f:
         w = csv.writer(f)
