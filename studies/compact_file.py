@@ -9,7 +9,8 @@ file: the bytes of the full model and of the compact file, and val PSNR / SSIM o
 Variants: `default` (stdr.io.compact_file.DEFAULT_SPEC), `state16` (networks and grids in half
 precision too), `all16` (the SH rest in half precision instead of 8 bits), `q8` (every per-Gaussian
 tensor but the means in 8 bits with a range per column, STDR's float mask included; networks in
-half precision), `q8m16` (as `q8`, the means in 16 bits with a range per axis). Records:
+half precision), `q8m16` (as `q8`, the means in 16 bits with a range per axis), `q8m16_sh<d>` (as
+`q8m16`, the SH rest kept to degree d, the higher bands dropped without a fine-tune). Records:
 records/<run>__<variant>.json, with the code commit and machine; the table is generated from them.
 """
 from __future__ import annotations
@@ -29,6 +30,8 @@ VARIANTS = {"default": {}, "state16": {"state": "f16"}, "all16": {"shN": "f16", 
             "q8": {"scales": "q8", "quats": "q8", "opacities": "q8", "sh0": "q8", "*": "q8", "state": "f16"},
             "q8m16": {"means": "q16", "scales": "q8", "quats": "q8", "opacities": "q8", "sh0": "q8", "*": "q8",
                       "state": "f16"}}
+for _d in (0, 1, 2):  # q8m16 with the SH rest kept to degree d (no fine-tune)
+    VARIANTS[f"q8m16_sh{_d}"] = {**VARIANTS["q8m16"], "sh_degree": _d}
 
 
 def commit() -> str:

@@ -117,6 +117,29 @@ def test_the_compact_file_round_trips_through_load_model(tmp_path, experiment):
         assert torch.equal(idx, idx2) and torch.equal(G, G2) and torch.equal(hard, hard2)
 
 
+def test_the_sh_rest_kept_to_a_lower_degree_renders_as_that_degree(tmp_path):
+    """spec sh_degree=1: the file keeps 3 of the 15 SH rest rows; the model read back has the
+    higher bands at zero, so it renders as the full model with those bands zeroed."""
+    from stdr.model import load_model
+    t = _trained(tmp_path, "embedded_deform", ["model.sh_interval=5"])
+    full = t.model
+    exact = {k: "f32" for k in ("means", "scales", "quats", "opacities", "sh0", "shN", "*", "state")}
+    rec = write_compact(full, tmp_path / "d1.stdrc", {**exact, "sh_degree": 1})
+    assert rec["spec"]["sh_degree"] == 1
+    small = load_model(tmp_path / "d1.stdrc", "cpu")
+    want = full.params["shN"].detach().clone()
+    want[:, 3:] = 0
+    assert torch.equal(small.params["shN"], want)
+    with torch.no_grad():
+        full.params["shN"].copy_(want)
+    f = t.scene.frames("test")[0]
+    full.eval()
+    small.eval()
+    assert torch.equal(full.render(f.camera, f.time).image, small.render(f.camera, f.time).image)
+    with pytest.raises(ValueError, match="sh_degree=4"):
+        encode_model(full, {"sh_degree": 4})
+
+
 def test_a_file_from_a_newer_version_is_refused_with_a_clear_error(tmp_path):
     from stdr.model import load_model
     from stdr.train.checkpoint import load_checkpoint, save_checkpoint

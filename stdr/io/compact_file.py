@@ -10,7 +10,9 @@ weights_only) whose payload is
               replaced by its codec's dict (stdr.io.codecs)}
 
 `spec` says which codec holds what: per-Gaussian parameter keys, and `state` for the deformation
-module's and the plug-ins' tensors (networks, HexPlane grids, STDR's field). A baseline may name,
+module's and the plug-ins' tensors (networks, HexPlane grids, STDR's field); `sh_degree` (optional)
+keeps the SH rest to that degree's bands, the higher ones reading back as zeros (the model renders
+as one of that degree). A baseline may name,
 per parameter, the columns its renders read (`Deformation.compact_columns`: SP-GS's association
 logits at each Gaussian's K nearest superpoints); those are stored with the `cols` codec. A file
 with a higher version than this code reads is refused with an error that says so.
@@ -57,7 +59,10 @@ def _walk_encode(x: Any, codec: str) -> Any:
 def _walk_decode(x: Any) -> Any:
     if isinstance(x, dict):
         if x.get(MARK):
-            return codecs.decode({k: v for k, v in x.items() if k != MARK})
+            t = codecs.decode({k: v for k, v in x.items() if k not in (MARK, "pad_rows")})
+            if "pad_rows" in x:  # the SH rest kept to a lower degree: the higher bands read as zeros
+                t = torch.cat([t, t.new_zeros(t.shape[0], int(x["pad_rows"]) - t.shape[1], *t.shape[2:])], 1)
+            return t
         return {k: _walk_decode(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
         return type(x)(_walk_decode(v) for v in x)
@@ -68,21 +73,30 @@ def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
     """The compact file's payload of a `DynamicGaussians` (its state_dict, encoded by `spec`,
     DEFAULT_SPEC's entries where `spec` names none)."""
     spec = {**DEFAULT_SPEC, **(spec or {})}
+    if spec.get("sh_degree") is not None and not 0 <= int(spec["sh_degree"]) <= 3:
+        raise ValueError(f"compact spec sh_degree={spec['sh_degree']}: use 0 to 3 (or leave it out)")
     for k, c in spec.items():
+        if k == "sh_degree":
+            continue
         if c not in codecs.CODECS:
             raise ValueError(f"compact spec {k}={c!r}: use one of {codecs.CODECS}")
     entry = model.state_dict()
     cols = model.deform.compact_columns(model.params)
     params = {}
+    degree = spec.get("sh_degree")
     for k, v in entry["params"].items():
         if k in cols:
             params[k] = _enc(v, "cols", cols[k])
+        elif k == "shN" and degree is not None and (int(degree) + 1) ** 2 - 1 < v.shape[1]:
+            keep = (int(degree) + 1) ** 2 - 1
+            params[k] = {**_enc(v[:, :keep], spec.get(k, spec["*"])), "pad_rows": v.shape[1]}
         else:
             params[k] = _enc(v, spec.get(k, spec["*"]))
     used = {k: e["codec"] for k, e in params.items()}  # what each was stored as (an integer tensor: raw)
     model_entry = {**entry, "params": params, "deform": _walk_encode(entry["deform"], spec["state"]),
                    "plugins": _walk_encode(entry["plugins"], spec["state"])}
-    return {"format": FORMAT, "version": VERSION, "spec": {**used, "state": spec["state"]}, "model": model_entry}
+    return {"format": FORMAT, "version": VERSION, "model": model_entry,
+            "spec": {**used, "state": spec["state"], **({"sh_degree": int(degree)} if degree is not None else {})}}
 
 
 def is_compact(payload: Any) -> bool:

@@ -1,6 +1,6 @@
 """Write a trained run's compact model file (stdr.io.compact_file) and measure what it costs.
 
-    stdr-tool pack RUN [--out FILE] [--codec KEY=CODEC ...] [--split val] [--no-eval]
+    stdr-tool pack RUN [--out FILE] [--codec KEY=CODEC ... sh_degree=D] [--split val] [--no-eval]
 
 Writes RUN/model.stdrc (default) from RUN/checkpoints/last.pt with the default codecs
 (stdr.io.compact_file.DEFAULT_SPEC; `--codec shN=f16 state=f16` changes one), then renders `--split`
@@ -54,7 +54,7 @@ def _spec(items: list[str]) -> dict:
         k, sep, v = it.partition("=")
         if not sep or not k or not v:
             raise SystemExit(f"stdr-tool pack: --codec {it!r}: use KEY=CODEC, e.g. shN=f16 or state=f16")
-        out[k] = v
+        out[k] = int(v) if k == "sh_degree" else v
     return out
 
 
