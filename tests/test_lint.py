@@ -51,7 +51,7 @@ def _import_graph() -> dict[str, set[str]]:
 
 
 def test_the_config_sits_on_no_import_circle():
-    """stdr.config imports the registries (plugins, deform, scene.strategy) and the schedule; none of
+    """stdr.config imports the registries (plugins, baselines, densify.strategy) and the schedule; none of
     them imports it back, not even inside a function (the plug-in registry gets the reserved names
     from it: plugins.set_reserved_keys)."""
     edges = _import_graph()
