@@ -15,16 +15,17 @@ records/<run>__<variant>.json, with the code commit and machine; the table is ge
 """
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from studies.common import commit, run_table_main  # noqa: E402
+
 OUT = ROOT / "docs" / "measurements" / "compact_file"
 VARIANTS = {"default": {}, "state16": {"state": "f16"}, "all16": {"shN": "f16", "state": "f16"},
             "q8": {"scales": "q8", "quats": "q8", "opacities": "q8", "sh0": "q8", "*": "q8", "state": "f16"},
@@ -34,15 +35,7 @@ for _d in (0, 1, 2):  # q8m16 with the SH rest kept to degree d (no fine-tune)
     VARIANTS[f"q8m16_sh{_d}"] = {**VARIANTS["q8m16"], "sh_degree": _d}
 
 
-def commit() -> str:
-    out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-    dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
-                           capture_output=True, text=True).stdout.strip()
-    return out.stdout.strip() + ("+dirty" if dirty else "")
-
-
 def run(runs: list[Path], variants: list[str], out: Path) -> None:
-    sys.path.insert(0, str(ROOT))
     from stdr.config import load_config
     from stdr.eval.evaluate import machine_name
     from stdr.tools.pack import pack
@@ -88,20 +81,9 @@ def table(out: Path) -> str:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    r = sub.add_parser("run")
-    r.add_argument("runs", type=Path, nargs="+")
-    r.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
-    r.add_argument("--out", type=Path, default=OUT)
-    t = sub.add_parser("table")
-    t.add_argument("--out", type=Path, default=OUT)
-    a = ap.parse_args(argv)
-    if a.cmd == "run":
-        run(a.runs, a.variants, a.out)
-    text = table(a.out)
-    (a.out / "table.md").write_text(text)
-    print(text)
+    run_table_main(__doc__, OUT, "table.md", lambda a: run(a.runs, a.variants, a.out), table,
+                   lambda p: p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS)),
+                   argv)
 
 
 if __name__ == "__main__":

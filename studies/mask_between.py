@@ -14,29 +14,22 @@ and machine; the table is generated from them.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
-import subprocess
 import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from studies.common import commit, run_table_main  # noqa: E402
+
 OUT = ROOT / "docs" / "measurements" / "stdr_unseen_times"
 RULES = ("linear", "nearest", "logit")
 
 
-def commit() -> str:
-    out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-    dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
-                           capture_output=True, text=True).stdout.strip()
-    return out.stdout.strip() + ("+dirty" if dirty else "")
-
-
 def measure(run: Path) -> dict:
-    sys.path.insert(0, str(ROOT))
     from stdr.config import load_config
     from stdr.data.load import load_scene
     from stdr.eval.evaluate import evaluate_model, machine_name
@@ -95,25 +88,17 @@ def table(out: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _run(args) -> None:
+    (args.out / "mask_between").mkdir(parents=True, exist_ok=True)
+    for run in args.runs:
+        rec = measure(run)
+        (args.out / "mask_between" / f"{run.name}.json").write_text(json.dumps(rec, indent=1) + "\n")
+        print(f"[mask_between] {run.name}: " + ", ".join(f"{k} {v['psnr']:.2f}" for k, v in rec.items()
+                                                         if isinstance(v, dict)), flush=True)
+
+
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    r = sub.add_parser("run")
-    r.add_argument("runs", type=Path, nargs="+")
-    r.add_argument("--out", type=Path, default=OUT)
-    t = sub.add_parser("table")
-    t.add_argument("--out", type=Path, default=OUT)
-    args = ap.parse_args(argv)
-    if args.cmd == "run":
-        (args.out / "mask_between").mkdir(parents=True, exist_ok=True)
-        for run in args.runs:
-            rec = measure(run)
-            (args.out / "mask_between" / f"{run.name}.json").write_text(json.dumps(rec, indent=1) + "\n")
-            print(f"[mask_between] {run.name}: " + ", ".join(f"{k} {v['psnr']:.2f}" for k, v in rec.items()
-                                                             if isinstance(v, dict)), flush=True)
-    text = table(args.out)
-    (args.out / "mask_between.md").write_text(text)
-    print(text)
+    run_table_main(__doc__, OUT, "mask_between.md", _run, table, argv=argv)
 
 
 if __name__ == "__main__":
