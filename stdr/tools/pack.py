@@ -23,8 +23,7 @@ def pack(run_dir: Path, out: Optional[Path] = None, spec: Optional[dict] = None,
     from ..config import load_config
     from ..eval.evaluate import evaluate_model
     from ..io.compact_file import SUFFIX, write_compact
-    from ..model import load_model, model_from_checkpoint
-    from ..train.checkpoint import load_checkpoint
+    from ..model import load_model
     from ..train.state import CKPT
     run_dir = Path(run_dir)
     src = run_dir / CKPT
@@ -33,7 +32,7 @@ def pack(run_dir: Path, out: Optional[Path] = None, spec: Optional[dict] = None,
     out = Path(out) if out is not None else run_dir / f"model{SUFFIX}"
     cfg = load_config(run_dir / "config.yaml")
     cfg.device = "cpu"
-    full = model_from_checkpoint(load_checkpoint(src), "cpu", cfg, None, str(src))
+    full = load_model(src, "cpu", cfg)
     rec = {"file": str(out), **write_compact(full, out, spec)}
     rec["ratio"] = rec["bytes"] / rec["full_bytes"]
     if split:

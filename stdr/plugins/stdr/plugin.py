@@ -160,8 +160,9 @@ class STDR(Plugin):
         baseline's switch windows)."""
         if int(cfg.mask_bits) not in (8, 32):
             raise ValueError(f"stdr.mask_bits={cfg.mask_bits}: use 32 (float logits) or 8 (uint8 after the freeze)")
-        if getattr(cfg, "mask_between", "linear") not in BETWEEN:
-            raise ValueError(f"stdr.mask_between={cfg.mask_between!r}: use one of {BETWEEN}")
+        self.mask_between = getattr(cfg, "mask_between", "linear")  # read once: opacity_factor runs every step
+        if self.mask_between not in BETWEEN:
+            raise ValueError(f"stdr.mask_between={self.mask_between!r}: use one of {BETWEEN}")
         self.cfg = cfg
         self.device = torch.device(device)  # of the separated field; the knots stay on the CPU (host-side lookups)
         self.iterations = int(schedule.iterations)
@@ -337,7 +338,7 @@ class STDR(Plugin):
         """Activated mask [N] at time t, or None when the mask does not modulate opacity now."""
         if not self.has_mask(params) or not self.mask_modulates(step):
             return None
-        return mask_at(params[MASK_KEY], t, self.knot_values, getattr(self.cfg, "mask_between", "linear"))
+        return mask_at(params[MASK_KEY], t, self.knot_values, self.mask_between)
 
     def probabilities(self, params) -> Tensor:
         """p = softmax_t(m) [N, K], computed once per mask tensor and version (uniform without a mask)."""
