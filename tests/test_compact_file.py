@@ -74,6 +74,62 @@ def test_cols_keeps_the_given_columns_exactly_and_fills_the_rest():
         codecs.encode(x, "cols", cols + 300)
 
 
+def test_q4_is_within_half_a_step_of_fifteen_per_column_in_half_a_byte():
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(301, 5, generator=g) * torch.tensor([0.01, 0.1, 1.0, 10.0, 0.0])  # odd count, a constant column
+    e = codecs.encode(x, "q4")
+    assert e["data"].dtype == torch.uint8 and e["data"].numel() == (x.numel() + 1) // 2
+    y = codecs.decode(e)
+    assert y.shape == x.shape
+    bound = (x.amax(0) - x.amin(0)) / 30
+    assert ((y - x).abs() <= bound * (1 + 1e-5) + 1e-7).all()
+    assert float(((y - x).abs()[:, :4] / bound[:4]).max()) > 0.9 and torch.equal(y[:, 4], x[:, 4])
+
+
+def test_vq_reads_each_row_as_its_nearest_codeword_and_is_exact_for_few_distinct_rows():
+    g = torch.Generator().manual_seed(5)
+    distinct = torch.randint(-64, 64, (10, 3, 3), generator=g).float() / 8  # exact in float16
+    x = distinct[torch.randint(0, 10, (500,), generator=g)]
+    e = codecs.encode(x, "vq:16")
+    assert e["data"].dtype == torch.int16 and e["codebook"].dtype == torch.float16
+    assert torch.equal(codecs.decode(e), x)
+    assert codecs.nbytes(e) == 2 * 500 + 2 * 10 * 9 + 8 * 3  # indices, the 10 codewords used, the shape
+    # many distinct rows: every row reads the codeword nearest to it, and the codebook's error is
+    # well below that of one codeword (the mean) for all
+    y = torch.randn(2000, 12, generator=g) + 4 * torch.randint(0, 8, (2000, 1), generator=g).float()
+    e = codecs.encode(y, "vq:32")
+    book = e["codebook"].float()
+    d = torch.cdist(y, book)
+    picked = d.gather(1, e["data"].long().unsqueeze(1)).squeeze(1)
+    assert (picked <= d.min(1).values + 1e-4).all()
+    err = (codecs.decode(e) - y).pow(2).sum()
+    assert err < 0.5 * (y - y.mean(0)).pow(2).sum()
+    with pytest.raises(ValueError, match="at most 32767"):
+        codecs.encode(y, "vq:40000")
+
+
+def test_lowrank_is_the_truncated_svd_and_exact_for_a_low_rank_matrix():
+    g = torch.Generator().manual_seed(6)
+    low = torch.randn(400, 3, generator=g) @ torch.randn(3, 60, generator=g) + torch.randn(60, generator=g)
+    e = codecs.encode(low, "lowrank:3")
+    assert e["data"].shape == (400, 3) and e["data"].dtype == torch.float16 and e["basis"].shape == (3, 60)
+    y = codecs.decode(e)
+    # exact up to A's float16 rounding (2^-11 of each factor, summed over 3 terms)
+    assert float((y - low).abs().max()) < 3 * 2.0 ** -11 * float(e["data"].float().abs().max()) * 1.01
+    # a full-rank matrix: the error is the SVD's tail (Eckart-Young), up to the same rounding
+    x = torch.randn(300, 40, generator=g)
+    sv = torch.linalg.svdvals((x - x.mean(0)).double())
+    for r in (1, 5, 20):
+        err = float((codecs.decode(codecs.encode(x, f"lowrank:{r}")) - x).double().norm())
+        tail = float(sv[r:].pow(2).sum().sqrt())
+        assert tail - 1e-3 <= err <= tail * 1.01 + 1e-2, (r, err, tail)
+    with pytest.raises(ValueError, match="2-D"):
+        codecs.encode(torch.randn(4, 4, 4), "lowrank:2")
+    for bad in ("lowrank", "lowrank:0", "q8:3", "zstd"):
+        with pytest.raises(ValueError):
+            codecs.parse(bad)
+
+
 def _trained(tmp_path, experiment, extra=()):
     from stdr.testing import tiny_config
     from stdr.train.trainer import Trainer
@@ -117,6 +173,35 @@ def test_the_compact_file_round_trips_through_load_model(tmp_path, experiment):
         assert torch.equal(idx, idx2) and torch.equal(G, G2) and torch.equal(hard, hard2)
 
 
+def test_stdr_mask_codecs_read_back_as_the_8_bit_mask(tmp_path):
+    """A codec named for STDR's mask encodes the activated mask, and the file reads it back in the
+    8-bit form (stdr.mask_bits=8): `q8` is exactly mask.quantize of the trained logits; a low-rank
+    form is within its SVD error of it, renders, and costs fewer bytes."""
+    from stdr.model import load_model
+    from stdr.plugins.stdr.mask import quantize
+    from stdr.plugins.stdr.plugin import MASK_KEY
+    t = _trained(tmp_path, "embedded_deform_stdr")
+    full = t.model
+    assert full.params[MASK_KEY].is_floating_point()
+    write_compact(full, tmp_path / "m8.stdrc", {MASK_KEY: "q8"})
+    m8 = load_model(tmp_path / "m8.stdrc", "cpu").params[MASK_KEY]
+    assert m8.dtype == torch.uint8 and torch.equal(m8, quantize(full.params[MASK_KEY]))
+    rec = write_compact(full, tmp_path / "lr.stdrc", {MASK_KEY: "lowrank:2"})
+    assert rec["spec"][MASK_KEY] == "lowrank:2"
+    small = load_model(tmp_path / "lr.stdrc", "cpu")
+    lr = small.params[MASK_KEY]
+    assert lr.dtype == torch.uint8 and lr.shape == m8.shape
+    payload = encode_model(full, {MASK_KEY: "lowrank:2"})
+    assert codecs.nbytes(payload["model"]["params"][MASK_KEY]) < m8.numel()
+    a = torch.sigmoid(full.params[MASK_KEY].detach())
+    tail = torch.linalg.svdvals((a - a.mean(0)).double())[2:].pow(2).sum().sqrt()
+    # rounding to 1/255 adds at most half a level per entry
+    assert float((lr.float() / 255 - a).double().norm()) <= float(tail) + 0.5 / 255 * a.numel() ** 0.5 + 1e-3
+    f = t.scene.frames("test")[0]
+    small.eval()
+    assert torch.isfinite(small.render(f.camera, f.time).image).all()
+
+
 def test_the_sh_rest_kept_to_a_lower_degree_renders_as_that_degree(tmp_path):
     """spec sh_degree=1: the file keeps 3 of the 15 SH rest rows; the model read back has the
     higher bands at zero, so it renders as the full model with those bands zeroed."""
@@ -155,5 +240,7 @@ def test_a_file_from_a_newer_version_is_refused_with_a_clear_error(tmp_path):
         p["version"] = VERSION
         p["model"]["params"]["scales"]["codec"] = "zstd"
         decode_model(p)
-    with pytest.raises(ValueError, match="compact spec shN='q4'"):
-        encode_model(t.model, {"shN": "q4"})
+    with pytest.raises(ValueError, match="compact spec shN='q3'"):
+        encode_model(t.model, {"shN": "q3"})
+    with pytest.raises(ValueError, match="write vq:<C codewords>"):
+        encode_model(t.model, {"shN": "vq"})

@@ -10,6 +10,9 @@ with shape contracts, each an `encode` to a dict of tensors (loadable with weigh
 | `q8` | uint8 per element, with a float32 (lo, hi) per column of the last dimension (one column for a vector) | at most (hi - lo) / 510 per element, half a quantization step |
 | `q16` | as `q8` with 65 536 levels (int16) | at most (hi - lo) / 131 070 per element (positions: ~1e-5 of the scene's extent), plus float32's rounding |
 | `cols` | the K given columns of each row [N, K] (values in float32, their indices in int16/int32) and a fill | exact on those columns; every other column reads `fill` |
+| `q4` | 4 bits per element (two a byte), a float32 (lo, hi) per column as `q8` | at most (hi - lo) / 30 per element |
+| `vq:C` | each row [N, ...] replaced by the nearest of C codewords (k-means on the rows, float16 codebook [C, D]); an int16 index a row | each row reads its codeword: the k-means error, plus float16's rounding of the codeword; exact for a tensor of at most C distinct rows |
+| `lowrank:R` | a 2-D [N, K] as its column means plus a rank-R product A [N, R] (float16) B [R, K] (float32) | the truncated SVD's error (the best rank R in the Frobenius norm), plus A's float16 rounding; exact (to that rounding) for a matrix of rank <= R after centring |
 
 `cols` is for a per-Gaussian table that rendering reads only at some columns of each row (SP-GS's
 association logits: a row's K nearest superpoints, fixed once training ends).
@@ -19,7 +22,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-CODECS = ("raw", "f32", "f16", "q8", "q16", "cols")
+CODECS = ("raw", "f32", "f16", "q8", "q16", "cols", "q4", "vq", "lowrank")
+#: codecs that take a size after a colon ("vq:1024", "lowrank:8")
+SIZED = {"vq": "C codewords", "lowrank": "rank R"}
+KMEANS_ITERS = 20
 F16_MAX = 65504.0
 
 
@@ -28,9 +34,61 @@ def _columns(shape) -> int:
     return int(shape[-1]) if len(shape) >= 2 else 1
 
 
+def parse(codec: str) -> tuple[str, int | None]:
+    """"vq:1024" -> ("vq", 1024); "q8" -> ("q8", None). An unknown name or a missing / stray size is
+    a ValueError naming the codecs."""
+    name, _, arg = str(codec).partition(":")
+    if name not in CODECS:
+        raise ValueError(f"unknown codec {codec!r}: one of {CODECS} (sized: vq:C, lowrank:R)")
+    if name in SIZED:
+        if not arg.isdigit() or int(arg) < 1:
+            raise ValueError(f"codec {codec!r}: write {name}:<{SIZED[name]}>, a positive integer (e.g. {name}:8)")
+        return name, int(arg)
+    if arg:
+        raise ValueError(f"codec {codec!r}: {name} takes no size")
+    return name, None
+
+
+def nearest(rows: Tensor, centres: Tensor, chunk: int = 8192) -> Tensor:
+    """Index [N] of the centre [k, D] nearest each row [N, D] (Euclidean)."""
+    return torch.cat([torch.cdist(rows[i:i + chunk], centres).argmin(1) for i in range(0, rows.shape[0], chunk)])
+
+
+def kmeans(rows: Tensor, k: int, iters: int = KMEANS_ITERS, seed: int = 0, chunk: int = 8192) -> tuple[Tensor, Tensor]:
+    """Lloyd's k-means of rows [N, D] (float32) into k <= N centres [k, D], started from k distinct
+    rows drawn by `seed`; a centre left without rows keeps its place. Returns (centres, labels [N])."""
+    n = rows.shape[0]
+    g = torch.Generator().manual_seed(seed)
+    uniq = torch.unique(rows, dim=0)
+    k = min(k, uniq.shape[0])
+    centres = uniq[torch.randperm(uniq.shape[0], generator=g)[:k]].clone()
+    labels = torch.zeros(n, dtype=torch.long)
+    for it in range(iters + 1):
+        labels = nearest(rows, centres, chunk)
+        if it == iters:
+            break
+        sums = torch.zeros_like(centres).index_add_(0, labels, rows)
+        counts = torch.bincount(labels, minlength=k).unsqueeze(1).to(rows.dtype)
+        centres = torch.where(counts > 0, sums / counts.clamp(min=1), centres)
+    return centres, labels
+
+
+def _pack4(q: Tensor) -> Tensor:
+    flat = q.reshape(-1).to(torch.uint8)
+    if flat.numel() % 2:
+        flat = torch.cat([flat, flat.new_zeros(1)])
+    return flat[0::2] | (flat[1::2] << 4)
+
+
+def _unpack4(packed: Tensor, numel: int) -> Tensor:
+    out = torch.stack([packed & 15, packed >> 4], 1).reshape(-1)
+    return out[:numel]
+
+
 def encode(x: Tensor, codec: str, cols: Tensor | None = None) -> dict:
     """x [...] -> the codec's dict (`raw`: any dtype; the others: float). `cols` [N, K] int: the
-    columns `cols` keeps of x [N, M]."""
+    columns `cols` keeps of x [N, M]. Sized codecs: "vq:C" (x [N, ...]: rows), "lowrank:R" (x [N, K])."""
+    codec, size = parse(codec)
     x = x.detach().cpu()
     if codec == "raw":
         return {"codec": "raw", "data": x.clone()}
@@ -47,16 +105,43 @@ def encode(x: Tensor, codec: str, cols: Tensor | None = None) -> dict:
             raise ValueError(f"codec 'f16': values up to {float(x.abs().max()):.4g} exceed float16's range "
                              f"({F16_MAX}); use 'f32' or 'q8' for this tensor")
         return {"codec": "f16", "data": x.half()}
-    if codec in ("q8", "q16"):
-        levels = 255.0 if codec == "q8" else 65535.0
+    if codec in ("q8", "q16", "q4"):
+        levels = {"q8": 255.0, "q16": 65535.0, "q4": 15.0}[codec]
         flat = x.float().reshape(-1, _columns(x.shape))
         lo = flat.min(0).values if flat.shape[0] else torch.zeros(flat.shape[1])
         hi = flat.max(0).values if flat.shape[0] else torch.zeros(flat.shape[1])
         step = (hi - lo) / levels
         q = torch.where(step > 0, torch.round((flat - lo) / torch.where(step > 0, step, 1.0)), 0.0).clamp(0, levels)
+        if codec == "q4":
+            return {"codec": "q4", "data": _pack4(q), "shape": torch.tensor(list(x.shape), dtype=torch.int64),
+                    "lo": lo, "hi": hi}
         # q16 in int16 (offset by 32 768: torch's uint16 lacks arithmetic)
         data = q.to(torch.uint8) if codec == "q8" else (q.to(torch.int32) - 32768).to(torch.int16)
         return {"codec": codec, "data": data.reshape(x.shape), "lo": lo, "hi": hi}
+    if codec == "vq":
+        if x.dim() < 1 or x.shape[0] == 0:
+            raise ValueError("codec 'vq' needs rows: x [N, ...] with N >= 1")
+        if size > 32767:
+            raise ValueError(f"codec 'vq:{size}': at most 32767 codewords (an int16 index a row)")
+        rows = x.float().reshape(x.shape[0], -1)
+        centres, _ = kmeans(rows, size)
+        if float(centres.abs().max()) > F16_MAX:
+            raise ValueError("codec 'vq': codewords exceed float16's range; use q8 for this tensor")
+        book = centres.half()
+        labels = nearest(rows, book.float())  # against the stored (float16) codewords
+        return {"codec": "vq", "data": labels.to(torch.int16), "codebook": book,
+                "shape": torch.tensor(list(x.shape), dtype=torch.int64)}
+    if codec == "lowrank":
+        if x.dim() != 2:
+            raise ValueError(f"codec 'lowrank:{size}' needs a 2-D tensor [N, K], got shape {tuple(x.shape)}")
+        xf = x.double()
+        mean = xf.mean(0)
+        u, sv, vh = torch.linalg.svd(xf - mean, full_matrices=False)
+        r = min(size, sv.numel())
+        a = (u[:, :r] * sv[:r]).float()
+        if a.numel() and float(a.abs().max()) > F16_MAX:
+            raise ValueError(f"codec 'lowrank:{size}': factors exceed float16's range; use q8 for this tensor")
+        return {"codec": "lowrank", "data": a.half(), "basis": vh[:r].float(), "mean": mean.float()}
     if codec == "cols":
         if cols is None or x.dim() != 2 or cols.dim() != 2 or cols.shape[0] != x.shape[0]:
             raise ValueError("codec 'cols' needs x [N, M] and cols [N, K]")
@@ -79,6 +164,17 @@ def decode(e: dict) -> Tensor:
         return e["data"].float()
     if codec == "f16":
         return e["data"].float()
+    if codec == "q4":
+        shape = [int(v) for v in e["shape"]]
+        numel = 1
+        for v in shape:
+            numel *= v
+        q = _unpack4(e["data"], numel).float().reshape(-1, _columns(shape))
+        return (e["lo"] + q * ((e["hi"] - e["lo"]) / 15.0)).reshape(shape)
+    if codec == "vq":
+        return e["codebook"].float()[e["data"].long()].reshape([int(v) for v in e["shape"]])
+    if codec == "lowrank":
+        return e["data"].float() @ e["basis"] + e["mean"]
     if codec in ("q8", "q16"):
         step = (e["hi"] - e["lo"]) / (255.0 if codec == "q8" else 65535.0)
         q = e["data"]

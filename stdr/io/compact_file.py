@@ -14,8 +14,12 @@ module's and the plug-ins' tensors (networks, HexPlane grids, STDR's field); `sh
 keeps the SH rest to that degree's bands, the higher ones reading back as zeros (the model renders
 as one of that degree). A baseline may name,
 per parameter, the columns its renders read (`Deformation.compact_columns`: SP-GS's association
-logits at each Gaussian's K nearest superpoints); those are stored with the `cols` codec. A file
-with a higher version than this code reads is refused with an error that says so.
+logits at each Gaussian's K nearest superpoints); those are stored with the `cols` codec. A
+plug-in may name tables it reads only through an activation to [0, 1] and accepts in 8 bits
+(`Plugin.compact_units`: STDR's mask); a codec the spec names for such a key encodes the activated
+values and the file reads them back as uint8 q (for q / 255), the form `stdr.mask_bits=8` stores.
+Sized codecs are written "vq:1024", "lowrank:8" (stdr.io.codecs). A file with a higher version
+than this code reads is refused with an error that says so.
 """
 from __future__ import annotations
 
@@ -59,7 +63,9 @@ def _walk_encode(x: Any, codec: str) -> Any:
 def _walk_decode(x: Any) -> Any:
     if isinstance(x, dict):
         if x.get(MARK):
-            t = codecs.decode({k: v for k, v in x.items() if k not in (MARK, "pad_rows")})
+            t = codecs.decode({k: v for k, v in x.items() if k not in (MARK, "pad_rows", "unit8")})
+            if x.get("unit8"):  # a plug-in's [0, 1] table, read back in its 8-bit form
+                return torch.round(t.clamp(0.0, 1.0) * 255.0).to(torch.uint8)
             if "pad_rows" in x:  # the SH rest kept to a lower degree: the higher bands read as zeros
                 t = torch.cat([t, t.new_zeros(t.shape[0], int(x["pad_rows"]) - t.shape[1], *t.shape[2:])], 1)
             return t
@@ -78,21 +84,30 @@ def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
     for k, c in spec.items():
         if k == "sh_degree":
             continue
-        if c not in codecs.CODECS:
-            raise ValueError(f"compact spec {k}={c!r}: use one of {codecs.CODECS}")
+        try:
+            codecs.parse(c)
+        except ValueError as err:
+            raise ValueError(f"compact spec {k}={c!r}: {err}") from None
     entry = model.state_dict()
     cols = model.deform.compact_columns(model.params)
+    units = {k: v for p in model.plugins for k, v in p.compact_units(model.params).items()}
     params = {}
     degree = spec.get("sh_degree")
     for k, v in entry["params"].items():
         if k in cols:
             params[k] = _enc(v, "cols", cols[k])
+        elif k in units and k in spec and spec[k] == "q8":  # the 8-bit form itself, exact uint8
+            params[k] = _enc(torch.round(units[k] * 255.0).to(torch.uint8), "raw")
+        elif k in units and k in spec and spec[k] not in ("raw", "f32", "f16"):
+            params[k] = {**_enc(units[k], spec[k]), "unit8": True}
         elif k == "shN" and degree is not None and (int(degree) + 1) ** 2 - 1 < v.shape[1]:
             keep = (int(degree) + 1) ** 2 - 1
             params[k] = {**_enc(v[:, :keep], spec.get(k, spec["*"])), "pad_rows": v.shape[1]}
         else:
             params[k] = _enc(v, spec.get(k, spec["*"]))
-    used = {k: e["codec"] for k, e in params.items()}  # what each was stored as (an integer tensor: raw)
+    # what each was stored as (an integer tensor: raw; a sized codec with its size)
+    used = {k: (spec.get(k, spec["*"]) if e["codec"] == codecs.parse(spec.get(k, spec["*"]))[0] else e["codec"])
+            for k, e in params.items()}
     model_entry = {**entry, "params": params, "deform": _walk_encode(entry["deform"], spec["state"]),
                    "plugins": _walk_encode(entry["plugins"], spec["state"])}
     return {"format": FORMAT, "version": VERSION, "model": model_entry,

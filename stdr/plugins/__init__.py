@@ -96,6 +96,13 @@ class Plugin:
         (requires_grad) instead. Default: none."""
         return set()
 
+    def compact_units(self, params) -> dict[str, Tensor]:
+        """For the compact file (stdr.io.compact_file): this plug-in's per-Gaussian tables that a
+        trained model reads only through an activation to [0, 1] and that it also accepts in 8 bits
+        (uint8 q for q / 255), {key: the activated values, float [N, ...]}. A lossy codec named for
+        such a key encodes these values, and the file reads them back as uint8. Default: none."""
+        return {}
+
     def conditioning(self, params, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
         """(cond [N, cond_dim] or None, delta scale [N, 1] or None) at `step`."""
         return None, None

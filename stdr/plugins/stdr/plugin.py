@@ -285,6 +285,11 @@ class STDR(Plugin):
         """The mask once stored in 8 bits (stdr.mask_bits=8, from the freeze on): fixed for good."""
         return {MASK_KEY} if self.has_mask(params) and not params[MASK_KEY].is_floating_point() else set()
 
+    def compact_units(self, params) -> dict[str, Tensor]:
+        """The mask, read by renders as activated(m) and by the field as logits_of(m); both read
+        an 8-bit mask (stdr.mask_bits=8) as well as float logits."""
+        return {MASK_KEY: activated(params[MASK_KEY].detach()).float()} if self.has_mask(params) else {}
+
     @torch.no_grad()
     def cleanup(self, params) -> int:
         """At the freeze: mask entries whose masked opacity sigmoid(o) * sigmoid(m) is below
