@@ -202,6 +202,29 @@ def test_stdr_mask_codecs_read_back_as_the_8_bit_mask(tmp_path):
     assert torch.isfinite(small.render(f.camera, f.time).image).all()
 
 
+def test_state_rules_quantize_4dgs_grid_planes_per_channel_and_leave_the_networks(tmp_path):
+    """spec state:grids=q4: every HexPlane plane [C, H, W] within half a step of 15 of its own
+    channel's range; the networks, under `state` f32, read back exactly."""
+    from stdr.model import load_model
+    t = _trained(tmp_path, "embedded_4dgs")
+    full = t.model
+    rec = write_compact(full, tmp_path / "g4.stdrc", {"state": "f32", "state:grids": "q4"})
+    assert rec["spec"]["state:grids"] == "q4"
+    small = load_model(tmp_path / "g4.stdrc", "cpu")
+    a, b = full.deform.state_dict(), small.deform.state_dict()
+    planes = [k for k in a if ".grids." in k]
+    assert planes and all(a[k].dim() == 3 for k in planes)
+    for k in a:
+        if k in planes:
+            x = a[k].reshape(a[k].shape[0], -1)
+            bound = (x.amax(1) - x.amin(1)) / 30
+            err = (b[k] - a[k]).abs().reshape(a[k].shape[0], -1)
+            assert (err <= bound.unsqueeze(1) * (1 + 1e-5) + 1e-7).all(), k
+            assert float(err.max()) > 0  # quantized, not kept
+        else:
+            assert torch.equal(a[k], b[k]), k
+
+
 def test_the_sh_rest_kept_to_a_lower_degree_renders_as_that_degree(tmp_path):
     """spec sh_degree=1: the file keeps 3 of the 15 SH rest rows; the model read back has the
     higher bands at zero, so it renders as the full model with those bands zeroed."""

@@ -10,7 +10,9 @@ weights_only) whose payload is
               replaced by its codec's dict (stdr.io.codecs)}
 
 `spec` says which codec holds what: per-Gaussian parameter keys, and `state` for the deformation
-module's and the plug-ins' tensors (networks, HexPlane grids, STDR's field); `sh_degree` (optional)
+module's and the plug-ins' tensors (networks, HexPlane grids, STDR's field), `state:<part>` for
+those whose dotted key contains <part> (`state:grids`: 4DGS's HexPlane planes; a plane of three or
+more dimensions is quantized with a range per channel, its first dimension); `sh_degree` (optional)
 keeps the SH rest to that degree's bands, the higher ones reading back as zeros (the model renders
 as one of that degree). A baseline may name,
 per parameter, the columns its renders read (`Deformation.compact_columns`: SP-GS's association
@@ -50,20 +52,32 @@ def _enc(x: Tensor, codec: str, cols: Optional[Tensor] = None) -> dict:
     return {MARK: True, **codecs.encode(x, codec, cols)}
 
 
-def _walk_encode(x: Any, codec: str) -> Any:
+def _state_codec(path: str, spec: dict) -> str:
+    """The codec of the state tensor at `path` (dotted): the first `state:<part>` entry of the spec
+    whose part occurs in the path, else `state`."""
+    return next((c for k, c in spec.items() if k.startswith("state:") and k[6:] in path), spec["state"])
+
+
+def _walk_encode(x: Any, spec: dict, path: str = "") -> Any:
     if isinstance(x, Tensor):
+        codec = _state_codec(path, spec)
+        if x.dim() >= 3 and codecs.parse(codec)[0] in ("q8", "q4", "q16") and x.is_floating_point():
+            # a grid plane [C, H, W]: a range per channel (the first dimension), not per last-axis column
+            return {**_enc(x.movedim(0, -1), codec), "channels_first": True}
         return _enc(x, codec)
     if isinstance(x, dict):
-        return {k: _walk_encode(v, codec) for k, v in x.items()}
+        return {k: _walk_encode(v, spec, f"{path}.{k}" if path else str(k)) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return type(x)(_walk_encode(v, codec) for v in x)
+        return type(x)(_walk_encode(v, spec, f"{path}.{i}") for i, v in enumerate(x))
     return x
 
 
 def _walk_decode(x: Any) -> Any:
     if isinstance(x, dict):
         if x.get(MARK):
-            t = codecs.decode({k: v for k, v in x.items() if k not in (MARK, "pad_rows", "unit8")})
+            t = codecs.decode({k: v for k, v in x.items() if k not in (MARK, "pad_rows", "unit8", "channels_first")})
+            if x.get("channels_first"):
+                return t.movedim(-1, 0).contiguous()
             if x.get("unit8"):  # a plug-in's [0, 1] table, read back in its 8-bit form
                 return torch.round(t.clamp(0.0, 1.0) * 255.0).to(torch.uint8)
             if "pad_rows" in x:  # the SH rest kept to a lower degree: the higher bands read as zeros
@@ -108,10 +122,11 @@ def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
     # what each was stored as (an integer tensor: raw; a sized codec with its size)
     used = {k: (spec.get(k, spec["*"]) if e["codec"] == codecs.parse(spec.get(k, spec["*"]))[0] else e["codec"])
             for k, e in params.items()}
-    model_entry = {**entry, "params": params, "deform": _walk_encode(entry["deform"], spec["state"]),
-                   "plugins": _walk_encode(entry["plugins"], spec["state"])}
+    model_entry = {**entry, "params": params, "deform": _walk_encode(entry["deform"], spec),
+                   "plugins": _walk_encode(entry["plugins"], spec)}
     return {"format": FORMAT, "version": VERSION, "model": model_entry,
-            "spec": {**used, "state": spec["state"], **({"sh_degree": int(degree)} if degree is not None else {})}}
+            "spec": {**used, "state": spec["state"], **{k: c for k, c in spec.items() if k.startswith("state:")},
+                     **({"sh_degree": int(degree)} if degree is not None else {})}}
 
 
 def is_compact(payload: Any) -> bool:
