@@ -40,7 +40,7 @@ BASELINES = ("deform", "scgs", "spgs", "4dgs")
 EXPERIMENTS = tuple(f"dnerf_{b}{s}" for b in BASELINES for s in ("", "_stdr"))
 SEED = 2
 #: step 1 of the rule, largest first (studies/compact_file.py's variants)
-STEP1 = ("default", "q8m16", "q8m16_vq4096", "q8m16_vq1024", "q8m16_vq256")
+STEP1 = ("default", "q8m16", "q8m16_vq4096", "q8m16_vq1024", "q8m16_vq256", "q8m16_vq1024_ft", "q8m16_vq256_ft")
 #: step 2 (4dgs methods) and step 3 (+STDR methods), on top of step 1's choice, largest first
 GRID = {"g16": {}, "g8": {"state:grids": "q8"}, "g4": {"state:grids": "q4"}}
 MASK = {"m8": "q8", "m4": "q4", "lr16": "lowrank:16", "lr8": "lowrank:8", "lr4": "lowrank:4"}
@@ -82,11 +82,11 @@ def _load(rd: Path):
     return cfg, load_model(rd / CKPT, "cpu", cfg)
 
 
-def _file_model(model, cfg, spec: dict, tmp: Path):
+def _file_model(model, cfg, spec: dict, tmp: Path, train_frames=None):
     from stdr.io.compact_file import write_compact
     from stdr.model import load_model
     path = tmp / "m.stdrc"
-    rec = write_compact(model, path, spec)
+    rec = write_compact(model, path, spec, train_frames if spec.get("finetune") else None)
     return rec, load_model(path, "cpu", cfg)
 
 
@@ -143,7 +143,8 @@ def val(args) -> None:
                 print(f"[compact_bytes] val {exp} {scene}: not trained yet", flush=True)
                 continue
             cfg, full = _load(rd)
-            frames = load_scene(cfg.data, ("val",), base=str(ROOT), seed=cfg.seed).frames("val")
+            scn = load_scene(cfg.data, ("train", "val"), base=str(ROOT), seed=cfg.seed)
+            frames, train_frames = scn.frames("val"), scn.frames("train")
             base = evaluate_model(full, frames, fps_warmup=0)
             rec = rec or {"experiment": exp, "scene": scene, "seed": SEED, "split": "val",
                           "full_bytes": None, "model": {"psnr": base["psnr"], "ssim": base["ssim"]},
@@ -152,7 +153,7 @@ def val(args) -> None:
                 if name in rec["candidates"]:
                     continue
                 with tempfile.TemporaryDirectory() as tmp:
-                    w, small = _file_model(full, cfg, spec, Path(tmp))
+                    w, small = _file_model(full, cfg, spec, Path(tmp), train_frames)
                     r = evaluate_model(small, frames, fps_warmup=0)
                 rec["full_bytes"] = w["full_bytes"]
                 rec["candidates"][name] = {"bytes": w["bytes"], "spec": w["spec"], "psnr": r["psnr"], "ssim": r["ssim"],
@@ -184,7 +185,8 @@ def _smallest_passing(names, recs, bound_all, bound_method, methods):
         rows.append({"name": n, "runs": len(rs), "mean_bytes": statistics.mean(r["candidates"][n]["bytes"] for r in rs),
                      "delta_all": d_all, "delta_per_method": per, "passes": ok})
     passing = [r for r in rows if r["passes"]]
-    return (min(passing, key=lambda r: r["mean_bytes"])["name"] if passing else None), rows
+    # equal bytes (a fine-tuned codebook and its k-means form): the smaller loss
+    return (min(passing, key=lambda r: (r["mean_bytes"], -r["delta_all"]))["name"] if passing else None), rows
 
 
 def decide(args) -> None:
@@ -244,10 +246,11 @@ def test(args) -> None:
             rd = run_dir(args.work, exp, scene)
             cfg, full = _load(rd)
             lp = make_lpips(load_config(rd / "config.yaml").eval)
-            frames = load_scene(cfg.data, ("test",), base=str(ROOT), seed=cfg.seed).frames("test")
+            scn = load_scene(cfg.data, ("train", "test"), base=str(ROOT), seed=cfg.seed)
+            frames = scn.frames("test")
             name, spec = chosen_spec(exp, dec)
             with tempfile.TemporaryDirectory() as tmp:
-                w, small = _file_model(full, cfg, spec, Path(tmp))
+                w, small = _file_model(full, cfg, spec, Path(tmp), scn.frames("train"))
                 res = {}
                 for label, m in (("model", full), ("file", small)):
                     r = evaluate_model(m, frames, lpips_fn=lp, fps_warmup=3, fps_repeats=3)

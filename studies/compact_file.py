@@ -11,7 +11,8 @@ precision too), `all16` (the SH rest in half precision instead of 8 bits), `q8` 
 tensor but the means in 8 bits with a range per column, STDR's float mask included; networks in
 half precision), `q8m16` (as `q8`, the means in 16 bits with a range per axis), `q8m16_sh<d>` (as
 `q8m16`, the SH rest kept to degree d, the higher bands dropped without a fine-tune), `q8m16_vq<C>`
-(as `q8m16`, the SH rest as C k-means codewords, no fine-tune), and for +STDR runs `vq1024_<m>`
+(as `q8m16`, the SH rest as C k-means codewords, no fine-tune; `_ft`: the codebook fine-tuned for
+500 steps on the training frames, stdr.io.finetune), and for +STDR runs `vq1024_<m>`
 (as `q8m16_vq1024`, STDR's mask in the form m: m8 its 8-bit form, m4 4 bits, lr<R> the activated
 mask at rank R; read back as the 8-bit mask, so the separated field reads logit(q / 255)). Records:
 records/<run>__<variant>.json, with the code commit and machine; the table is generated from them.
@@ -38,6 +39,8 @@ for _d in (0, 1, 2):  # q8m16 with the SH rest kept to degree d (no fine-tune)
     VARIANTS[f"q8m16_sh{_d}"] = {**VARIANTS["q8m16"], "sh_degree": _d}
 for _c in (256, 1024, 4096):  # q8m16 with the SH rest as a codebook of C codewords (k-means, no fine-tune)
     VARIANTS[f"q8m16_vq{_c}"] = {**VARIANTS["q8m16"], "shN": f"vq:{_c}"}
+for _c in (256, 1024):  # the same, the codebook fine-tuned (stdr.io.finetune's default steps)
+    VARIANTS[f"q8m16_vq{_c}_ft"] = {**VARIANTS[f"q8m16_vq{_c}"], "finetune": 500}
 # STDR's mask on top of q8m16_vq1024 (runs with a mask only): its 8-bit form, 4 bits, rank R of the
 # activated mask; each read back as the 8-bit mask (stdr.io.compact_file, Plugin.compact_units)
 MASK_VARIANTS = {"m8": "q8", "m4": "q4", "lr4": "lowrank:4", "lr8": "lowrank:8", "lr16": "lowrank:16"}

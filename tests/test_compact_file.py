@@ -225,6 +225,36 @@ def test_state_rules_quantize_4dgs_grid_planes_per_channel_and_leave_the_network
             assert torch.equal(a[k], b[k]), k
 
 
+def test_the_codebook_fine_tune_lowers_the_training_loss_and_moves_only_the_codewords(tmp_path):
+    """shN=vq:8 with finetune: the file's other tensors are those of the file without it, every
+    shN row is still one of the (float16) codewords, and the training frames' loss of the model
+    read back is lower than with the k-means codebook."""
+    from stdr.metrics import image_loss
+    from stdr.model import load_model
+    t = _trained(tmp_path, "embedded_deform", ["model.sh_interval=5"])
+    frames = t.scene.frames("train")
+    spec = {"shN": "vq:8"}
+    plain = write_compact(t.model, tmp_path / "vq.stdrc", spec)
+    tuned = write_compact(t.model, tmp_path / "ft.stdrc", {**spec, "finetune": 60}, frames)
+    assert tuned["spec"]["finetune"] == 60 and tuned["finetune"]["steps"] == 60 and tuned["bytes"] == plain["bytes"]
+    a, b = load_model(tmp_path / "vq.stdrc", "cpu"), load_model(tmp_path / "ft.stdrc", "cpu")
+    for k in a.params:
+        if k != "shN":
+            assert torch.equal(a.params[k], b.params[k]), k
+    assert not torch.equal(a.params["shN"], b.params["shN"])
+    rows = b.params["shN"].reshape(b.params["shN"].shape[0], -1)
+    assert torch.unique(rows, dim=0).shape[0] <= 8
+    assert torch.equal(rows.half().float(), rows)
+
+    def loss(m):
+        m.eval()
+        with torch.no_grad():
+            return sum(float(image_loss(m.render(f.camera, f.time).image, f.image, 0.2)[0]) for f in frames)
+    assert loss(b) < loss(a)
+    with pytest.raises(ValueError, match="nothing to fine-tune"):
+        write_compact(t.model, tmp_path / "x.stdrc", {"finetune": 10}, frames)
+
+
 def test_the_sh_rest_kept_to_a_lower_degree_renders_as_that_degree(tmp_path):
     """spec sh_degree=1: the file keeps 3 of the 15 SH rest rows; the model read back has the
     higher bands at zero, so it renders as the full model with those bands zeroed."""

@@ -96,7 +96,7 @@ def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
     if spec.get("sh_degree") is not None and not 0 <= int(spec["sh_degree"]) <= 3:
         raise ValueError(f"compact spec sh_degree={spec['sh_degree']}: use 0 to 3 (or leave it out)")
     for k, c in spec.items():
-        if k == "sh_degree":
+        if k in ("sh_degree", "finetune"):
             continue
         try:
             codecs.parse(c)
@@ -144,11 +144,25 @@ def decode_model(payload: dict[str, Any], where: str = "compact file") -> dict[s
     return _walk_decode(payload["model"])
 
 
-def write_compact(model, path: str | Path, spec: Optional[dict] = None) -> dict[str, Any]:
+def write_compact(model, path: str | Path, spec: Optional[dict] = None, frames=None) -> dict[str, Any]:
     """Write the compact file of `model` to `path` (atomic, checksummed). Returns {bytes (of its
-    tensors), full_bytes (the model's own tensors), spec}."""
+    tensors), full_bytes (the model's own tensors), spec}. With spec `finetune: STEPS` and `vq:C`
+    codecs, their codebooks are first fine-tuned for STEPS steps on `frames` (training frames;
+    stdr.io.finetune), and the result has `finetune` (its losses)."""
     from ..eval.evaluate import model_bytes
     from ..train.checkpoint import save_checkpoint
     payload = encode_model(model, spec)
+    steps = int((spec or {}).get("finetune") or 0)
+    extra = {}
+    if steps:
+        from ..model import model_from_checkpoint
+        from .finetune import finetune_codebooks, vq_entries
+        if not vq_entries(payload):
+            raise ValueError("compact spec finetune: no tensor is stored with a vq:C codec, so there is nothing to fine-tune")
+        if not frames:
+            raise ValueError("compact spec finetune: pass the training frames (stdr-tool pack loads them from the run's data)")
+        small = model_from_checkpoint(payload, next(model.params.values()).device, model.cfg)
+        extra["finetune"] = finetune_codebooks(payload, small, frames, steps)
+        payload["spec"]["finetune"] = steps
     save_checkpoint(path, payload)
-    return {"bytes": codecs.nbytes(payload["model"]), "full_bytes": model_bytes(model), "spec": payload["spec"]}
+    return {"bytes": codecs.nbytes(payload["model"]), "full_bytes": model_bytes(model), "spec": payload["spec"], **extra}

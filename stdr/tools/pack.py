@@ -1,9 +1,11 @@
 """Write a trained run's compact model file (stdr.io.compact_file) and measure what it costs.
 
-    stdr-tool pack RUN [--out FILE] [--codec KEY=CODEC ... sh_degree=D] [--split val] [--no-eval]
+    stdr-tool pack RUN [--out FILE] [--codec KEY=CODEC ... sh_degree=D finetune=STEPS] [--split val] [--no-eval]
 
 Writes RUN/model.stdrc (default) from RUN/checkpoints/last.pt with the default codecs
-(stdr.io.compact_file.DEFAULT_SPEC; `--codec shN=f16 state=f16` changes one), then renders `--split`
+(stdr.io.compact_file.DEFAULT_SPEC; `--codec shN=f16 state=f16` changes one; `--codec shN=vq:1024
+finetune=500` stores the SH rest as a codebook fine-tuned for 500 steps on the training frames,
+stdr.io.finetune), then renders `--split`
 with the full model and with the model read back from the file, and writes RUN/pack.json: the
 bytes of both (the tensors a saved model holds), the codec of every tensor, and PSNR / SSIM of both
 renders with their difference. `load_model(FILE)`, `stdr-export FILE` and `stdr-render FILE` read
@@ -33,7 +35,11 @@ def pack(run_dir: Path, out: Optional[Path] = None, spec: Optional[dict] = None,
     cfg = load_config(run_dir / "config.yaml")
     cfg.device = "cpu"
     full = load_model(src, "cpu", cfg)
-    rec = {"file": str(out), **write_compact(full, out, spec)}
+    frames = None
+    if (spec or {}).get("finetune"):  # the codebooks' fine-tune renders the training frames
+        from ..data.load import load_scene
+        frames = load_scene(cfg.data, ("train",), base=data_base, seed=cfg.seed).frames("train")
+    rec = {"file": str(out), **write_compact(full, out, spec, frames)}
     rec["ratio"] = rec["bytes"] / rec["full_bytes"]
     if split:
         from ..data.load import load_scene
@@ -53,7 +59,7 @@ def _spec(items: list[str]) -> dict:
         k, sep, v = it.partition("=")
         if not sep or not k or not v:
             raise SystemExit(f"stdr-tool pack: --codec {it!r}: use KEY=CODEC, e.g. shN=f16 or state=f16")
-        out[k] = int(v) if k == "sh_degree" else v
+        out[k] = int(v) if k in ("sh_degree", "finetune") else v
     return out
 
 
