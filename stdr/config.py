@@ -142,6 +142,18 @@ class EvalConfig:
 
 
 @dataclass
+class PackConfig:
+    """The compact model file written at the end of training (stdr.io.compact_file; `stdr-tool
+    pack` writes one for any trained run). `compact=on` turns it on with the codecs its study chose."""
+    enabled: bool = False       # true: RUN/model.stdrc and RUN/pack.json after the final evaluation
+    # per-tensor codecs over stdr.io.compact_file.DEFAULT_SPEC (e.g. {shN: "vq:1024", state: f16})
+    codecs: Dict[str, str] = field(default_factory=dict)
+    finetune: int = 0           # steps of the vq codebooks' fine-tune on the training frames (stdr.io.finetune)
+    sh_degree: Optional[int] = None  # keep the SH rest to this degree's bands (null: all)
+    evaluate: bool = True       # render the eval split from the file too (pack.json: PSNR / SSIM of both)
+
+
+@dataclass
 class Config:
     name: str = "embedded_deform"  # experiment name (run folder, tables)
     budget: str = "cpu"
@@ -163,6 +175,7 @@ class Config:
     render: RenderConfig = field(default_factory=RenderConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    pack: PackConfig = field(default_factory=PackConfig)
     # derived, read-only: every phase boundary of the run resolved from the keys above
     # (stdr.schedule.resolve_schedule); shown by `stdr-train --cfg job` and kept in config.yaml.
     # Setting it changes nothing: the model recomputes it from the keys.

@@ -255,6 +255,27 @@ def test_the_codebook_fine_tune_lowers_the_training_loss_and_moves_only_the_code
         write_compact(t.model, tmp_path / "x.stdrc", {"finetune": 10}, frames)
 
 
+def test_stdr_train_with_pack_enabled_writes_the_compact_file_with_the_configured_codecs(tmp_path):
+    """pack.enabled (what compact=on sets): after the final evaluation the run folder holds
+    model.stdrc in the configured codecs and pack.json with both models' renders of the eval split."""
+    import json
+
+    from stdr.cli.train import run
+    from stdr.model import load_model
+    from stdr.testing import tiny_config
+    cfg = tiny_config(tmp_path, ["experiment=embedded_deform", "model.init_num=300", "optim.iterations=20",
+                                 "baseline.warmup=10", "densify.refine_start=1000", "model.sh_interval=5",
+                                 "pack.enabled=true", "+pack.codecs.shN=vq:8", "+pack.codecs.state=f16",
+                                 "pack.finetune=5"])
+    run(cfg, tmp_path / "run")
+    rec = json.loads((tmp_path / "run" / "pack.json").read_text())
+    assert rec["spec"]["shN"] == "vq:8" and rec["spec"]["state"] == "f16" and rec["spec"]["finetune"] == 5
+    assert rec["finetune"]["steps"] == 5 and rec["split"] == cfg.data.eval_split
+    assert rec["bytes"] < rec["full_bytes"] and abs(rec["delta_psnr"]) < 1.0
+    m = load_model(tmp_path / "run" / "model.stdrc", "cpu")
+    assert torch.unique(m.params["shN"].reshape(m.params["shN"].shape[0], -1), dim=0).shape[0] <= 8
+
+
 def test_the_sh_rest_kept_to_a_lower_degree_renders_as_that_degree(tmp_path):
     """spec sh_degree=1: the file keeps 3 of the 15 SH rest rows; the model read back has the
     higher bands at zero, so it renders as the full model with those bands zeroed."""

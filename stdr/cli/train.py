@@ -40,6 +40,10 @@ def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict | 
     if warm:
         print(f"[stdr] static warm-up (iteration {warm[-1]['iteration']}): PSNR {warm[-1]['psnr']:.2f} dB "
               f"-> final {res['psnr']:.2f} dB")
+    if cfg.pack.enabled:  # the compact model file (compact=on): RUN/model.stdrc and RUN/pack.json
+        from ..tools.pack import pack, spec_of_config, summary
+        print(summary(pack(run_dir, spec=spec_of_config(cfg.pack), split=split if cfg.pack.evaluate else None,
+                           data_base=data_base)))
     from ..eval.table import collect, markdown, table_row
     print(markdown(collect([table_row(OmegaConf.to_container(cfg, resolve=True), split, res, str(run_dir))])))
     print(f"[stdr] metrics: {run_dir / 'metrics.json'}  (tables over runs: stdr-eval RUN_DIR ...)")

@@ -53,6 +53,25 @@ def pack(run_dir: Path, out: Optional[Path] = None, spec: Optional[dict] = None,
     return rec
 
 
+def spec_of_config(pcfg) -> dict:
+    """The compact spec of a run's `pack` config section (stdr.config.PackConfig)."""
+    spec = {str(k): str(v) for k, v in (pcfg.codecs or {}).items()}
+    if pcfg.get("finetune"):
+        spec["finetune"] = int(pcfg.finetune)
+    if pcfg.get("sh_degree") is not None:
+        spec["sh_degree"] = int(pcfg.sh_degree)
+    return spec
+
+
+def summary(rec: dict) -> str:
+    line = (f"[stdr] {rec['file']}: {rec['bytes'] / 2**20:.2f} MiB of tensors, {rec['ratio']:.1%} of the model's "
+            f"{rec['full_bytes'] / 2**20:.2f} MiB")
+    if "delta_psnr" in rec:
+        line += (f"; {rec['split']} PSNR {rec['compact']['psnr']:.2f} dB vs {rec['full']['psnr']:.2f} "
+                 f"({rec['delta_psnr']:+.3f})")
+    return line
+
+
 def _spec(items: list[str]) -> dict:
     out = {}
     for it in items:
@@ -76,12 +95,7 @@ def main(argv=None) -> None:
         rec = pack(a.run, a.out, _spec(a.codec), None if a.no_eval else a.split)
     except ValueError as e:
         raise SystemExit(f"stdr-tool pack: {e}") from None
-    line = (f"[stdr] {rec['file']}: {rec['bytes'] / 2**20:.2f} MiB of tensors, {rec['ratio']:.1%} of the model's "
-            f"{rec['full_bytes'] / 2**20:.2f} MiB")
-    if "delta_psnr" in rec:
-        line += (f"; {rec['split']} PSNR {rec['compact']['psnr']:.2f} dB vs {rec['full']['psnr']:.2f} "
-                 f"({rec['delta_psnr']:+.3f})")
-    print(line)
+    print(summary(rec))
 
 
 if __name__ == "__main__":
