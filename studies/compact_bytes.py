@@ -189,34 +189,38 @@ def _smallest_passing(names, recs, bound_all, bound_method, methods):
     return (min(passing, key=lambda r: (r["mean_bytes"], -r["delta_all"]))["name"] if passing else None), rows
 
 
-def decide(args) -> None:
-    recs = load_val()
-    dec = json.loads((OUT / "decision.json").read_text()) if (OUT / "decision.json").is_file() else {}
-    complete = len(recs) == len(EXPERIMENTS) * len(SCENES)
+def decide_records(recs: list[dict], prev: dict) -> dict:
+    """The protocol's rule on val records: step 1 always; steps 2 and 3 once `prev` (the last
+    decision) chose the same step 1, so that their candidates were measured on top of it."""
     s1, rows1 = _smallest_passing(STEP1, recs, -0.05, -0.1, EXPERIMENTS)
-    out = {"runs": len(recs), "complete": complete, "step1": s1, "step1_rows": rows1}
-    if dec.get("step1") and dec["step1"] == s1:
-        grid_names = [f"{s1}+{g}" for g in GRID]
-        s2, rows2 = _smallest_passing(grid_names, recs, None, -0.05, [e for e in EXPERIMENTS if "4dgs" in e])
-        out.update({"step2": s2.split("+")[1] if s2 else None, "step2_rows": rows2})
-        if out["step2"]:
-            # one mask form for the four +STDR methods: each method reads it on top of its own
-            # earlier choices (4dgs+STDR: step 2's grid), and every method's mean must pass
-            rows3 = []
-            for m in MASK:
-                per, sizes = {}, []
-                for b in BASELINES:
-                    name = f"{s1}+{out['step2'] if b == '4dgs' else 'g16'}+{m}"
-                    rs = [r for r in recs if r["experiment"] == f"dnerf_{b}_stdr" and name in r["candidates"]]
-                    if rs:
-                        per[b] = statistics.mean(r["candidates"][name]["delta_psnr"] for r in rs)
-                        sizes += [r["candidates"][name]["bytes"] for r in rs]
-                rows3.append({"name": m, "delta_per_method": per, "mean_bytes": statistics.mean(sizes) if sizes else None,
-                              "passes": len(per) == len(BASELINES) and all(v >= -0.05 for v in per.values())})
-            passing = [r for r in rows3 if r["passes"]]
-            out.update({"step3": min(passing, key=lambda r: r["mean_bytes"])["name"] if passing else None,
-                        "step3_rows": rows3})
-    out.update({"code": commit(), "date": time.strftime("%Y-%m-%d %H:%M")})
+    out = {"runs": len(recs), "complete": len(recs) == len(EXPERIMENTS) * len(SCENES), "step1": s1, "step1_rows": rows1}
+    if not (s1 and prev.get("step1") == s1):
+        return out
+    s2, rows2 = _smallest_passing([f"{s1}+{g}" for g in GRID], recs, None, -0.05, [e for e in EXPERIMENTS if "4dgs" in e])
+    out.update({"step2": s2.split("+")[1] if s2 else None, "step2_rows": rows2})
+    if not out["step2"]:
+        return out
+    # one mask form for the four +STDR methods: each method reads it on top of its own earlier
+    # choices (4dgs+STDR: step 2's grid), and every method's mean must pass
+    rows3 = []
+    for m in MASK:
+        per, sizes = {}, []
+        for b in BASELINES:
+            name = f"{s1}+{out['step2'] if b == '4dgs' else 'g16'}+{m}"
+            rs = [r for r in recs if r["experiment"] == f"dnerf_{b}_stdr" and name in r["candidates"]]
+            if rs:
+                per[b] = statistics.mean(r["candidates"][name]["delta_psnr"] for r in rs)
+                sizes += [r["candidates"][name]["bytes"] for r in rs]
+        rows3.append({"name": m, "delta_per_method": per, "mean_bytes": statistics.mean(sizes) if sizes else None,
+                      "passes": len(per) == len(BASELINES) and all(v >= -0.05 for v in per.values())})
+    passing = [r for r in rows3 if r["passes"]]
+    out.update({"step3": min(passing, key=lambda r: r["mean_bytes"])["name"] if passing else None, "step3_rows": rows3})
+    return out
+
+
+def decide(args) -> None:
+    prev = json.loads((OUT / "decision.json").read_text()) if (OUT / "decision.json").is_file() else {}
+    out = {**decide_records(load_val(), prev), "code": commit(), "date": time.strftime("%Y-%m-%d %H:%M")}
     (OUT / "decision.json").write_text(json.dumps(out, indent=1) + "\n")
     print(json.dumps({k: v for k, v in out.items() if not k.endswith("rows")}, indent=1))
 

@@ -1,0 +1,66 @@
+"""The compact-bytes study's rule (studies/compact_bytes.py, docs/measurements/compact_bytes/
+protocol.md) on synthetic val records: each step as written, case by case."""
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from studies.compact_bytes import BASELINES, EXPERIMENTS, GRID, MASK, SCENES, STEP1, decide_records  # noqa: E402
+
+SIZE = {"default": 100, "q8m16": 60, "q8m16_vq4096": 40, "q8m16_vq1024": 30, "q8m16_vq256": 25,
+        "q8m16_vq1024_ft": 30, "q8m16_vq256_ft": 25}
+
+
+def _recs(delta, extra=None):
+    """Records with candidate c's val delta = delta.get(c, 0)(experiment, scene); `extra` adds
+    candidates name -> (bytes, delta function)."""
+    out = []
+    for exp in EXPERIMENTS:
+        for sc in SCENES:
+            cands = {c: {"bytes": SIZE[c], "delta_psnr": delta.get(c, lambda e, s: 0.0)(exp, sc)} for c in STEP1}
+            for name, (b, f) in (extra or {}).items():
+                if f(exp, sc) is not None:
+                    cands[name] = {"bytes": b, "delta_psnr": f(exp, sc)}
+            out.append({"experiment": exp, "scene": sc, "candidates": cands})
+    return out
+
+
+def test_step1_takes_the_smallest_candidate_within_both_bounds():
+    bad = lambda e, s: -0.2  # noqa: E731
+    d = decide_records(_recs({"q8m16_vq256": bad, "q8m16_vq256_ft": bad, "q8m16_vq1024": lambda e, s: -0.06}), {})
+    # vq1024 (k-means) fails the mean bound, its fine-tuned form (delta 0) passes at the same bytes
+    assert d["step1"] == "q8m16_vq1024_ft" and d["complete"] and "step2" not in d
+
+
+def test_one_method_over_its_bound_rules_a_candidate_out_even_when_the_mean_passes():
+    one = lambda e, s: -0.12 if e == "dnerf_spgs" else 0.0  # noqa: E731  mean -0.015, spgs -0.12
+    d = decide_records(_recs({c: one for c in ("q8m16_vq256", "q8m16_vq256_ft", "q8m16_vq1024",
+                                                "q8m16_vq1024_ft")}), {})
+    assert d["step1"] == "q8m16_vq4096"
+
+
+def test_equal_bytes_go_to_the_smaller_loss():
+    d = decide_records(_recs({"q8m16_vq256": lambda e, s: -0.01, "q8m16_vq256_ft": lambda e, s: -0.03}), {})
+    assert d["step1"] == "q8m16_vq256"
+
+
+def test_steps_2_and_3_wait_for_a_stable_step_1_and_the_mask_must_pass_for_every_baseline():
+    s1 = "q8m16_vq256"
+    extra = {f"{s1}+{g}": (b, (lambda e, s, d=d: d if "4dgs" in e else None))
+             for g, b, d in (("g16", 50, 0.0), ("g8", 30, -0.02), ("g4", 20, -0.3))}
+    masks = {"m8": 10, "m4": 8, "lr16": 6, "lr8": 4, "lr4": 3}
+    for m, b in masks.items():
+        for g in ("g16", "g8"):
+            loss = {"lr4": -0.2, "lr8": -0.04, "lr16": -0.01}.get(m, 0.0)
+            # lr8 fails for scgs+STDR only
+            extra[f"{s1}+{g}+{m}"] = (b, (lambda e, s, m=m, g=g, loss=loss:
+                                          None if not e.endswith("_stdr") or (g == "g8") != ("4dgs" in e)
+                                          else (-0.2 if m == "lr8" and "scgs" in e else loss)))
+    recs = _recs({}, extra)
+    assert "step2" not in decide_records(recs, {})
+    assert "step2" not in decide_records(recs, {"step1": "default"})
+    d = decide_records(recs, {"step1": s1})
+    assert d["step1"] == s1 and d["step2"] == "g8" and d["step3"] == "lr16"
+    assert {r["name"]: r["passes"] for r in d["step3_rows"]} == {"m8": True, "m4": True, "lr16": True,
+                                                                 "lr8": False, "lr4": False}
+    assert set(GRID) == {"g16", "g8", "g4"} and set(MASK) == set(masks) and len(BASELINES) == 4
