@@ -84,16 +84,17 @@ def run_queue(args) -> None:
     for seed in args.seeds:
         for scene in args.scenes:
             for method in args.methods:
-                rec_path = args.records / "records" / method / f"{scene}_s{seed}.json"
+                name = f"{method}__{args.label}" if args.label else method
+                rec_path = args.records / "records" / name / f"{scene}_s{seed}.json"
                 if rec_path.is_file():
                     continue
-                run_dir = args.work / method / f"{scene}_s{seed}"
+                run_dir = args.work / name / f"{scene}_s{seed}"
                 run_dir.parent.mkdir(parents=True, exist_ok=True)
                 state_path = run_dir.parent / f"{run_dir.name}.curve.json"
                 state = json.loads(state_path.read_text()) if state_path.is_file() else {"points": []}
                 done = {p["step"] for p in state["points"]}
                 t0 = time.time()
-                print(f"[long_budget] {method} {scene} seed {seed}: start ({sorted(done) or 'new'})", flush=True)
+                print(f"[long_budget] {name} {scene} seed {seed}: start ({sorted(done) or 'new'})", flush=True)
                 cmd = None
                 for p in (*args.points, None):
                     if (p if p is not None else args.iterations) in done:
@@ -105,7 +106,7 @@ def run_queue(args) -> None:
                     print(f"[long_budget]   step {point['step']}: " + ", ".join(
                         f"{sp} {point[sp]['psnr']:.2f}" for sp in SPLITS), flush=True)
                 m = json.loads((run_dir / "metrics.json").read_text())["test"]
-                rec = {"scene": scene, "seed": seed, "method": method, "budget": "cpu_long",
+                rec = {"scene": scene, "seed": seed, "method": name, "budget": "cpu_long",
                        "command": " ".join(cmd[1:]) if cmd else None, "code": commit(), "machine": machine_name(),
                        "threads": args.threads, "wall_seconds_this_session": round(time.time() - t0, 1),
                        "points": sorted(state["points"], key=lambda q: q["step"]),
@@ -114,7 +115,7 @@ def run_queue(args) -> None:
                                                             "model_mb", "iterations")}}
                 rec_path.parent.mkdir(parents=True, exist_ok=True)
                 rec_path.write_text(json.dumps(rec, indent=1) + "\n")
-                print(f"[long_budget] {method} {scene} seed {seed}: recorded {rec_path}", flush=True)
+                print(f"[long_budget] {name} {scene} seed {seed}: recorded {rec_path}", flush=True)
 
 
 def load_records(records: Path) -> list[dict]:
@@ -146,10 +147,21 @@ def table(records: Path) -> str:
         lines.append(f"| {scene} | {seed} | {method} | " + " | ".join(cells) +
                      f" | {last['train']['psnr'] - last['test']['psnr']:.2f} | {f['ssim']:.4f}, {lp} | "
                      f"{f['num_gaussians']:,} | {f['train_seconds']:.0f} |")
-    pairs = [(by[(sc, sd, "deform")], by[(sc, sd, "deform_stdr")]) for (sc, sd, m) in by if m == "deform"
-             and (sc, sd, "deform_stdr") in by]
+    for variant in sorted({m for (_, _, m) in by if m.startswith("deform_stdr")}):
+        lines += _difference(by, variant, steps)
+    lines += ["", f"Generated {time.strftime('%Y-%m-%d')} from {len(recs)} records by "
+              f"`python studies/long_budget.py table` (code {commit()})."]
+    return "\n".join(lines) + "\n"
+
+
+def _difference(by: dict, variant: str, steps: list[int]) -> list[str]:
+    """The section `variant` (deform_stdr or deform_stdr__<label>) - plain deform, over the
+    scene/seed pairs both have, at every step: mean differences per split and the two gaps."""
+    pairs = [(by[(sc, sd, "deform")], by[(sc, sd, variant)]) for (sc, sd, m) in by if m == "deform"
+             and (sc, sd, variant) in by]
     names = ", ".join(sorted(f"{a['scene']} s{a['seed']}" for a, _ in pairs))
-    lines += ["", f"## STDR - plain, mean over {len(pairs)} scene/seed pairs ({names})", ""]
+    what = "STDR" if variant == "deform_stdr" else f"STDR ({variant.split('__', 1)[1]})"
+    lines = ["", f"## {what} - plain, mean over {len(pairs)} scene/seed pairs ({names})", ""]
     if pairs:
         lines += ["| step | Δ train | Δ val | Δ test | plain gap | STDR gap |", "|---|---|---|---|---|---|"]
         for s in steps:
@@ -161,9 +173,7 @@ def table(records: Path) -> str:
             g = [statistics.mean(_at(r, s)["train"]["psnr"] - _at(r, s)["test"]["psnr"] for r in rs)
                  for rs in ([a for a, _ in both], [b for _, b in both])]
             lines.append(f"| {s} | {d['train']:+.2f} | {d['val']:+.2f} | {d['test']:+.2f} | {g[0]:.2f} | {g[1]:.2f} |")
-    lines += ["", f"Generated {time.strftime('%Y-%m-%d')} from {len(recs)} records by "
-              f"`python studies/long_budget.py table` (code {commit()})."]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def main(argv=None) -> None:
@@ -179,7 +189,8 @@ def main(argv=None) -> None:
     r.add_argument("--threads", type=int, default=1)
     r.add_argument("--records", type=Path, default=RECORDS)
     r.add_argument("--iterations", type=int, default=ITERATIONS, help="the run's length (with --extra optim.iterations=N)")
-    r.add_argument("--extra", nargs="*", default=[], help="more overrides (smoke tests only: a record names them)")
+    r.add_argument("--extra", nargs="*", default=[], help="more overrides (a record names them; with --label, an ablation)")
+    r.add_argument("--label", default="", help="an ablation's name: records/<method>__<label>/, compared with plain deform")
     t = sub.add_parser("table", help="the table from the records")
     t.add_argument("--records", type=Path, default=RECORDS)
     args = ap.parse_args(argv)
