@@ -64,3 +64,32 @@ def test_steps_2_and_3_wait_for_a_stable_step_1_and_the_mask_must_pass_for_every
     assert {r["name"]: r["passes"] for r in d["step3_rows"]} == {"m8": True, "m4": True, "lr16": True,
                                                                  "lr8": False, "lr4": False}
     assert set(GRID) == {"g16", "g8", "g4"} and set(MASK) == set(masks) and len(BASELINES) == 4
+
+
+def test_the_test_table_reports_each_target_with_its_value_and_draws_the_chart(tmp_path):
+    import json
+
+    from studies.compact_bytes import table
+    full, n = {}, 0
+    for exp, mib, fbytes in (("dnerf_deform", 4.0, 0.5), ("dnerf_deform_stdr", 10.0, 0.7)):
+        for sc in SCENES[:2]:
+            full[(exp, sc)] = {"psnr": 30.0, "ssim": 0.95, "lpips": 0.08, "fps": 50.0, "model_mb": mib}
+            rec = {"experiment": exp, "scene": sc, "codecs": "q8m16_vq256_ft", "bytes": fbytes * 2**20,
+                   "model_bytes": mib / 2 * 2**20, "code": "abc", "machine": "m",
+                   "model": {"psnr": 29.98, "ssim": 0.95, "lpips": 0.08, "fps": 90.0},
+                   "file": {"psnr": 29.95 if exp == "dnerf_deform" else 29.8, "ssim": 0.95, "lpips": 0.08,
+                            "fps": 91.0 if sc == SCENES[0] else 89.0}}
+            (tmp_path / "records" / "test").mkdir(parents=True, exist_ok=True)
+            (tmp_path / "records" / "test" / f"{exp}__{sc}.json").write_text(json.dumps(rec))
+            n += 1
+    text = table(tmp_path, full)
+    rows = {tuple(c.strip() for c in line.split("|")[1:3]): line for line in text.splitlines()
+            if line.startswith("| dnerf_") and ("<=" in line or ">=" in line)}
+    assert "| 0.125 | yes |" in rows[("dnerf_deform", "file bytes / full model bytes")]  # 0.5 / 4
+    assert "| 0.070 | yes |" in rows[("dnerf_deform_stdr", "file bytes / full model bytes")]
+    assert "| -0.050 | yes |" in rows[("dnerf_deform", "PSNR file - full (dB)")]
+    assert "| -0.200 | **no** |" in rows[("dnerf_deform_stdr", "PSNR file - full (dB)")]
+    assert "| 1.400 | **no** |" in rows[("dnerf_deform_stdr", "+STDR file / plain file bytes")]  # 0.7 / 0.5
+    fps = rows[("dnerf_deform", "FPS file / compact=on")]
+    assert "| **no** |" in fps  # sqrt(91 * 89) / 90 < 1
+    assert (tmp_path / "charts" / "size_accuracy_bytes.png").is_file() and n == 4
