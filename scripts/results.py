@@ -310,6 +310,23 @@ def compact_preset() -> list[str]:
               else [])]
 
 
+def compact_file() -> list[str]:
+    """The section of the compact model file's test table (studies/compact_bytes.py table), once it exists."""
+    md = M / "compact_bytes" / "table.md"
+    if not md.is_file() or "No test records yet." in md.read_text():
+        return []
+    text = md.read_text().split("\n")
+    stamp = next(line for line in text if line.startswith("Records:"))
+    targets = next(i for i, line in enumerate(text) if line.startswith("Targets"))
+    png = M / "compact_bytes" / "charts" / "size_accuracy_bytes.png"
+    return ["", "## The compact model file (`compact=on` with its codecs), test split", "",
+            "Source: `docs/measurements/compact_bytes/table.md`; the codecs were chosen on the val split by the rule "
+            "of `docs/measurements/compact_bytes/protocol.md` (`table_val.md`, `decision.json`). " + stamp, "",
+            *_first_table(md), "", text[targets], "", *_first_table(md, targets),
+            *(["", "![PSNR against MiB: full, compact=on and the compact file, with the file's FPS]"
+               "(measurements/compact_bytes/charts/size_accuracy_bytes.png)"] if png.is_file() else [])]
+
+
 # ----------------------------------------------------------------- the page
 def build() -> tuple[str, str]:
     means, prov = headline()
@@ -350,6 +367,7 @@ def build() -> tuple[str, str]:
              "docs/measurements/compactness/README.md).", ""]
     page += _section_tables(M / "compactness" / "tables_test.md")
     page += compact_preset()
+    page += compact_file()
     page = "\n".join(page) + "\n"
 
     seeds = prov["seeds"]
