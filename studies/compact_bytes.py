@@ -1,4 +1,4 @@
-"""Compact bytes (docs/measurements/compact_bytes/protocol.md, issue 56): the `compact=on` preset's
+"""Compact bytes (docs/measurements/compact_bytes/protocol.md): the `compact=on` preset's
 runs of the eight methods at `budget=cpu`, seed 2, and the compact model file's codecs chosen on val
 by the protocol's rule, then read once on test.
 
@@ -418,7 +418,7 @@ def table(out: Path = OUT, full: dict | None = None) -> str:
             bs = {(r["experiment"], r["scene"]): r["bytes"] for r in a + s}
             v = _gmean([bs[(f"dnerf_{b}_stdr", sc)] / bs[(f"dnerf_{b}", sc)] for sc in common])
             targets.append((f"dnerf_{b}_stdr", "+STDR file / plain file bytes", "<= 1.25", v, v <= 1.25))
-    lines += ["", "Targets (issue 56; ratios: geometric mean over the scenes of the per-scene ratio):", "",
+    lines += ["", "Targets (ratios: geometric mean over the scenes of the per-scene ratio):", "",
               "| method | target | bound | measured | met |", "|---|---|---|---|---|"]
     for exp, what, bound, v, ok in targets:
         lines.append(f"| {exp} | {what} | {bound} | {v:.3f} | {'yes' if ok else '**no**'} |")
