@@ -3,10 +3,36 @@ from __future__ import annotations
 
 import argparse
 import subprocess
+import sys
 from pathlib import Path
 from typing import Callable
 
 ROOT = Path(__file__).resolve().parents[1]
+M = ROOT / "docs" / "measurements"
+ARCHIVE = "records.tar.xz"  # scripts/measurements.py's per-study archive
+
+
+def records_in(out: Path, sub: str) -> Path:
+    """A study's records folder to read: out/sub where it exists, else (a study folder under
+    docs/measurements whose records are packed) the archive's copy (scripts/measurements.py)."""
+    out = Path(out)
+    if (out / sub).is_dir() or out.resolve().parent != M.resolve():
+        return out / sub
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from measurements import records_dir
+    return records_dir(out.name, sub)
+
+
+def records_to_write(out: Path, sub: str) -> Path:
+    """out/sub, to add records to; refused while the study's records are only in its archive
+    (a new folder would hide them): extract first, pack after."""
+    out = Path(out)
+    if not (out / sub).is_dir() and (out / ARCHIVE).is_file():
+        raise SystemExit(f"{out / sub}: this study's records are packed in {out / ARCHIVE}; extract them first "
+                         f"(python scripts/measurements.py extract {out.name}), add, then pack again "
+                         f"(python scripts/measurements.py pack {out.name})")
+    (out / sub).mkdir(parents=True, exist_ok=True)
+    return out / sub
 
 
 def commit() -> str:
