@@ -61,3 +61,19 @@ def test_the_repository_is_code_with_its_records_archived():
     assert len(files) <= 600, len(files)
     assert sum((ROOT / f).stat().st_size for f in files) <= 6 * 2 ** 20
     assert not [f for f in files if f.startswith("docs/measurements/") and f.endswith(".svg")]
+
+
+def test_a_study_refuses_to_write_records_beside_its_packed_archive(tmp_path):
+    """studies.common.records_to_write: a new records folder would hide the archived ones from the
+    tables, so it is refused with the commands that fix it; an extracted folder is written to."""
+    import sys
+    sys.path.insert(0, str(ROOT))
+    from studies.common import records_in, records_to_write
+    study = tmp_path / "study"
+    study.mkdir()
+    (study / "records.tar.xz").write_bytes(b"")
+    with pytest.raises(SystemExit, match="extract study"):
+        records_to_write(study, "records")
+    assert not (study / "records").exists()
+    (study / "records").mkdir()
+    assert records_to_write(study, "records") == study / "records" == records_in(study, "records")
