@@ -41,8 +41,8 @@ def finetune_codebooks(payload: dict[str, Any], model, frames, steps: int = STEP
     model.eval()
     for p in model.params.values():
         p.requires_grad_(False)
-    for m in model.deform.modules():
-        for p in m.parameters(recurse=False):
+    for module in [model.deform, *(m for pl in model.plugins for m in pl.modules())]:
+        for p in module.parameters():
             p.requires_grad_(False)
     books, idx, shapes = {}, {}, {}
     for k, e in entries.items():
