@@ -74,6 +74,7 @@ def test_the_test_table_reports_each_target_with_its_value_and_draws_the_chart(t
     for exp, mib, fbytes in (("dnerf_deform", 4.0, 0.5), ("dnerf_deform_stdr", 10.0, 0.7)):
         for sc in SCENES[:2]:
             full[(exp, sc)] = {"psnr": 30.0, "ssim": 0.95, "lpips": 0.08, "fps": 50.0, "model_mb": mib}
+            full[(exp, sc, "compact")] = {"psnr": 29.99, "model_mb": mib / 2}
             rec = {"experiment": exp, "scene": sc, "codecs": "q8m16_vq256_ft", "bytes": fbytes * 2**20,
                    "model_bytes": mib / 2 * 2**20, "code": "abc", "machine": "m",
                    "model": {"psnr": 29.98, "ssim": 0.95, "lpips": 0.08, "fps": 90.0},
@@ -84,11 +85,13 @@ def test_the_test_table_reports_each_target_with_its_value_and_draws_the_chart(t
             n += 1
     text = table(tmp_path, full)
     rows = {tuple(c.strip() for c in line.split("|")[1:3]): line for line in text.splitlines()
-            if line.startswith("| dnerf_") and ("<=" in line or ">=" in line)}
-    assert "| 0.125 | yes |" in rows[("dnerf_deform", "file bytes / full model bytes")]  # 0.5 / 4
-    assert "| 0.070 | yes |" in rows[("dnerf_deform_stdr", "file bytes / full model bytes")]
-    assert "| -0.050 | yes |" in rows[("dnerf_deform", "PSNR file - full (dB)")]
-    assert "| -0.200 | **no** |" in rows[("dnerf_deform_stdr", "PSNR file - full (dB)")]
+            if line.startswith("| dnerf_") and ("<=" in line or ">=" in line or "(reported)" in line)}
+    # paired: (file / this model) x (old compact / old full) = (0.5 / 2) x 0.5; PSNR (29.95 - 29.98) + (29.99 - 30)
+    assert "| 0.125 | yes |" in rows[("dnerf_deform", "file bytes / full model bytes (paired)")]
+    assert "| 0.070 | yes |" in rows[("dnerf_deform_stdr", "file bytes / full model bytes (paired)")]
+    assert "| -0.040 | yes |" in rows[("dnerf_deform", "PSNR file - full, dB (paired)")]
+    assert "| -0.190 | **no** |" in rows[("dnerf_deform_stdr", "PSNR file - full, dB (paired)")]
+    assert "| -0.050 | – |" in rows[("dnerf_deform", "PSNR file - full, dB (unpaired)")]
     assert "| 1.400 | **no** |" in rows[("dnerf_deform_stdr", "+STDR file / plain file bytes")]  # 0.7 / 0.5
     fps = rows[("dnerf_deform", "FPS file / compact=on")]
     assert "| **no** |" in fps  # sqrt(91 * 89) / 90 < 1
