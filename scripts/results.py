@@ -314,18 +314,12 @@ def long_budget() -> dict | None:
     """STDR - plain deform at budget=cpu_long (studies/long_budget.py records): the pairs at the last
     step, per split, and the seeds; None before any pair."""
     sys.path.insert(0, str(ROOT))
-    from studies.long_budget import load_records
-    recs = load_records(M / "stdr_long")
-    by = {(r["scene"], r["seed"], r["method"]): r for r in recs}
-    pairs = [(by[(sc, sd, "deform")], by[(sc, sd, "deform_stdr")]) for (sc, sd, m) in by
-             if m == "deform" and (sc, sd, "deform_stdr") in by]
+    from studies.long_budget import SPLITS, _at, by_run, load_records, pairs_of
+    pairs = pairs_of(by_run(load_records(M / "stdr_long")))
     if not pairs:
         return None
     last = max(p["step"] for a, _ in pairs for p in a["points"])
-
-    def at(r, sp):
-        return next(p for p in r["points"] if p["step"] == last)[sp]["psnr"]
-    d = {sp: [at(b, sp) - at(a, sp) for a, b in pairs] for sp in ("train", "val", "test")}
+    d = {sp: [_at(b, last)[sp]["psnr"] - _at(a, last)[sp]["psnr"] for a, b in pairs] for sp in SPLITS}
     return {"n": len(pairs), "step": last, "seeds": sorted({a["seed"] for a, _ in pairs}),
             "pairs": sorted(f"{a['scene']} s{a['seed']}" for a, _ in pairs),
             **{sp: statistics.fmean(v) for sp, v in d.items()}, "val_min": min(d["val"]), "val_max": max(d["val"])}
