@@ -274,6 +274,10 @@ def test_stdr_train_with_pack_enabled_writes_the_compact_file_with_the_configure
     assert rec["bytes"] < rec["full_bytes"] and abs(rec["delta_psnr"]) < 1.0
     m = load_model(tmp_path / "run" / "model.stdrc", "cpu")
     assert torch.unique(m.params["shN"].reshape(m.params["shN"].shape[0], -1), dim=0).shape[0] <= 8
+    bad = tiny_config(tmp_path, ["experiment=embedded_deform", "pack.enabled=true", "+pack.codecs.shN=vq"])
+    with pytest.raises(ValueError, match="pack.codecs: compact spec shN='vq'"):
+        run(bad, tmp_path / "bad")
+    assert not (tmp_path / "bad" / "checkpoints").exists()  # refused before any training
 
 
 def test_the_sh_rest_kept_to_a_lower_degree_renders_as_that_degree(tmp_path):

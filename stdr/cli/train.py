@@ -22,6 +22,13 @@ def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict | 
         cfg.data.name = scene_folder(cfg.data, data_base).name
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     split = cfg.data.eval_split
+    if cfg.pack.enabled:  # the compact file's codecs are checked before training, not after it
+        from ..io.compact_file import check_spec
+        from ..tools.pack import spec_of_config
+        try:
+            check_spec(spec_of_config(cfg.pack))
+        except ValueError as e:
+            raise ValueError(f"pack.codecs: {e}") from None
     trainer = Trainer(cfg, run_dir, splits=("train", split), data_base=data_base)
     print(f"[stdr] {cfg.name}: {len(trainer.scene.frames('train'))} train / "
           f"{len(trainer.scene.frames(split))} {split} frames at "

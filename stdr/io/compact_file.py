@@ -89,9 +89,8 @@ def _walk_decode(x: Any) -> Any:
     return x
 
 
-def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
-    """The compact file's payload of a `DynamicGaussians` (its state_dict, encoded by `spec`,
-    DEFAULT_SPEC's entries where `spec` names none)."""
+def check_spec(spec: Optional[dict]) -> dict:
+    """The spec over DEFAULT_SPEC, each codec parsed; a ValueError names the key and what to write."""
     spec = {**DEFAULT_SPEC, **(spec or {})}
     if spec.get("sh_degree") is not None and not 0 <= int(spec["sh_degree"]) <= 3:
         raise ValueError(f"compact spec sh_degree={spec['sh_degree']}: use 0 to 3 (or leave it out)")
@@ -102,6 +101,13 @@ def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
             codecs.parse(c)
         except ValueError as err:
             raise ValueError(f"compact spec {k}={c!r}: {err}") from None
+    return spec
+
+
+def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
+    """The compact file's payload of a `DynamicGaussians` (its state_dict, encoded by `spec`,
+    DEFAULT_SPEC's entries where `spec` names none)."""
+    spec = check_spec(spec)
     entry = model.state_dict()
     cols = model.deform.compact_columns(model.params)
     units = {k: v for p in model.plugins for k, v in p.compact_units(model.params).items()}
