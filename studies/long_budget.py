@@ -149,6 +149,8 @@ def table(records: Path) -> str:
                      f"{f['num_gaussians']:,} | {f['train_seconds']:.0f} |")
     for variant in sorted({m for (_, _, m) in by if m.startswith("deform_stdr")}):
         lines += _difference(by, variant, steps)
+    for variant in sorted({m for (_, _, m) in by if m.startswith("deform_stdr__")}):
+        lines += _decision_lines(decide(by, variant))
     lines += ["", f"Generated {time.strftime('%Y-%m-%d')} from {len(recs)} records by "
               f"`python studies/long_budget.py table` (code {commit()})."]
     return "\n".join(lines) + "\n"
@@ -186,6 +188,58 @@ def _difference(by: dict, variant: str, steps: list[int]) -> list[str]:
     return lines
 
 
+# The rule for an ablation to become the default, written before its runs (README, "Decision").
+RAISE_R1, RAISE_R2, WORST_R2, COST_R1, LEVEL = 0.10, 0.30, -0.30, 1.10, -0.05
+
+
+def decide(by: dict, variant: str) -> dict:
+    """Whether `variant` (deform_stdr__<label>) replaces the default +STDR, by the README's rule.
+
+    Triples: the scene/seed runs where plain, default +STDR and the variant all reached the last
+    step. R1: mean val(variant) - val(default) >= RAISE_R1 dB and the variant's training time at
+    most COST_R1 x the default's (means over the triples). R2: that mean > RAISE_R2 and no triple
+    below WORST_R2. Coverage: the triples hold every scene recorded for plain and both seeds 0, 1.
+    `level`: mean val(variant) - val(plain) over every pair of the variant (>= LEVEL: level)."""
+    trip = [(by[(sc, sd, "deform")], by[(sc, sd, "deform_stdr")], v) for (sc, sd, m), v in sorted(by.items())
+            if m == variant and (sc, sd, "deform") in by and (sc, sd, "deform_stdr") in by]
+    last = max((p["step"] for r in by.values() for p in r["points"]), default=0)
+    trip = [t for t in trip if all(any(p["step"] == last for p in r["points"]) for r in t)]
+    raise_ = [_at(v, last)["val"]["psnr"] - _at(d, last)["val"]["psnr"] for _, d, v in trip]
+    pairs = [(a, b) for a, b in pairs_of(by, variant) if any(p["step"] == last for p in b["points"])]
+    out = {"variant": variant, "step": last, "triples": [f"{a['scene']} s{a['seed']}" for a, _, _ in trip],
+           "raise": raise_, "pairs": len(pairs)}
+    if not trip:
+        return {**out, "adopt": False}
+    mean = statistics.fmean(raise_)
+    cost = statistics.fmean(v["final_test"]["train_seconds"] for *_, v in trip) / statistics.fmean(
+        d["final_test"]["train_seconds"] for _, d, _ in trip)
+    scenes = {sc for (sc, _, m) in by if m == "deform"}
+    coverage = {a["scene"] for a, _, _ in trip} >= scenes and {a["seed"] for a, _, _ in trip} >= {0, 1}
+    level = statistics.fmean(_at(b, last)["val"]["psnr"] - _at(a, last)["val"]["psnr"] for a, b in pairs)
+    r1 = mean >= RAISE_R1 and cost <= COST_R1
+    r2 = mean > RAISE_R2 and min(raise_) >= WORST_R2
+    return {**out, "mean": mean, "worst": min(raise_), "cost": cost, "r1": r1, "r2": r2, "coverage": coverage,
+            "level": level, "adopt": r1 and r2 and coverage}
+
+
+def _decision_lines(d: dict) -> list[str]:
+    label = d["variant"].split("__", 1)[1]
+    lines = ["", f"## Decision: does `{label}` replace the default? (the rule in the README, val at {d['step']:,})", ""]
+    if not d["triples"]:
+        return lines + ["No scene/seed has plain, default +STDR and this variant yet."]
+    yes = {True: "holds", False: "does not hold"}
+    return lines + [
+        f"Triples (plain, default +STDR, {label}): {len(d['triples'])} ({', '.join(d['triples'])}); "
+        "val raise per triple: " + ", ".join(f"{x:+.2f}" for x in d["raise"]) + " dB.", "",
+        f"* R1 (mean raise ≥ {RAISE_R1:.2f} dB, training time ≤ {COST_R1:.2f}× default): mean {d['mean']:+.2f} dB, "
+        f"time {d['cost']:.2f}× → {yes[d['r1']]}.",
+        f"* R2 (mean raise > {RAISE_R2:.2f} dB, none below {WORST_R2:+.2f}): worst {d['worst']:+.2f} → {yes[d['r2']]}.",
+        f"* Coverage (every scene with a plain run, seeds 0 and 1): {yes[d['coverage']]}.",
+        f"* Level with plain (mean val Δ over its {d['pairs']} pairs ≥ {LEVEL:+.2f}): {d['level']:+.2f} dB → "
+        f"{'level' if d['level'] >= LEVEL else 'behind'}.",
+        f"* **Adopt as the default: {'yes' if d['adopt'] else 'not (yet)'}.**"]
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -201,7 +255,7 @@ def main(argv=None) -> None:
     r.add_argument("--iterations", type=int, default=ITERATIONS, help="the run's length (with --extra optim.iterations=N)")
     r.add_argument("--extra", nargs="*", default=[], help="more overrides (a record names them; with --label, an ablation)")
     r.add_argument("--label", default="", help="an ablation's name: records/<method>__<label>/, compared with plain deform")
-    t = sub.add_parser("table", help="the table from the records")
+    t = sub.add_parser("table", help="the table (and each ablation's decision) from the records")
     t.add_argument("--records", type=Path, default=RECORDS)
     args = ap.parse_args(argv)
     if args.cmd == "run":

@@ -53,3 +53,42 @@ def test_the_unseen_times_table_pairs_seeds_and_measures_distances(tmp_path):
     assert "| 0 | 31.00 | 30.75 | -0.25 | -1.00 / +0.50 | 2 | 0.0500 / 0.1000 |" in text
     assert "Without their pair (not in the mean): embedded_deform s1 (31.00 dB)" in text
     assert "Mean Δ over 1 seed(s): -0.25 dB." in text and "code abcdef0" in text
+
+
+def _three(tmp, scene, seed, plain, default, variant, secs=(10.0, 10.0)):
+    """plain / default +STDR / nogate val PSNR at the last step (train and test equal val)."""
+    for method, v in (("deform", plain), ("deform_stdr", default), ("deform_stdr__nogate", variant)):
+        if v is not None:
+            _rec(tmp, scene, seed, method, {5: (v, v, v), 10: (v, v, v)})
+    for method, s in zip(("deform_stdr", "deform_stdr__nogate"), secs):
+        p = tmp / "records" / method / f"{scene}_s{seed}.json"
+        if p.is_file():
+            r = json.loads(p.read_text())
+            r["final_test"]["train_seconds"] = s
+            p.write_text(json.dumps(r))
+
+
+def test_the_decision_needs_both_rules_and_every_scene_and_seed(tmp_path):
+    _three(tmp_path, "a", 0, 30.0, 29.0, 30.2)
+    _three(tmp_path, "b", 1, 20.0, 20.5, 20.4)
+    by = lb.by_run(lb.load_records(tmp_path))
+    d = lb.decide(by, "deform_stdr__nogate")
+    # raises +1.2 and -0.1: mean +0.55; worst -0.1; level: (+0.2, +0.4) -> +0.30
+    assert d["triples"] == ["a s0", "b s1"] and abs(d["mean"] - 0.55) < 1e-9 and abs(d["worst"] + 0.1) < 1e-9
+    assert d["r1"] and d["r2"] and d["coverage"] and abs(d["level"] - 0.30) < 1e-9 and d["adopt"]
+    assert "**Adopt as the default: yes.**" in lb.table(tmp_path)
+    _three(tmp_path, "c", 0, 25.0, None, 25.1)  # a scene without default +STDR: coverage fails
+    d = lb.decide(lb.by_run(lb.load_records(tmp_path)), "deform_stdr__nogate")
+    assert not d["coverage"] and not d["adopt"] and d["pairs"] == 3
+
+
+def test_the_decision_refuses_a_worse_triple_or_a_slower_variant(tmp_path):
+    _three(tmp_path, "a", 0, 30.0, 29.0, 31.0)
+    _three(tmp_path, "a", 1, 30.0, 30.0, 29.6)  # raise +2.0 and -0.4: mean +0.8 but worst < -0.3
+    d = lb.decide(lb.by_run(lb.load_records(tmp_path)), "deform_stdr__nogate")
+    assert d["r1"] and not d["r2"] and not d["adopt"]
+    slow = tmp_path / "slow"
+    _three(slow, "a", 0, 30.0, 29.0, 31.0, secs=(10.0, 12.0))
+    _three(slow, "a", 1, 30.0, 29.0, 31.0, secs=(10.0, 12.0))  # 1.2x the default's training time
+    d = lb.decide(lb.by_run(lb.load_records(slow)), "deform_stdr__nogate")
+    assert d["r2"] and not d["r1"] and not d["adopt"]
