@@ -202,6 +202,51 @@ def test_stdr_mask_codecs_read_back_as_the_8_bit_mask(tmp_path):
     assert torch.isfinite(small.render(f.camera, f.time).image).all()
 
 
+def test_the_derived_mask_stores_the_fields_output_and_renders_the_same(tmp_path):
+    """stdr_mask=derived on a model trained with stdr.mask_after_freeze=false: the file holds the
+    separated field's output [N, cond_dim] in place of the N x K mask and no field weights; read
+    back in float32 (and every other tensor too) it renders every test frame bit-identically, in
+    the default spec (half precision) within 0.05 dB.
+    A model whose mask still gates opacity, or one without STDR, is refused by name."""
+    from stdr.eval.evaluate import evaluate_model
+    from stdr.model import load_model
+    from stdr.plugins.stdr.plugin import COND_KEY, MASK_KEY
+    t = _trained(tmp_path, "embedded_deform_stdr", ["stdr.mask_after_freeze=false"])
+    full = t.model
+    n, k = full.params[MASK_KEY].shape
+    cond_dim = full.plugin("stdr").cond_dim
+    payload = encode_model(full, {MASK_KEY: "derived", COND_KEY: "f32"})
+    stored = payload["model"]["params"]
+    assert MASK_KEY not in stored and codecs.nbytes(stored[COND_KEY]) == 4 * n * cond_dim
+    assert payload["model"]["plugins"]["stdr"]["field"] is None and payload["spec"][MASK_KEY] == "derived"
+    m8 = encode_model(full, {MASK_KEY: "q8"})
+    saved = codecs.nbytes(m8["model"]) - codecs.nbytes(payload["model"])
+    assert saved > n * k - 4 * n * cond_dim  # the mask's bytes go, and the field's weights with them
+    exact = {k: "f32" for k in ("scales", "quats", "opacities", "sh0", "shN", "*")}  # every other tensor as it is
+    write_compact(full, tmp_path / "d32.stdrc", {**exact, MASK_KEY: "derived", COND_KEY: "f32"})
+    write_compact(full, tmp_path / "d16.stdrc", {MASK_KEY: "derived"})
+    frames = t.scene.frames("test")
+    full.eval()
+    for name in ("d32", "d16"):
+        small = load_model(tmp_path / f"{name}.stdrc", "cpu")
+        small.eval()
+        assert MASK_KEY not in small.params and small.params[COND_KEY].shape == (n, cond_dim)
+        if name == "d32":
+            with torch.no_grad():
+                for f in frames:
+                    assert torch.equal(small.render(f.camera, f.time).image, full.render(f.camera, f.time).image)
+        else:
+            a, b = evaluate_model(full, frames, fps_warmup=0), evaluate_model(small, frames, fps_warmup=0)
+            for pa, pb in zip(a["per_frame_psnr"], b["per_frame_psnr"]):
+                assert abs(pa - pb) < 0.05, (pa, pb)
+    gated = _trained(tmp_path / "gated", "embedded_deform_stdr", ["stdr.mask_after_freeze=true"]).model
+    with pytest.raises(ValueError, match=r"stdr_mask=derived.*stdr.mask_after_freeze=true"):
+        encode_model(gated, {MASK_KEY: "derived"})
+    plain = _trained(tmp_path / "plain", "embedded_deform").model
+    with pytest.raises(ValueError, match="stdr_mask=derived: no plug-in of this model derives"):
+        encode_model(plain, {MASK_KEY: "derived"})
+
+
 def test_state_rules_quantize_4dgs_grid_planes_per_channel_and_leave_the_networks(tmp_path):
     """spec state:grids=q4: every HexPlane plane [C, H, W] within half a step of 15 of its own
     channel's range; the networks, under `state` f32, read back exactly."""
@@ -278,6 +323,11 @@ def test_stdr_train_with_pack_enabled_writes_the_compact_file_with_the_configure
     with pytest.raises(ValueError, match="pack.codecs: compact spec shN='vq'"):
         run(bad, tmp_path / "bad")
     assert not (tmp_path / "bad" / "checkpoints").exists()  # refused before any training
+    gated = tiny_config(tmp_path, ["experiment=embedded_deform_stdr", "pack.enabled=true",
+                                   "stdr.mask_after_freeze=true", "+pack.codecs.stdr_mask=derived"])
+    with pytest.raises(ValueError, match=r"pack.codecs: stdr_mask=derived .*stdr.mask_after_freeze=false"):
+        run(gated, tmp_path / "gated")
+    assert not (tmp_path / "gated" / "checkpoints").exists()
 
 
 def test_the_sh_rest_kept_to_a_lower_degree_renders_as_that_degree(tmp_path):

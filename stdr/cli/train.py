@@ -25,8 +25,11 @@ def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict | 
     if cfg.pack.enabled:  # the compact file's codecs are checked before training, not after it
         from ..io.compact_file import check_spec
         from ..tools.pack import spec_of_config
+        from ..plugins import enabled_plugins, plugin_node
         try:
-            check_spec(spec_of_config(cfg.pack))
+            spec = check_spec(spec_of_config(cfg.pack))
+            for p in enabled_plugins(cfg):
+                p.plugin.check_compact_spec(plugin_node(cfg, p.name), spec)
         except ValueError as e:
             raise ValueError(f"pack.codecs: {e}") from None
     trainer = Trainer(cfg, run_dir, splits=("train", split), data_base=data_base)

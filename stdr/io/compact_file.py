@@ -20,6 +20,10 @@ logits at each Gaussian's K nearest superpoints); those are stored with the `col
 plug-in may name tables it reads only through an activation to [0, 1] and accepts in 8 bits
 (`Plugin.compact_units`: STDR's mask); a codec the spec names for such a key encodes the activated
 values and the file reads them back as uint8 q (for q / 255), the form `stdr.mask_bits=8` stores.
+The spec value `derived` for such a table stores instead what a finished model computes from it
+(`Plugin.compact_derived`: STDR's mask as the separated field's output [N, 17], with the field's
+weights left out; only for a model whose mask no longer multiplies opacity), under the plug-in's
+key for it, in the codec the spec names for that key (`stdr_cond: q8`; default `*`).
 Sized codecs are written "vq:1024", "lowrank:8" (stdr.io.codecs). A file with a higher version
 than this code reads is refused with an error that says so.
 """
@@ -36,6 +40,7 @@ from . import codecs
 FORMAT = "stdr-compact"
 VERSION = 1
 SUFFIX = ".stdrc"
+DERIVED = "derived"  # the spec value: store what the finished model computes from this table
 MARK = "__codec__"  # an encoded tensor's dict carries it (a state dict's own keys never do)
 
 #: the default codecs: positions exact, the other attributes in half precision, the SH rest (45 of
@@ -95,7 +100,7 @@ def check_spec(spec: Optional[dict]) -> dict:
     if spec.get("sh_degree") is not None and not 0 <= int(spec["sh_degree"]) <= 3:
         raise ValueError(f"compact spec sh_degree={spec['sh_degree']}: use 0 to 3 (or leave it out)")
     for k, c in spec.items():
-        if k in ("sh_degree", "finetune"):
+        if k in ("sh_degree", "finetune") or c == DERIVED:
             continue
         try:
             codecs.parse(c)
@@ -111,10 +116,24 @@ def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
     entry = model.state_dict()
     cols = model.deform.compact_columns(model.params)
     units = {k: v for p in model.plugins for k, v in p.compact_units(model.params).items()}
+    asked = {k for k, c in spec.items() if c == DERIVED}
+    derived, plugins = {}, dict(entry["plugins"])
+    for p in model.plugins:
+        d = p.compact_derived(model.params, model.step) if asked & set(model.params) else {}
+        d = {k: v for k, v in d.items() if k in asked}
+        derived.update(d)
+        if d:  # the plug-in's state without what it no longer needs (STDR: the field's weights)
+            plugins[p.name] = p.compact_state(plugins[p.name], set(d))
+    if asked - set(derived):
+        raise ValueError(f"compact spec {', '.join(f'{k}={DERIVED}' for k in sorted(asked - set(derived)))}: "
+                         "no plug-in of this model derives that table; name a codec instead")
     params = {}
     degree = spec.get("sh_degree")
     for k, v in entry["params"].items():
-        if k in cols:
+        if k in derived:
+            key, values = derived[k]
+            params[key] = _enc(values, spec.get(key, spec["*"]))
+        elif k in cols:
             params[k] = _enc(v, "cols", cols[k])
         elif k in units and k in spec and spec[k] == "q8":  # the 8-bit form itself, exact uint8
             params[k] = _enc(torch.round(units[k] * 255.0).to(torch.uint8), "raw")
@@ -128,8 +147,9 @@ def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
     # what each was stored as (an integer tensor: raw; a sized codec with its size)
     used = {k: (spec.get(k, spec["*"]) if e["codec"] == codecs.parse(spec.get(k, spec["*"]))[0] else e["codec"])
             for k, e in params.items()}
+    used.update({k: DERIVED for k in derived})
     model_entry = {**entry, "params": params, "deform": _walk_encode(entry["deform"], spec),
-                   "plugins": _walk_encode(entry["plugins"], spec)}
+                   "plugins": _walk_encode(plugins, spec)}
     return {"format": FORMAT, "version": VERSION, "model": model_entry,
             "spec": {**used, "state": spec["state"], **{k: c for k, c in spec.items() if k.startswith("state:")},
                      **({"sh_degree": int(degree)} if degree is not None else {})}}

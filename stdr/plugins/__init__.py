@@ -61,6 +61,12 @@ class Plugin:
         default (e.g. 'w/o spatial_reg'), so ablation rows never merge. `pcfg` is a plain dict."""
         return []
 
+    @classmethod
+    def check_compact_spec(cls, pcfg, spec: dict) -> None:
+        """Before training: raise a ValueError when the compact file's `spec` (pack.codecs) asks
+        this plug-in for a form its config cannot give (e.g. a `derived` table), so the run fails
+        at its start and not after training. Default: nothing to check."""
+
     # ---------------------------------------------------------------- construction
     @property
     def cond_dim(self) -> int:
@@ -102,6 +108,19 @@ class Plugin:
         (uint8 q for q / 255), {key: the activated values, float [N, ...]}. A lossy codec named for
         such a key encodes these values, and the file reads them back as uint8. Default: none."""
         return {}
+
+    def compact_derived(self, params, step: int) -> dict[str, tuple[str, Tensor]]:
+        """For the compact file's `derived` form (stdr.io.compact_file): per-Gaussian tables that a
+        finished model reads only through a fixed function of them, {key: (the stored key, that
+        function's values [N, D])}; the file stores the values in place of the table, and the
+        plug-in reads them back from the stored key. A ValueError says why a table cannot be
+        derived at `step`. Default: none."""
+        return {}
+
+    def compact_state(self, state: dict[str, Any], derived: set[str]) -> dict[str, Any]:
+        """This plug-in's state_dict for a compact file that stores the tables `derived` in their
+        derived form: without what only the derivation needed. Default: as it is."""
+        return state
 
     def conditioning(self, params, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
         """(cond [N, cond_dim] or None, delta scale [N, 1] or None) at `step`."""

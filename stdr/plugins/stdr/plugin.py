@@ -32,6 +32,8 @@ from .mask import (BETWEEN, activated, faint_fraction, knot_times, logits_of, ma
                    spatial_kl, temporal_entropy, temporal_loss)
 
 MASK_KEY = "stdr_mask"
+#: the separated field's output [N, cond_dim] stored in place of the mask (the compact file's `derived` form)
+COND_KEY = "stdr_cond"
 
 
 def _same_key(a: tuple, b: tuple) -> bool:
@@ -153,6 +155,18 @@ class STDR(Plugin):
         its non-default value (e.g. 'deform+STDR w/o spatial_reg')."""
         tags = [f"w/o {k}" for k in cls.ABLATION_SWITCHES if pcfg.get(k) is False]
         return tags + [label for k, (val, label) in cls.NON_DEFAULT_OPTIONS.items() if pcfg.get(k) == val]
+
+    @classmethod
+    def check_compact_spec(cls, pcfg, spec: dict) -> None:
+        """stdr_mask=derived needs a run whose mask stops multiplying opacity at the freeze and whose
+        separated field is on (compact_derived)."""
+        if spec.get(MASK_KEY) != "derived":
+            return
+        if pcfg.mask_after_freeze or not pcfg.separated_field or not pcfg.mask:
+            raise ValueError(f"{MASK_KEY}=derived stores the separated field's output in place of the mask, "
+                             "which needs stdr.mask_after_freeze=false, stdr.separated_field=true and stdr.mask=true "
+                             f"in this run (here {pcfg.mask_after_freeze=}, {pcfg.separated_field=}, {pcfg.mask=}); "
+                             f"set them, or store the mask itself ({MASK_KEY}=q8)")
 
     def __init__(self, cfg, schedule, knots: Optional[Tensor], xyz_freqs: int, seed: int,
                  init_opacity: float = 0.1, device: torch.device | str = "cpu"):
@@ -290,6 +304,35 @@ class STDR(Plugin):
         an 8-bit mask (stdr.mask_bits=8) as well as float logits."""
         return {MASK_KEY: activated(params[MASK_KEY].detach()).float()} if self.has_mask(params) else {}
 
+    def compact_derived(self, params, step: int) -> dict[str, tuple[str, Tensor]]:
+        """The mask replaced by the separated field's output, cond = [z, d] [N, cond_dim]: past the
+        freeze, with `stdr.mask_after_freeze=false`, a finished model reads the mask only through
+        the field (p = softmax_t(m) -> z, d), whose output is the same at every time; the file
+        stores cond (cond_dim numbers a Gaussian instead of K) and no field weights."""
+        if not self.has_mask(params):
+            return {}
+        why = ("the mask still multiplies opacity at this step (stdr.mask_after_freeze=true)"
+               if self.mask_modulates(step) else
+               "the model is not past the freeze" if self.phase(step) != Phase.FROZEN else
+               "the separated field is off (stdr.separated_field=false)" if self.field is None else "")
+        if why:
+            raise ValueError(f"compact spec {MASK_KEY}=derived stores the separated field's output in place of "
+                             f"the mask, which needs a model past the freeze whose mask no longer multiplies "
+                             f"opacity and whose field is on; here {why}. Store the mask itself "
+                             f"({MASK_KEY}=q8, the 8-bit mask) or train with stdr.mask_after_freeze=false")
+        was = self.field.training
+        self.field.eval()
+        try:
+            with torch.no_grad():
+                cond, _ = self.conditioning(params, step)
+        finally:
+            self.field.train(was)
+        return {MASK_KEY: (COND_KEY, cond.detach().float())}
+
+    def compact_state(self, state: dict[str, Any], derived: set[str]) -> dict[str, Any]:
+        """With the mask stored derived, the field's weights are not needed: the file has its output."""
+        return {**state, "field": None} if MASK_KEY in derived else state
+
     @torch.no_grad()
     def cleanup(self, params) -> int:
         """At the freeze: mask entries whose masked opacity sigmoid(o) * sigmoid(m) is below
@@ -364,6 +407,10 @@ class STDR(Plugin):
         """
         if self.field is None:
             return None, None
+        if COND_KEY in params:  # a compact file's derived form: the field's output itself
+            cond = params[COND_KEY].detach().float()
+            self.last_dynamic = d = cond[:, -1:]
+            return cond, (d if self.cfg.scale_deltas_by_dynamic else None)
         n = params["means"].shape[0]
         if self.phase(step) != Phase.FROZEN:
             return torch.zeros(n, self.cond_dim, device=params["means"].device), None
@@ -438,8 +485,11 @@ class STDR(Plugin):
             if self.knots is not None:
                 raise ValueError(f"checkpoint has {s['knots'].numel()} STDR time knots, this run {self.K}")
             self._set_knots(s["knots"])
-        if self.field is not None:
+        if self.field is not None and s["field"] is not None:
             self.field.load_state_dict(s["field"])
+        elif self.field is not None and COND_KEY not in params:
+            raise ValueError("STDR state without the separated field's weights, and no stored field output "
+                             f"({COND_KEY}) to read instead")
         self.gen.set_state(s["gen"])
         self._knn = None if s["knn"] is None else tuple(x.to(self.device) for x in s["knn"])
         self._knn_step = int(s["knn_step"])
