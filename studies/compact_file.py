@@ -14,7 +14,11 @@ half precision), `q8m16` (as `q8`, the means in 16 bits with a range per axis), 
 (as `q8m16`, the SH rest as C k-means codewords, no fine-tune; `_ft`: the codebook fine-tuned for
 500 steps on the training frames, stdr.io.finetune), and for +STDR runs `vq1024_<m>`
 (as `q8m16_vq1024`, STDR's mask in the form m: m8 its 8-bit form, m4 4 bits, lr<R> the activated
-mask at rank R; read back as the 8-bit mask, so the separated field reads logit(q / 255)). Records:
+mask at rank R; read back as the 8-bit mask, so the separated field reads logit(q / 255)); for runs
+trained with stdr.mask_after_freeze=false `mask8` (the default spec, the mask in its 8-bit form),
+`derived` / `derived8` (the default spec, the mask replaced by the separated field's output in half
+precision / 8 bits) and `vq1024_derived8` / `_derived4` / `_derivedvq` (as `q8m16_vq1024`, the
+field's output in 8 bits, 4 bits, or as 1,024 k-means codewords). Records:
 records/<run>__<variant>.json, with the code commit and machine; the table is generated from them.
 """
 from __future__ import annotations
@@ -46,9 +50,19 @@ for _c in (256, 1024):  # the same, the codebook fine-tuned (stdr.io.finetune's 
 MASK_VARIANTS = {"m8": "q8", "m4": "q4", "lr4": "lowrank:4", "lr8": "lowrank:8", "lr16": "lowrank:16"}
 for _n, _c in MASK_VARIANTS.items():
     VARIANTS[f"vq1024_{_n}"] = {**VARIANTS["q8m16_vq1024"], "stdr_mask": _c}
+# STDR's mask in its derived form (the separated field's output in place of the mask; runs trained
+# with stdr.mask_after_freeze=false only), against the 8-bit mask on the default spec
+VARIANTS["mask8"] = {"stdr_mask": "q8"}
+VARIANTS["derived"] = {"stdr_mask": "derived"}
+VARIANTS["derived8"] = {"stdr_mask": "derived", "stdr_cond": "q8"}
+VARIANTS["vq1024_derived8"] = {**VARIANTS["q8m16_vq1024"], "stdr_mask": "derived", "stdr_cond": "q8"}
+VARIANTS["vq1024_derived4"] = {**VARIANTS["q8m16_vq1024"], "stdr_mask": "derived", "stdr_cond": "q4"}
+VARIANTS["vq1024_derivedvq"] = {**VARIANTS["q8m16_vq1024"], "stdr_mask": "derived", "stdr_cond": "vq:1024"}
 
 
-def run(runs: list[Path], variants: list[str], out: Path) -> None:
+def run(runs: list[Path], variants: list[str], out: Path, tag: str = "") -> None:
+    """tag: appended to the method's name in the records (e.g. `nogate` for runs trained with an
+    ablation's settings), so they never overwrite the records of the method's default runs."""
     from stdr.config import load_config
     from stdr.eval.evaluate import machine_name
     from stdr.tools.pack import pack
@@ -58,13 +72,17 @@ def run(runs: list[Path], variants: list[str], out: Path) -> None:
         for v in variants:
             if "stdr_mask" in VARIANTS[v] and not cfg.stdr.enabled:
                 continue
+            if VARIANTS[v].get("stdr_mask") == "derived" and cfg.stdr.mask_after_freeze:
+                print(f"[compact_file] {rd.name} {v}: skipped (the derived mask needs stdr.mask_after_freeze=false)")
+                continue
             with tempfile.TemporaryDirectory() as tmp:
                 rec = pack(rd, Path(tmp) / "model.stdrc", VARIANTS[v], split="val")
             rec.pop("file")
-            rec.update({"run": rd.name, "method": cfg.name, "scene": cfg.data.name, "seed": int(cfg.seed),
+            method = f"{cfg.name}__{tag}" if tag else cfg.name
+            rec.update({"run": rd.name, "method": method, "scene": cfg.data.name, "seed": int(cfg.seed),
                         "budget": cfg.get("budget"), "variant": v, "code": commit(),
                         "machine": machine_name(), "date": time.strftime("%Y-%m-%d")})
-            name = f"{cfg.name}__{cfg.data.name}__s{cfg.seed}__{v}.json"
+            name = f"{method}__{cfg.data.name}__s{cfg.seed}__{v}.json"
             (dest / name).write_text(json.dumps(rec, indent=1) + "\n")
             print(f"[compact_file] {name}: {rec['bytes'] / 2**20:.2f} / {rec['full_bytes'] / 2**20:.2f} MiB, "
                   f"val {rec['delta_psnr']:+.3f} dB", flush=True)
@@ -96,9 +114,10 @@ def table(out: Path) -> str:
 
 
 def main(argv=None) -> None:
-    run_table_main(__doc__, OUT, "table.md", lambda a: run(a.runs, a.variants, a.out), table,
-                   lambda p: p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS)),
-                   argv)
+    def args(p):
+        p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+        p.add_argument("--tag", default="", help="appended to the method's name in the records (an ablation's runs)")
+    run_table_main(__doc__, OUT, "table.md", lambda a: run(a.runs, a.variants, a.out, a.tag), table, args, argv)
 
 
 if __name__ == "__main__":
