@@ -68,6 +68,21 @@ def _idle(run_dir: Path) -> bool:
     return f.is_file() and json.loads(f.read_text()).get("idle") is True
 
 
+#: the row tag that STDR's runs of the headline carry since stdr.mask_after_freeze defaults to false:
+#: they ran with true, the default then; the table shows them as its +STDR rows and says so
+GATED_TAG = " mask after freeze"
+GATED_NOTE = ("+STDR rows trained with `stdr.mask_after_freeze=true`, the default when they ran (now `false`: "
+              "docs/stdr.md §2)")
+
+
+def _headline_label(method: str) -> str:
+    return method[:-len(GATED_TAG)] if method.endswith("+STDR" + GATED_TAG) else method
+
+
+def _as_of_its_time(run: dict) -> dict:
+    return {**run, "method": _headline_label(run["method"])}
+
+
 def headline_from_records(runs_dir: Path | None = None, baselines=BASELINES, scenes=HEADLINE_SCENES):
     """The rerun's table from its committed records, read and averaged by stdr-eval's own code
     (stdr.eval.table.load_run / collect): ({method: mean row}, provenance), or (None, how many
@@ -82,7 +97,9 @@ def headline_from_records(runs_dir: Path | None = None, baselines=BASELINES, sce
         runs_dir = records_dir("dnerf_headline_cpu", "runs")
     methods = [m for b in baselines for m in (b, b + "+STDR")]
     dirs = sorted(p.parent for p in runs_dir.glob("*/*/s*/metrics.json")) if runs_dir.is_dir() else []
-    runs = [load_run(d, "test") for d in dirs]
+    raw = [load_run(d, "test") for d in dirs]
+    gated = any(r["method"].endswith("+STDR" + GATED_TAG) for r in raw)
+    runs = [_as_of_its_time(r) for r in raw]
     have: dict = {}
     for r in runs:
         have.setdefault(r["seed"], set()).add((r["method"], r["scene"]))
@@ -91,7 +108,8 @@ def headline_from_records(runs_dir: Path | None = None, baselines=BASELINES, sce
     if not seeds:
         return None, len(runs)
     use = [r for r in runs if r["seed"] in seeds and (r["method"], r["scene"]) in grid]
-    t = collect([table_row(r["config"], "test", r["metrics"], r["run_dir"]) for r in use])
+    t = collect([{**(row := table_row(r["config"], "test", r["metrics"], r["run_dir"])), "method": _headline_label(row["method"])}
+                 for r in use])
     machines, commits = {}, {}
     for r in use:
         mach = r["metrics"].get("conventions", {}).get("machine", "not recorded")
@@ -107,6 +125,7 @@ def headline_from_records(runs_dir: Path | None = None, baselines=BASELINES, sce
             "source": "runs/ in docs/measurements/dnerf_headline_cpu/records.tar.xz",
             "chart": "measurements/dnerf_headline_cpu/charts/speed_accuracy_psnr.png",
             "seeds": ("seed " if len(seeds) == 1 else "seeds ") + ", ".join(map(str, seeds)),
+            **({"caveat": GATED_NOTE + "."} if gated else {}),
             "ratios": paired_time_ratios(use, baselines),
             "delta_by_seed": delta_by_seed(use, baselines, scenes, seeds)}
     means = {m: {**t["means"][m], "n_scenes": len(scenes)} for m in methods}
@@ -316,15 +335,21 @@ def compact_preset() -> list[str]:
               else [])]
 
 
-def long_budget() -> dict | None:
-    """STDR - plain deform at budget=cpu_long (studies/long_budget.py records): the pairs at the last
-    step, per split, and the seeds; None before any pair."""
+#: the stdr_long study's records of STDR's current default (`stdr.mask_after_freeze=false`, its
+#: `nogate` ablation, adopted by the study's rule) and of the former default (`true`)
+LONG_DEFAULT, LONG_FORMER = "deform_stdr__nogate", "deform_stdr"
+
+
+def long_budget(variant: str = LONG_DEFAULT) -> dict | None:
+    """STDR (`variant`'s records) - plain deform at budget=cpu_long (studies/long_budget.py
+    records): the pairs at the last step, per split, and the seeds; None before any pair."""
     sys.path.insert(0, str(ROOT))
     from studies.long_budget import SPLITS, _at, by_run, load_records, pairs_of
-    pairs = pairs_of(by_run(load_records(M / "stdr_long")))
+    pairs = pairs_of(by_run(load_records(M / "stdr_long")), variant)
     if not pairs:
         return None
     last = max(p["step"] for a, _ in pairs for p in a["points"])
+    pairs = [(a, b) for a, b in pairs if any(p["step"] == last for p in b["points"])]
     d = {sp: [_at(b, last)[sp]["psnr"] - _at(a, last)[sp]["psnr"] for a, b in pairs] for sp in SPLITS}
     return {"n": len(pairs), "step": last, "seeds": sorted({a["seed"] for a, _ in pairs}),
             "pairs": sorted(f"{a['scene']} s{a['seed']}" for a, _ in pairs),
@@ -332,14 +357,18 @@ def long_budget() -> dict | None:
 
 
 def long_budget_sentence() -> str:
-    lb = long_budget()
+    lb, former = long_budget(), long_budget(LONG_FORMER)
     if lb is None:
         return ""
     seeds = ", ".join(str(x) for x in lb["seeds"])
-    return (f"Trained longer (`budget=cpu_long`, {lb['step']:,} steps, deform, {lb['n']} scene/seed pairs, "
-            f"seed{'s' if len(lb['seeds']) > 1 else ''} {seeds}) STDR is {lb['val']:+.2f} dB on val (from "
-            f"{lb['val_min']:+.2f} to {lb['val_max']:+.2f}) and {lb['test']:+.2f} on test against plain deform; "
-            "why, and the fix being measured: docs/measurements/stdr_unseen_times/README.md. ")
+    out = (f"Trained longer (`budget=cpu_long`, {lb['step']:,} steps, deform, {lb['n']} scene/seed pairs, "
+           f"seed{'s' if len(lb['seeds']) > 1 else ''} {seeds}) STDR is {lb['val']:+.2f} dB on val (from "
+           f"{lb['val_min']:+.2f} to {lb['val_max']:+.2f}) and {lb['test']:+.2f} on test against plain deform")
+    if former is not None:
+        out += (f"; with the former default `stdr.mask_after_freeze=true` it was {former['val']:+.2f} on val and "
+                f"{former['test']:+.2f} on test ({former['n']} pairs), the reason the default changed: "
+                "docs/measurements/stdr_long/README.md")
+    return out + ". "
 
 
 def long_budget_section() -> list[str]:

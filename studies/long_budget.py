@@ -30,6 +30,10 @@ SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
 METHODS = ("deform", "deform_stdr")
 POINTS = (2500, 5000, 7500)
 SPLITS = ("train", "val", "test")
+#: what each STDR record folder ran with, beside its name in the table: `deform_stdr` ran the default of
+#: its code (24256aa), which `nogate` replaced by this study's rule
+SETTINGS = {"deform_stdr": "stdr.mask_after_freeze=true, the default until 2026-11-28",
+            "deform_stdr__nogate": "stdr.mask_after_freeze=false, the default since 2026-11-28"}
 ITERATIONS = 10000
 
 
@@ -173,6 +177,8 @@ def _difference(by: dict, variant: str, steps: list[int]) -> list[str]:
     pairs = pairs_of(by, variant)
     names = ", ".join(sorted(f"{a['scene']} s{a['seed']}" for a, _ in pairs))
     what = "STDR" if variant == "deform_stdr" else f"STDR ({variant.split('__', 1)[1]})"
+    if variant in SETTINGS:
+        what += f" [{SETTINGS[variant]}]"
     lines = ["", f"## {what} - plain, mean over {len(pairs)} scene/seed pairs ({names})", ""]
     if pairs:
         lines += ["| step | Δ train | Δ val | Δ test | plain gap | STDR gap |", "|---|---|---|---|---|---|"]

@@ -119,3 +119,13 @@ def test_time_ratios_are_geometric_means_of_per_pair_ratios(tmp_path):
     got = prov["ratios"]["deform"]
     assert (got["pairs"], got["of"]) == (3, 4) and got["train_seconds"] == pytest.approx(1.0)
     assert "(3 of 4 pairs)" in r.headline_table(means, prov["ratios"])[2]
+
+
+def test_headline_runs_of_the_former_stdr_default_are_its_stdr_rows():
+    """Runs trained with stdr.mask_after_freeze=true (the default until 2026-11-28) carry its row tag
+    now; the headline reads them as its +STDR rows (and says so), and leaves every other label."""
+    results = _results()
+    assert results._headline_label("deform+STDR" + results.GATED_TAG) == "deform+STDR"
+    assert results._headline_label("deform+STDR w/o spatial_reg") == "deform+STDR w/o spatial_reg"
+    assert results._headline_label("deform") == "deform"
+    assert "mask_after_freeze=true" in results.GATED_NOTE

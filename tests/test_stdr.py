@@ -307,8 +307,9 @@ def test_configs_and_table_labels():
     assert cfg.name == "dnerf_deform_stdr" and cfg.stdr.enabled and cfg.data.format == "dnerf"
     assert not make_cfg(["experiment=dnerf_deform", "data.path=/x"]).stdr.enabled
     assert make_cfg(["stdr=on"]).stdr.enabled
-    c = OmegaConf.to_container(make_cfg(["stdr=on", "stdr.spatial_reg=false", "stdr.mask_after_freeze=false"]))
-    assert method_name(c) == "deform+STDR w/o spatial_reg, no mask after freeze"
+    c = OmegaConf.to_container(make_cfg(["stdr=on", "stdr.spatial_reg=false", "stdr.mask_after_freeze=true"]))
+    assert method_name(c) == "deform+STDR w/o spatial_reg, mask after freeze"  # the default until 2026-11-28
+    assert method_name(OmegaConf.to_container(make_cfg(["stdr=on", "stdr.mask_after_freeze=false"]))) == "deform+STDR"
     assert method_name(OmegaConf.to_container(make_cfg(["stdr=on"]))) == "deform+STDR"
     assert method_name(OmegaConf.to_container(make_cfg([]))) == "deform"
     # a compact run gets its own row beside the full one

@@ -25,7 +25,7 @@ class StdrConfig:
     mask_init: Optional[float] = 2.0  # initial logit; null: sigmoid(o) * sigmoid(m) = model.init_opacity
     opacity_init: Optional[float] = None  # opacity held during the warm-up; null: model.init_opacity
     mask_lr: float = 0.05         # Adam lr of the mask logits (that of opacity logits)
-    mask_after_freeze: bool = True  # the frozen sigmoid mask keeps modulating opacity
+    mask_after_freeze: bool = False  # false: from the freeze on the mask feeds only the separated field (true: it keeps multiplying opacity)
     prune_by_mask: bool = True    # prune on sigmoid(o) * max_t mask, the opacity a Gaussian reaches
     freeze_cleanup: float = 0.0   # at the freeze, switch off mask entries with sigmoid(o) * mask below this
     # 32: the mask stays float32 logits; 8: at the freeze it becomes uint8 round(255 sigmoid(m)) in memory,

@@ -145,7 +145,7 @@ class STDR(Plugin):
 
     #: ablation switches and options whose non-default value tags the table row
     ABLATION_SWITCHES = ("mask", "temporal_reg", "spatial_reg", "separated_field")
-    NON_DEFAULT_OPTIONS = {"mask_after_freeze": (False, "no mask after freeze"),
+    NON_DEFAULT_OPTIONS = {"mask_after_freeze": (True, "mask after freeze"),
                            "scale_deltas_by_dynamic": (True, "deltas x dynamic"),
                            "mask_bits": (8, "8-bit mask")}
 
