@@ -43,7 +43,10 @@ SEED = 2
 STEP1 = ("default", "q8m16", "q8m16_vq4096", "q8m16_vq1024", "q8m16_vq256", "q8m16_vq1024_ft", "q8m16_vq256_ft")
 #: step 2 (4dgs methods) and step 3 (+STDR methods), on top of step 1's choice, largest first
 GRID = {"g16": {}, "g8": {"state:grids": "q8"}, "g4": {"state:grids": "q4"}}
-MASK = {"m8": "q8", "m4": "q4", "lr16": "lowrank:16", "lr8": "lowrank:8", "lr4": "lowrank:4"}
+#: step 3 (amendment 3: runs of STDR's default since 2026-11-28, stdr.mask_after_freeze=false)
+MASK = {"m8": {"stdr_mask": "q8"}, "derived8": {"stdr_mask": "derived", "stdr_cond": "q8"},
+        "derived4": {"stdr_mask": "derived", "stdr_cond": "q4"},
+        "derivedvq": {"stdr_mask": "derived", "stdr_cond": "vq:1024"}}
 FULL_RECORDS = ROOT / "docs" / "measurements" / "compact_prune" / "records.tar.xz"
 
 
@@ -56,6 +59,7 @@ def train(args) -> None:
     for exp in args.experiments:
         for scene in args.scenes:
             rd = run_dir(args.work, exp, scene)
+            _refuse_a_former_default(rd)
             if (rd / "metrics.json").is_file():
                 continue
             rd.parent.mkdir(parents=True, exist_ok=True)
@@ -70,6 +74,20 @@ def train(args) -> None:
                                     stdout=log, stderr=subprocess.STDOUT).returncode
             print(f"[compact_bytes]   {'done' if rc == 0 else f'FAILED rc={rc} (log {rd}.log)'} "
                   f"in {time.time() - t0:.0f} s", flush=True)
+
+
+def _refuse_a_former_default(rd: Path) -> None:
+    """A +STDR run folder trained with stdr.mask_after_freeze=true (the default before 2026-11-28,
+    protocol amendment 3) is not one of this study's runs: move it aside rather than measure it."""
+    import yaml
+    f = rd / "config.yaml"
+    if not f.is_file():
+        return
+    stdr = (yaml.safe_load(f.read_text()) or {}).get("stdr") or {}
+    if stdr.get("enabled") and stdr.get("mask_after_freeze") is True:
+        raise SystemExit(f"{rd}: trained with stdr.mask_after_freeze=true, STDR's default before 2026-11-28; "
+                         "this study's +STDR runs use the current default (protocol amendment 3). Move the "
+                         f"folder aside (e.g. to {rd.parent.parent / 'gated' / rd.parent.name / rd.name}) and run again")
 
 
 # ------------------------------------------------------------------------------------------ measure
@@ -97,7 +115,7 @@ def _mask_kl(full, small) -> float | None:
 
     from stdr.plugins.stdr.mask import logits_of
     from stdr.plugins.stdr.plugin import MASK_KEY
-    if MASK_KEY not in full.params:
+    if MASK_KEY not in full.params or MASK_KEY not in small.params:  # a derived form stores no mask
         return None
     lp = torch.log_softmax(logits_of(full.params[MASK_KEY].detach()).double(), 1)
     lq = torch.log_softmax(logits_of(small.params[MASK_KEY].detach()).double(), 1)
@@ -110,7 +128,7 @@ def spec_of(step1: str, grid: str | None = None, mask: str | None = None) -> dic
     if grid:
         spec.update(GRID[grid])
     if mask:
-        spec["stdr_mask"] = MASK[mask]
+        spec.update(MASK[mask])
     return spec
 
 
@@ -142,6 +160,7 @@ def val(args) -> None:
             if not (rd / "metrics.json").is_file():
                 print(f"[compact_bytes] val {exp} {scene}: not trained yet", flush=True)
                 continue
+            _refuse_a_former_default(rd)
             cfg, full = _load(rd)
             scn = load_scene(cfg.data, ("train", "val"), base=str(ROOT), seed=cfg.seed)
             frames, train_frames = scn.frames("val"), scn.frames("train")
@@ -248,6 +267,7 @@ def test(args) -> None:
             if rec_path.is_file():
                 continue
             rd = run_dir(args.work, exp, scene)
+            _refuse_a_former_default(rd)
             cfg, full = _load(rd)
             lp = make_lpips(load_config(rd / "config.yaml").eval)
             scn = load_scene(cfg.data, ("train", "test"), base=str(ROOT), seed=cfg.seed)

@@ -48,21 +48,21 @@ def test_steps_2_and_3_wait_for_a_stable_step_1_and_the_mask_must_pass_for_every
     s1 = "q8m16_vq256"
     extra = {f"{s1}+{g}": (b, (lambda e, s, d=d: d if "4dgs" in e else None))
              for g, b, d in (("g16", 50, 0.0), ("g8", 30, -0.02), ("g4", 20, -0.3))}
-    masks = {"m8": 10, "m4": 8, "lr16": 6, "lr8": 4, "lr4": 3}
+    masks = {"m8": 10, "derived8": 6, "derived4": 4, "derivedvq": 3}
     for m, b in masks.items():
         for g in ("g16", "g8"):
-            loss = {"lr4": -0.2, "lr8": -0.04, "lr16": -0.01}.get(m, 0.0)
-            # lr8 fails for scgs+STDR only
+            loss = {"derivedvq": -0.2, "derived4": -0.04, "derived8": -0.01}.get(m, 0.0)
+            # derived4 fails for scgs+STDR only
             extra[f"{s1}+{g}+{m}"] = (b, (lambda e, s, m=m, g=g, loss=loss:
                                           None if not e.endswith("_stdr") or (g == "g8") != ("4dgs" in e)
-                                          else (-0.2 if m == "lr8" and "scgs" in e else loss)))
+                                          else (-0.2 if m == "derived4" and "scgs" in e else loss)))
     recs = _recs({}, extra)
     assert "step2" not in decide_records(recs, {})
     assert "step2" not in decide_records(recs, {"step1": "default"})
     d = decide_records(recs, {"step1": s1})
-    assert d["step1"] == s1 and d["step2"] == "g8" and d["step3"] == "lr16"
-    assert {r["name"]: r["passes"] for r in d["step3_rows"]} == {"m8": True, "m4": True, "lr16": True,
-                                                                 "lr8": False, "lr4": False}
+    assert d["step1"] == s1 and d["step2"] == "g8" and d["step3"] == "derived8"
+    assert {r["name"]: r["passes"] for r in d["step3_rows"]} == {"m8": True, "derived8": True, "derived4": False,
+                                                                 "derivedvq": False}
     assert set(GRID) == {"g16", "g8", "g4"} and set(MASK) == set(masks) and len(BASELINES) == 4
 
 
@@ -96,3 +96,18 @@ def test_the_test_table_reports_each_target_with_its_value_and_draws_the_chart(t
     fps = rows[("dnerf_deform", "FPS file / compact=on")]
     assert "| **no** |" in fps  # sqrt(91 * 89) / 90 < 1
     assert (tmp_path / "charts" / "size_accuracy_bytes.png").is_file() and n == 4
+
+
+def test_a_run_of_stdrs_former_default_is_refused_by_name(tmp_path):
+    """Protocol amendment 3: +STDR runs trained with stdr.mask_after_freeze=true are moved aside,
+    never measured as the preset's."""
+    import pytest
+    from studies.compact_bytes import _refuse_a_former_default
+    rd = tmp_path / "dnerf_deform_stdr" / "standup"
+    rd.mkdir(parents=True)
+    (rd / "config.yaml").write_text("stdr:\n  enabled: true\n  mask_after_freeze: true\n")
+    with pytest.raises(SystemExit, match="mask_after_freeze=true.*amendment 3.*gated"):
+        _refuse_a_former_default(rd)
+    (rd / "config.yaml").write_text("stdr:\n  enabled: true\n  mask_after_freeze: false\n")
+    _refuse_a_former_default(rd)  # the current default: measured
+    _refuse_a_former_default(tmp_path / "not_trained")  # no folder yet: trained by the queue
