@@ -14,9 +14,11 @@ SCHEDULE = [s for s in _ic.SCHEDULE if not s.startswith("optim.iterations=")] + 
 
 
 def _trained(tmp_path, name, steps, extra=()):
+    """A +STDR run whose mask still gates opacity after the freeze (stdr.mask_after_freeze=true, the
+    default before 2026-11-28), so that there is something to cull by the mask in every phase."""
     from stdr.train.trainer import Trainer
     cfg = _tiny(tmp_path, SCHEDULE + [f"experiment=embedded_{name}_stdr", "optim.iterations=60", "render.cull=off",
-                                      "train.eval_at_warmup_end=false", *extra])
+                                      "train.eval_at_warmup_end=false", "stdr.mask_after_freeze=true", *extra])
     tr = Trainer(cfg, tmp_path / "run", splits=("train", "test"))
     for _ in range(steps):
         tr.train_step()
@@ -80,6 +82,25 @@ def test_culled_render_equals_the_full_one(tmp_path, name, steps):
         eff = torch.sigmoid(model.params["opacities"]) * model.plugin("stdr").opacity_factor(
             model.params, frame.time, model.step)
         assert torch.equal(rows, torch.nonzero(eff >= 1 / 255).squeeze(1))
+
+
+def test_after_the_freeze_the_default_culls_by_the_gaussians_own_opacity_only(tmp_path):
+    """stdr.mask_after_freeze=false (the default): past the freeze the mask leaves opacity, so a row
+    the mask switches off at t is rendered, and the rows kept are those whose own opacity reaches
+    1/255; the culled render still equals the full one."""
+    tr = _trained(tmp_path, "deform", 60, ["stdr.mask_after_freeze=false"])
+    model = tr.model.eval()
+    assert model.step >= model.plugin("stdr").freeze_at
+    _switch_off_entries(model, 0.6, seed=3)
+    with torch.no_grad():
+        model.params["opacities"][::3] = -12.0  # a third of the rows under 1/255 by their own opacity
+    frame = tr.scene.frames("test")[1]
+    assert model.plugin("stdr").opacity_factor(model.params, frame.time, model.step) is None
+    img_a, _, _, _ = _render_and_grads(model, frame, cull=False)
+    img_b, _, _, rows = _render_and_grads(model, frame, cull=True)
+    own = torch.nonzero(torch.sigmoid(model.params["opacities"].detach()) >= 1 / 255).squeeze(1)
+    assert torch.equal(rows, own) and own.numel() < model.num_gaussians
+    assert (img_a - img_b).abs().max() <= 1e-6
 
 
 def test_active_rows_compare_in_the_tensor_dtype():

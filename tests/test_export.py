@@ -16,7 +16,8 @@ def test_an_exported_time_renders_like_the_model(tmp_path, name):
     from stdr.train.trainer import Trainer
     sched = [f"experiment=embedded_{name}", "optim.iterations=30", "baseline.warmup=10", "densify.refine_start=5",
              "densify.refine_every=5", "train.checkpoint_every=0", "train.eval_at_warmup_end=false",
-             "stdr.warmup_end=10", "stdr.freeze_at=20", "baseline.hexplane.base_res=16", "model.sh_interval=15"]
+             "stdr.warmup_end=10", "stdr.freeze_at=20", "baseline.hexplane.base_res=16", "model.sh_interval=15",
+             "stdr.mask_after_freeze=true"]  # the mask still gates opacity after the freeze: exported per time
     t = Trainer(tiny_config(tmp_path, [o for o in sched if not (o.startswith("stdr.") and "stdr" not in name)]),
                 tmp_path / "run", splits=("train", "test"))
     t.train()
