@@ -311,9 +311,10 @@ class STDR(Plugin):
         stores cond (cond_dim numbers a Gaussian instead of K) and no field weights."""
         if not self.has_mask(params):
             return {}
-        why = ("the mask still multiplies opacity at this step (stdr.mask_after_freeze=true)"
+        # the phase first: before the freeze the mask modulates opacity whatever mask_after_freeze says
+        why = ("the model is not past the freeze" if self.phase(step) != Phase.FROZEN else
+               "the mask still multiplies opacity at this step (stdr.mask_after_freeze=true)"
                if self.mask_modulates(step) else
-               "the model is not past the freeze" if self.phase(step) != Phase.FROZEN else
                "the separated field is off (stdr.separated_field=false)" if self.field is None else "")
         if why:
             raise ValueError(f"compact spec {MASK_KEY}=derived stores the separated field's output in place of "
