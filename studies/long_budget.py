@@ -33,7 +33,19 @@ SPLITS = ("train", "val", "test")
 #: what each STDR record folder ran with, beside its name in the table: `deform_stdr` ran the default of
 #: its code (24256aa), which `nogate` replaced by this study's rule
 SETTINGS = {"deform_stdr": "stdr.mask_after_freeze=true, the default until 2026-11-28",
-            "deform_stdr__nogate": "stdr.mask_after_freeze=false, the default since 2026-11-28"}
+            "deform_stdr__nogate": "stdr.mask_after_freeze=false, the default since 2026-11-28",
+            "deform_stdr__fop": "nogate + stdr.freeze_opacity=true, the paper's warm-up",
+            "deform_stdr__reg4": "nogate + stdr.lambda_temp=0.4 stdr.lambda_spatial=0.8, the regularizers x 4",
+            "deform_stdr__freeze3k": "nogate + stdr.freeze_at=3000, the mask learnable twice as long"}
+#: the default each variant would replace (and is read against): nogate against the default of 24256aa,
+#: the ablations queued after the change against nogate
+REFERENCE = {"deform_stdr__nogate": "deform_stdr"}
+AFTER_CHANGE = "deform_stdr__nogate"
+
+
+def reference_of(variant: str) -> str:
+    """The +STDR record folder `variant` is decided against: the default it would replace."""
+    return REFERENCE.get(variant, AFTER_CHANGE)
 ITERATIONS = 10000
 
 
@@ -201,18 +213,20 @@ RAISE_R1, RAISE_R2, WORST_R2, COST_R1, LEVEL = 0.10, 0.30, -0.30, 1.10, -0.05
 def decide(by: dict, variant: str) -> dict:
     """Whether `variant` (deform_stdr__<label>) replaces the default +STDR, by the README's rule.
 
-    Triples: the scene/seed runs where plain, default +STDR and the variant all reached the last
+    The default is `reference_of(variant)`: the +STDR default when the variant was queued.
+    Triples: the scene/seed runs where plain, that default and the variant all reached the last
     step. R1: mean val(variant) - val(default) >= RAISE_R1 dB and the variant's training time at
     most COST_R1 x the default's (means over the triples). R2: that mean > RAISE_R2 and no triple
     below WORST_R2. Coverage: the triples hold every scene recorded for plain and both seeds 0, 1.
     `level`: mean val(variant) - val(plain) over every pair of the variant (>= LEVEL: level)."""
-    trip = [(by[(sc, sd, "deform")], by[(sc, sd, "deform_stdr")], v) for (sc, sd, m), v in sorted(by.items())
-            if m == variant and (sc, sd, "deform") in by and (sc, sd, "deform_stdr") in by]
+    ref = reference_of(variant)
+    trip = [(by[(sc, sd, "deform")], by[(sc, sd, ref)], v) for (sc, sd, m), v in sorted(by.items())
+            if m == variant and (sc, sd, "deform") in by and (sc, sd, ref) in by]
     last = max((p["step"] for r in by.values() for p in r["points"]), default=0)
     trip = [t for t in trip if all(any(p["step"] == last for p in r["points"]) for r in t)]
     raise_ = [_at(v, last)["val"]["psnr"] - _at(d, last)["val"]["psnr"] for _, d, v in trip]
     pairs = [(a, b) for a, b in pairs_of(by, variant) if any(p["step"] == last for p in b["points"])]
-    out = {"variant": variant, "step": last, "triples": [f"{a['scene']} s{a['seed']}" for a, _, _ in trip],
+    out = {"variant": variant, "reference": ref, "step": last, "triples": [f"{a['scene']} s{a['seed']}" for a, _, _ in trip],
            "raise": raise_, "pairs": len(pairs)}
     if not trip:
         return {**out, "adopt": False}
@@ -230,14 +244,15 @@ def decide(by: dict, variant: str) -> dict:
 
 def _decision_lines(d: dict) -> list[str]:
     label = d["variant"].split("__", 1)[1]
-    lines = ["", f"## Decision: does `{label}` replace the default? (the rule in the README, val at {d['step']:,})", ""]
+    ref = "default +STDR" if d["reference"] == "deform_stdr" else d["reference"].split("__", 1)[1]
+    lines = ["", f"## Decision: does `{label}` replace {ref}? (the rule in the README, val at {d['step']:,})", ""]
     if not d["triples"]:
-        return lines + ["No scene/seed has plain, default +STDR and this variant yet."]
+        return lines + [f"No scene/seed has plain, {ref} and this variant yet."]
     yes = {True: "holds", False: "does not hold"}
     return lines + [
-        f"Triples (plain, default +STDR, {label}): {len(d['triples'])} ({', '.join(d['triples'])}); "
+        f"Triples (plain, {ref}, {label}): {len(d['triples'])} ({', '.join(d['triples'])}); "
         "val raise per triple: " + ", ".join(f"{x:+.2f}" for x in d["raise"]) + " dB.", "",
-        f"* R1 (mean raise ≥ {RAISE_R1:.2f} dB, training time ≤ {COST_R1:.2f}× default): mean {d['mean']:+.2f} dB, "
+        f"* R1 (mean raise ≥ {RAISE_R1:.2f} dB, training time ≤ {COST_R1:.2f}× {ref}): mean {d['mean']:+.2f} dB, "
         f"time {d['cost']:.2f}× → {yes[d['r1']]}.",
         f"* R2 (mean raise > {RAISE_R2:.2f} dB, none below {WORST_R2:+.2f}): worst {d['worst']:+.2f} → {yes[d['r2']]}.",
         f"* Coverage (every scene with a plain run, seeds 0 and 1): {yes[d['coverage']]}.",

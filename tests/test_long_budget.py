@@ -92,3 +92,15 @@ def test_the_decision_refuses_a_worse_triple_or_a_slower_variant(tmp_path):
     _three(slow, "a", 1, 30.0, 29.0, 31.0, secs=(10.0, 12.0))  # 1.2x the default's training time
     d = lb.decide(lb.by_run(lb.load_records(slow)), "deform_stdr__nogate")
     assert d["r2"] and not d["r1"] and not d["adopt"]
+
+
+def test_an_ablation_queued_after_the_change_is_read_against_nogate(tmp_path):
+    _three(tmp_path, "a", 0, 30.0, 28.0, 30.5)  # plain, former default, nogate
+    _rec(tmp_path, "a", 0, "deform_stdr__fop", {5: (30.2,) * 3, 10: (30.2,) * 3})
+    d = lb.decide(lb.by_run(lb.load_records(tmp_path)), "deform_stdr__fop")
+    # against nogate (30.5): -0.30, not against the former default (28.0): +2.20
+    assert d["reference"] == "deform_stdr__nogate" and abs(d["raise"][0] + 0.3) < 1e-9
+    assert not d["coverage"] and not d["adopt"]
+    text = lb.table(tmp_path)
+    assert "## Decision: does `fop` replace nogate?" in text and "Triples (plain, nogate, fop): 1 (a s0)" in text
+    assert "## Decision: does `nogate` replace default +STDR?" in text
