@@ -203,7 +203,23 @@ def _difference(by: dict, variant: str, steps: list[int]) -> list[str]:
             g = [statistics.mean(_at(r, s)["train"]["psnr"] - _at(r, s)["test"]["psnr"] for r in rs)
                  for rs in ([a for a, _ in both], [b for _, b in both])]
             lines.append(f"| {s} | {d['train']:+.2f} | {d['val']:+.2f} | {d['test']:+.2f} | {g[0]:.2f} | {g[1]:.2f} |")
+        lines += _spread(pairs, steps[-1])
     return lines
+
+
+def _spread(pairs: list[tuple[dict, dict]], step: int) -> list[str]:
+    """The val difference at `step` pair by pair, its mean by seed and its standard deviation over
+    the pairs (the spread a mean of a few pairs carries)."""
+    val = {(a["scene"], a["seed"]): _at(b, step)["val"]["psnr"] - _at(a, step)["val"]["psnr"] for a, b in pairs
+           if any(p["step"] == step for p in a["points"]) and any(p["step"] == step for p in b["points"])}
+    if not val:
+        return []
+    seeds = sorted({sd for _, sd in val})
+    by_seed = "; ".join(f"seed {sd}: {statistics.fmean(v for (_, s), v in val.items() if s == sd):+.2f} "
+                        f"(n = {sum(s == sd for _, s in val)})" for sd in seeds)
+    sd_ = f", standard deviation over the pairs {statistics.stdev(val.values()):.2f} dB" if len(val) > 1 else ""
+    return ["", f"Val Δ at {step:,}, pair by pair: " + ", ".join(f"{sc} s{sd} {v:+.2f}" for (sc, sd), v in sorted(val.items()))
+            + f". By seed: {by_seed}{sd_}."]
 
 
 # The rule for an ablation to become the default, written before its runs (README, "Decision").

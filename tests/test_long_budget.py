@@ -34,6 +34,9 @@ def test_the_table_pairs_runs_and_averages_the_differences_and_gaps(tmp_path):
     assert "| 10 | +0.50 | -1.00 | -1.00 | 3.00 | 4.50 |" in text
     assert "| 5 | +0.50 | +0.25 | -0.50 | 2.50 | 3.50 |" in text
     assert "| c | 0 | deform | 25.00 / 25.00 / 25.00 | – | 0.00 |" in text
+    # val at 10: a s0 -1.00, b s1 -1.00; one scene a seed; sd 0
+    assert ("Val Δ at 10, pair by pair: a s0 -1.00, b s1 -1.00. By seed: seed 0: -1.00 (n = 1); "
+            "seed 1: -1.00 (n = 1), standard deviation over the pairs 0.00 dB.") in text
     assert "code abc1234" in text and "threads [1]" in text
 
 
