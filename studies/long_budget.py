@@ -40,13 +40,12 @@ SETTINGS = {"deform_stdr": "stdr.mask_after_freeze=true, the default until 2026-
 #: the default each variant would replace (and is read against): nogate against the default of 24256aa,
 #: the ablations queued after the change against nogate
 REFERENCE = {"deform_stdr__nogate": "deform_stdr"}
-AFTER_CHANGE = "deform_stdr__nogate"
+ITERATIONS = 10000
 
 
 def reference_of(variant: str) -> str:
     """The +STDR record folder `variant` is decided against: the default it would replace."""
-    return REFERENCE.get(variant, AFTER_CHANGE)
-ITERATIONS = 10000
+    return REFERENCE.get(variant, "deform_stdr__nogate")
 
 
 def commit() -> str:
@@ -138,6 +137,10 @@ def load_records(records: Path) -> list[dict]:
     return [json.loads(p.read_text()) for p in sorted((records / "records").glob("*/*.json"))]
 
 
+def _reaches(rec: dict, step: int) -> bool:
+    return any(p["step"] == step for p in rec["points"])
+
+
 def _at(rec: dict, step: int) -> dict:
     return next(p for p in rec["points"] if p["step"] == step)
 
@@ -195,8 +198,7 @@ def _difference(by: dict, variant: str, steps: list[int]) -> list[str]:
     if pairs:
         lines += ["| step | Δ train | Δ val | Δ test | plain gap | STDR gap |", "|---|---|---|---|---|---|"]
         for s in steps:
-            both = [(a, b) for a, b in pairs if any(p["step"] == s for p in a["points"]) and
-                    any(p["step"] == s for p in b["points"])]
+            both = [(a, b) for a, b in pairs if _reaches(a, s) and _reaches(b, s)]
             if not both:
                 continue
             d = {sp: statistics.mean(_at(b, s)[sp]["psnr"] - _at(a, s)[sp]["psnr"] for a, b in both) for sp in SPLITS}
@@ -211,7 +213,7 @@ def _spread(pairs: list[tuple[dict, dict]], step: int) -> list[str]:
     """The val difference at `step` pair by pair, its mean by seed and its standard deviation over
     the pairs (the spread a mean of a few pairs carries)."""
     val = {(a["scene"], a["seed"]): _at(b, step)["val"]["psnr"] - _at(a, step)["val"]["psnr"] for a, b in pairs
-           if any(p["step"] == step for p in a["points"]) and any(p["step"] == step for p in b["points"])}
+           if _reaches(a, step) and _reaches(b, step)}
     if not val:
         return []
     seeds = sorted({sd for _, sd in val})
@@ -239,9 +241,9 @@ def decide(by: dict, variant: str) -> dict:
     trip = [(by[(sc, sd, "deform")], by[(sc, sd, ref)], v) for (sc, sd, m), v in sorted(by.items())
             if m == variant and (sc, sd, "deform") in by and (sc, sd, ref) in by]
     last = max((p["step"] for r in by.values() for p in r["points"]), default=0)
-    trip = [t for t in trip if all(any(p["step"] == last for p in r["points"]) for r in t)]
+    trip = [t for t in trip if all(_reaches(r, last) for r in t)]
     raise_ = [_at(v, last)["val"]["psnr"] - _at(d, last)["val"]["psnr"] for _, d, v in trip]
-    pairs = [(a, b) for a, b in pairs_of(by, variant) if any(p["step"] == last for p in b["points"])]
+    pairs = [(a, b) for a, b in pairs_of(by, variant) if _reaches(b, last)]
     out = {"variant": variant, "reference": ref, "step": last, "triples": [f"{a['scene']} s{a['seed']}" for a, _, _ in trip],
            "raise": raise_, "pairs": len(pairs)}
     if not trip:
