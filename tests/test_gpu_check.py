@@ -2,6 +2,8 @@
 every stage, and (slow) the whole --dry-run on the CPU, which runs every stage's plumbing."""
 import importlib.util
 import json
+import os
+import re
 import subprocess
 import sys
 import tarfile
@@ -134,11 +136,36 @@ def test_the_train_keys_stage_runs_the_binning_and_speed_key_trainings_under_mem
     names = [s.name for s in rest]
     assert names.index("train_keys") == names.index("kernels") + 1
     st = rest[names.index("train_keys")]
-    assert st.cmd[:3] == ["compute-sanitizer", "--tool", "memcheck"] and "--error-exitcode" in st.cmd
+    assert st.cmd[:2] == ["bash", "-c"] and "exec compute-sanitizer --tool memcheck --error-exitcode 9 " in st.cmd[2]
     assert st.env == {"CUDA_LAUNCH_BLOCKING": "1", "PYTORCH_NO_CUDA_MEMORY_CACHING": "1"}
-    ids = [c for c in st.cmd if str(c).startswith("tests/")]
+    ids = re.findall(r"tests/\S+", st.cmd[2].split(" then ")[1].split(";")[0])
     assert ids == ["tests/test_binning.py", f"tests/test_device.py::{gc.SPEED_KEYS_TEST}"]
     proc = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", *ids], cwd=ROOT, capture_output=True,
                           text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-2000:]
     assert f"{gc.SPEED_KEYS_TEST}[deform_stdr]" in proc.stdout and "test_binning.py::" in proc.stdout
+
+
+def test_memchecked_runs_under_the_sanitizer_where_it_works_and_says_so_where_it_cannot(tmp_path):
+    """A stand-in compute-sanitizer on PATH (the probe's interpreter is `true`, which passes): one that
+    runs its program (after its flags) gives the
+    program's output with the sanitizer's mark and exit status 9 on the program's failure; one that
+    refuses the device gives the program run alone after NO_SANITIZER, and the facts record it."""
+    gc = _module()
+    bindir = tmp_path / "bin"
+    bindir.mkdir()
+    fake = bindir / "compute-sanitizer"
+    prog = ["bash", "-c", 'echo "prog ran with $0"; exit ${FAIL:-0}', "an arg with spaces"]
+    for works in (True, False):
+        fake.write_text("#!/bin/bash\n" + ('shift 4; echo SANITIZER; "$@"; rc=$?; [ $rc -ne 0 ] && exit 9; exit 0\n'
+                                            if works else 'echo "Device not supported" >&2; exit 1\n'))
+        fake.chmod(0o755)
+        env = {**os.environ, "PATH": f"{bindir}{os.pathsep}{os.environ['PATH']}"}
+        for fail in ("0", "3"):
+            p = subprocess.run(gc.memchecked(prog, "true"), capture_output=True, text=True,
+                               env={**env, "FAIL": fail}, timeout=120)
+            assert "prog ran with an arg with spaces" in p.stdout
+            assert p.stdout.count("SANITIZER") == (1 if works else 0)  # the probe's own output is discarded
+            assert (gc.NO_SANITIZER in p.stdout) == (not works)
+            assert p.returncode == (0 if fail == "0" else (9 if works else 3))
+            assert gc.sanitizer_facts()(p.stdout, None) == {"sanitizer": works}
