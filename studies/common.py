@@ -36,10 +36,11 @@ def records_to_write(out: Path, sub: str) -> Path:
 
 
 def commit() -> str:
-    """The checkout's short commit, `+dirty` when tracked files differ from it (a record's stamp)."""
+    """The checkout's short commit, `+dirty` when tracked files differ from it (a record's stamp).
+    Files under docs/measurements do not count: a study rewrites its own tables as it runs."""
     out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-    dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
-                           capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no", "--", ".",
+                            ":(exclude)docs/measurements"], capture_output=True, text=True).stdout.strip()
     return out.stdout.strip() + ("+dirty" if dirty else "")
 
 

@@ -77,3 +77,26 @@ def test_a_study_refuses_to_write_records_beside_its_packed_archive(tmp_path):
     assert not (study / "records").exists()
     (study / "records").mkdir()
     assert records_to_write(study, "records") == study / "records" == records_in(study, "records")
+
+
+def test_a_records_stamp_ignores_the_tables_a_study_rewrites_but_not_code(tmp_path, monkeypatch):
+    """studies.common.commit: `+dirty` for a changed tracked file outside docs/measurements, none for
+    a study's own generated table there (a `val` pass rewrites it while the records are written)."""
+    import studies.common as common
+
+    def git(*a):
+        subprocess.run(["git", "-C", str(tmp_path), *a], check=True, capture_output=True)
+    (tmp_path / "docs" / "measurements" / "s").mkdir(parents=True)
+    (tmp_path / "docs" / "measurements" / "s" / "table.md").write_text("a\n")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    git("init", "-q")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "init")
+    monkeypatch.setattr(common, "ROOT", tmp_path)
+    head = common.commit()
+    assert head and "+" not in head
+    (tmp_path / "docs" / "measurements" / "s" / "table.md").write_text("b\n")
+    (tmp_path / "new_untracked.py").write_text("")
+    assert common.commit() == head
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert common.commit() == head + "+dirty"
