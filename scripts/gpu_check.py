@@ -16,9 +16,11 @@ stage OUT holds everything that finished, in four files (a device call returns a
 
 Stages (GPU): env (GPU, torch, nvcc, Python packages: exit 3 when one is missing) -> build (the
 CUDA extension, failing loudly: exit 4; the CPU extension builds beside it) -> kernels (the CUDA
-parity tests of the projection + SH, the rasterizer, 4dgs's HexPlane sampling, the training loss and the guard's check, CUDA_LAUNCH_BLOCKING=1) -> train_keys
-(compute-sanitizer memcheck over the binning with its two passes made to disagree and short
-trainings with the speed keys through prunes, opacity resets, evaluations and a guard recovery) -> proj_scale
+parity tests of the projection + SH, the rasterizer, 4dgs's HexPlane sampling, the training loss and the guard's check, CUDA_LAUNCH_BLOCKING=1)
+-> binning_memcheck (compute-sanitizer memcheck over the binning with its two passes made to
+disagree) -> train_keys (short trainings with the speed keys through prunes, opacity resets,
+evaluations and a guard recovery, against the torch forms; blocking launches) -> memcheck_keys (one
+40-step training with the speed keys through the same events, under memcheck) -> proj_scale
 (CUDA against the CPU extension at 200k and 1M Gaussians, both antialiasing modes) -> train_tests
 (rasterizer at training scale; training + resume on CUDA, all four baselines with STDR) ->
 syncs_cuda (an ordinary training step of every baseline +- STDR makes no synchronizing call the
@@ -31,7 +33,7 @@ SH: what the compiled one saves) -> bench_raster -> bench_train_compile (baselin
 run_4dgs, run_deform_stdr, run_4dgs_stdr, run_scgs, run_spgs -> sanitize (compute-sanitizer
 memcheck over every kernel of the extension) -> run_paper_deform, run_paper_scgs (budget=paper at
 400 px, FAST on; a device call each). Where compute-sanitizer cannot run (some virtual machines
-refuse it the device), train_keys and sanitize run without it and summary.md says so.
+refuse it the device), the stages that use it run without it and summary.md says so.
 
 Training pins render.backend=cuda and render.compiled_projection=true: a broken build fails
 instead of falling back to the pure-torch reference, and the kernels under test are the ones
@@ -68,6 +70,14 @@ TINY = ["data.procedural.resolution=64", "data.procedural.n_train=40", "data.pro
 # CUDA); 4dgs's baseline.hexplane.compiled is not among them (a key of 4dgs alone): the kernels
 # stage checks that kernel
 FAST = ["optim.fused_loss=true", "train.guard.compiled=true", "train.guard.sync_free=true"]
+# memcheck_keys: deform+STDR on the embedded scene at test size, 40 steps with FAST through four
+# densifications (clone, split, opacity and size prunes), an opacity reset, STDR's freeze, two
+# evaluations and a guard recovery from a NaN injected at step 17 (the CPU's dry run: the same)
+KEYS_RUN = ["experiment=embedded_deform_stdr", *TINY[:5], "optim.iterations=40", "baseline.warmup=10",
+            "densify.refine_start=10", "densify.refine_every=5", "densify.refine_stop=30", "densify.reset_every=20",
+            "densify.prune_big_after=20", "stdr.warmup_end=10", "stdr.freeze_at=20", "train.eval_every=15",
+            "train.guard.snapshot_every=10", "train.guard.inject_nan_grad_at=[17]", "train.checkpoint_every=0",
+            "train.progress=false", "eval.save_images=false", "eval.lpips=false", *FAST]
 SANITIZE_PROBE = "--sanitize-probe"
 SPEED_KEYS_TEST = "test_training_with_the_speed_keys_on_cuda_through_prunes_resets_and_a_recovery"
 MEMCHECK = ["compute-sanitizer", "--tool", "memcheck", "--error-exitcode", "9"]
@@ -86,8 +96,9 @@ def memchecked(cmd: list, py: str) -> list:
 
 def sanitizer_facts(facts=None):
     """A stage's facts plus whether compute-sanitizer ran (memchecked's line absent)."""
-    def f(text: str, res) -> dict:
-        return {**(facts(text, res) if facts else {}), "sanitizer": NO_SANITIZER not in text}
+    def f(text: str, res) -> dict:  # a line of its own: the log's first line, the command, quotes it
+        ran = re.search(rf"^{re.escape(NO_SANITIZER)}$", text, flags=re.M) is None
+        return {**(facts(text, res) if facts else {}), "sanitizer": ran}
     return f
 
 
@@ -274,7 +285,10 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
                                             "loss_matches_the_torch_twin or compiled_step_update) and cpu"]
         scale = pyt + junit("proj_scale") + ["tests/test_compiled.py", "-k", "cuda_projection_matches_the_cpu_extension_at_scale"]
         ttests = pyt + junit("train_tests") + ["tests/test_device.py", "-k", "device_names_resolve"]
-        train_keys = pyt + junit("train_keys") + ["tests/test_binning.py"]
+        binning = pyt + junit("binning_memcheck") + ["tests/test_binning.py"]
+        train_keys = pyt + junit("train_keys") + ["tests/test_device.py", "-k", "device_names_resolve"]
+        memcheck_keys = [py, "-m", "stdr.cli.train", *KEYS_RUN, "device=cpu", "render.backend=cpu",
+                         f"data.cache_dir={args.work / 'cache'}", f"hydra.run.dir={args.work / 'runs' / 'memcheck_keys'}"]
         syncs = pyt + junit("syncs_cuda") + ["tests/test_syncs.py", "-k", "counter"]
         braster = [py, "-m", "stdr.tools.bench_rasterizer", "--backends", "cpu", "--n", "2000", "--res", "64", "--repeats", "1"]
         btrain_x = ["--experiments", "embedded_deform", "--gaussians", "1000", "--res", "64", "--iters", "2",
@@ -289,10 +303,16 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
         ttests = pyt + junit("train_tests") + ["tests/test_compiled.py", "tests/test_device.py", "-k",
                                                "training_scale or training_on_cuda or (benchmark_row and not cpu)"]
         syncs = pyt + junit("syncs_cuda") + ["tests/test_syncs.py", "-k", "cuda or counter"]
-        # the binning with its passes made to disagree, then short trainings with the speed keys
-        # through prunes, resets, evaluations and a recovery, every kernel checked by memcheck
-        train_keys = memchecked([*pyt, *junit("train_keys"), "tests/test_binning.py",
-                                 f"tests/test_device.py::{SPEED_KEYS_TEST}"], py)
+        # the binning with its passes made to disagree, under memcheck (seconds)
+        binning = memchecked([*pyt, *junit("binning_memcheck"), "tests/test_binning.py"], py)
+        # short trainings with the speed keys through prunes, resets, evaluations and a recovery,
+        # against the torch forms, launches blocking (an illegal access raises at its kernel):
+        # under memcheck the first of its two cases had not finished after 270 s on an H200
+        train_keys = pyt + junit("train_keys") + [f"tests/test_device.py::{SPEED_KEYS_TEST}"]
+        # ... so memcheck gets one run of its own, 40 steps with the keys through the same events
+        memcheck_keys = memchecked([py, "-m", "stdr.cli.train", *KEYS_RUN, "device=cuda", "render.backend=cuda",
+                                    f"data.cache_dir={args.work / 'cache'}",
+                                    f"hydra.run.dir={args.work / 'runs' / 'memcheck_keys'}"], py)
         braster = [py, "-m", "stdr.tools.bench_rasterizer", "--backends", "cuda", "--n", "10000", "100000", "1000000",
                    "--res", "400", "800", "--repeats", "20", "--peak-gflops", os.environ.get("STDR_GPU_PEAK_GFLOPS", "67000")]
         btrain_x = ["--experiments", "dnerf_deform", "dnerf_4dgs", "--gaussians", "10000", "50000", "--res", "200", "400",
@@ -308,8 +328,11 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
                       *btrain_x, *FAST, "baseline.compile=true"]
     rest = [
         Stage("kernels", 45, 150, kernels, env={"CUDA_LAUNCH_BLOCKING": "1"}, facts=pytest_facts),
-        Stage("train_keys", 90, 240, train_keys, env={"CUDA_LAUNCH_BLOCKING": "1", "PYTORCH_NO_CUDA_MEMORY_CACHING": "1"},
+        Stage("binning_memcheck", 30, 90, binning, env={"CUDA_LAUNCH_BLOCKING": "1", "PYTORCH_NO_CUDA_MEMORY_CACHING": "1"},
               facts=sanitizer_facts(pytest_facts) if not dry else pytest_facts),
+        Stage("train_keys", 60, 150, train_keys, env={"CUDA_LAUNCH_BLOCKING": "1"}, facts=pytest_facts),
+        Stage("memcheck_keys", 120, 240, memcheck_keys, env={"PYTORCH_NO_CUDA_MEMORY_CACHING": "1"},
+              facts=sanitizer_facts() if not dry else None),
         Stage("proj_scale", 40, 120, scale, facts=pytest_facts),
         Stage("train_tests", 90, 200, ttests, facts=pytest_facts),
         Stage("syncs_cuda", 60, 150, syncs, facts=pytest_facts),

@@ -124,24 +124,31 @@ def test_runs_use_the_lpips_weights_given_and_say_alex_when_no_vgg_weights_came(
         assert all(s.cmd[-1].startswith("hydra.run.dir=") for s in runs)
 
 
-def test_the_train_keys_stage_runs_the_binning_and_speed_key_trainings_under_memcheck(tmp_path):
-    """On a GPU, right after the kernels: compute-sanitizer memcheck (uncached allocations, so an
-    access past a tensor is an error, and blocking launches) over the binning tests and the
-    speed-key trainings, which must exist under the names the stage gives."""
+def test_after_the_kernels_the_binning_under_memcheck_then_the_speed_key_trainings(tmp_path):
+    """On a GPU, right after the kernels: the binning tests under compute-sanitizer memcheck
+    (uncached allocations, so an access past a tensor is an error); the speed-key trainings against
+    the torch forms with blocking launches (under memcheck they outlast any stage); one short run
+    with the keys under memcheck. The tests must exist under the names the stages give."""
     gc = _module()
     scene = tmp_path / "scene"
     scene.mkdir()
     args = type("A", (), {"work": tmp_path / "w", "scene": scene, "lpips_weights": None})()
     _, rest = gc.build_stages(args, "python", False)
     names = [s.name for s in rest]
-    assert names.index("train_keys") == names.index("kernels") + 1
-    st = rest[names.index("train_keys")]
-    assert st.cmd[:2] == ["bash", "-c"] and "exec compute-sanitizer --tool memcheck --error-exitcode 9 " in st.cmd[2]
-    assert st.env == {"CUDA_LAUNCH_BLOCKING": "1", "PYTORCH_NO_CUDA_MEMORY_CACHING": "1"}
-    ids = re.findall(r"tests/\S+", st.cmd[2].split(" then ")[1].split(";")[0])
-    assert ids == ["tests/test_binning.py", f"tests/test_device.py::{gc.SPEED_KEYS_TEST}"]
-    proc = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", *ids], cwd=ROOT, capture_output=True,
-                          text=True, timeout=300)
+    k = names.index("kernels")
+    assert names[k + 1:k + 4] == ["binning_memcheck", "train_keys", "memcheck_keys"]
+    binning, keys, run = rest[k + 1:k + 4]
+    assert binning.cmd[:2] == ["bash", "-c"] and "exec compute-sanitizer --tool memcheck --error-exitcode 9 " in binning.cmd[2]
+    assert binning.env == {"CUDA_LAUNCH_BLOCKING": "1", "PYTORCH_NO_CUDA_MEMORY_CACHING": "1"}
+    assert re.findall(r"tests/\S+", binning.cmd[2].split(" then ")[1].split(";")[0]) == ["tests/test_binning.py"]
+    assert "compute-sanitizer" not in keys.cmd and keys.env == {"CUDA_LAUNCH_BLOCKING": "1"}
+    ids = [c for c in keys.cmd if str(c).startswith("tests/")]
+    assert ids == [f"tests/test_device.py::{gc.SPEED_KEYS_TEST}"]
+    script = run.cmd[2].split(" then ")[1].split(";")[0]
+    assert run.cmd[:2] == ["bash", "-c"] and script.startswith("exec compute-sanitizer --tool memcheck")
+    assert all(k in script for k in gc.FAST) and "device=cuda" in script and "train.guard.inject_nan_grad_at=[17]" in script
+    proc = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "tests/test_binning.py", *ids], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-2000:]
     assert f"{gc.SPEED_KEYS_TEST}[deform_stdr]" in proc.stdout and "test_binning.py::" in proc.stdout
 
@@ -169,3 +176,6 @@ def test_memchecked_runs_under_the_sanitizer_where_it_works_and_says_so_where_it
             assert (gc.NO_SANITIZER in p.stdout) == (not works)
             assert p.returncode == (0 if fail == "0" else (9 if works else 3))
             assert gc.sanitizer_facts()(p.stdout, None) == {"sanitizer": works}
+            # as the stage's log holds it: the command (which quotes the line) first
+            log = "$ " + " ".join(gc.memchecked(prog, "true")) + "\n" + p.stdout
+            assert gc.sanitizer_facts()(log, None) == {"sanitizer": works}
