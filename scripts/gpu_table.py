@@ -4,6 +4,8 @@
     python scripts/gpu_table.py add OUT/runs.tgz [--folder docs/measurements/dnerf_gpu]
     # the table (table.md, table.json), stamped with GPU, code commit and command
     python scripts/gpu_table.py table [--folder docs/measurements/dnerf_gpu]
+    # the full-run rule of stdr.verified for runs with variant labels (run ids ending __LABEL)
+    python scripts/gpu_table.py rule --folder FOLDER --compiled fast --twin torch
 
 Rows: the eight methods (four baselines, each plain and +STDR); columns: each scene's test PSNR,
 then the mean PSNR / SSIM / LPIPS and training seconds over the scenes the row has. A `paper`
@@ -103,6 +105,21 @@ def table(folder: Path) -> tuple[str, dict]:
     return "\n".join(lines) + "\n", data
 
 
+def rule(folder: Path, compiled: str, twin: str) -> dict:
+    """stdr.verified.cuda_run_verdict per method and scene over the folder's runs whose ids end in
+    `__<compiled>` and `__<twin>` (stdr-tool queue plan --variants)."""
+    from stdr.verified import cuda_run_verdict
+
+    by: dict = {}
+    for r in read_runs(folder):
+        label = r["run"].rsplit("__", 1)[-1]
+        if label in (compiled, twin):
+            by.setdefault((r["method"], r["scene"]), {compiled: {}, twin: {}})[label][r["seed"]] = r["psnr"]
+    if not by:
+        raise SystemExit(f"{folder}: no run ids ending in __{compiled} or __{twin}")
+    return {f"{m} {s}": cuda_run_verdict(v[compiled], v[twin]) for (m, s), v in sorted(by.items())}
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -111,9 +128,15 @@ def main(argv=None) -> None:
     a.add_argument("--folder", type=Path, default=FOLDER)
     t = sub.add_parser("table")
     t.add_argument("--folder", type=Path, default=FOLDER)
+    r = sub.add_parser("rule")
+    r.add_argument("--folder", type=Path, required=True)
+    r.add_argument("--compiled", default="fast")
+    r.add_argument("--twin", default="torch")
     args = ap.parse_args(argv)
     if args.cmd == "add":
         print(f"{len(add(args.archive, args.folder))} files into {args.folder / 'runs'}")
+    elif args.cmd == "rule":
+        print(json.dumps(rule(args.folder, args.compiled, args.twin), indent=1))
     else:
         text, data = table(args.folder)
         (args.folder / "table.md").write_text(text)

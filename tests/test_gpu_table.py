@@ -16,11 +16,11 @@ def _module():
 
 def _archive(path: Path, runs: dict, extra=()):
     with tarfile.open(path, "w:gz") as tar:
-        for rid, (exp, scene, psnr, budget) in runs.items():
+        for rid, (exp, scene, psnr, budget, *seed) in runs.items():
             files = {"metrics.json": json.dumps({"test": {"psnr": psnr, "ssim": 0.98, "lpips": 0.02, "train_seconds": 80.0,
                                                           "conventions": {"device_name": "NVIDIA H100"},
                                                           "code": {"commit": "abc1234"}}}),
-                     "config.yaml": f"experiment: {exp}\nbudget: {budget}\nseed: 0\ndata:\n  name: {scene}\n"}
+                     "config.yaml": f"experiment: {exp}\nbudget: {budget}\nseed: {seed[0] if seed else 0}\ndata:\n  name: {scene}\n"}
             for name, text in files.items():
                 b = text.encode()
                 info = tarfile.TarInfo(f"{rid}/{name}")
@@ -58,3 +58,26 @@ def test_other_budgets_and_escaping_members_are_refused(tmp_path):
     with pytest.raises(SystemExit, match="refused"):
         gt.add(tmp_path / "d.tgz", tmp_path / "u")
     assert not (tmp_path / "evil.txt").exists()
+
+
+def test_the_rule_pairs_variant_runs_by_seed_and_reads_the_mean_gap(tmp_path):
+    """`rule`: runs whose ids end in __fast / __torch (a queue's --variants), paired by seed; the
+    verdict is stdr.verified's mean over its seeds, and a missing seed is no verdict."""
+    gt = _module()
+    from stdr.verified import CUDA_RUN_SEEDS
+    gaps = dict(zip(CUDA_RUN_SEEDS, (-0.30, 0.10, 0.02)))
+    runs = {}
+    for sd in CUDA_RUN_SEEDS:
+        runs[f"dnerf_deform__jumpingjacks__s{sd}__torch"] = ("dnerf_deform", "jumpingjacks", 36.5, "gpu", sd)
+        runs[f"dnerf_deform__jumpingjacks__s{sd}__fast"] = ("dnerf_deform", "jumpingjacks", 36.5 + gaps[sd], "gpu", sd)
+    runs["dnerf_4dgs__jumpingjacks__s0__torch"] = ("dnerf_4dgs", "jumpingjacks", 33.0, "gpu", 0)
+    runs["dnerf_4dgs__jumpingjacks__s0__fast"] = ("dnerf_4dgs", "jumpingjacks", 33.0, "gpu", 0)
+    _archive(tmp_path / "a.tgz", runs)
+    gt.add(tmp_path / "a.tgz", tmp_path / "t")
+    v = gt.rule(tmp_path / "t", "fast", "torch")
+    assert set(v) == {"deform jumpingjacks", "4dgs jumpingjacks"}
+    d = v["deform jumpingjacks"]
+    assert d["passes"] and abs(d["gap_db"] - sum(gaps.values()) / len(gaps)) < 1e-6
+    assert not v["4dgs jumpingjacks"]["passes"] and v["4dgs jumpingjacks"]["missing"] == list(CUDA_RUN_SEEDS[1:])
+    with pytest.raises(SystemExit, match="__slow"):
+        gt.rule(tmp_path / "t", "slow", "twin")

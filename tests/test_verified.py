@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 
 from stdr.testing import make_cfg
-from stdr.verified import EVIDENCE, VERIFIED, verified_on
+from stdr.verified import CUDA_RUN_SEEDS, CUDA_RUN_TOLERANCE_DB, EVIDENCE, VERIFIED, cuda_run_verdict, verified_on
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -38,3 +38,17 @@ def test_the_speed_keys_wait_for_their_full_gpu_runs():
 def test_an_unknown_key_names_the_table():
     with pytest.raises(KeyError, match="stdr.verified.VERIFIED"):
         verified_on("optim.fused_los")
+
+
+def test_the_full_run_rule_reads_the_mean_gap_over_every_seed():
+    """One pair is not a verdict; the mean over CUDA_RUN_SEEDS is, on either side of the twin."""
+    twin = {s: 36.5 + 0.1 * s for s in CUDA_RUN_SEEDS}
+    assert len(CUDA_RUN_SEEDS) >= 3 and CUDA_RUN_TOLERANCE_DB == 0.2
+    one = cuda_run_verdict({0: twin[0] - 0.05}, twin)
+    assert not one["passes"] and one["gap_db"] is None and one["missing"] == list(CUDA_RUN_SEEDS[1:])
+    # a seed 0.30 dB low, the others close: the mean decides
+    close = {s: twin[s] + d for s, d in zip(CUDA_RUN_SEEDS, (-0.30, 0.05, -0.02))}
+    v = cuda_run_verdict(close, twin)
+    assert v["passes"] and abs(v["gap_db"] - (-0.27 / 3)) < 1e-9 and abs(v["per_seed"][CUDA_RUN_SEEDS[0]] + 0.30) < 1e-9
+    for d in (-0.25, 0.25):  # a systematic gap past the tolerance fails, below or above
+        assert not cuda_run_verdict({s: twin[s] + d for s in CUDA_RUN_SEEDS}, twin)["passes"]
