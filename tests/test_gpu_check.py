@@ -179,3 +179,26 @@ def test_memchecked_runs_under_the_sanitizer_where_it_works_and_says_so_where_it
             # as the stage's log holds it: the command (which quotes the line) first
             log = "$ " + " ".join(gc.memchecked(prog, "true")) + "\n" + p.stdout
             assert gc.sanitizer_facts()(log, None) == {"sanitizer": works}
+
+
+def test_the_gpu_payload_names_what_is_missing_before_it_writes(tmp_path):
+    """scripts/gpu_payload.sh with a shared folder that lacks the LPIPS weights or a scene: exit 2,
+    the missing path named, and the payload already there left as it was."""
+    marker = ROOT / "build" / "gpucarry" / "kept.txt"
+    had = marker.parent.is_dir()
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    marker.write_text("x")
+    shared = tmp_path / "shared"
+    p = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_payload.sh"), str(shared)], capture_output=True, text=True,
+                       timeout=60)
+    assert p.returncode == 2 and f"{shared}/weights/lpips/alexnet_features.pth is missing" in p.stderr
+    (shared / "weights" / "lpips").mkdir(parents=True)
+    for f in ("alexnet_features.pth", "lpips_v0.1_alex_lin.pth"):
+        (shared / "weights" / "lpips" / f).write_bytes(b"")
+    p = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_payload.sh"), str(shared)], capture_output=True, text=True,
+                       timeout=60)
+    assert p.returncode == 2 and f"no D-NeRF scene at {shared}/data/dnerf/bouncingballs" in p.stderr
+    assert marker.read_text() == "x"
+    marker.unlink()
+    if not had:
+        marker.parent.rmdir()
