@@ -300,6 +300,23 @@ def test_the_codebook_fine_tune_lowers_the_training_loss_and_moves_only_the_code
         write_compact(t.model, tmp_path / "x.stdrc", {"finetune": 10}, frames)
 
 
+def test_the_fine_tune_leaves_a_codebook_no_gradient_reaches_and_tunes_the_others(tmp_path):
+    """STDR's derived conditioning as vq codewords next to shN's (the study's `derivedvq` with the
+    fine-tune): the render reads the conditioning as a constant, so its codebook stays exactly as
+    k-means placed it and is reported `fixed`; shN's codewords are tuned as without it."""
+    from stdr.model import load_model
+    from stdr.plugins.stdr.plugin import COND_KEY, MASK_KEY
+    t = _trained(tmp_path, "embedded_deform_stdr", ["stdr.mask_after_freeze=false", "model.sh_interval=5"])
+    frames = t.scene.frames("train")
+    spec = {"shN": "vq:8", MASK_KEY: "derived", COND_KEY: "vq:16"}
+    write_compact(t.model, tmp_path / "vq.stdrc", spec)
+    rec = write_compact(t.model, tmp_path / "ft.stdrc", {**spec, "finetune": 20}, frames)
+    assert rec["finetune"]["keys"] == ["shN"] and rec["finetune"]["fixed"] == [COND_KEY]
+    a, b = load_model(tmp_path / "vq.stdrc", "cpu"), load_model(tmp_path / "ft.stdrc", "cpu")
+    assert torch.equal(a.params[COND_KEY], b.params[COND_KEY])
+    assert not torch.equal(a.params["shN"], b.params["shN"])
+
+
 def test_stdr_train_with_pack_enabled_writes_the_compact_file_with_the_configured_codecs(tmp_path):
     """pack.enabled (what compact=on sets): after the final evaluation the run folder holds
     model.stdrc in the configured codecs and pack.json with both models' renders of the eval split."""

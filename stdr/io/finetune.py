@@ -6,6 +6,9 @@ in the image. `finetune_codebooks` renders training frames with the model read b
 and moves only the codewords: each step sets the tensor to codebook[index], renders, and gives each
 codeword the sum of its rows' gradients (the exact gradient of the loss through the lookup), then
 an Adam step. Every other tensor stays as the file holds it. The codebooks are stored back in float16.
+A table that the render uses as a constant (STDR's `derived` conditioning is read detached: the
+field's output of a frozen mask) gets no gradient; its codebook stays as k-means placed it, and
+the result lists it under `fixed`.
 """
 from __future__ import annotations
 
@@ -32,10 +35,11 @@ def finetune_codebooks(payload: dict[str, Any], model, frames, steps: int = STEP
                        lambda_dssim: float = LAMBDA_DSSIM, seed: int = 0) -> dict[str, Any]:
     """Fine-tune, in place, the codebooks of `payload` (from stdr.io.compact_file.encode_model) on
     `frames` (training frames), rendering with `model` (the payload's model read back, in eval mode).
-    Returns {steps, loss_first, loss_last (means over the first and last 10 % of the steps), keys}."""
+    Returns {steps, loss_first, loss_last (means over the first and last 10 % of the steps), keys
+    (the codebooks fine-tuned), fixed (those no gradient reaches, left as they were)}."""
     entries = vq_entries(payload)
     if not entries or steps <= 0:
-        return {"steps": 0, "keys": sorted(entries)}
+        return {"steps": 0, "keys": sorted(entries), "fixed": []}
     if not frames:
         raise ValueError("finetune_codebooks: no frames to fine-tune on")
     model.eval()
@@ -53,7 +57,7 @@ def finetune_codebooks(payload: dict[str, Any], model, frames, steps: int = STEP
     opt = torch.optim.Adam(list(books.values()), lr=lr)
     g = torch.Generator().manual_seed(seed)
     order = torch.randint(0, len(frames), (steps,), generator=g).tolist()
-    losses = []
+    losses, fixed = [], set()
     for i in order:
         f = frames[i]
         with torch.no_grad():
@@ -65,15 +69,21 @@ def finetune_codebooks(payload: dict[str, Any], model, frames, steps: int = STEP
         loss.backward()
         opt.zero_grad(set_to_none=True)
         for k, b in books.items():
+            if model.params[k].grad is None:  # the render reads this table as a constant
+                fixed.add(k)
+                continue
             grad = model.params[k].grad.reshape(shapes[k][0], -1)
             b.grad = torch.zeros_like(b).index_add_(0, idx[k], grad)
         opt.step()
         losses.append(float(loss.detach()))
     with torch.no_grad():
         for k, b in books.items():
+            if k in fixed:  # exactly the codebook the file had
+                model.params[k].grad = None
+                continue
             entries[k]["codebook"] = b.detach().cpu().half()
             model.params[k].copy_(entries[k]["codebook"].float().to(b.device)[idx[k]].reshape(shapes[k]))
             model.params[k].grad = None
     tenth = max(1, steps // 10)
     return {"steps": steps, "loss_first": sum(losses[:tenth]) / tenth, "loss_last": sum(losses[-tenth:]) / tenth,
-            "keys": sorted(books)}
+            "keys": sorted(set(books) - fixed), "fixed": sorted(fixed)}
