@@ -165,3 +165,34 @@ def test_knn_matches_brute_force():
     full.fill_diagonal_(float("inf"))
     dd, ii = torch.topk(full, 4, largest=False)
     assert torch.equal(i, ii) and torch.allclose(d, dd, atol=1e-6)
+
+
+def test_the_size_prune_warns_when_it_would_remove_most_of_the_model_and_the_probe_reads_it():
+    """After prune_big_after a densification that would remove more than half the model for size
+    warns (what budget=gpu does at step 1600); studies/size_prune.py parses that very message."""
+    import warnings
+
+    from helpers import load_script
+    from pathlib import Path
+    probe = load_script(Path(__file__).resolve().parents[1] / "studies" / "size_prune.py", "size_prune")
+    for big_rows, warns in ((30, True), (20, False)):
+        torch.manual_seed(0)
+        p = _params(50)
+        opts = _optimizers(p)
+        _step(p, opts)
+        strat = DensifyStrategy(grow_grad2d=1.0, refine_start=0, refine_every=100, reset_every=0, prune_opa=0.0,
+                                prune_big_after=100)
+        state = strat.initialize_state(50, scene_extent=1.0)
+        with torch.no_grad():
+            p["scales"][:] = -6.0
+            p["scales"][:big_rows] = 0.0  # exp(0) = 1 > 0.1 x extent
+        means2d = torch.zeros(50, 2, requires_grad=True)
+        means2d.grad = torch.zeros(50, 2)
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            info = strat.step_post_backward(p, opts, state, 200, means2d, torch.full((50,), 3, dtype=torch.int32), 10, 10)
+        assert info["pruned"] == big_rows and p["means"].shape[0] == 50 - big_rows
+        msgs = [str(w.message) for w in got if issubclass(w.category, RuntimeWarning)]
+        assert bool(msgs) == warns, msgs
+        if warns:
+            assert probe.WARNING.findall("\n".join(msgs)) == [("200", str(big_rows), "50")]
