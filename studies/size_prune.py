@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from studies.common import M, ROOT, commit  # noqa: E402
+from studies.common import M, ROOT, commit, records_in, records_to_write  # noqa: E402
 
 OUT = M / "size_prune_probe"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
@@ -103,14 +103,13 @@ def main(argv=None) -> None:
     if args.cmd == "run":
         run(args)
         return
-    rec_dir = OUT / "records"
-    if args.work is not None:
-        rec_dir.mkdir(parents=True, exist_ok=True)
+    if args.work is not None:  # packed records: extract first (records_to_write says how)
+        rec_dir = records_to_write(OUT, "records")
         for sc in args.scenes:
             for v in args.values:
                 if (x := record(args.work, sc, v)) is not None:
                     (rec_dir / f"p{v}_{sc}.json").write_text(json.dumps(x, indent=1) + "\n")
-    text = table([json.loads(f.read_text()) for f in sorted(rec_dir.glob("*.json"))])
+    text = table([json.loads(f.read_text()) for f in sorted(records_in(OUT, "records").glob("*.json"))])
     (OUT / "table.md").write_text(text)
     print(text)
 
