@@ -33,20 +33,24 @@ STEPS = (1500, 1600, 1700, 3000, 3100, 3300)  # counts are logged every 50 steps
 WARNING = re.compile(r"densification at step (\d+): the size prune removes (\d+) of (\d+) Gaussians")
 
 
+def run_dir(work: Path, scene: str, value: int) -> Path:
+    return work / f"p{value}_{scene}"  # its log beside it: the same name + .log
+
+
 def command(data: Path, scene: str, value: int, work: Path) -> list[str]:
     return [sys.executable, "-m", "stdr.cli.train", "experiment=dnerf_deform", "budget=gpu", "device=cpu",
             f"data.path={data / scene}", f"data.name={scene}", "seed=0", f"densify.prune_big_after={value}",
             f"train.stop_at={STOP}", "train.threads=1", "train.progress=false", "eval.save_images=false",
-            f"hydra.run.dir={work / f'p{value}_{scene}'}"]
+            f"hydra.run.dir={run_dir(work, scene, value)}"]
 
 
 def run(args) -> None:
     for scene in args.scenes:
         for value in args.values:
-            rd = args.work / f"p{value}_{scene}"
+            rd = run_dir(args.work, scene, value)
             if (rd / "train_profile.json").is_file():
                 continue
-            with open(args.work / f"p{value}_{scene}.log", "w") as log:
+            with open(rd.with_name(rd.name + ".log"), "w") as log:
                 subprocess.run(command(args.data, scene, value, args.work), stdout=log, stderr=subprocess.STDOUT,
                                cwd=ROOT, check=True)
 
@@ -56,7 +60,7 @@ def record(work: Path, scene: str, value: int) -> dict | None:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     from stdr.eval.evaluate import machine_name
-    rd = work / f"p{value}_{scene}"
+    rd = run_dir(work, scene, value)
     if not (rd / "train_profile.json").is_file():
         return None
     ev = EventAccumulator(str(rd / "tb"))
@@ -65,7 +69,7 @@ def record(work: Path, scene: str, value: int) -> dict | None:
     missing = [s for s in STEPS if s not in counts]
     if missing:
         raise SystemExit(f"{rd}: no gaussians/count logged at steps {missing}")
-    log = (work / f"p{value}_{scene}.log").read_text(errors="replace")
+    log = rd.with_name(rd.name + ".log").read_text(errors="replace")
     warns = [{"step": int(a), "removes": int(b), "of": int(c)} for a, b, c in WARNING.findall(log)]
     return {"scene": scene, "prune_big_after": value, "stop_at": STOP, "counts": {str(s): counts[s] for s in STEPS},
             "warnings": warns, "command": " ".join(command(Path("DNERF"), scene, value, Path("WORK"))[1:]),
