@@ -9,9 +9,10 @@ by the protocol's rule, then read once on test.
     python studies/compact_bytes.py decide            # decision.json and table_val.md (generated)
     # 3. the chosen codecs on test, once; then the table
     python studies/compact_bytes.py test DNERF_ROOT --work WORK
+    python studies/compact_bytes.py where --work WORK # the chosen file's bytes by part (no render)
     python studies/compact_bytes.py table             # table.md (generated)
 
-Records (with the code commit and machine) go to docs/measurements/compact_bytes/records/{val,test}/.
+Records (with the code commit and machine) go to docs/measurements/compact_bytes/records/{val,test,where}/.
 The full models are the compactness study's test records (docs/measurements/compact_prune,
 records.tar.xz, seed 2), not retrained.
 """
@@ -295,6 +296,61 @@ def test(args) -> None:
                   f"PSNR {res['file']['psnr']:.2f} (model {res['model']['psnr']:.2f})", flush=True)
 
 
+def where_bytes(model, spec: dict) -> dict:
+    """The bytes of `model`'s compact file with `spec`, by part: each per-Gaussian table (its
+    codebook included), the deformation module's state, each plug-in's, and the rest (`other`). The fine-tune moves
+    codewords and changes no byte, so the spec's `finetune` is left out."""
+    from stdr.io.codecs import nbytes
+    from stdr.io.compact_file import encode_model
+    m = encode_model(model, {k: v for k, v in spec.items() if k != "finetune"})["model"]
+    out = {"num_gaussians": model.num_gaussians, "params": {k: nbytes(v) for k, v in m["params"].items()},
+           "deform": nbytes(m["deform"]), "plugins": {k: nbytes(v) for k, v in m["plugins"].items()}}
+    # the model entry's other tensors (background, training times, ...)
+    out["other"] = nbytes(m) - sum(out["params"].values()) - out["deform"] - sum(out["plugins"].values())
+    return out
+
+
+def where(args) -> None:
+    """records/where/: the chosen codecs' file of every run, its bytes by part (where_bytes)."""
+    from stdr.eval.evaluate import machine_name
+    dec = json.loads((OUT / "decision.json").read_text())
+    for exp in args.experiments:
+        for scene in args.scenes:
+            rd = run_dir(args.work, exp, scene)
+            rec_path = records_to_write(OUT, "records") / "where" / f"{exp}__{scene}.json"
+            if rec_path.is_file() or not (rd / "metrics.json").is_file():
+                continue
+            _refuse_a_former_default(rd)
+            _, full = _load(rd)
+            name, spec = chosen_spec(exp, dec)
+            rec = {"experiment": exp, "scene": scene, "seed": SEED, "codecs": name, **where_bytes(full, spec),
+                   "code": commit(), "machine": machine_name(), "date": time.strftime("%Y-%m-%d")}
+            rec_path.parent.mkdir(parents=True, exist_ok=True)
+            rec_path.write_text(json.dumps(rec, indent=1) + "\n")
+
+
+def where_rows(recs: list[dict]) -> list[dict]:
+    """Per method (means over its scenes): Gaussians, bytes a Gaussian (the per-Gaussian tables over
+    N), the fixed part (networks, grids, plug-in state) and the total, all in bytes."""
+    by = {}
+    for r in recs:
+        by.setdefault(r["experiment"], []).append(r)
+    out = []
+    for exp in EXPERIMENTS:
+        rs = by.get(exp, [])
+        if not rs:
+            continue
+        m = statistics.mean
+        fixed = [r["deform"] + sum(r["plugins"].values()) + r.get("other", 0) for r in rs]
+        tables = [sum(r["params"].values()) for r in rs]
+        keys = sorted({k for r in rs for k in r["params"]})
+        out.append({"experiment": exp, "scenes": len(rs), "num_gaussians": m(r["num_gaussians"] for r in rs),
+                    "per_gaussian": m(t / r["num_gaussians"] for t, r in zip(tables, rs)),
+                    "by_table": {k: m(r["params"].get(k, 0) / r["num_gaussians"] for r in rs) for k in keys},
+                    "fixed": m(fixed), "total": m(t + f for t, f in zip(tables, fixed))})
+    return out
+
+
 # ------------------------------------------------------------------------------------------ tables
 def full_records() -> dict:
     """(experiment, scene) -> the compactness study's test metrics (seed 2) of the full model, and
@@ -465,11 +521,43 @@ def table(out: Path = OUT, full: dict | None = None) -> str:
               "| method | target | bound | measured | met |", "|---|---|---|---|---|"]
     for exp, what, bound, v, ok in targets:
         lines.append(f"| {exp} | {what} | {bound} | {v:.3f} | {'–' if ok is None else 'yes' if ok else '**no**'} |")
+    wrecs = [json.loads(p.read_text()) for p in sorted((records_in(out, "records") / "where").glob("*.json"))]
+    if wrecs:
+        lines += where_section(where_rows(wrecs))
     if rows:
         chart(rows, out / "charts")
         lines += ["", "![PSNR against MiB: full, compact=on and the compact file, with the file's FPS]"
                       "(charts/size_accuracy_bytes.png)"]
     return "\n".join(lines) + "\n"
+
+
+def where_section(rows: list[dict]) -> list[str]:
+    """Where the file's bytes are (records/where/), and each +STDR/plain ratio split into its two
+    measured factors: the Gaussian count and the bytes STDR adds."""
+    lines = ["", "Where the file's bytes are (`where`: each run's file with the chosen codecs, its tensors' bytes "
+             "by part; means over the scenes; B = bytes):", "",
+             "| method | Gaussians | B a Gaussian | of which: largest tables (B a Gaussian) | fixed part KiB | total MiB |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        top = sorted(r["by_table"].items(), key=lambda kv: -kv[1])[:4]
+        lines.append(f"| {r['experiment']} | {r['num_gaussians']:,.0f} | {r['per_gaussian']:.1f} | "
+                     f"{', '.join(f'`{k}` {v:.1f}' for k, v in top)} | {r['fixed'] / 1024:.1f} | {r['total'] / 2**20:.3f} |")
+    by = {r["experiment"]: r for r in rows}
+    split = []
+    for b in BASELINES:
+        a, s = by.get(f"dnerf_{b}"), by.get(f"dnerf_{b}_stdr")
+        if a and s:
+            # total_s / total_a = (N_s / N_a) x (bytes of +STDR at plain's count / plain's total)
+            count = s["num_gaussians"] / a["num_gaussians"]
+            split.append(f"| {b} | {s['total'] / a['total']:.3f} | {count:.3f} | "
+                         f"{(s['per_gaussian'] - a['per_gaussian']):+.1f} | {(s['fixed'] - a['fixed']) / 1024:+.1f} |")
+    if split:
+        lines += ["", "+STDR against plain, per baseline (ratio of the mean totals; the target above is the "
+                  "geometric mean of per-scene ratios): the Gaussian count's ratio, and what STDR adds a Gaussian "
+                  "and to the fixed part:", "",
+                  "| baseline | +STDR / plain bytes | Gaussians +STDR / plain | B a Gaussian added | fixed KiB added |",
+                  "|---|---|---|---|---|", *split]
+    return lines
 
 
 def main(argv=None) -> None:
@@ -482,6 +570,10 @@ def main(argv=None) -> None:
         p.add_argument("--experiments", nargs="+", default=list(EXPERIMENTS), choices=EXPERIMENTS)
         p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
         p.add_argument("--threads", type=int, default=1)
+    p = sub.add_parser("where")
+    p.add_argument("--work", type=Path, required=True, help="the run folders")
+    p.add_argument("--experiments", nargs="+", default=list(EXPERIMENTS), choices=EXPERIMENTS)
+    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     sub.add_parser("decide")
     sub.add_parser("table")
     a = ap.parse_args(argv)
@@ -493,6 +585,9 @@ def main(argv=None) -> None:
     elif a.cmd == "decide":
         decide(a)
         (OUT / "table_val.md").write_text(table_val())
+    elif a.cmd == "where":
+        where(a)
+        (OUT / "table.md").write_text(table())
     elif a.cmd == "test":
         test(a)
         (OUT / "table.md").write_text(table())

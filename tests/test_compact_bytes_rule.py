@@ -133,3 +133,39 @@ def test_a_run_of_stdrs_former_default_is_refused_by_name(tmp_path):
     (rd / "config.yaml").write_text("stdr:\n  enabled: true\n  mask_after_freeze: false\n")
     _refuse_a_former_default(rd)  # the current default: measured
     _refuse_a_former_default(tmp_path / "not_trained")  # no folder yet: trained by the queue
+
+
+def test_where_splits_the_stdr_over_plain_ratio_into_count_and_added_bytes():
+    from studies.compact_bytes import where_rows, where_section
+    recs = []
+    for sc in SCENES[:2]:  # plain: 1000 Gaussians x 40 B + 10 KiB; +STDR: 1200 x (40 + 2) B + 12 KiB
+        recs.append({"experiment": "dnerf_deform", "scene": sc, "num_gaussians": 1000,
+                     "params": {"means": 6000, "shN": 34000}, "deform": 10240, "plugins": {}})
+        recs.append({"experiment": "dnerf_deform_stdr", "scene": sc, "num_gaussians": 1200,
+                     "params": {"means": 7200, "shN": 40800, "stdr_cond": 2400}, "deform": 10240,
+                     "plugins": {"stdr": 2048}})
+    rows = {r["experiment"]: r for r in where_rows(recs)}
+    assert rows["dnerf_deform"]["per_gaussian"] == 40.0 and rows["dnerf_deform_stdr"]["per_gaussian"] == 42.0
+    assert rows["dnerf_deform_stdr"]["fixed"] == 12288 and rows["dnerf_deform_stdr"]["by_table"]["stdr_cond"] == 2.0
+    line = next(x for x in where_section(list(rows.values())) if x.startswith("| deform |"))
+    # (1200 * 42 + 12288) / (1000 * 40 + 10240) = 62688 / 50240
+    assert line == f"| deform | {62688 / 50240:.3f} | 1.200 | +2.0 | +2.0 |"
+
+
+def test_where_bytes_add_up_to_the_compact_files_bytes(tmp_path):
+    """where_bytes' parts sum to what write_compact reports for the same model and codecs."""
+    import numpy as np
+    import torch
+
+    from stdr.io.compact_file import write_compact
+    from stdr.model import build_model
+    from stdr.testing import make_cfg
+    from studies.compact_bytes import where_bytes
+    cfg = make_cfg(["experiment=dnerf_4dgs"])
+    torch.manual_seed(0)
+    model = build_model(cfg, np.linspace(0, 1, 8), torch.zeros(3), torch.device("cpu"), torch.rand(300, 3), torch.rand(300, 3))
+    spec = {"means": "q16", "shN": "vq:64", "*": "q8", "state": "f16", "state:grids": "q8"}
+    w = where_bytes(model, {**spec, "finetune": 500})  # the fine-tune changes no byte: left out
+    total = sum(w["params"].values()) + w["deform"] + sum(w["plugins"].values()) + w["other"]
+    assert w["num_gaussians"] == 300 and total == write_compact(model, tmp_path / "m.stdrc", spec)["bytes"]
+    assert w["params"]["means"] >= 300 * 3 * 2 and w["deform"] > 0 and 0 <= w["other"] < 1024

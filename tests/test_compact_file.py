@@ -242,9 +242,18 @@ def test_the_derived_mask_stores_the_fields_output_and_renders_the_same(tmp_path
     gated = _trained(tmp_path / "gated", "embedded_deform_stdr", ["stdr.mask_after_freeze=true"]).model
     with pytest.raises(ValueError, match=r"stdr_mask=derived.*stdr.mask_after_freeze=true"):
         encode_model(gated, {MASK_KEY: "derived"})
+    # one spec serves every method (the compact preset's): a model without the mask stores no mask
+    # entry and writes what the spec's other codecs make of it
     plain = _trained(tmp_path / "plain", "embedded_deform").model
-    with pytest.raises(ValueError, match="stdr_mask=derived: no plug-in of this model derives"):
-        encode_model(plain, {MASK_KEY: "derived"})
+    with_mask_key, without = encode_model(plain, {MASK_KEY: "derived"}), encode_model(plain)
+    assert MASK_KEY not in with_mask_key["spec"] and MASK_KEY not in with_mask_key["model"]["params"]
+    assert with_mask_key["spec"] == without["spec"]
+    assert with_mask_key["model"]["params"].keys() == without["model"]["params"].keys()
+    for k, e in without["model"]["params"].items():
+        got = with_mask_key["model"]["params"][k]
+        assert got.keys() == e.keys(), k
+        for f, v in e.items():
+            assert torch.equal(got[f], v) if isinstance(v, torch.Tensor) else got[f] == v, (k, f)
 
 
 def test_state_rules_quantize_4dgs_grid_planes_per_channel_and_leave_the_networks(tmp_path):

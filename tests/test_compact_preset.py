@@ -4,15 +4,19 @@ preset's mask form, and `stdr-tool compact` applies it to a trained run by defau
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from helpers import load_script
 from omegaconf import OmegaConf
 
 from stdr.cli.common import CONFIG_DIR
 from stdr.config import experiment_names
+from stdr.model import load_model
 from stdr.testing import make_cfg, tiny_config
 
 ON = OmegaConf.load(Path(CONFIG_DIR) / "compact" / "on.yaml")
+ROOT = Path(__file__).resolve().parents[1]
 SCHED = ["optim.iterations=60", "baseline.warmup=10", "stdr.freeze_at=25", "densify.refine_start=10",
          "densify.refine_every=10", "densify.reset_every=0", "densify.refine_stop=40", "densify.prune_big_after=30",
          "train.checkpoint_every=0", "train.eval_at_warmup_end=false", "eval.fps_repeats=1"]
@@ -27,8 +31,10 @@ def test_compact_on_sets_the_presets_keys_for_every_method(exp):
     assert on.stdr.mask_bits == OmegaConf.select(ON, "stdr.mask_bits", default=32)
     assert on.stdr.time_bins == OmegaConf.select(ON, "stdr.time_bins", default=0)
     assert off.prune.share == 0 and off.stdr.mask_bits == 32 and off.stdr.time_bins == 0
+    assert on.pack.enabled == ON.pack.enabled and dict(on.pack.codecs) == dict(ON.pack.codecs)
+    assert on.pack.finetune == ON.pack.finetune and not off.pack.enabled and not off.pack.codecs
     # everything else is the method's own
-    strip = ("compact", "prune", "stdr")
+    strip = ("compact", "prune", "stdr", "pack")
     assert {k: v for k, v in OmegaConf.to_container(on).items() if k not in strip} == \
         {k: v for k, v in OmegaConf.to_container(off).items() if k not in strip}
     assert on.stdr.enabled == off.stdr.enabled == exp.endswith("_stdr")
@@ -57,10 +63,12 @@ def test_the_preset_trains_every_baseline_with_stdr_into_a_pruned_model(tmp_path
     assert tr.model.params["stdr_mask"].shape[0] == tr.model.num_gaussians
 
 
-def test_stdr_tool_compact_applies_the_preset_to_a_trained_run_by_default(tmp_path):
+@pytest.mark.parametrize("gated", [False, True])
+def test_stdr_tool_compact_applies_the_preset_to_a_trained_run_by_default(tmp_path, gated):
     from stdr.cli.train import run
     from stdr.tools.compact import main
-    run(tiny_config(tmp_path, ["stdr=on", *SCHED]), tmp_path / "run")
+    from stdr.tools.pack import spec_of_config
+    run(tiny_config(tmp_path, ["stdr=on", *SCHED, f"stdr.mask_after_freeze={str(gated).lower()}"]), tmp_path / "run")
     before = json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]
     main([str(tmp_path / "run"), "--steps", "5"])
     m = json.loads((tmp_path / "run_compact" / "metrics.json").read_text())["test"]
@@ -71,3 +79,58 @@ def test_stdr_tool_compact_applies_the_preset_to_a_trained_run_by_default(tmp_pa
     assert m["stdr"]["mask_bits"] == OmegaConf.select(ON, "stdr.mask_bits", default=32)
     saved = OmegaConf.load(tmp_path / "run_compact" / "config.yaml")
     assert saved.prune.time_weight == ON.prune.time_weight
+    # the compact file in the preset's codecs; a run whose mask still gates opacity after the freeze
+    # cannot store the derived form and gets the 8-bit mask (exact: the run now stores it in 8 bits)
+    used = json.loads((tmp_path / "run_compact" / "pack.json").read_text())["spec"]
+    want = spec_of_config(ON.pack)
+    for k in ("means", "scales", "quats", "opacities", "sh0", "shN"):
+        assert used[k] == want[k], k
+    assert used["stdr_mask"] == ("raw" if gated else want["stdr_mask"])  # raw: the uint8 mask as it is
+    small = load_model(tmp_path / "run_compact" / "model.stdrc", "cpu")
+    assert ("stdr_mask" in small.params) == gated and ("stdr_cond" in small.params) == (not gated)
+
+
+def test_the_presets_file_codecs_are_what_the_bytes_study_chose():
+    """compact=on's `pack` section is the codecs docs/measurements/compact_bytes/decision.json chose
+    (steps 1-3), one spec for every method: on a model without a 4DGS grid or an STDR mask the
+    entries for them change nothing, so each method's file is what the study measured for it."""
+    from stdr.io.compact_file import encode_model
+    from stdr.model import build_model
+    from stdr.tools.pack import spec_of_config
+    study = load_script(ROOT / "studies" / "compact_bytes.py", "compact_bytes_study")
+    dec = json.loads((ROOT / "docs" / "measurements" / "compact_bytes" / "decision.json").read_text())
+    assert dec["complete"] and dec["step3_measured"]
+    preset = spec_of_config(ON.pack)
+    assert ON.pack.enabled and preset == study.chosen_spec("dnerf_4dgs_stdr", dec)[1]
+    for b in ("deform", "scgs", "spgs", "4dgs"):
+        cfg = make_cfg([f"experiment=dnerf_{b}", "compact=on"])
+        torch.manual_seed(0)
+        model = build_model(cfg, np.linspace(0, 1, 8), torch.zeros(3), torch.device("cpu"),
+                            torch.rand(300, 3), torch.rand(300, 3))
+        a, c = encode_model(model, preset), encode_model(model, study.chosen_spec(f"dnerf_{b}", dec)[1])
+        assert _flat(a["model"]) == _flat(c["model"]), b
+        assert ("q8" in {v for k, v in _flat(a["model"]).items() if ".grids." in k and k.endswith("codec")}) == (b == "4dgs")
+
+
+def _flat(x, p=""):
+    """A payload as {dotted path: value}, tensors as (dtype, shape, their bytes)."""
+    if isinstance(x, torch.Tensor):
+        return {p: (str(x.dtype), tuple(x.shape), x.reshape(-1).contiguous().view(torch.uint8).numpy().tobytes())}
+    if isinstance(x, dict):
+        return {q: v for k, y in x.items() for q, v in _flat(y, f"{p}.{k}").items()}
+    if isinstance(x, (list, tuple)):
+        return {q: v for i, y in enumerate(x) for q, v in _flat(y, f"{p}.{i}").items()}
+    return {p: x}
+
+
+def test_the_preset_refuses_a_gated_stdr_run_before_training_and_names_the_fix(tmp_path):
+    """STDR's derived form needs stdr.mask_after_freeze=false: with true the preset's run stops at
+    its start (no training), and the message names the 8-bit mask's key; that key then trains."""
+    from stdr.cli.train import run
+    gated = ["stdr=on", "compact=on", *SCHED, "stdr.mask_after_freeze=true"]
+    with pytest.raises(ValueError, match=r"pack.codecs: stdr_mask=derived .*stdr_mask=q8"):
+        run(tiny_config(tmp_path, gated), tmp_path / "gated")
+    assert not (tmp_path / "gated" / "metrics.json").exists()
+    cfg = tiny_config(tmp_path, [*gated, "pack.codecs.stdr_mask=q8", "pack.finetune=20"])
+    run(cfg, tmp_path / "ok")
+    assert json.loads((tmp_path / "ok" / "pack.json").read_text())["spec"]["stdr_mask"] == "raw"  # the uint8 mask

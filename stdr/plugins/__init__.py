@@ -39,6 +39,10 @@ class Plugin:
     #: keys that earlier versions wrote under the plug-in's config node; a saved config that
     #: carries them still loads (they are dropped)
     removed_keys: tuple[str, ...] = ()
+    #: the codec a compact file stores each of this plug-in's derivable tables in when the run's
+    #: config does not allow the `derived` form (check_compact_spec refuses it): stdr-tool compact
+    #: applies the compact preset to older runs that way
+    compact_fallback: dict[str, str] = {}
 
     # ---------------------------------------------------------------- registration
     @classmethod

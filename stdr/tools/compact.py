@@ -4,7 +4,8 @@
 
 Without --share / --time-weight / --mask-bits, the compact preset's values are used
 (stdr/configs/compact/on.yaml, `compact=on` of stdr-train): one event removing the share that the
-preset's events remove together, its time weight, and its mask form for an STDR run.
+preset's events remove together, its time weight, its mask form for an STDR run, and its compact
+file codecs (`pack`; STDR's derived mask only where the run allows it, else its 8-bit mask).
 
 The run's checkpoint is copied to the new run folder (default RUN_DIR_compact) and training goes
 on from it for --steps more iterations with `prune.share=SHARE prune.at=[<its step>]`: the
@@ -13,7 +14,7 @@ fine-tune at the learning rates the schedules give past the old end. The phase b
 run already crossed are pinned to their values (a boundary that scales with optim.iterations
 would move otherwise); the new folder is a complete run (config.yaml, checkpoint, metrics.json
 with both the prune event and the final evaluation, and the compact model file model.stdrc with
-its pack.json: stdr-tool pack), and the original stays untouched.
+its pack.json, in the preset's codecs: stdr-tool pack), and the original stays untouched.
 """
 from __future__ import annotations
 
@@ -28,14 +29,36 @@ def preset_values() -> dict:
     """The compact preset's keys (stdr/configs/compact/on.yaml) as this tool applies them to a
     trained run in one event: `share` = the fraction the preset's `prune.at` events remove
     together (1 - (1 - s)^events), `time_weight`, `mask_bits` (0: the preset keeps the mask's
-    form)."""
+    form), `pack` (the compact file's spec, stdr.tools.pack.spec_of_config of its `pack` node; {}
+    when the preset writes no file)."""
     from omegaconf import OmegaConf
 
     from ..cli.common import CONFIG_DIR
+    from .pack import spec_of_config
     node = OmegaConf.load(Path(CONFIG_DIR) / "compact" / "on.yaml")
     s, events = float(node.prune.share), len(node.prune.at)
+    pk = OmegaConf.select(node, "pack", default=None)
     return {"share": 1.0 - (1.0 - s) ** events, "time_weight": float(node.prune.time_weight),
-            "mask_bits": _as_change(int(OmegaConf.select(node, "stdr.mask_bits", default=32)))}
+            "mask_bits": _as_change(int(OmegaConf.select(node, "stdr.mask_bits", default=32))),
+            "pack": spec_of_config(pk) if pk is not None and pk.get("enabled") else {}}
+
+
+def spec_for_run(cfg, spec: dict) -> tuple[dict, Optional[str]]:
+    """`spec` as a trained run can take it: a plug-in's derived form that the run's keys do not
+    allow (STDR's `stdr_mask: derived` on a run trained with stdr.mask_after_freeze=true) becomes
+    that table's exact 8-bit form. Returns (spec, a note saying what changed, or None)."""
+    from ..plugins import enabled_plugins, plugin_node
+    out = dict(spec)
+    for p in enabled_plugins(cfg):
+        try:
+            p.plugin.check_compact_spec(plugin_node(cfg, p.name), out)
+        except ValueError as err:
+            moved = {k: c for k, c in p.plugin.compact_fallback.items() if out.get(k) == "derived"}
+            if not moved:
+                raise
+            out.update(moved)
+            return out, f"{', '.join(f'{k}={c}' for k, c in moved.items())} in place of the preset's derived form: {err}"
+    return out, None
 
 
 def _as_change(bits: int) -> int:
@@ -82,8 +105,10 @@ def compact_config(cfg, step: int, share: float, steps: int, time_weight: float 
 
 
 def compact(run_dir: Path, share: float, steps: int = 300, time_weight: float = 0.0, out: Optional[Path] = None,
-            split: Optional[str] = None, data_base: Optional[str] = None, mask_bits: int = 0) -> dict:
-    """Prune run_dir's model by contribution, fine-tune `steps` iterations into `out`, evaluate."""
+            split: Optional[str] = None, data_base: Optional[str] = None, mask_bits: int = 0,
+            pack_spec: Optional[dict] = None) -> dict:
+    """Prune run_dir's model by contribution, fine-tune `steps` iterations into `out`, evaluate, and
+    write the compact file of the result with `pack_spec` (stdr.io.compact_file; None: its defaults)."""
     from ..cli.train import run
     from ..config import load_config
     from ..train.checkpoint import load_checkpoint
@@ -101,11 +126,15 @@ def compact(run_dir: Path, share: float, steps: int = 300, time_weight: float = 
     if split:
         new.data.eval_split = split
     new.name = f"{cfg.name}_compact"
+    spec, note = spec_for_run(new, dict(pack_spec or {}))
+    if note:
+        print(f"[stdr] compact file: {note}")
+    new.pack.enabled = False  # written once, below, with `spec` (not the old run's pack keys)
     (out / CKPT).parent.mkdir(parents=True)
     shutil.copy2(src, out / CKPT)
     res = run(new, out, data_base)
     from .pack import pack
-    rec = pack(out, split=new.data.eval_split, data_base=data_base)  # out/model.stdrc, out/pack.json
+    rec = pack(out, spec=spec, split=new.data.eval_split, data_base=data_base)  # out/model.stdrc, out/pack.json
     print(f"[stdr] {rec['file']}: {rec['bytes'] / 2**20:.2f} MiB ({rec['ratio']:.1%} of the model's tensors)")
     return res
 
@@ -134,7 +163,7 @@ def main(argv=None) -> None:
     else:  # the preset's mask form applies to an STDR run only
         mask_bits = pre["mask_bits"] if _has_stdr(a.run) else 0
     tw = pre["time_weight"] if a.time_weight is None else a.time_weight
-    compact(a.run, share, a.steps, tw, a.out, a.split, mask_bits=mask_bits)
+    compact(a.run, share, a.steps, tw, a.out, a.split, mask_bits=mask_bits, pack_spec=pre["pack"])
 
 
 def _has_stdr(run_dir: Path) -> bool:

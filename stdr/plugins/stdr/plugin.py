@@ -156,6 +156,8 @@ class STDR(Plugin):
         tags = [f"w/o {k}" for k in cls.ABLATION_SWITCHES if pcfg.get(k) is False]
         return tags + [label for k, (val, label) in cls.NON_DEFAULT_OPTIONS.items() if pcfg.get(k) == val]
 
+    compact_fallback = {MASK_KEY: "q8"}  # the 8-bit mask: exact for a run with stdr.mask_bits=8
+
     @classmethod
     def check_compact_spec(cls, pcfg, spec: dict) -> None:
         """stdr_mask=derived needs a run whose mask stops multiplying opacity at the freeze and whose
