@@ -118,6 +118,17 @@ def test_the_test_table_reports_each_target_with_its_value_and_draws_the_chart(t
     fps = rows[("dnerf_deform", "FPS file / compact=on")]
     assert "| **no** |" in fps  # sqrt(91 * 89) / 90 < 1
     assert (tmp_path / "charts" / "size_accuracy_bytes.png").is_file() and n == 4
+    # `where` records (the same models counted in a later file format) add the ratio of their totals
+    for exp, per in (("dnerf_deform", 40), ("dnerf_deform_stdr", 44)):
+        for sc in SCENES[:2]:
+            (tmp_path / "records" / "where").mkdir(parents=True, exist_ok=True)
+            (tmp_path / "records" / "where" / f"{exp}__{sc}.json").write_text(json.dumps(
+                {"experiment": exp, "scene": sc, "num_gaussians": 1000, "params": {"means": per * 1000},
+                 "deform": 9000, "plugins": {}, "other": 1000, "code": "def"}))
+    text = table(tmp_path, full)
+    row = next(x for x in text.splitlines() if "format of def" in x)
+    assert row.startswith("| dnerf_deform_stdr |") and f"| {54000 / 50000:.3f} | yes |" in row
+    assert "(`where`, code def:" in text
 
 
 def test_a_run_of_stdrs_former_default_is_refused_by_name(tmp_path):

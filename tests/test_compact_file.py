@@ -161,6 +161,11 @@ def test_the_compact_file_round_trips_through_load_model(tmp_path, experiment):
     assert torch.equal(small.params["means"], full.params["means"])
     knots = [p for p in small.plugins if p.name == "stdr"][0].state_dict()["knots"]
     assert knots.dtype == torch.float64
+    # STDR's training caches (the regularizer's neighbours, its generator) are not in the file
+    trained_state = [p for p in full.plugins if p.name == "stdr"][0].state_dict()
+    assert trained_state["knn"] is not None and trained_state["gen"] is not None
+    stored = encode_model(full)["model"]["plugins"]["stdr"]
+    assert stored["knn"] is None and stored["gen"] is None and stored["field"] is not None
     frames = t.scene.frames("test")
     a, b = evaluate_model(full, frames, fps_warmup=0), evaluate_model(small, frames, fps_warmup=0)
     for pa, pb in zip(a["per_frame_psnr"], b["per_frame_psnr"]):

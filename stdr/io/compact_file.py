@@ -122,8 +122,9 @@ def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
         d = p.compact_derived(model.params, model.step) if asked & set(model.params) else {}
         d = {k: v for k, v in d.items() if k in asked}
         derived.update(d)
-        if d:  # the plug-in's state without what it no longer needs (STDR: the field's weights)
-            plugins[p.name] = p.compact_state(plugins[p.name], set(d))
+        # the plug-in's state without what a render does not read (STDR: its training caches, and
+        # the field's weights when the file stores the field's output)
+        plugins[p.name] = p.compact_state(plugins[p.name], set(d))
     # a table this model does not have is not stored at all (a spec serves every method: the
     # preset's `stdr_mask: derived` on a run without STDR); one it has must be derived as asked
     missing = (asked & set(entry["params"])) - set(derived)

@@ -122,8 +122,9 @@ class Plugin:
         return {}
 
     def compact_state(self, state: dict[str, Any], derived: set[str]) -> dict[str, Any]:
-        """This plug-in's state_dict for a compact file that stores the tables `derived` in their
-        derived form: without what only the derivation needed. Default: as it is."""
+        """This plug-in's state_dict for a compact file, which stores the tables `derived` (maybe
+        none) in their derived form: without what a render of the finished model does not read
+        (training-only state, and what only the derivation needed). Default: as it is."""
         return state
 
     def conditioning(self, params, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
