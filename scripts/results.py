@@ -401,8 +401,8 @@ def compact_file() -> list[str]:
     return ["", "## The compact model file (`compact=on` with its codecs), test split", "",
             "Source: `docs/measurements/compact_bytes/table.md`; the codecs were chosen on the val split by the rule "
             "of `docs/measurements/compact_bytes/protocol.md` (`table_val.md`, `decision.json`). " + stamp, "",
-            *_first_table(md), "", text[targets], "", *_first_table(md, targets),
-            *(["", "![PSNR against MiB: full, compact=on and the compact file, with the file's FPS]"
+            *_first_table(md), "", *[line for line in text[targets:] if not line.startswith("![")],
+            *(["![PSNR against MiB: full, compact=on and the compact file, with the file's FPS]"
                "(measurements/compact_bytes/charts/size_accuracy_bytes.png)"] if png.is_file() else [])]
 
 

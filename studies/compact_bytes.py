@@ -428,7 +428,7 @@ def test_rows(recs: list[dict], full: dict) -> list[dict]:
     return out
 
 
-def chart(rows: list[dict], out: Path) -> Path:
+def chart(rows: list[dict], out: Path, stamp: str = "") -> Path:
     """PSNR against MiB (log) per method: full (circle), compact=on (square), the file (diamond,
     labelled with its FPS), joined; colour per baseline, hollow plain, filled +STDR."""
     import csv
@@ -453,7 +453,9 @@ def chart(rows: list[dict], out: Path) -> Path:
     ax.set_xlabel("MiB (log): full model ○, compact=on □, compact file ◆")
     ax.set_ylabel("test PSNR (dB), mean over scenes")
     handles = [plt.Line2D([], [], color=c, marker="o", ls="", mfc=c, label=b) for b, c in colors.items()]
-    ax.legend(handles=handles, fontsize=7, title="baseline (filled: +STDR)", title_fontsize=7, loc="lower right")
+    ax.legend(handles=handles, fontsize=7, title="baseline (filled: +STDR)", title_fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    if stamp:
+        fig.text(0.01, -0.02, stamp, fontsize=6, color="0.35")
     ax.set_title("Bytes, PSNR and render FPS (budget=cpu, seed 2, four shared D-NeRF scenes)", fontsize=9)
     out.mkdir(parents=True, exist_ok=True)
     png = out / "size_accuracy_bytes.png"
@@ -478,7 +480,9 @@ def table(out: Path = OUT, full: dict | None = None) -> str:
               f"{', '.join(sorted({r['code'] for r in recs}))}; machine {'; '.join(sorted({r['machine'] for r in recs}))}. "
               "Full: the compactness study's test records (same seed). Codecs: decision.json (chosen on val, protocol.md). "
               "FPS of the run's model and of the file's model are measured one after the other in one process "
-              "(median of 3 passes); the full model's FPS is from its own evaluation, on another machine.", "",
+              "(median of 3 passes); the full model's FPS is from its own evaluation, on another machine. The file's MiB "
+              "are those of the file written when test was read (the records' code); `where` below counts the same "
+              "models' files in the format of its own code.", "",
               "| method | scenes | model | PSNR | SSIM | LPIPS | MiB | FPS |", "|---|---|---|---|---|---|---|---|"]
     rows = test_rows(recs, full)
     by = {}
@@ -530,10 +534,17 @@ def table(out: Path = OUT, full: dict | None = None) -> str:
               "| method | target | bound | measured | met |", "|---|---|---|---|---|"]
     for exp, what, bound, v, ok in targets:
         lines.append(f"| {exp} | {what} | {bound} | {v:.3f} | {'–' if ok is None else 'yes' if ok else '**no**'} |")
+    ratios = [r["file"]["fps"] / r["model"]["fps"] for r in recs]
+    same = all(r["file"].get("num_gaussians", -1) == r["model"].get("num_gaussians", -2) for r in recs)
+    lines += ["", f"FPS file / compact=on per run, all {len(ratios)} runs: {min(ratios):.3f} to {max(ratios):.3f} "
+              f"(geometric mean {_gmean(ratios):.3f})." + (
+                  " In every run the file's model renders as many Gaussians as the run's, with its tensors decoded "
+                  "to float32, so this spread is the timing's own." if same else "")]
     if wrecs:
         lines += where_section(where_rows(wrecs), wcode)
     if rows:
-        chart(rows, out / "charts")
+        chart(rows, out / "charts", f"test records: code {', '.join(sorted({r['code'] for r in recs}))}; "
+                                    f"{'; '.join(sorted({r['machine'] for r in recs}))}")
         lines += ["", "![PSNR against MiB: full, compact=on and the compact file, with the file's FPS]"
                       "(charts/size_accuracy_bytes.png)"]
     return "\n".join(lines) + "\n"

@@ -99,9 +99,9 @@ def test_the_test_table_reports_each_target_with_its_value_and_draws_the_chart(t
             full[(exp, sc, "compact")] = {"psnr": 29.99, "model_mb": mib / 2}
             rec = {"experiment": exp, "scene": sc, "codecs": "q8m16_vq256_ft", "bytes": fbytes * 2**20,
                    "model_bytes": mib / 2 * 2**20, "code": "abc", "machine": "m",
-                   "model": {"psnr": 29.98, "ssim": 0.95, "lpips": 0.08, "fps": 90.0},
+                   "model": {"psnr": 29.98, "ssim": 0.95, "lpips": 0.08, "fps": 90.0, "num_gaussians": 100},
                    "file": {"psnr": 29.95 if exp == "dnerf_deform" else 29.8, "ssim": 0.95, "lpips": 0.08,
-                            "fps": 91.0 if sc == SCENES[0] else 89.0}}
+                            "fps": 91.0 if sc == SCENES[0] else 89.0, "num_gaussians": 100}}
             (tmp_path / "records" / "test").mkdir(parents=True, exist_ok=True)
             (tmp_path / "records" / "test" / f"{exp}__{sc}.json").write_text(json.dumps(rec))
             n += 1
@@ -129,6 +129,8 @@ def test_the_test_table_reports_each_target_with_its_value_and_draws_the_chart(t
     row = next(x for x in text.splitlines() if "format of def" in x)
     assert row.startswith("| dnerf_deform_stdr |") and f"| {54000 / 50000:.3f} | yes |" in row
     assert "(`where`, code def:" in text
+    assert f"all 4 runs: {89 / 90:.3f} to {91 / 90:.3f} (geometric mean {(91 * 89 * 91 * 89) ** 0.25 / 90:.3f})" in text
+    assert "as many Gaussians as the run's" in text
 
 
 def test_a_run_of_stdrs_former_default_is_refused_by_name(tmp_path):
