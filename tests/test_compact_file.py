@@ -236,6 +236,10 @@ def test_the_derived_mask_stores_the_fields_output_and_renders_the_same(tmp_path
         small = load_model(tmp_path / f"{name}.stdrc", "cpu")
         small.eval()
         assert MASK_KEY not in small.params and small.params[COND_KEY].shape == (n, cond_dim)
+        from stdr.view.core import render_view
+        f0 = t.scene.frames("test")[0]
+        with pytest.raises(ValueError, match=r"view 'mask': this compact file .*stdr_mask: derived.*stdr_mask=q8"):
+            render_view(small, f0.camera, f0.time, "mask")
         if name == "d32":
             with torch.no_grad():
                 for f in frames:

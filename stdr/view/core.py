@@ -217,6 +217,11 @@ def render_view(model, camera: Camera, t: float, view: str = "rgb") -> np.ndarra
         from ..plugins.stdr.mask import mask_at
         from ..plugins.stdr.plugin import MASK_KEY
         if MASK_KEY not in params:
+            from ..plugins.stdr.plugin import COND_KEY
+            if COND_KEY in params:  # a compact file with stdr_mask: derived keeps the field's output only
+                raise ValueError("view 'mask': this compact file stores the separated field's output in place of "
+                                 "STDR's mask (stdr_mask: derived); view the run's checkpoint for the mask, or "
+                                 "write the file with the mask (stdr-tool pack RUN --codec stdr_mask=q8)")
             raise ValueError("view 'mask': this STDR run has no mask (stdr.mask=false)")
         return to_uint8(_recoloured(model, t, mask_at(params[MASK_KEY].detach(), t, stdr.knots), camera).image)
     model.conditioning(model.step)  # sets the motion branch's d_i (after the freeze)
