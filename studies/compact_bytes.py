@@ -329,17 +329,16 @@ def where(args) -> None:
             rec_path.write_text(json.dumps(rec, indent=1) + "\n")
 
 
+def by_method(recs: list[dict]) -> list[tuple[str, list[dict]]]:
+    """The records grouped by experiment, in EXPERIMENTS' order, experiments without records left out."""
+    return [(exp, rs) for exp in EXPERIMENTS if (rs := [r for r in recs if r["experiment"] == exp])]
+
+
 def where_rows(recs: list[dict]) -> list[dict]:
     """Per method (means over its scenes): Gaussians, bytes a Gaussian (the per-Gaussian tables over
     N), the fixed part (networks, grids, plug-in state) and the total, all in bytes."""
-    by = {}
-    for r in recs:
-        by.setdefault(r["experiment"], []).append(r)
     out = []
-    for exp in EXPERIMENTS:
-        rs = by.get(exp, [])
-        if not rs:
-            continue
+    for exp, rs in by_method(recs):
         m = statistics.mean
         fixed = [r["deform"] + sum(r["plugins"].values()) + r.get("other", 0) for r in rs]
         tables = [sum(r["params"].values()) for r in rs]
@@ -408,14 +407,8 @@ def table_val() -> str:
 
 def test_rows(recs: list[dict], full: dict) -> list[dict]:
     """Per method (mean over its scenes): full, compact=on and file, each {label, psnr, ssim, lpips, mib, fps}."""
-    by = {}
-    for r in recs:
-        by.setdefault(r["experiment"], []).append(r)
     out = []
-    for exp in EXPERIMENTS:
-        rs = by.get(exp, [])
-        if not rs:
-            continue
+    for exp, rs in by_method(recs):
         fs = [full[(exp, r["scene"])] for r in rs]
         m = statistics.mean
         out.append({"experiment": exp, "scenes": len(rs), "codecs": rs[0]["codecs"], "models": [
