@@ -56,24 +56,27 @@ def run_dir(work: Path, exp: str, scene: str) -> Path:
 
 
 # ------------------------------------------------------------------------------------------ train
-def train(args) -> None:
+def train(args, overrides=(), tag: str = "compact_bytes", refuse_former_default: bool = True) -> None:
+    """Train each (experiment, scene) run of `args` that has no metrics.json: the study's
+    `compact=on` command plus `overrides` (compact_grid's grid), one subprocess a run, its log beside it."""
     for exp in args.experiments:
         for scene in args.scenes:
             rd = run_dir(args.work, exp, scene)
-            _refuse_a_former_default(rd)
+            if refuse_former_default:
+                _refuse_a_former_default(rd)
             if (rd / "metrics.json").is_file():
                 continue
             rd.parent.mkdir(parents=True, exist_ok=True)
             cmd = [sys.executable, "-m", "stdr.cli.train", f"experiment={exp}", "compact=on", "budget=cpu",
                    f"seed={SEED}", f"data.path={Path(args.dnerf) / scene}", f"hydra.run.dir={rd}",
                    "train.progress=false", "eval.save_images=false", "train.image_every=0",
-                   f"train.threads={args.threads}"]
+                   f"train.threads={args.threads}", *overrides]
             t0 = time.time()
-            print(f"[compact_bytes] {time.strftime('%T')} train {exp} {scene}", flush=True)
+            print(f"[{tag}] {time.strftime('%T')} train {exp} {scene}", flush=True)
             with open(f"{rd}.log", "a") as log:
                 rc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
                                     stdout=log, stderr=subprocess.STDOUT).returncode
-            print(f"[compact_bytes]   {'done' if rc == 0 else f'FAILED rc={rc} (log {rd}.log)'} "
+            print(f"[{tag}]   {'done' if rc == 0 else f'FAILED rc={rc} (log {rd}.log)'} "
                   f"in {time.time() - t0:.0f} s", flush=True)
 
 
@@ -260,12 +263,28 @@ def chosen_spec(exp: str, dec: dict) -> tuple[str, dict]:
 
 
 # ------------------------------------------------------------------------------------------ test
-def test(args) -> None:
-    """The chosen codecs on test, once per run: the run's model and the file's, each rendered with
-    LPIPS, FPS the median of 3 passes, the two models' passes in the same process one after the other."""
+def test_record(rd: Path, exp: str, scene: str, name: str, spec: dict) -> dict:
+    """A run's model and its compact file (`spec`) on test, once: each rendered with LPIPS, FPS the
+    median of 3 passes, the two models' passes in the same process one after the other."""
     from stdr.config import load_config
     from stdr.data.load import load_scene
     from stdr.eval.evaluate import evaluate_model, machine_name, make_lpips
+    cfg, full = _load(rd)
+    lp = make_lpips(load_config(rd / "config.yaml").eval)
+    scn = load_scene(cfg.data, ("train", "test"), base=str(ROOT), seed=cfg.seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        w, small = _file_model(full, cfg, spec, Path(tmp), scn.frames("train"))
+        res = {}
+        for label, m in (("model", full), ("file", small)):
+            r = evaluate_model(m, scn.frames("test"), lpips_fn=lp, fps_warmup=3, fps_repeats=3)
+            res[label] = {k: r[k] for k in ("psnr", "ssim", "lpips", "fps", "num_gaussians")}
+    return {"experiment": exp, "scene": scene, "seed": SEED, "split": "test", "codecs": name, "spec": w["spec"],
+            "bytes": w["bytes"], "model_bytes": w["full_bytes"], **res,
+            "code": commit(), "machine": machine_name(), "date": time.strftime("%Y-%m-%d")}
+
+
+def test(args) -> None:
+    """The chosen codecs on test, once per run (test_record)."""
     dec = json.loads((OUT / "decision.json").read_text())
     if not dec.get("complete") or not dec.get("step3"):
         raise SystemExit("compact_bytes test: decision.json is not complete (run val and decide until steps 1-3 are chosen)")
@@ -276,24 +295,11 @@ def test(args) -> None:
                 continue
             rd = run_dir(args.work, exp, scene)
             _refuse_a_former_default(rd)
-            cfg, full = _load(rd)
-            lp = make_lpips(load_config(rd / "config.yaml").eval)
-            scn = load_scene(cfg.data, ("train", "test"), base=str(ROOT), seed=cfg.seed)
-            frames = scn.frames("test")
-            name, spec = chosen_spec(exp, dec)
-            with tempfile.TemporaryDirectory() as tmp:
-                w, small = _file_model(full, cfg, spec, Path(tmp), scn.frames("train"))
-                res = {}
-                for label, m in (("model", full), ("file", small)):
-                    r = evaluate_model(m, frames, lpips_fn=lp, fps_warmup=3, fps_repeats=3)
-                    res[label] = {k: r[k] for k in ("psnr", "ssim", "lpips", "fps", "num_gaussians")}
-            rec = {"experiment": exp, "scene": scene, "seed": SEED, "split": "test", "codecs": name, "spec": w["spec"],
-                   "bytes": w["bytes"], "model_bytes": w["full_bytes"], **res,
-                   "code": commit(), "machine": machine_name(), "date": time.strftime("%Y-%m-%d")}
+            rec = test_record(rd, exp, scene, *chosen_spec(exp, dec))
             rec_path.parent.mkdir(parents=True, exist_ok=True)
             rec_path.write_text(json.dumps(rec, indent=1) + "\n")
-            print(f"[compact_bytes] test {exp} {scene} {name}: {w['bytes'] / 2**20:.2f} MiB, "
-                  f"PSNR {res['file']['psnr']:.2f} (model {res['model']['psnr']:.2f})", flush=True)
+            print(f"[compact_bytes] test {exp} {scene} {rec['codecs']}: {rec['bytes'] / 2**20:.2f} MiB, "
+                  f"PSNR {rec['file']['psnr']:.2f} (model {rec['model']['psnr']:.2f})", flush=True)
 
 
 def where_bytes(model, spec: dict) -> dict:
@@ -524,9 +530,7 @@ def table(out: Path = OUT, full: dict | None = None) -> str:
     lines += ["", "Targets (ratios: geometric mean over the scenes of the per-scene ratio; paired: this run's file "
               "against its own model, times the compactness study's compact branch against its full trunk, "
               "protocol.md amendment 2; unpaired: against the other study's full run directly):", "",
-              "| method | target | bound | measured | met |", "|---|---|---|---|---|"]
-    for exp, what, bound, v, ok in targets:
-        lines.append(f"| {exp} | {what} | {bound} | {v:.3f} | {'–' if ok is None else 'yes' if ok else '**no**'} |")
+              *targets_lines(targets)]
     ratios = [r["file"]["fps"] / r["model"]["fps"] for r in recs]
     same = all(r["file"].get("num_gaussians", -1) == r["model"].get("num_gaussians", -2) for r in recs)
     lines += ["", f"FPS file / compact=on per run, all {len(ratios)} runs: {min(ratios):.3f} to {max(ratios):.3f} "
@@ -541,6 +545,24 @@ def table(out: Path = OUT, full: dict | None = None) -> str:
         lines += ["", "![PSNR against MiB: full, compact=on and the compact file, with the file's FPS]"
                       "(charts/size_accuracy_bytes.png)"]
     return "\n".join(lines) + "\n"
+
+
+def targets_lines(targets: list[tuple]) -> list[str]:
+    """The targets table: (method, target, bound, measured, met: True / False / None for reported)."""
+    return ["| method | target | bound | measured | met |", "|---|---|---|---|---|",
+            *(f"| {exp} | {what} | {bound} | {v:.3f} | {'–' if ok is None else 'yes' if ok else '**no**'} |"
+              for exp, what, bound, v, ok in targets)]
+
+
+def add_run_args(p, experiments, scenes, dnerf: bool = True) -> None:
+    """The arguments of a subcommand over run folders: [DNERF] --work --experiments --scenes (--threads)."""
+    if dnerf:
+        p.add_argument("dnerf", type=Path, help="folder with the D-NeRF scenes")
+    p.add_argument("--work", type=Path, required=True, help="the run folders")
+    p.add_argument("--experiments", nargs="+", default=list(experiments), choices=experiments)
+    p.add_argument("--scenes", nargs="+", default=list(scenes), choices=scenes)
+    if dnerf:
+        p.add_argument("--threads", type=int, default=1)
 
 
 def where_section(rows: list[dict], code: str = "") -> list[str]:
@@ -576,16 +598,8 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
     for name in ("train", "val", "test"):
-        p = sub.add_parser(name)
-        p.add_argument("dnerf", type=Path, help="folder with the D-NeRF scenes")
-        p.add_argument("--work", type=Path, required=True, help="the run folders")
-        p.add_argument("--experiments", nargs="+", default=list(EXPERIMENTS), choices=EXPERIMENTS)
-        p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
-        p.add_argument("--threads", type=int, default=1)
-    p = sub.add_parser("where")
-    p.add_argument("--work", type=Path, required=True, help="the run folders")
-    p.add_argument("--experiments", nargs="+", default=list(EXPERIMENTS), choices=EXPERIMENTS)
-    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+        add_run_args(sub.add_parser(name), EXPERIMENTS, SCENES)
+    add_run_args(sub.add_parser("where"), EXPERIMENTS, SCENES, dnerf=False)
     sub.add_parser("decide")
     sub.add_parser("table")
     a = ap.parse_args(argv)

@@ -14,9 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -36,23 +34,8 @@ BOUND = -0.05  # dB, per method, mean over the scenes (protocol.md)
 
 
 def train(args) -> None:
-    for exp in args.experiments:
-        for scene in args.scenes:
-            rd = cb.run_dir(args.work, exp, scene)
-            if (rd / "metrics.json").is_file():
-                continue
-            rd.parent.mkdir(parents=True, exist_ok=True)
-            cmd = [sys.executable, "-m", "stdr.cli.train", f"experiment={exp}", "compact=on", "budget=cpu",
-                   f"seed={SEED}", f"data.path={Path(args.dnerf) / scene}", f"hydra.run.dir={rd}",
-                   "train.progress=false", "eval.save_images=false", "train.image_every=0",
-                   f"train.threads={args.threads}", "pack.enabled=false", *CANDIDATE["overrides"]]
-            t0 = time.time()
-            print(f"[compact_grid] {time.strftime('%T')} train {exp} {scene}", flush=True)
-            with open(f"{rd}.log", "a") as log:
-                rc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
-                                    stdout=log, stderr=subprocess.STDOUT).returncode
-            print(f"[compact_grid]   {'done' if rc == 0 else f'FAILED rc={rc} (log {rd}.log)'} "
-                  f"in {time.time() - t0:.0f} s", flush=True)
+    """compact_bytes' training command with the candidate grid; the study writes the files itself."""
+    cb.train(args, ["pack.enabled=false", *CANDIDATE["overrides"]], tag="compact_grid", refuse_former_default=False)
 
 
 def reference() -> dict:
@@ -153,10 +136,7 @@ def table_val() -> str:
 
 
 def test(args) -> None:
-    """Only if the rule adopted the grid: each run's model and file on test, once (as compact_bytes test)."""
-    from stdr.config import load_config
-    from stdr.data.load import load_scene
-    from stdr.eval.evaluate import evaluate_model, machine_name, make_lpips
+    """Only if the rule adopted the grid: each run's model and file on test, once (compact_bytes.test_record)."""
     dec = json.loads((OUT / "decision.json").read_text())
     if not dec.get("adopt"):
         raise SystemExit("compact_grid test: the rule did not adopt the grid (decision.json); test is not read")
@@ -166,23 +146,12 @@ def test(args) -> None:
             rec_path = records_to_write(OUT, "records") / "test" / f"{exp}__{scene}.json"
             if rec_path.is_file():
                 continue
-            rd = cb.run_dir(args.work, exp, scene)
-            cfg, full = cb._load(rd)
-            lp = make_lpips(load_config(rd / "config.yaml").eval)
-            scn = load_scene(cfg.data, ("train", "test"), base=str(ROOT), seed=cfg.seed)
-            name, spec = cb.chosen_spec(exp, cdec)
-            with tempfile.TemporaryDirectory() as tmp:
-                w, small = cb._file_model(full, cfg, spec, Path(tmp), scn.frames("train"))
-                res = {}
-                for label, m in (("model", full), ("file", small)):
-                    r = evaluate_model(m, scn.frames("test"), lpips_fn=lp, fps_warmup=3, fps_repeats=3)
-                    res[label] = {k: r[k] for k in ("psnr", "ssim", "lpips", "fps", "num_gaussians")}
-            rec = {"experiment": exp, "scene": scene, "seed": SEED, "split": "test", "grid": CANDIDATE, "codecs": name,
-                   "bytes": w["bytes"], "model_bytes": w["full_bytes"], **res,
-                   "code": commit(), "machine": machine_name(), "date": time.strftime("%Y-%m-%d")}
+            rec = {**cb.test_record(cb.run_dir(args.work, exp, scene), exp, scene, *cb.chosen_spec(exp, cdec)),
+                   "grid": CANDIDATE}
             rec_path.parent.mkdir(parents=True, exist_ok=True)
             rec_path.write_text(json.dumps(rec, indent=1) + "\n")
-            print(f"[compact_grid] test {exp} {scene}: {w['bytes'] / 2**20:.2f} MiB, PSNR {res['file']['psnr']:.2f}", flush=True)
+            print(f"[compact_grid] test {exp} {scene}: {rec['bytes'] / 2**20:.2f} MiB, PSNR {rec['file']['psnr']:.2f}",
+                  flush=True)
 
 
 def table(args=None) -> str:
@@ -226,9 +195,7 @@ def table(args=None) -> str:
                     (exp, "FPS file / its compact=on model (one process)", ">= 1", fps_own, fps_own >= 1),
                     (exp, "FPS file / the 32-channel compact=on model (another process)", "(reported)", fps_old, None)]
     lines += ["", "Targets (ratios: geometric mean over the scenes of the per-scene ratio):", "",
-              "| method | target | bound | measured | met |", "|---|---|---|---|---|"]
-    for exp, what, bound, v, ok in targets:
-        lines.append(f"| {exp} | {what} | {bound} | {v:.3f} | {'–' if ok is None else 'yes' if ok else '**no**'} |")
+              *cb.targets_lines(targets)]
     text = "\n".join(lines) + "\n"
     (OUT / "table.md").write_text(text)
     return text
@@ -238,12 +205,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
     for name in ("train", "val", "test"):
-        p = sub.add_parser(name)
-        p.add_argument("dnerf", type=Path, help="folder with the D-NeRF scenes")
-        p.add_argument("--work", type=Path, required=True, help="the run folders")
-        p.add_argument("--experiments", nargs="+", default=list(EXPERIMENTS), choices=EXPERIMENTS)
-        p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
-        p.add_argument("--threads", type=int, default=1)
+        cb.add_run_args(sub.add_parser(name), EXPERIMENTS, SCENES)
     sub.add_parser("decide")
     sub.add_parser("table")
     a = ap.parse_args(argv)

@@ -35,3 +35,18 @@ def test_one_method_past_the_bound_refuses_it_even_when_the_other_gains():
 def test_a_partial_measurement_adopts_nothing():
     d = _case(lambda e, s: 0.0, scenes=SCENES[:3])
     assert not d["complete"] and not d["adopt"] and d["per_method"][EXPERIMENTS[0]]["runs"] == 3
+
+
+def test_the_grid_runs_are_compact_bytes_command_plus_the_grid(tmp_path, monkeypatch):
+    """protocol.md: the compact_bytes runs' command, plus the candidate grid and pack.enabled=false."""
+    import argparse
+    import subprocess
+
+    from studies import compact_bytes, compact_grid
+    cmds = []
+    monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: cmds.append(cmd) or argparse.Namespace(returncode=0))
+    args = argparse.Namespace(work=tmp_path, dnerf=tmp_path, experiments=["dnerf_4dgs"], scenes=["standup"], threads=1)
+    compact_bytes.train(args)
+    compact_grid.train(args)
+    assert cmds[1] == cmds[0] + ["pack.enabled=false", "baseline.hexplane.channels=16"]
+    assert "compact=on" in cmds[0] and f"seed={compact_bytes.SEED}" in cmds[0] and "budget=cpu" in cmds[0]
