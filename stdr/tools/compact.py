@@ -48,7 +48,7 @@ def spec_for_run(cfg, spec: dict) -> tuple[dict, Optional[str]]:
     allow (STDR's `stdr_mask: derived` on a run trained with stdr.mask_after_freeze=true) becomes
     that table's exact 8-bit form. Returns (spec, a note saying what changed, or None)."""
     from ..plugins import enabled_plugins, plugin_node
-    out = dict(spec)
+    out, notes = dict(spec), []
     for p in enabled_plugins(cfg):
         try:
             p.plugin.check_compact_spec(plugin_node(cfg, p.name), out)
@@ -57,8 +57,8 @@ def spec_for_run(cfg, spec: dict) -> tuple[dict, Optional[str]]:
             if not moved:
                 raise
             out.update(moved)
-            return out, f"{', '.join(f'{k}={c}' for k, c in moved.items())} in place of the preset's derived form: {err}"
-    return out, None
+            notes.append(f"{', '.join(f'{k}={c}' for k, c in moved.items())} in place of the preset's derived form: {err}")
+    return out, "; ".join(notes) or None
 
 
 def _as_change(bits: int) -> int:

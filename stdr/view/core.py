@@ -215,9 +215,8 @@ def render_view(model, camera: Camera, t: float, view: str = "rgb") -> np.ndarra
     params = model.params
     if view == "mask":
         from ..plugins.stdr.mask import mask_at
-        from ..plugins.stdr.plugin import MASK_KEY
+        from ..plugins.stdr.plugin import COND_KEY, MASK_KEY
         if MASK_KEY not in params:
-            from ..plugins.stdr.plugin import COND_KEY
             if COND_KEY in params:  # a compact file with stdr_mask: derived keeps the field's output only
                 raise ValueError("view 'mask': this compact file stores the separated field's output in place of "
                                  "STDR's mask (stdr_mask: derived); view the run's checkpoint for the mask, or "
