@@ -126,7 +126,8 @@ class DensifyStrategy:
     screen-space mean gradient (3DGS NDC units) exceeds `grow_grad2d` are cloned if small
     (max scale <= grow_scale3d x extent) or split if large; then Gaussians with opacity <
     `prune_opa` are removed, and after `prune_big_after` also those larger than prune_scale3d x
-    extent in the world or prune_scale2d px on screen. Opacity is reset every `reset_every`.
+    extent in the world or (unless prune_scale2d is null) prune_scale2d px on screen. Opacity is reset
+    every `reset_every`.
     With `reset_white_at_start` and a white background it is also reset once at refine_start
     (3DGS and the peers built on it: Deformable 3DGS, SC-GS, SP-GS, 4DGaussians). `max_gaussians` caps growth: when exceeded, the candidates with the largest gradients win.
 
@@ -143,7 +144,11 @@ class DensifyStrategy:
     grow_scale3d: float = 0.01
     prune_opa: float = 0.005
     prune_scale3d: float = 0.1
-    prune_scale2d: float = 20.0
+    # px on screen (the largest radius since the last refinement); null: no screen-size prune. The
+    # reference implementations (3DGS, Deformable 3DGS) read a radius buffer that their
+    # densification has just zeroed, so their screen-size prune never removes anything; gsplat
+    # leaves it off by default for that reason. budget=paper and budget=gpu follow them.
+    prune_scale2d: Optional[float] = 20.0
     prune_big_after: int = 3000
     refine_start: int = 500
     refine_stop: int = 15000
@@ -273,14 +278,18 @@ class DensifyStrategy:
         prune = opa < self.prune_opa
         if step > self.prune_big_after:
             big = torch.exp(params["scales"]).amax(-1) > self.prune_scale3d * extent
-            big |= state["max_radii"] > self.prune_scale2d
+            screen = "" if self.prune_scale2d is None else f" or {self.prune_scale2d} px on screen"
+            if self.prune_scale2d is not None:
+                big |= state["max_radii"] > self.prune_scale2d
             n_big = int((big & ~prune).sum())
             if n_big > 0.5 * prune.numel():  # measured: a short schedule can lose its whole model here
+                fix = ("densify.prune_scale2d=null (the reference's rule: no screen-size prune), "
+                       if self.prune_scale2d is not None else "")
                 warnings.warn(
                     f"densification at step {step}: the size prune removes {n_big} of {prune.numel()} Gaussians "
-                    f"(larger than {self.prune_scale3d} x extent or {self.prune_scale2d} px on screen); the model "
+                    f"(larger than {self.prune_scale3d} x extent{screen}); the model "
                     f"has not split into small Gaussians by densify.prune_big_after={self.prune_big_after}. "
-                    "Raise densify.prune_big_after or densify.prune_scale2d, or lower densify.grow_grad2d",
+                    f"Set {fix}raise densify.prune_big_after, or lower densify.grow_grad2d",
                     RuntimeWarning, stacklevel=2)
             prune |= big
         if int(prune.sum()) >= prune.numel():  # never delete the whole model
