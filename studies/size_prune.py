@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -92,6 +93,128 @@ def table(records: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+VAL_OUT = M / "size_prune_val"
+BRANCH_AT = 1500  # the trunk's last step: every candidate is the preset up to here
+VAL_STOP = 3300
+VAL_EVERY = 300
+#: the candidate rules (protocol.md): name -> the keys a branch adds to the preset
+CANDIDATES = {"s20_1500": [], "s20_3000": ["densify.prune_big_after=3000"], "ws_1500": ["densify.prune_scale2d=null"]}
+
+
+def val_command(data: Path, scene: str, run: Path, stop: int, keys: list[str]) -> list[str]:
+    return [sys.executable, "-m", "stdr.cli.train", "experiment=dnerf_deform", "budget=gpu", "device=cpu",
+            f"data.path={data / scene}", f"data.name={scene}", "seed=0", "data.eval_split=val",
+            f"train.eval_every={VAL_EVERY}", f"train.stop_at={stop}", "train.threads=1", "train.progress=false",
+            "eval.save_images=false", *keys, f"hydra.run.dir={run}"]
+
+
+def _train(cmd: list[str], run: Path) -> None:
+    with open(run.with_name(run.name + ".log"), "w") as log:
+        subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, check=True)
+
+
+def val(args) -> None:
+    """Each scene's trunk, then its branches; a finished run (train_profile.json) is skipped, a
+    branch killed midway starts again from the trunk's checkpoint."""
+    for scene in args.scenes:
+        trunk = args.work / f"trunk_{scene}"
+        if not (trunk / "train_profile.json").is_file():
+            _train(val_command(args.data, scene, trunk, BRANCH_AT, []), trunk)
+        for name, keys in CANDIDATES.items():
+            run = args.work / f"{name}_{scene}"
+            if (run / "train_profile.json").is_file():
+                continue
+            if run.exists():
+                shutil.rmtree(run)
+            (run / "checkpoints").mkdir(parents=True)
+            shutil.copy2(trunk / "checkpoints" / "last.pt", run / "checkpoints" / "last.pt")
+            _train(val_command(args.data, scene, run, VAL_STOP, keys), run)
+
+
+def val_record(work: Path, scene: str, name: str) -> dict | None:
+    """One branch: its val curve from the trunk's last evaluation on (the checkpoint's history),
+    the Gaussian count every 50 steps (TensorBoard, trunk then branch) and its size-prune warnings."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from stdr.eval.evaluate import machine_name
+    from stdr.train.checkpoint import load_checkpoint
+    run, trunk = work / f"{name}_{scene}", work / f"trunk_{scene}"
+    if not (run / "train_profile.json").is_file():
+        return None
+    ck = load_checkpoint(run / "checkpoints" / "last.pt")
+    curve = [{k: h[k] for k in ("iteration", "psnr", "ssim", "num_gaussians", "train_seconds")}
+             for h in ck["history"] if h["split"] == "val"]
+    counts = {}
+    for rd in (trunk, run):
+        ev = EventAccumulator(str(rd / "tb"))
+        ev.Reload()
+        counts.update({int(s.step): int(s.value) for s in ev.Scalars("gaussians/count")})
+    warns = []
+    for rd in (trunk, run):
+        log = rd.with_name(rd.name + ".log").read_text(errors="replace")
+        warns += [{"step": int(a), "removes": int(b), "of": int(c)} for a, b, c in WARNING.findall(log)]
+    return {"scene": scene, "candidate": name, "keys": CANDIDATES[name], "branch_at": BRANCH_AT, "stop_at": VAL_STOP,
+            "curve": curve, "counts": {str(k): counts[k] for k in sorted(counts)}, "warnings": warns,
+            "train_seconds": float(ck["train_seconds"]),
+            "command": " ".join(val_command(Path("DNERF"), scene, Path("WORK") / f"{name}_{scene}", VAL_STOP,
+                                            CANDIDATES[name])[1:]),
+            "code": commit(), "machine": machine_name(), "date": time.strftime("%Y-%m-%d")}
+
+
+def psnr_at(r: dict, step: int) -> float:
+    hit = [c["psnr"] for c in r["curve"] if c["iteration"] == step]
+    if not hit:
+        raise SystemExit(f"{r['candidate']} {r['scene']}: no val evaluation at step {step}")
+    return float(hit[-1])
+
+
+def decide(records: list[dict]) -> dict:
+    """protocol.md's rule over the records: {scores, quiet, choice, why}; choice None while a
+    candidate lacks a scene (a partial mean decides nothing)."""
+    scenes = sorted({r["scene"] for r in records})
+    by = {(r["candidate"], r["scene"]): r for r in records}
+    missing = [f"{c} {s}" for c in CANDIDATES for s in SCENES if (c, s) not in by]
+    if missing:
+        return {"choice": None, "why": f"not measured yet: {', '.join(missing)}"}
+    scores = {c: sum(psnr_at(by[c, s], VAL_STOP) for s in scenes) / len(scenes) for c in CANDIDATES}
+    quiet = {c: not any(by[c, s]["warnings"] for s in scenes) for c in CANDIDATES}
+    best = max(scores.values())
+    ok = [c for c in CANDIDATES if quiet[c] and scores[c] >= best - 0.10]
+    if not ok:
+        return {"scores": scores, "quiet": quiet, "choice": "s20_1500",
+                "why": "no quiet candidate within 0.10 dB of the best: the preset stays"}
+    top = max(scores[c] for c in ok)
+    near = [c for c in ("ws_1500", "s20_3000", "s20_1500") if c in ok and scores[c] >= top - 0.05]
+    return {"scores": scores, "quiet": quiet, "choice": near[0],
+            "why": "the best quiet candidate (within 0.05 dB: the one nearer the reference)"}
+
+
+def val_table(records: list[dict]) -> str:
+    codes = sorted({r["code"] for r in records})
+    machines = sorted({r["machine"] for r in records})
+    steps = sorted({c["iteration"] for r in records for c in r["curve"] if c["iteration"] > BRANCH_AT})
+    lines = ["# The budget=gpu size prune on val (generated by studies/size_prune.py val-table)", "",
+             f"deform, `budget=gpu`, seed 0, one thread a run; each candidate branches from its scene's trunk at "
+             f"step {BRANCH_AT} and stops at {VAL_STOP}; val PSNR (dB) on every val frame at 400 px; code "
+             f"{', '.join(codes)}; machine {'; '.join(machines)}. Rule: protocol.md.", "",
+             "| scene | candidate | " + " | ".join(f"PSNR @{s}" for s in steps)
+             + f" | #G @1600 | #G @3100 | #G @{VAL_STOP} | size-prune warning |",
+             "|---|---|" + "---|" * (len(steps) + 4)]
+    for r in sorted(records, key=lambda r: (r["scene"], list(CANDIDATES).index(r["candidate"]))):
+        ps = {c["iteration"]: c["psnr"] for c in r["curve"]}
+        w = "; ".join(f"step {x['step']}: {x['removes']:,} of {x['of']:,}" for x in r["warnings"]) or "none"
+        lines.append(f"| {r['scene']} | {r['candidate']} | " + " | ".join(f"{ps[s]:.2f}" if s in ps else "–" for s in steps)
+                     + " | " + " | ".join(f"{r['counts'].get(str(s), 0):,}" for s in (1600, 3100, VAL_STOP)) + f" | {w} |")
+    d = decide(records)
+    lines += [""]
+    if d.get("scores"):
+        lines += ["| candidate | mean val PSNR @" + str(VAL_STOP) + " | quiet |", "|---|---|---|"]
+        lines += [f"| {c} | {d['scores'][c]:.3f} | {'yes' if d['quiet'][c] else 'no'} |" for c in CANDIDATES]
+        lines += [""]
+    lines += [f"Decision: **{d['choice']}** ({d['why']})." if d["choice"] else f"Decision: none yet ({d['why']})."]
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -103,9 +226,30 @@ def main(argv=None) -> None:
     for p in (r, t):
         p.add_argument("--scenes", nargs="+", default=list(SCENES))
         p.add_argument("--values", nargs="+", type=int, default=list(VALUES))
+    v = sub.add_parser("val")
+    v.add_argument("data", type=Path)
+    v.add_argument("--work", type=Path, required=True)
+    vt = sub.add_parser("val-table")
+    vt.add_argument("--work", type=Path, default=None)
+    for p in (v, vt):
+        p.add_argument("--scenes", nargs="+", default=list(SCENES))
     args = ap.parse_args(argv)
     if args.cmd == "run":
         run(args)
+        return
+    if args.cmd == "val":
+        val(args)
+        return
+    if args.cmd == "val-table":
+        if args.work is not None:
+            rec_dir = records_to_write(VAL_OUT, "records")
+            for sc in args.scenes:
+                for c in CANDIDATES:
+                    if (x := val_record(args.work, sc, c)) is not None:
+                        (rec_dir / f"{c}_{sc}.json").write_text(json.dumps(x, indent=1) + "\n")
+        text = val_table([json.loads(f.read_text()) for f in sorted(records_in(VAL_OUT, "records").glob("*.json"))])
+        (VAL_OUT / "table.md").write_text(text)
+        print(text)
         return
     if args.work is not None:  # packed records: extract first (records_to_write says how)
         rec_dir = records_to_write(OUT, "records")
