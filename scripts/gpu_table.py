@@ -19,8 +19,9 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import tarfile
-from pathlib import Path
+from pathlib import Path, PurePosixPath
+
+from stdr.data.fetch import DataError, extract_tar
 
 ROOT = Path(__file__).resolve().parents[1]
 FOLDER = ROOT / "docs" / "measurements" / "dnerf_gpu"
@@ -32,19 +33,13 @@ PAPER = {("deform", "jumpingjacks"): 37.72, ("deform_stdr", "jumpingjacks"): 38.
 
 
 def add(archive: Path, folder: Path) -> list[str]:
-    """Unpack a queue's runs.tgz into folder/runs/<run id>/ (members that leave it are refused)."""
-    runs = folder / "runs"
-    runs.mkdir(parents=True, exist_ok=True)
-    got = []
-    with tarfile.open(archive) as tar:
-        for m in tar.getmembers():
-            parts = Path(m.name).parts
-            if not m.isfile() or len(parts) != 2 or m.name.startswith("/") or ".." in parts:
-                raise SystemExit(f"{archive}: member {m.name!r} is not <run id>/<file>; refused")
-            (runs / parts[0]).mkdir(exist_ok=True)
-            (runs / parts[0] / parts[1]).write_bytes(tar.extractfile(m).read())
-            got.append(m.name)
-    return got
+    """Unpack a queue's runs.tgz into folder/runs/<run id>/, all or nothing (a member that is not
+    <run id>/<file> is refused before anything is written)."""
+    try:
+        return extract_tar(archive, folder / "runs", member_ok=lambda n: len(PurePosixPath(n).parts) == 2,
+                           what="<run id>/<file>")
+    except DataError as e:
+        raise SystemExit(str(e)) from None
 
 
 def read_runs(folder: Path) -> list[dict]:

@@ -24,6 +24,8 @@ import tarfile
 import tempfile
 from pathlib import Path
 
+from stdr.data.fetch import DataError, extract_tar
+
 ROOT = Path(__file__).resolve().parents[1]
 M = ROOT / "docs" / "measurements"
 ARCHIVE = "records.tar.xz"
@@ -90,16 +92,11 @@ def pack(study: Path) -> int:
 
 
 def extract_to(archive: Path, dest: Path) -> None:
-    """Unpack `archive` into dest; members that would leave dest are refused."""
-    dest.mkdir(parents=True, exist_ok=True)
-    root = dest.resolve()
-    with tarfile.open(archive) as tar:
-        for m in tar.getmembers():
-            target = (dest / m.name).resolve()
-            if not m.isfile() or os.path.isabs(m.name) or ".." in Path(m.name).parts or root not in target.parents:
-                raise SystemExit(f"{archive}: member {m.name!r} is not a plain file inside the archive; refused")
-            target.parent.mkdir(parents=True, exist_ok=True)
-            target.write_bytes(tar.extractfile(m).read())
+    """Unpack `archive` into dest, all or nothing; members that would leave dest are refused."""
+    try:
+        extract_tar(archive, dest)
+    except DataError as e:
+        raise SystemExit(str(e)) from None
 
 
 def _cache_root() -> Path:

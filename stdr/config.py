@@ -19,6 +19,7 @@ from .baselines import BASELINES, BaselineConfig, DeformConfig, HexPlaneConfig, 
 from .baselines.registry import add_listener, discover_baselines, get_baseline
 from .plugins import PLUGINS, add_listener as add_plugin_listener, registered_plugins, set_reserved_keys
 from .densify.prune import PruneConfig
+from .errors import ConfigError
 from .densify.strategy import STRATEGIES, DensifyStrategy, add_listener as add_strategy_listener, get_strategy
 from .train.guard import GuardConfig
 
@@ -420,19 +421,17 @@ def register() -> None:
 _LEGACY_BASELINE_KEYS = ("scgs", "spgs", "hexplane")
 
 
-def load_config(raw: Any, where: str = "config"):
-    """A saved config (a run's config.yaml, a checkpoint's config: a dict, DictConfig or path)
-    merged onto the typed defaults of its baseline. Unknown keys are an error naming `where`."""
-    if isinstance(raw, (str, Path)):
-        where = str(raw)
-        raw = OmegaConf.load(raw)
-    raw = OmegaConf.to_container(raw) if OmegaConf.is_config(raw) else dict(raw)
+def typed_schema(raw: dict, where: str = "config"):
+    """The typed schema a saved config `raw` (a plain dict) is read with: the root schema with its
+    baseline's and densification strategy's dataclasses. Drops from `raw`, in place, the keys of
+    earlier versions (other baselines' nodes, plug-ins' removed keys). Unknown sections, baselines
+    and strategies are a ConfigError naming `where`."""
     b = dict(raw.get("baseline") or {})
     name = b.get("name", "deform")
     try:
         spec = get_baseline(name)
     except ValueError as e:
-        raise ValueError(f"{where}: {e}") from None
+        raise ConfigError(f"{where}: {e}") from None
     fields = set(spec.config.__dataclass_fields__)
     for k in _LEGACY_BASELINE_KEYS:
         if k in b and k not in fields:
@@ -444,17 +443,27 @@ def load_config(raw: Any, where: str = "config"):
             raw[p.name] = {k: v for k, v in raw[p.name].items() if k not in p.plugin.removed_keys}
     unknown = sorted(set(raw) - set(root.__dataclass_fields__))
     if unknown:
-        raise ValueError(f"{where}: unknown config section(s) {unknown}: a plug-in's keys need the plug-in registered "
-                         f"(registered: {sorted(PLUGINS)}; stdr.plugins.register_plugin, or an installed package "
-                         "with a 'stdr.plugins' entry point)")
+        raise ConfigError(f"{where}: unknown config section(s) {unknown}: a plug-in's keys need the plug-in registered "
+                          f"(registered: {sorted(PLUGINS)}; stdr.plugins.register_plugin, or an installed package "
+                          "with a 'stdr.plugins' entry point)")
     d = dict(raw.get("densify") or {})
     try:
         strategy = get_strategy(d.get("name"))
     except ValueError as e:
-        raise ValueError(f"{where}: {e}") from None
-    schema = OmegaConf.merge(OmegaConf.structured(root), {"baseline": OmegaConf.structured(spec.config),
-                                                           "densify": OmegaConf.structured(strategy)})
+        raise ConfigError(f"{where}: {e}") from None
+    return OmegaConf.merge(OmegaConf.structured(root), {"baseline": OmegaConf.structured(spec.config),
+                                                         "densify": OmegaConf.structured(strategy)})
+
+
+def load_config(raw: Any, where: str = "config"):
+    """A saved config (a run's config.yaml, a checkpoint's config: a dict, DictConfig or path)
+    merged onto the typed defaults of its baseline. Unknown keys are an error naming `where`."""
+    if isinstance(raw, (str, Path)):
+        where = str(raw)
+        raw = OmegaConf.load(raw)
+    raw = OmegaConf.to_container(raw) if OmegaConf.is_config(raw) else dict(raw)
+    schema = typed_schema(raw, where)
     try:
         return OmegaConf.merge(schema, raw)
     except Exception as e:  # omegaconf's errors name the key; say which file
-        raise ValueError(f"{where}: {e}") from None
+        raise ConfigError(f"{where}: {e}") from None

@@ -24,6 +24,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
+from .errors import ConfigError
+
 
 @dataclass(frozen=True)
 class Event:
@@ -86,7 +88,7 @@ def keep_out_of_windows(step: int, floor: int, windows: list[tuple[str, int, int
     return step, None
 
 
-class NeverTrains(ValueError):
+class NeverTrains(ConfigError):
     """A component of the run would never train (its phase starts at or after the last iteration)."""
 
 

@@ -143,9 +143,12 @@ def test_a_corrupted_archive_and_a_changed_source_are_refused(tmp_path):
     assert not (tmp_path / "c" / "stdr-data.lock.json").exists()
     lock = fetch.Lock(tmp_path / "d")
     (tmp_path / "good.zip").write_bytes(DNERF)
-    assert lock.check_or_record("x.zip", tmp_path / "good.zip", "u") == "recorded"
+    state, entry = lock.check("x.zip", tmp_path / "good.zip", "u")
+    assert state == "recorded" and not lock.path.exists()  # checking writes nothing
+    lock.record("x.zip", entry)
+    assert fetch.Lock(tmp_path / "d").check("x.zip", tmp_path / "good.zip", "u")[0] == "matches"
     with pytest.raises(fetch.DataError, match="recorded .* bytes, SHA-256"):
-        fetch.Lock(tmp_path / "d").check_or_record("x.zip", tmp_path / "bad.zip", "u")
+        fetch.Lock(tmp_path / "d").check("x.zip", tmp_path / "bad.zip", "u")
 
 
 def test_a_wrong_layout_is_reported_by_name_and_nothing_is_unpacked(tmp_path, capsys):
@@ -156,8 +159,9 @@ def test_a_wrong_layout_is_reported_by_name_and_nothing_is_unpacked(tmp_path, ca
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert "scene lego: lego is not a complete D-NeRF scene" in err and "./val/nope' not found" in err
-    assert "nothing was unpacked" in err
-    assert [p.name for p in (tmp_path / "d").iterdir()] == ["stdr-data.lock.json"]  # not even the good scene
+    assert "nothing was unpacked" in err and len(err.strip().splitlines()) == 1
+    # not even the good scene, and no lock: an archive is recorded only once it unpacked and passed
+    assert [p.name for p in (tmp_path / "d").iterdir()] == []
     (tmp_path / "n.zip").write_bytes(_zip(lambda z: z.writestr("scene/dataset.json", "{}")))
     with pytest.raises(fetch.DataError, match="missing metadata.json, scene.json"):
         fetch.safe_extract(tmp_path / "n.zip", tmp_path / "e", check=lambda f: fetch.verify_scene(f, "nerfies"))
@@ -215,3 +219,124 @@ def test_list_names_every_dataset(capsys):
     for name in ("dnerf", "nerfds", "hypernerf"):
         assert f"{name} " in out
     assert "vrig_broom" in out and "huggingface.co" in out
+
+
+def test_an_archive_without_a_scene_is_an_error_and_is_kept_unrecorded(tmp_path, server, capsys):
+    """A valid zip that holds no scene: exit 2, nothing placed, no lock entry, the download kept."""
+    server.files["/data.zip"] = _zip(lambda z: z.writestr("readme/notes.txt", "hello"))
+    dest = tmp_path / "dnerf"
+    with pytest.raises(SystemExit) as e:
+        stdr_data(["download", "dnerf", "--dest", str(dest), "--urls", f"{server.url}/data.zip"])
+    assert e.value.code == 2
+    assert "holds no scene folder" in capsys.readouterr().err
+    assert not (dest / "stdr-data.lock.json").exists()
+    assert (dest / ".downloads" / "dnerf-data.zip").is_file()  # not deleted: the user may want to look at it
+    assert not [p for p in dest.iterdir() if not p.name.startswith(".")]
+
+
+def test_a_part_the_server_calls_complete_is_checked_and_kept(tmp_path, server):
+    """A .part that already holds the whole file gets 416 from the server: kept after its check."""
+    server.files["/data.zip"] = DNERF
+    dest = tmp_path / "a.zip"
+    (tmp_path / "a.zip.part").write_bytes(DNERF)
+    real = server.httpd.RequestHandlerClass.do_GET
+
+    def do_get(h):
+        rng = h.headers.get("Range")
+        if rng and int(rng.split("=")[1].split("-")[0]) >= len(DNERF):  # as servers do: nothing left to send
+            h.send_response(416)
+            h.send_header("Content-Range", f"bytes */{len(DNERF)}")
+            h.send_header("Content-Length", "0")
+            h.end_headers()
+            return
+        real(h)
+    server.httpd.RequestHandlerClass.do_GET = do_get
+    fetch.download([f"{server.url}/data.zip"], dest, verify=fetch.check_archive)
+    assert dest.read_bytes() == DNERF and not (tmp_path / "a.zip.part").exists()
+    # a .part longer than the file (another file's): 416 with another total, so it starts over
+    (tmp_path / "b.zip.part").write_bytes(DNERF + b"x" * 10)
+    fetch.download([f"{server.url}/data.zip"], tmp_path / "b.zip", verify=fetch.check_archive)
+    assert (tmp_path / "b.zip").read_bytes() == DNERF
+
+
+def test_a_resume_that_does_not_continue_the_part_starts_over(tmp_path, server):
+    """The server answers 206 from another offset than the .part's end: the .part is not merged."""
+    server.files["/data.zip"] = DNERF
+    real = server.httpd.RequestHandlerClass.do_GET
+
+    def do_get(h):
+        if h.headers.get("Range"):
+            body = DNERF[5:]
+            h.send_response(206)
+            h.send_header("Content-Range", f"bytes 5-{len(DNERF) - 1}/{len(DNERF)}")
+            h.send_header("Content-Length", str(len(body)))
+            h.end_headers()
+            h.wfile.write(body)
+            return
+        real(h)
+    server.httpd.RequestHandlerClass.do_GET = do_get
+    (tmp_path / "a.zip.part").write_bytes(DNERF[:100])
+    fetch.download([f"{server.url}/data.zip"], tmp_path / "a.zip", verify=fetch.check_archive)
+    assert (tmp_path / "a.zip").read_bytes() == DNERF
+
+
+def test_a_body_of_unknown_length_is_kept_only_when_its_check_passes(tmp_path, server):
+    """No Content-Length: a cut body is deleted, not moved into place; a whole one is kept."""
+    def serve(data):
+        def do_get(h):
+            h.send_response(200)
+            h.end_headers()  # no Content-Length: the body ends when the connection closes
+            h.wfile.write(data)
+            h.close_connection = True
+        server.httpd.RequestHandlerClass.do_GET = do_get
+    serve(DNERF[: len(DNERF) // 2])
+    with pytest.raises(fetch.DataError, match="fails its check"):
+        fetch.download([f"{server.url}/data.zip"], tmp_path / "a.zip", verify=fetch.check_archive)
+    assert not (tmp_path / "a.zip").exists() and not (tmp_path / "a.zip.part").exists()
+    with pytest.raises(fetch.DataError, match="nothing to check it against"):
+        fetch.download([f"{server.url}/data.zip"], tmp_path / "b.zip")
+    assert not (tmp_path / "b.zip").exists()
+    serve(DNERF)
+    fetch.download([f"{server.url}/data.zip"], tmp_path / "c.zip", verify=fetch.check_archive)
+    assert (tmp_path / "c.zip").read_bytes() == DNERF
+
+
+def _tar(path, members):
+    """members: (name, bytes) for a file, (name, None) for a folder, (name, 'link') for a symlink."""
+    import tarfile
+    with tarfile.open(path, "w:xz") as tar:
+        for name, data in members:
+            info = tarfile.TarInfo(name)
+            if data is None:
+                info.type = tarfile.DIRTYPE
+                tar.addfile(info)
+            elif data == "link":
+                info.type, info.linkname = tarfile.SYMTYPE, "/etc/passwd"
+                tar.addfile(info)
+            else:
+                info.size = len(data)
+                tar.addfile(info, io.BytesIO(data))
+
+
+def test_tar_extraction_is_all_or_nothing_and_takes_folder_entries(tmp_path):
+    """A bad member after good ones leaves the destination as it was and no temporary folder;
+    `tar -cJf` archives (folder entries first) unpack; files replace files of the same name."""
+    dest = tmp_path / "study"
+    dest.mkdir()
+    (dest / "README.md").write_text("kept")
+    for bad in (("../escape.txt", b"x"), ("/abs.txt", b"x"), ("records/link", "link")):
+        _tar(tmp_path / "bad.tar.xz", [("records", None), ("records/a.json", b"1"), bad])
+        with pytest.raises(fetch.DataError, match="refused, nothing was unpacked"):
+            fetch.extract_tar(tmp_path / "bad.tar.xz", dest)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.tar.xz", "study"], bad  # no temp folder
+        assert sorted(p.name for p in dest.iterdir()) == ["README.md"], bad
+    _tar(tmp_path / "ok.tar.xz", [("records", None), ("records/run1", None), ("records/run1/a.json", b"1"),
+                                  ("README.md", b"new")])
+    assert fetch.extract_tar(tmp_path / "ok.tar.xz", dest) == ["README.md", "records/run1/a.json"]
+    assert (dest / "records" / "run1" / "a.json").read_bytes() == b"1" and (dest / "README.md").read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.tar.xz", "ok.tar.xz", "study"]
+    # a rule for the names: the GPU table's <run id>/<file>
+    with pytest.raises(fetch.DataError, match="is not <run id>/<file>"):
+        fetch.extract_tar(tmp_path / "ok.tar.xz", tmp_path / "runs", member_ok=lambda n: n.count("/") == 1,
+                          what="<run id>/<file>")
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").iterdir())

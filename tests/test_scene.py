@@ -196,3 +196,28 @@ def test_the_size_prune_warns_when_it_would_remove_most_of_the_model_and_the_pro
         assert bool(msgs) == warns, msgs
         if warns:
             assert probe.WARNING.findall("\n".join(msgs)) == [("200", str(big_rows), "50")]
+
+
+def test_prune_scale2d_null_turns_the_screen_size_prune_off_and_keeps_the_world_size_prune():
+    """densify.prune_scale2d=null (budget=gpu and budget=paper): a Gaussian big on screen only is
+    kept, one big in the world is still pruned; with 20 px the screen-big one goes too."""
+    for scale2d, pruned in ((None, 1), (20.0, 2)):
+        torch.manual_seed(0)
+        p = _params(10)
+        opts = _optimizers(p)
+        _step(p, opts)
+        strat = DensifyStrategy(grow_grad2d=1.0, refine_start=0, refine_every=100, reset_every=0, prune_opa=0.0,
+                                prune_big_after=100, prune_scale2d=scale2d)
+        state = strat.initialize_state(10, scene_extent=1.0)
+        with torch.no_grad():
+            p["scales"][:] = -6.0
+            p["scales"][0] = 0.0  # row 0: big in the world (exp(0) = 1 > 0.1 x extent)
+        means2d = torch.zeros(10, 2, requires_grad=True)
+        means2d.grad = torch.zeros(10, 2)
+        radii = torch.full((10,), 3, dtype=torch.int32)
+        radii[1] = 50  # row 1: small in the world, 50 px on screen
+        kept_row1 = p["means"][1].detach().clone()
+        info = strat.step_post_backward(p, opts, state, 200, means2d, radii, 400, 400)
+        assert info["pruned"] == pruned
+        assert any(torch.equal(m, kept_row1) for m in p["means"].detach()) == (scale2d is None)
+

@@ -331,3 +331,25 @@ def test_stdr_render_follows_a_camera_path_as_mp4(runs, tmp_path):
         want = to_uint8(r.model.render(cp.cameras[k], cp.times[k]).image).astype(float)
         assert np.abs(video[k].astype(float) - want).mean() < 6  # H.264 at quality 8
     assert np.abs(video[0].astype(float) - video[5].astype(float)).mean() > 6  # the path moves
+
+
+def test_the_viewer_refuses_a_websocket_from_another_page(runs):
+    """Any page open in the user's browser could connect to a running stdr-view; only the viewer's
+    own page (and a non-browser client, which sends no Origin) gets through the handshake."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    from stdr.view.server import Viewer, free_port
+    r = open_run(runs / "plain", device="cpu")
+    port = free_port()
+    v = Viewer(r, port=port, allow_origins=("https://viewer.lab.example",))
+    try:
+        uri = f"ws://127.0.0.1:{port}"
+        for origin in ("http://evil.example", f"http://evil.example:{port}", "null"):
+            with pytest.raises(InvalidStatus) as e:
+                connect(uri, origin=origin, open_timeout=20).close()
+            assert e.value.response.status_code == 403, origin
+        for origin in (f"http://127.0.0.1:{port}", f"http://localhost:{port}", "https://viewer.lab.example", None):
+            connect(uri, origin=origin, open_timeout=20).close()
+    finally:
+        v.stop()

@@ -13,11 +13,11 @@ Sources, mirrors and the checks: stdr.data.fetch and docs/data.md ("Getting the 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from ..data import capture as capture_mod
 from ..data import fetch
+from ..errors import reported
 
 
 def _list() -> None:
@@ -78,10 +78,9 @@ def _download(args) -> list[Path]:
             path, url = Path(args.archive), f"file:{Path(args.archive).resolve()}"
         else:
             path = dest / ".downloads" / a.name
-            url = fetch.download(args.urls or a.urls, path)
-        fetch.check_archive(path)  # before the lock: a damaged transfer is never recorded
-        state = lock.check_or_record(a.name, path, url)
-        print(f"[stdr-data] {a.name}: {path.stat().st_size:,} bytes, CRC ok, SHA-256 {state} ({lock.path})")
+            url = fetch.download(args.urls or a.urls, path, verify=fetch.check_archive)
+        fetch.check_archive(path)  # a damaged transfer is never recorded
+        state, entry = lock.check(a.name, path, url)  # a changed source stops here
         counts: dict[str, int] = {}
 
         def check(sc: Path, counts=counts) -> None:
@@ -89,6 +88,9 @@ def _download(args) -> list[Path]:
         got = fetch.safe_extract(path, dest, keep=keep, check=check)
         for s in got:
             print(f"[stdr-data] {s}: {d.format} layout ok ({counts.get(s.name, '?')} images)")
+        if state == "recorded":  # only once the archive unpacked and its scenes passed their checks
+            lock.record(a.name, entry)
+        print(f"[stdr-data] {a.name}: {path.stat().st_size:,} bytes, CRC ok, SHA-256 {state} ({lock.path})")
         placed += got
         if not args.keep_archive and not args.archive:
             path.unlink()
@@ -206,7 +208,7 @@ def main(argv=None) -> None:
     c.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
     c.add_argument("--keep-work", action="store_true", help="keep COLMAP's database and raw models (colmap/work)")
     args = ap.parse_args(argv)
-    try:
+    with reported("stdr-data"):  # bad input, a failed download or capture: one line, exit code 2
         if args.cmd == "list":
             _list()
         elif args.cmd == "download":
@@ -222,9 +224,6 @@ def main(argv=None) -> None:
                 matcher=args.matcher, vocab_tree=args.vocab_tree, min_registered=args.min_registered,
                 camera_model=args.camera_model, seed=args.seed, threads=args.threads)
             capture_mod.capture(args.source, args.out, cfg, overwrite=args.overwrite, keep_work=args.keep_work)
-    except (fetch.DataError, capture_mod.CaptureError) as e:
-        print(f"stdr-data: {e}", file=sys.stderr)
-        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from ..config import load_config, register
+from ..errors import reported
 from .common import CONFIG_DIR, reproducible_blas
 
 register()
@@ -161,9 +162,10 @@ def _main(cfg: DictConfig) -> None:
     reproducible_blas()
     out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
     from ..plugins import registered_plugins
-    evaluate_dirs(list(cfg.runs), cfg.split, cfg.eval, cfg.render, cfg.reevaluate, out,
-                  hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure,
-                  {s.name: cfg.get(s.name) for s in registered_plugins()})
+    with reported("stdr-eval"):  # bad input: one line, exit code 2
+        evaluate_dirs(list(cfg.runs), cfg.split, cfg.eval, cfg.render, cfg.reevaluate, out,
+                      hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure,
+                      {s.name: cfg.get(s.name) for s in registered_plugins()})
 
 
 def main() -> None:

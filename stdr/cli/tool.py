@@ -4,6 +4,7 @@ from __future__ import annotations
 import importlib
 import sys
 
+from ..errors import reported
 from ..tools import TOOLS
 
 
@@ -13,6 +14,7 @@ def usage() -> str:
                         for name, mod in TOOLS.items()))
 
 
+@reported("stdr-tool")  # bad input: one line, exit code 2
 def main(argv=None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):

@@ -8,6 +8,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from ..config import register
+from ..errors import reported
 from .common import CONFIG_DIR, reproducible_blas, use_fast_allocator_hint
 
 register()
@@ -15,7 +16,9 @@ register()
 
 def run(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict | None:
     from ..train.trainer import Trainer
+    from ..validate import check_run_config
 
+    check_run_config(cfg, data_base)  # keys, values and paths, before anything is written or trained
     run_dir.mkdir(parents=True, exist_ok=True)
     if not cfg.data.name:  # label for tables: the scene folder's name
         from ..data.load import scene_folder
@@ -97,7 +100,8 @@ def _main(cfg: DictConfig) -> None:
     if HydraConfig.get().mode == RunMode.MULTIRUN:
         sweep_job(cfg, run_dir, hydra.utils.get_original_cwd())
     else:
-        run(cfg, run_dir, data_base=hydra.utils.get_original_cwd())
+        with reported("stdr-train"):  # bad input: one line, exit code 2
+            run(cfg, run_dir, data_base=hydra.utils.get_original_cwd())
 
 
 def main() -> None:

@@ -7,9 +7,11 @@ import sys
 import time
 from pathlib import Path
 
+from ..errors import reported
 from ..view.core import VIEWS
 
 
+@reported("stdr-view")  # bad input: one line, exit code 2
 def view_main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="stdr-view", description="A web viewer of a trained stdr run (viser).")
     ap.add_argument("run", type=Path, help="a run directory (config.yaml + checkpoints/last.pt)")
@@ -19,6 +21,9 @@ def view_main(argv=None) -> None:
     ap.add_argument("--model", type=Path, default=None, help="a model file to show instead of the checkpoint, "
                     "e.g. RUN/model.stdrc (stdr-tool pack)")
     ap.add_argument("--max-width", type=int, default=None, help="initial image width (default: the run's)")
+    ap.add_argument("--allow-origin", action="append", default=[], metavar="URL",
+                    help="another page address that may drive the viewer (e.g. a reverse proxy's "
+                    "https://viewer.lab.example); by default only the viewer's own page can")
     ap.add_argument("--view", default="rgb", choices=VIEWS, help="the view to start with")
     ap.add_argument("--screenshot", type=Path, default=None,
                     help="open the page in headless Chromium, save a PNG once it shows a render, and exit")
@@ -28,7 +33,7 @@ def view_main(argv=None) -> None:
     try:
         check_port(a.host, a.port)  # before loading the model: fail fast
         run = open_run(a.run, device=a.device, model_file=a.model)
-        viewer = Viewer(run, host=a.host, port=a.port, max_width=a.max_width)
+        viewer = Viewer(run, host=a.host, port=a.port, max_width=a.max_width, allow_origins=tuple(a.allow_origin))
     except (FileNotFoundError, RuntimeError, ValueError) as e:
         raise SystemExit(f"stdr-view: {e}") from None
     if a.view not in viewer.views:
@@ -64,6 +69,7 @@ def view_main(argv=None) -> None:
             print(f"[stdr] median frame time {np.median(viewer.frame_ms):.0f} ms over {len(viewer.frame_ms)} frames")
 
 
+@reported("stdr-render")  # bad input: one line, exit code 2
 def render_main(argv=None) -> None:
     from ..view.video import KINDS
     ap = argparse.ArgumentParser(prog="stdr-render", description="Videos of a trained stdr run.")
@@ -105,6 +111,7 @@ def render_main(argv=None) -> None:
     print(f"[stdr] wrote {how}: " + ", ".join(str(p) for p in paths.values()))
 
 
+@reported("stdr-export")  # bad input: one line, exit code 2
 def export_main(argv=None) -> None:
     """stdr-export RUN --times 0 0.5 1 --out DIR: the model at each time as a 3DGS PLY."""
     from ..model import load_model

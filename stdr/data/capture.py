@@ -37,6 +37,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from ..errors import UserError
 from .checks import check_intrinsics, check_pose
 
 PYCOLMAP_VERSION = "4.2.1"  # the version this module is written and tested against (pyproject: extra `capture`)
@@ -46,7 +47,7 @@ SELECT_MODES = ("sharpest", "uniform")
 MATCHERS = ("auto", "exhaustive", "sequential")
 
 
-class CaptureError(RuntimeError):
+class CaptureError(UserError, RuntimeError):
     """A capture that cannot become a dataset; the message says why and what to try."""
 
 

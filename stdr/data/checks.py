@@ -11,6 +11,8 @@ from typing import Sequence
 
 import numpy as np
 
+from ..errors import BadInput
+
 #: |R R^T - I| above this is not a rotation (float32 poses written as JSON are ~1e-6 off)
 ROTATION_TOL = 1e-3
 
@@ -27,18 +29,18 @@ def check_pose(R, position, where: str, what: str = "pose") -> None:
     position: the camera centre or translation (3 values). `where` names the file and frame."""
     R, p = _values(R), _values(position)
     if R.shape != (3, 3):
-        raise ValueError(f"{where}: the {what}'s rotation must be 3x3, got shape {R.shape}")
+        raise BadInput(f"{where}: the {what}'s rotation must be 3x3, got shape {R.shape}")
     if p.shape != (3,):
-        raise ValueError(f"{where}: the {what}'s position must have 3 values, got shape {p.shape}")
+        raise BadInput(f"{where}: the {what}'s position must have 3 values, got shape {p.shape}")
     if not (np.isfinite(R).all() and np.isfinite(p).all()):
         bad = [f"{v}" for v in np.concatenate([R.ravel(), p]) if not np.isfinite(v)]
-        raise ValueError(f"{where}: the {what} has non-finite values ({', '.join(bad[:3])}); "
+        raise BadInput(f"{where}: the {what} has non-finite values ({', '.join(bad[:3])}); "
                          "fix or drop this frame")
     err = float(np.abs(R @ R.T - np.eye(3)).max())
     det = float(np.linalg.det(R))
     if err > ROTATION_TOL or det <= 0:
         kind = "a reflection (det < 0)" if det <= 0 and err <= ROTATION_TOL else "not orthonormal"
-        raise ValueError(f"{where}: the {what}'s rotation is {kind} (|R R^T - I| = {err:.1e}, det = {det:.3f}); "
+        raise BadInput(f"{where}: the {what}'s rotation is {kind} (|R R^T - I| = {err:.1e}, det = {det:.3f}); "
                          f"a camera rotation is orthonormal within {ROTATION_TOL:g} with det +1 (scale or "
                          "mirroring baked into the matrix? fix the export)")
 
@@ -48,13 +50,13 @@ def check_intrinsics(fx: float, fy: float, cx: float, cy: float, width: int, hei
     vals = {"fx": fx, "fy": fy, "cx": cx, "cy": cy}
     for k, v in vals.items():
         if not isinstance(v, (int, float)) or not math.isfinite(float(v)):
-            raise ValueError(f"{where}: {k}={v!r} is not a finite number")
+            raise BadInput(f"{where}: {k}={v!r} is not a finite number")
     if not (int(width) >= 1 and int(height) >= 1):
-        raise ValueError(f"{where}: image size {width}x{height} must be positive")
+        raise BadInput(f"{where}: image size {width}x{height} must be positive")
     if fx <= 0 or fy <= 0:
-        raise ValueError(f"{where}: focal lengths must be positive, got fx={fx:g}, fy={fy:g}")
+        raise BadInput(f"{where}: focal lengths must be positive, got fx={fx:g}, fy={fy:g}")
     if not (0.0 <= cx <= width and 0.0 <= cy <= height):
-        raise ValueError(f"{where}: principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image it "
+        raise BadInput(f"{where}: principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image it "
                          "describes; do the intrinsics belong to images of another size?")
 
 
@@ -63,9 +65,9 @@ def check_time(t, where: str) -> float:
     try:
         v = float(t)
     except (TypeError, ValueError):
-        raise ValueError(f"{where}: time={t!r} is not a number") from None
+        raise BadInput(f"{where}: time={t!r} is not a number") from None
     if not 0.0 <= v <= 1.0:  # NaN fails this too
-        raise ValueError(f"{where}: time={t} is outside [0, 1]")
+        raise BadInput(f"{where}: time={t} is outside [0, 1]")
     return v
 
 
@@ -74,9 +76,9 @@ def check_fov(angle, where: str, key: str) -> float:
     try:
         v = float(angle)
     except (TypeError, ValueError):
-        raise ValueError(f"{where}: {key}={angle!r} is not a number") from None
+        raise BadInput(f"{where}: {key}={angle!r} is not a number") from None
     if not 0.0 < v < math.pi:  # NaN fails this too
-        raise ValueError(f"{where}: {key}={angle} must be a field of view in radians, in (0, pi)")
+        raise BadInput(f"{where}: {key}={angle} must be a field of view in radians, in (0, pi)")
     return v
 
 
@@ -84,5 +86,5 @@ def finite_values(values: Sequence, where: str, what: str) -> np.ndarray:
     """values as float64, or an error naming what is not finite."""
     a = _values(values)
     if not np.isfinite(a).all():
-        raise ValueError(f"{where}: {what} has non-finite values: {values!r}")
+        raise BadInput(f"{where}: {what} has non-finite values: {values!r}")
     return a

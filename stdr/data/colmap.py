@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import BadInput, MissingInput
+
 # model id -> (name, number of parameters)
 CAMERA_MODELS = {
     0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5),
@@ -74,7 +76,7 @@ class _Reader:
         fmt = "<" + fmt
         n = struct.calcsize(fmt)
         if self.pos + n > len(self.buf):
-            raise ValueError(f"{self.path}: truncated COLMAP binary file (needed {n} bytes at offset "
+            raise BadInput(f"{self.path}: truncated COLMAP binary file (needed {n} bytes at offset "
                              f"{self.pos}, file has {len(self.buf)})")
         out = struct.unpack_from(fmt, self.buf, self.pos)
         self.pos += n
@@ -84,7 +86,7 @@ class _Reader:
         dt = np.dtype(dtype).newbyteorder("<")
         n = dt.itemsize * count
         if self.pos + n > len(self.buf):
-            raise ValueError(f"{self.path}: truncated COLMAP binary file")
+            raise BadInput(f"{self.path}: truncated COLMAP binary file")
         out = np.frombuffer(self.buf, dtype=dt, count=count, offset=self.pos)
         self.pos += n
         return out
@@ -92,14 +94,14 @@ class _Reader:
     def cstring(self) -> str:
         end = self.buf.find(b"\x00", self.pos)
         if end < 0:
-            raise ValueError(f"{self.path}: truncated COLMAP binary file (unterminated image name)")
+            raise BadInput(f"{self.path}: truncated COLMAP binary file (unterminated image name)")
         s = self.buf[self.pos:end].decode("utf-8")
         self.pos = end + 1
         return s
 
     def done(self) -> None:
         if self.pos != len(self.buf):
-            raise ValueError(f"{self.path}: {len(self.buf) - self.pos} trailing bytes; not a COLMAP binary model")
+            raise BadInput(f"{self.path}: {len(self.buf) - self.pos} trailing bytes; not a COLMAP binary model")
 
 
 def read_cameras(path: Path) -> dict[int, ColmapCamera]:
@@ -109,7 +111,7 @@ def read_cameras(path: Path) -> dict[int, ColmapCamera]:
     for _ in range(n):
         cid, model_id, w, h = r.read("iiQQ")
         if model_id not in CAMERA_MODELS:
-            raise ValueError(f"{path}: unknown COLMAP camera model id {model_id}")
+            raise BadInput(f"{path}: unknown COLMAP camera model id {model_id}")
         name, npar = CAMERA_MODELS[model_id]
         cams[cid] = ColmapCamera(cid, name, int(w), int(h), r.array(np.float64, npar).copy())
     r.done()
@@ -154,7 +156,7 @@ def read_model(folder: str | Path) -> ColmapModel:
     folder = Path(folder)
     missing = [f for f in ("cameras.bin", "images.bin", "points3D.bin") if not (folder / f).is_file()]
     if missing:
-        raise FileNotFoundError(f"{folder}: COLMAP sparse model is missing {', '.join(missing)}")
+        raise MissingInput(f"{folder}: COLMAP sparse model is missing {', '.join(missing)}")
     ids, xyz, rgb, err, tl = read_points3d(folder / "points3D.bin")
     return ColmapModel(read_cameras(folder / "cameras.bin"), read_images(folder / "images.bin"),
                        ids, xyz, rgb, err, tl)

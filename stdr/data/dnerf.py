@@ -8,6 +8,7 @@ from typing import Iterable, Optional
 import numpy as np
 import torch
 
+from ..errors import BadInput, MissingInput, MissingKey
 from ..cameras import Camera, focal_from_fov, opengl_c2w_to_opencv_w2c
 from .checks import check_fov, check_intrinsics, check_pose, check_time
 from .images import composite, read_image, resize
@@ -19,42 +20,42 @@ BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 def parse_background(bg) -> tuple[float, float, float]:
     if isinstance(bg, str):
         if bg not in BACKGROUNDS:
-            raise ValueError(f"data.background={bg!r}: use 'white', 'black' or [r, g, b] in [0, 1]")
+            raise BadInput(f"data.background={bg!r}: use 'white', 'black' or [r, g, b] in [0, 1]")
         return BACKGROUNDS[bg]
     vals = tuple(float(x) for x in bg)
     if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
-        raise ValueError(f"data.background={bg!r}: expected three values in [0, 1]")
+        raise BadInput(f"data.background={bg!r}: expected three values in [0, 1]")
     return vals
 
 
 def _read_json(path: Path) -> dict:
     if not path.is_file():
-        raise FileNotFoundError(f"{path} not found: a D-NeRF scene folder holds "
+        raise MissingInput(f"{path} not found: a D-NeRF scene folder holds "
                                 "transforms_train.json, transforms_val.json and transforms_test.json")
     try:
         return json.loads(path.read_text())
     except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: malformed JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+        raise BadInput(f"{path}: malformed JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
 
 
 def _resolve_image(root: Path, file_path: str, json_path: Path, i: int) -> Path:
     p = (root / file_path).resolve()
     if not p.is_relative_to(root.resolve()):
-        raise ValueError(f"{json_path}: frames[{i}].file_path={file_path!r} points outside the scene folder")
+        raise BadInput(f"{json_path}: frames[{i}].file_path={file_path!r} points outside the scene folder")
     if p.suffix == "":
         for ext in (".png", ".jpg", ".jpeg"):
             if p.with_suffix(ext).is_file():
                 return p.with_suffix(ext)
         p = p.with_suffix(".png")
     if not p.is_file():
-        raise FileNotFoundError(f"{json_path}: frames[{i}] image {file_path!r} not found (looked for {p})")
+        raise MissingInput(f"{json_path}: frames[{i}] image {file_path!r} not found (looked for {p})")
     return p
 
 
 def output_size(width: int, height: int, resolution_scale: float, max_width: Optional[int]) -> tuple[int, int]:
     """Image size after `resolution_scale`, then capped at `max_width` (aspect kept)."""
     if resolution_scale <= 0:
-        raise ValueError(f"data.resolution_scale must be > 0, got {resolution_scale}")
+        raise BadInput(f"data.resolution_scale must be > 0, got {resolution_scale}")
     s = resolution_scale
     if max_width and width * s > max_width:
         s = max_width / width
@@ -68,25 +69,25 @@ def load_dnerf_split(root: str | Path, split: str, background=(1.0, 1.0, 1.0),
     meta = _read_json(jp)
     for key in ("camera_angle_x", "frames"):
         if key not in meta:
-            raise KeyError(f"{jp}: missing key {key!r}")
+            raise MissingKey(f"{jp}: missing key {key!r}")
     if not isinstance(meta["frames"], list) or not meta["frames"]:
-        raise ValueError(f"{jp}: 'frames' must be a non-empty list")
+        raise BadInput(f"{jp}: 'frames' must be a non-empty list")
     fov_x = check_fov(meta["camera_angle_x"], jp, "camera_angle_x")
     frames, size0, name0 = [], None, None
     for i, fr in enumerate(meta["frames"]):
         for key in ("file_path", "transform_matrix"):
             if key not in fr:
-                raise KeyError(f"{jp}: frames[{i}] is missing key {key!r}")
+                raise MissingKey(f"{jp}: frames[{i}] is missing key {key!r}")
         if "time" not in fr:
-            raise KeyError(f"{jp}: frames[{i}] has no 'time'; D-NeRF frames need a time in [0, 1]")
+            raise MissingKey(f"{jp}: frames[{i}] has no 'time'; D-NeRF frames need a time in [0, 1]")
         where = f"{jp}: frames[{i}] ({fr['file_path']})"
         t = check_time(fr["time"], f"{jp}: frames[{i}]")
         try:
             c2w = np.asarray(fr["transform_matrix"], dtype=np.float64)
         except (TypeError, ValueError):
-            raise ValueError(f"{where}: transform_matrix is not a matrix of numbers") from None
+            raise BadInput(f"{where}: transform_matrix is not a matrix of numbers") from None
         if c2w.shape not in ((4, 4), (3, 4)):
-            raise ValueError(f"{jp}: frames[{i}].transform_matrix must be 4x4 or 3x4, got shape {c2w.shape}")
+            raise BadInput(f"{jp}: frames[{i}].transform_matrix must be 4x4 or 3x4, got shape {c2w.shape}")
         check_pose(c2w[:3, :3], c2w[:3, 3], where, "transform_matrix")
         ip = _resolve_image(root, fr["file_path"], jp, i)
         img = read_image(ip)
@@ -94,7 +95,7 @@ def load_dnerf_split(root: str | Path, split: str, background=(1.0, 1.0, 1.0),
         if size0 is None:
             size0, name0 = (W0, H0), ip.name
         elif (W0, H0) != size0:
-            raise ValueError(f"{ip}: image is {W0}x{H0} but {name0} is {size0[0]}x{size0[1]}; "
+            raise BadInput(f"{ip}: image is {W0}x{H0} but {name0} is {size0[0]}x{size0[1]}; "
                              "all frames of a D-NeRF scene must have one size")
         R, tvec = opengl_c2w_to_opencv_w2c(c2w)
         fx = focal_from_fov(fov_x, W0)
@@ -117,7 +118,7 @@ def load_dnerf(root: str | Path, splits: Iterable[str] = ("train", "test"), back
                resolution_scale: float = 1.0, max_width: Optional[int] = None) -> SceneData:
     root = Path(root)
     if not root.is_dir():
-        raise FileNotFoundError(f"D-NeRF scene folder not found: {root} (set data.path)")
+        raise MissingInput(f"D-NeRF scene folder not found: {root} (set data.path)")
     bg = parse_background(background)
     data = {s: load_dnerf_split(root, s, bg, resolution_scale, max_width) for s in dict.fromkeys(splits)}
     return SceneData(root=str(root), splits=data, background=bg, meta={"format": "dnerf"})

@@ -20,8 +20,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import stat
+import tarfile
 import tempfile
 import urllib.error
 import urllib.request
@@ -29,6 +31,8 @@ import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Callable, Optional
+
+from ..errors import UserError
 
 CHUNK = 1 << 20
 LOCK_NAME = "stdr-data.lock.json"
@@ -81,7 +85,7 @@ CATALOG: dict[str, Dataset] = {
 }
 
 
-class DataError(RuntimeError):
+class DataError(UserError, RuntimeError):
     """A download, archive or layout that cannot be used; the message says what to do."""
 
 
@@ -92,15 +96,47 @@ def _progress(total: Optional[int], initial: int, desc: str):
                 disable=os.environ.get("STDR_DATA_QUIET") == "1")
 
 
-def _fetch_one(url: str, dest: Path, timeout: float) -> None:
+def _content_range(value: Optional[str]) -> tuple[Optional[int], Optional[int]]:
+    """(first byte, total) of a Content-Range header ('bytes 100-199/1000', 'bytes */1000');
+    None where it does not say."""
+    m = re.fullmatch(r"\s*bytes\s+(?:(\d+)-\d+|\*)/(\d+|\*)\s*", value or "")
+    if m is None:
+        return None, None
+    return (int(m.group(1)) if m.group(1) else None), (int(m.group(2)) if m.group(2) != "*" else None)
+
+
+def _fetch_one(url: str, dest: Path, timeout: float, verify: Optional[Callable[[Path], None]] = None) -> None:
+    """Fetch `url` into dest, resuming dest.part. Only a body whose length is known and reached, or
+    that `verify` accepts, is moved into place: a resume whose Content-Range does not start where
+    the .part ends starts over, a .part the server calls complete (416) is checked and kept, and a
+    body of unknown length is verified before it is kept (and deleted when it fails)."""
     part = dest.with_name(dest.name + ".part")
     have = part.stat().st_size if part.is_file() else 0
     req = urllib.request.Request(url, headers={"User-Agent": "stdr-data"})
     if have:
         req.add_header("Range", f"bytes={have}-")
-    with urllib.request.urlopen(req, timeout=timeout) as r:
+    try:
+        r = urllib.request.urlopen(req, timeout=timeout)
+    except urllib.error.HTTPError as e:
+        if e.code != 416 or not have:
+            raise
+        _, total = _content_range(e.headers.get("Content-Range"))
+        if total is not None and total == have:  # the .part holds the whole file already
+            _keep(part, dest, url, verify, f"{have} bytes, the whole file by the server's word")
+            return
+        part.unlink()  # a .part the server cannot continue (the file changed): start over
+        return _fetch_one(url, dest, timeout, verify)
+    with r:
         status = getattr(r, "status", 200)
-        if have and status != 206:  # the server ignored the range: start over
+        if have and status == 206:
+            start, whole = _content_range(r.headers.get("Content-Range"))
+            length = r.headers.get("Content-Length")
+            if start != have or (whole is not None and length is not None and whole != have + int(length)):
+                # not the continuation of this .part: start over
+                r.close()
+                part.unlink()
+                return _fetch_one(url, dest, timeout, verify)
+        elif have:  # the server ignored the range: the body is the whole file
             have = 0
         length = r.headers.get("Content-Length")
         total = (int(length) + have) if length is not None else None
@@ -115,17 +151,37 @@ def _fetch_one(url: str, dest: Path, timeout: float) -> None:
     if total is not None and got != total:
         raise DataError(f"{url}: the transfer stopped at {got} of {total} bytes; run the command again to resume "
                         f"from {part}")
+    if total is None:
+        _keep(part, dest, url, verify, f"{got} bytes of a body whose length the server did not send")
+        return
+    part.replace(dest)
+
+
+def _keep(part: Path, dest: Path, url: str, verify: Optional[Callable[[Path], None]], what: str) -> None:
+    """Move a .part whose completeness the transfer cannot show into place once `verify` accepts
+    it; without a verify it is not kept."""
+    if verify is None:
+        part.unlink()
+        raise DataError(f"{url}: {what}, and nothing to check it against; download it by hand and pass it "
+                        "with --archive")
+    try:
+        verify(part)
+    except DataError as e:
+        part.unlink()
+        raise DataError(f"{url}: {what}, which fails its check ({e}); deleted, run the command again") from None
     part.replace(dest)
 
 
 def download(urls: tuple[str, ...] | list[str], dest: Path, timeout: float = 60.0,
-             log: Callable[[str], None] = print) -> str:
-    """Fetch the first of `urls` that works into `dest` (resuming `dest.part`); returns the URL."""
+             log: Callable[[str], None] = print, verify: Optional[Callable[[Path], None]] = None) -> str:
+    """Fetch the first of `urls` that works into `dest` (resuming `dest.part`); returns the URL.
+    `verify(path)` (e.g. check_archive) checks a file whose completeness the transfer cannot
+    show (no Content-Length, or a .part the server calls complete) before it is kept."""
     dest.parent.mkdir(parents=True, exist_ok=True)
     errors = []
     for url in urls:
         try:
-            _fetch_one(url, dest, timeout)
+            _fetch_one(url, dest, timeout, verify)
             return url
         except (urllib.error.URLError, OSError, DataError) as e:
             errors.append(f"{url}: {e}")
@@ -150,21 +206,27 @@ class Lock:
         self.path = Path(folder) / LOCK_NAME
         self.entries: dict = json.loads(self.path.read_text()) if self.path.is_file() else {}
 
-    def check_or_record(self, name: str, archive: Path, url: str) -> str:
-        """'recorded' (first time) or 'matches'; a different size or SHA-256 is a DataError."""
+    def check(self, name: str, archive: Path, url: str) -> tuple[str, dict]:
+        """('recorded', the entry to record once the archive is unpacked) the first time, or
+        ('matches', its entry); a different size or SHA-256 is a DataError. Writes nothing."""
         size, digest = archive.stat().st_size, sha256(archive)
         old = self.entries.get(name)
         if old is None:
-            self.entries[name] = {"size": size, "sha256": digest, "url": url}
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.path.write_text(json.dumps(self.entries, indent=1, sort_keys=True) + "\n")
-            return "recorded"
+            return "recorded", {"size": size, "sha256": digest, "url": url}
         if (old["size"], old["sha256"]) != (size, digest):
             raise DataError(f"{archive}: {size} bytes, SHA-256 {digest}, but {self.path} recorded {old['size']} bytes, "
                             f"SHA-256 {old['sha256']} (from {old.get('url')}). The source changed or the file is "
                             f"damaged: delete {archive} and download again; if the new archive is right, remove its "
                             f"entry from {self.path}")
-        return "matches"
+        return "matches", old
+
+    def record(self, name: str, entry: dict) -> None:
+        """Write `entry` for archive `name` (after it was unpacked and its scenes checked)."""
+        self.entries[name] = entry
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        tmp.write_text(json.dumps(self.entries, indent=1, sort_keys=True) + "\n")
+        tmp.replace(self.path)
 
 
 # ------------------------------------------------------------------ archives
@@ -224,6 +286,9 @@ def safe_extract(archive: Path, dest: Path, keep: Optional[Callable[[str], bool]
             scenes = [k for k in sorted(root.iterdir()) if k.is_dir() and not k.name.startswith(("__MACOSX", "."))]
             if _looks_like_scene(root):
                 scenes = [root]
+            if not scenes:
+                raise DataError(f"{archive} holds no scene folder (one with transforms_train.json or dataset.json); "
+                                f"nothing was unpacked into {dest}: is it the right archive?")
             if keep is not None:
                 scenes = [s for s in scenes if keep(s.name)]
             targets = [dest / (Path(archive).stem if sc == tmp else sc.name) for sc in scenes]
@@ -240,6 +305,38 @@ def safe_extract(archive: Path, dest: Path, keep: Optional[Callable[[str], bool]
             for sc, t in zip(scenes, targets):
                 sc.replace(t)
             return targets
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def extract_tar(archive: Path, dest: Path, member_ok: Optional[Callable[[str], bool]] = None,
+                what: str = "a plain file or folder inside the archive") -> list[str]:
+    """Unpack the tar `archive` into `dest`, all or nothing: every member is checked first (plain
+    files and folders only; no absolute path, no '..', no link or device; `member_ok(name)` if
+    given, `what` naming what it allows), the archive is unpacked into a temporary folder beside
+    `dest`, and only then are its files moved into place (over files of the same name). A refused
+    member, or a failure while unpacking, leaves `dest` as it was and no temporary folder behind.
+    Returns the files' names, as in the archive."""
+    dest = Path(dest)
+    with tarfile.open(archive) as tar:
+        members = tar.getmembers()
+        for m in members:
+            name = m.name
+            p = PurePosixPath(name)
+            ok = ((m.isfile() or m.isdir()) and not p.is_absolute() and ".." not in p.parts
+                  and (member_ok is None or m.isdir() or member_ok(name)))
+            if not ok:
+                raise DataError(f"{archive}: member {name!r} is not {what}; refused, nothing was unpacked")
+        dest.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}-", dir=dest.parent))
+        try:
+            tar.extractall(tmp, members=members, filter="data")
+            files = sorted(m.name for m in members if m.isfile())
+            for name in files:
+                target = dest / name
+                target.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(tmp / name, target)
+            return files
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
 

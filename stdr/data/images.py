@@ -6,14 +6,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..errors import BadInput, MissingInput
+
 
 def read_image(path: Path) -> np.ndarray:
     """uint8/uint16 image -> float32 [H, W, C] in [0, 1], C in {3, 4} (RGB(A) order)."""
     if not path.is_file():
-        raise FileNotFoundError(f"image not found: {path}")
+        raise MissingInput(f"image not found: {path}")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise ValueError(f"could not decode image {path} (corrupt or unsupported format)")
+        raise BadInput(f"could not decode image {path} (corrupt or unsupported format)")
     scale = 65535.0 if img.dtype == np.uint16 else 255.0
     img = img.astype(np.float32) / scale
     if img.ndim == 2:
@@ -23,7 +25,7 @@ def read_image(path: Path) -> np.ndarray:
     elif img.shape[2] == 3:
         img = img[..., ::-1]
     else:
-        raise ValueError(f"{path}: expected 1, 3 or 4 channels, got {img.shape[2]}")
+        raise BadInput(f"{path}: expected 1, 3 or 4 channels, got {img.shape[2]}")
     return np.ascontiguousarray(img)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Iterable
 
+from ..errors import BadInput
 from .dnerf import load_dnerf, parse_background
 from .nerfies import load_nerfies
 from .procedural import SceneOptions, embedded_scene
@@ -44,9 +45,9 @@ def scene_folder(cfg, base: str | Path | None = None) -> Path:
         if not cfg.path:
             what = ("a D-NeRF scene folder (the one holding transforms_train.json)" if cfg.format == "dnerf"
                     else "a Nerfies-format scene folder (the one holding dataset.json)")
-            raise ValueError(f"data.path is not set: point it at {what}")
+            raise BadInput(f"data.path is not set: point it at {what}")
         return resolve_data_path(cfg.path, base)
-    raise ValueError(f"data.format={cfg.format!r} is not one of {FORMATS}")
+    raise BadInput(f"data.format={cfg.format!r} is not one of {FORMATS}")
 
 
 def load_scene(cfg, splits: Iterable[str], base: str | Path | None = None, seed: int = 0) -> SceneData:

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 import torch
 
+from ..errors import BadInput, MissingInput, MissingKey
 from ..cameras import Camera
 from .checks import check_intrinsics, check_pose, finite_values
 from .colmap import ColmapModel, read_model
@@ -43,22 +44,22 @@ COLMAP_DIR = "colmap/sparse/0"
 
 def _read_json(path: Path, what: str) -> dict:
     if not path.is_file():
-        raise FileNotFoundError(f"{path} not found: {what}")
+        raise MissingInput(f"{path} not found: {what}")
     try:
         return json.loads(path.read_text())
     except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: malformed JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+        raise BadInput(f"{path}: malformed JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
 
 
 def _need(d: dict, key: str, path: Path, where: str = ""):
     if not isinstance(d, dict) or key not in d:
-        raise KeyError(f"{path}: missing key {key!r}{where}")
+        raise MissingKey(f"{path}: missing key {key!r}{where}")
     return d[key]
 
 
 def _choice(name: str, value, allowed) -> None:
     if value not in allowed:
-        raise ValueError(f"data.{name}={value!r}: use one of {', '.join(map(str, allowed))}")
+        raise BadInput(f"data.{name}={value!r}: use one of {', '.join(map(str, allowed))}")
 
 
 def capture_defaults(root: Path) -> dict:
@@ -71,10 +72,10 @@ def capture_defaults(root: Path) -> dict:
         return {}
     loader = _read_json(path, "").get("loader", {})
     if not isinstance(loader, dict):
-        raise ValueError(f"{path}: 'loader' must be a mapping {{split_mode, image_scale}}")
+        raise BadInput(f"{path}: 'loader' must be a mapping {{split_mode, image_scale}}")
     bad = sorted(set(loader) - {"split_mode", "image_scale"})
     if bad:
-        raise ValueError(f"{path}: unknown loader setting(s) {bad}; capture.json names split_mode and image_scale")
+        raise BadInput(f"{path}: unknown loader setting(s) {bad}; capture.json names split_mode and image_scale")
     return dict(loader)
 
 
@@ -88,7 +89,7 @@ def split_ids(dataset: dict, path: Path, mode: str) -> tuple[list[str], list[str
     _choice("split_mode", mode, SPLIT_MODES)
     ids = [str(i) for i in _need(dataset, "ids", path)]
     if len(set(ids)) != len(ids):
-        raise ValueError(f"{path}: 'ids' has duplicates")
+        raise BadInput(f"{path}: 'ids' has duplicates")
     if mode == "interp":
         return ids[::4], ids[2::4]
     train = [str(i) for i in _need(dataset, "train_ids", path, " (data.split_mode=ids needs it; "
@@ -96,13 +97,13 @@ def split_ids(dataset: dict, path: Path, mode: str) -> tuple[list[str], list[str
     val = [str(i) for i in dataset.get("val_ids", [])]
     unknown = sorted(set(train + val) - set(ids))
     if unknown:
-        raise ValueError(f"{path}: train_ids/val_ids name ids that are not in 'ids': {unknown[:5]}")
+        raise BadInput(f"{path}: train_ids/val_ids name ids that are not in 'ids': {unknown[:5]}")
     both = sorted(set(train) & set(val))
     if both:
-        raise ValueError(f"{path}: {len(both)} ids are in both train_ids and val_ids (e.g. {both[0]}); "
+        raise BadInput(f"{path}: {len(both)} ids are in both train_ids and val_ids (e.g. {both[0]}); "
                          "the held-out frames would be trained on")
     if not train:
-        raise ValueError(f"{path}: train_ids is empty")
+        raise BadInput(f"{path}: train_ids is empty")
     return train, val
 
 
@@ -115,7 +116,7 @@ def frame_times(metadata: dict, ids: list[str], path: Path, time_key: str) -> tu
     _choice("time_key", time_key, TIME_KEYS)
     missing = [i for i in ids if i not in metadata]
     if missing:
-        raise KeyError(f"{path}: no entry for id {missing[0]!r} ({len(missing)} ids missing)")
+        raise MissingKey(f"{path}: no entry for id {missing[0]!r} ({len(missing)} ids missing)")
     key = time_key
     if key == "auto":
         has = [("time_id" in metadata[i]) for i in ids]
@@ -125,17 +126,17 @@ def frame_times(metadata: dict, ids: list[str], path: Path, time_key: str) -> tu
             key = "warp_id"
         else:
             bad = ids[has.index(False)]
-            raise KeyError(f"{path}: some entries have 'time_id' and some not (e.g. {bad!r}); "
+            raise MissingKey(f"{path}: some entries have 'time_id' and some not (e.g. {bad!r}); "
                            "set data.time_key=warp_id to use warp_id for all")
     raw = {}
     for i in ids:
         v = _need(metadata[i], key, path, f" in entry {i!r} (data.time_key={time_key})")
         if not isinstance(v, (int, float)) or v < 0 or int(v) != v:
-            raise ValueError(f"{path}: entry {i!r} has {key}={v!r}; expected a non-negative integer")
+            raise BadInput(f"{path}: entry {i!r} has {key}={v!r}; expected a non-negative integer")
         raw[i] = int(v)
     top = max(raw.values())
     if top == 0:
-        raise ValueError(f"{path}: every frame has {key}=0; a dynamic scene needs more than one time")
+        raise BadInput(f"{path}: every frame has {key}=0; a dynamic scene needs more than one time")
     return {i: v / top for i, v in raw.items()}, key
 
 
@@ -147,17 +148,17 @@ def lens_from_camera_json(cam: dict, path: Path) -> LensCamera:
     pp = list(finite_values(_need(cam, "principal_point", path), path, "principal_point").reshape(-1))
     size = list(finite_values(_need(cam, "image_size", path), path, "image_size").reshape(-1))
     if len(pp) != 2 or len(size) != 2:
-        raise ValueError(f"{path}: principal_point and image_size must have two values [x, y] / [w, h]")
+        raise BadInput(f"{path}: principal_point and image_size must have two values [x, y] / [w, h]")
     radial = list(cam.get("radial_distortion", [0.0, 0.0, 0.0]))
     if not 1 <= len(radial) <= 3:
-        raise ValueError(f"{path}: radial_distortion must hold k1[, k2[, k3]], got {radial}")
+        raise BadInput(f"{path}: radial_distortion must hold k1[, k2[, k3]], got {radial}")
     radial = (radial + [0.0, 0.0])[:3]
     tang = cam.get("tangential_distortion", cam.get("tangential", [0.0, 0.0]))
     if len(tang) != 2:
-        raise ValueError(f"{path}: tangential_distortion must hold p1, p2, got {tang}")
+        raise BadInput(f"{path}: tangential_distortion must hold p1, p2, got {tang}")
     par = float(finite_values(cam.get("pixel_aspect_ratio", 1.0), path, "pixel_aspect_ratio"))
     if f <= 0 or par <= 0:
-        raise ValueError(f"{path}: focal_length and pixel_aspect_ratio must be positive")
+        raise BadInput(f"{path}: focal_length and pixel_aspect_ratio must be positive")
     check_intrinsics(f, f * par, float(pp[0]), float(pp[1]), int(size[0]), int(size[1]), str(path))
     return LensCamera(fx=f, fy=f * par, cx=float(pp[0]), cy=float(pp[1]), skew=float(cam.get("skew", 0.0)),
                       k=tuple(float(v) for v in radial), p=tuple(float(v) for v in tang),
@@ -168,7 +169,7 @@ def lens_from_colmap(model: ColmapModel, image_name: str, folder: Path) -> LensC
     """The intrinsics COLMAP estimated for one image (at the size COLMAP saw)."""
     img = next((im for im in model.images.values() if Path(im.name).stem == image_name), None)
     if img is None:
-        raise KeyError(f"{folder}: no image named {image_name}.* in the COLMAP model; "
+        raise MissingKey(f"{folder}: no image named {image_name}.* in the COLMAP model; "
                        "use data.intrinsics=camera")
     c = model.cameras[img.camera_id]
     p = c.params
@@ -182,7 +183,7 @@ def lens_from_colmap(model: ColmapModel, image_name: str, folder: Path) -> LensC
         "FULL_OPENCV": lambda: (p[0], p[1], p[2], p[3], (p[4], p[5], p[8]), (p[6], p[7])),
     }
     if c.model not in table or (c.model == "FULL_OPENCV" and np.any(p[9:] != 0)):
-        raise ValueError(f"{folder}: COLMAP camera model {c.model} is not supported; "
+        raise BadInput(f"{folder}: COLMAP camera model {c.model} is not supported; "
                          "use data.intrinsics=camera")
     fx, fy, cx, cy, k, tp = table[c.model]()
     return LensCamera(float(fx), float(fy), float(cx), float(cy), 0.0, tuple(map(float, k)),
@@ -193,7 +194,7 @@ def scale_for(w1: int, h1: int, w: int, h: int, image_scale: int, img_path: Path
     """Raise unless (w, h) is the 1x size divided by image_scale (either rounding)."""
     ew, eh = w1 / image_scale, h1 / image_scale
     if abs(w - ew) >= 1.0 or abs(h - eh) >= 1.0:
-        raise ValueError(f"{img_path}: image is {w}x{h}, but {cam_path.name} gives image_size "
+        raise BadInput(f"{img_path}: image is {w}x{h}, but {cam_path.name} gives image_size "
                          f"{w1}x{h1}, so rgb/{image_scale}x should hold {ew:g}x{eh:g} images; "
                          "check data.image_scale and that the rgb folders are not mixed up")
 
@@ -260,13 +261,13 @@ def load_points(root: Path, source: str, model: Optional[ColmapModel]):
     if source in ("auto", "points_npy") and npy.is_file():
         pts = np.load(npy, allow_pickle=False)
         if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
-            raise ValueError(f"{npy}: expected a non-empty [P, 3] array, got shape {pts.shape}")
+            raise BadInput(f"{npy}: expected a non-empty [P, 3] array, got shape {pts.shape}")
         return pts.astype(np.float64), None, "points_npy"
     if source == "points_npy":
-        raise FileNotFoundError(f"{npy} not found (data.points_source=points_npy)")
+        raise MissingInput(f"{npy} not found (data.points_source=points_npy)")
     if model is None:
         if source == "colmap":
-            raise FileNotFoundError(f"{root / COLMAP_DIR}: no COLMAP model (data.points_source=colmap)")
+            raise MissingInput(f"{root / COLMAP_DIR}: no COLMAP model (data.points_source=colmap)")
         return None, None, "none"
     return model.xyz.copy(), model.rgb.astype(np.float32) / 255.0, "colmap"
 
@@ -279,7 +280,7 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
                  cache_dir: Optional[str | Path] = None) -> SceneData:
     root = Path(root)
     if not root.is_dir():
-        raise FileNotFoundError(f"Nerfies scene folder not found: {root} (set data.path)")
+        raise MissingInput(f"Nerfies scene folder not found: {root} (set data.path)")
     defaults = capture_defaults(root)
     defaults_used = {}
     if split_mode is None and "split_mode" in defaults:
@@ -287,10 +288,10 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
     if image_scale is None and "image_scale" in defaults:
         image_scale = defaults_used["image_scale"] = defaults["image_scale"]
     if split_mode is None:
-        raise ValueError("data.split_mode is not set: use 'ids' (dataset.json train_ids/val_ids: NeRF-DS, "
+        raise BadInput("data.split_mode is not set: use 'ids' (dataset.json train_ids/val_ids: NeRF-DS, "
                          "HyperNeRF vrig) or 'interp' (every 4th frame trains, +2 tests: HyperNeRF interp)")
     if image_scale is None or int(image_scale) != image_scale or image_scale < 1:
-        raise ValueError(f"data.image_scale={image_scale!r}: set the integer N of the rgb/<N>x folder to load")
+        raise BadInput(f"data.image_scale={image_scale!r}: set the integer N of the rgb/<N>x folder to load")
     image_scale = int(image_scale)
     for name, value, allowed in (("distortion", distortion, DISTORTION_MODES),
                                  ("intrinsics", intrinsics, INTRINSICS_SOURCES)):
@@ -303,10 +304,10 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
     splits = list(dict.fromkeys(splits))
     for s in splits:
         if s != "train" and s not in HELD_OUT:
-            raise ValueError(f"split {s!r}: a Nerfies scene has 'train' and the held-out frames "
+            raise BadInput(f"split {s!r}: a Nerfies scene has 'train' and the held-out frames "
                              "('test' or 'val', the same frames)")
         if s in HELD_OUT and not held_ids:
-            raise ValueError(f"{dpath}: val_ids is empty, so there is nothing to evaluate on; "
+            raise BadInput(f"{dpath}: val_ids is empty, so there is nothing to evaluate on; "
                              "use data.split_mode=interp for a single-sequence capture")
     times, used_key = frame_times(metadata, train_ids + held_ids, mpath, time_key)
 
@@ -316,16 +317,16 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
         center = np.asarray(_need(sc, "center", spath), dtype=np.float64)
         scale = float(_need(sc, "scale", spath))
         if center.shape != (3,) or not scale > 0:
-            raise ValueError(f"{spath}: center must have 3 values and scale must be positive")
+            raise BadInput(f"{spath}: center must have 3 values and scale must be positive")
 
     colmap_dir = root / COLMAP_DIR
     model = read_model(colmap_dir) if (colmap_dir / "points3D.bin").is_file() else None
     if intrinsics == "colmap" and model is None:
-        raise FileNotFoundError(f"{colmap_dir}: data.intrinsics=colmap needs a COLMAP sparse model")
+        raise MissingInput(f"{colmap_dir}: data.intrinsics=colmap needs a COLMAP sparse model")
     img_dir = root / "rgb" / f"{image_scale}x"
     if not img_dir.is_dir():
         have = sorted(p.name for p in (root / "rgb").glob("*x")) if (root / "rgb").is_dir() else []
-        raise FileNotFoundError(f"{img_dir} not found (data.image_scale={image_scale}); this scene has "
+        raise MissingInput(f"{img_dir} not found (data.image_scale={image_scale}); this scene has "
                                 f"rgb/{{{','.join(have)}}}")
     cache_root = Path(cache_dir) if (cache_dir is not None and distortion == "undistort") else None
     cache = UndistortCache(cache_root, root, image_scale)
@@ -336,21 +337,21 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
         cam = _read_json(cpath, f"every id needs a camera file (id {fid!r} from {dpath.name})")
         R = np.asarray(_need(cam, "orientation", cpath), dtype=np.float64)
         if R.shape != (3, 3):
-            raise ValueError(f"{cpath}: orientation must be a 3x3 matrix, got shape {R.shape}")
+            raise BadInput(f"{cpath}: orientation must be a 3x3 matrix, got shape {R.shape}")
         pos = np.asarray(_need(cam, "position", cpath), dtype=np.float64)
         if pos.shape != (3,):
-            raise ValueError(f"{cpath}: position must have 3 values")
+            raise BadInput(f"{cpath}: position must have 3 values")
         check_pose(R, pos, f"{cpath} (id {fid!r})", "camera (orientation, position)")
         lens1 = lens_from_camera_json(cam, cpath)
         ip = img_dir / f"{fid}.png"
         if not ip.is_file():
             alt = [p for p in (img_dir / f"{fid}.jpg", img_dir / f"{fid}.jpeg") if p.is_file()]
             if not alt:
-                raise FileNotFoundError(f"image for id {fid!r} not found: {ip}")
+                raise MissingInput(f"image for id {fid!r} not found: {ip}")
             ip = alt[0]
         hdr = cv2.imread(str(ip), cv2.IMREAD_UNCHANGED)
         if hdr is None:
-            raise ValueError(f"could not decode image {ip} (corrupt or unsupported format)")
+            raise BadInput(f"could not decode image {ip} (corrupt or unsupported format)")
         h, w = hdr.shape[:2]
         scale_for(lens1.width, lens1.height, w, h, image_scale, ip, cpath)
         lens = lens1.scaled(w, h)
@@ -374,7 +375,7 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
             img = read_image(ip)
             pin = LensCamera.pinhole(lens.fx, lens.fy, lens.cx, lens.cy, w, h)
         elif distortion == "error":
-            raise ValueError(f"{cpath}: the camera has lens distortion (radial {list(lens.k)}, tangential "
+            raise BadInput(f"{cpath}: the camera has lens distortion (radial {list(lens.k)}, tangential "
                              f"{list(lens.p)}, skew {lens.skew}); set data.distortion=undistort to "
                              "undistort the images once (cached), or data.distortion=ignore to reproduce "
                              "the peers' pinhole approximation")

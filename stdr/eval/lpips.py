@@ -75,8 +75,12 @@ def fetch_weights(net: str, dest: Optional[Path] = None, log=print) -> Path:
     for name in todo:
         url, want, _ = WEIGHT_SOURCES[name]
         tmp = dest / f".{name}.download"
+
+        def pinned(path: Path, want=want) -> None:  # a body of unknown length is kept only with the pinned hash
+            if sha256(path) != want:
+                raise DataError(f"SHA-256 is not the pinned {want}")
         try:
-            download([url], tmp, log=lambda m: None)
+            download([url], tmp, log=lambda m: None, verify=pinned)
         except DataError as e:
             why = str(e).split("\n")[1].strip() if "\n" in str(e) else str(e)  # "<url>: <reason>"
             raise DataError(f"LPIPS weights {name} could not be downloaded ({why}); offline? put the official "

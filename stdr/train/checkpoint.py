@@ -4,13 +4,17 @@ from __future__ import annotations
 import hashlib
 import io
 import os
+import pickle
 import random
+import re
 import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+
+from ..errors import MissingInput, UserError
 
 
 def rng_state() -> dict[str, Any]:
@@ -44,7 +48,7 @@ def set_rng_state(s: dict[str, Any]) -> None:
 ENVELOPE = "stdr-checkpoint-v2"  # {"envelope", "sha256", "data": uint8 bytes of the torch.save'd payload}
 
 
-class CheckpointError(RuntimeError):
+class CheckpointError(UserError, RuntimeError):
     """A checkpoint that cannot be used: unreadable, truncated, corrupted or missing entries."""
 
 
@@ -90,17 +94,41 @@ def _damaged(path: Path, why: str) -> CheckpointError:
                            + hint)
 
 
+ZIP_MAGIC = b"PK\x03\x04"
+
+
+def _torch_load(src, path: Path) -> Any:
+    """torch.load with weights_only=True (never code from a file). A pickle of objects other
+    than tensors and containers is another program's file, not a damaged one of ours: say so
+    (and never pass on torch's advice to load it with weights_only=False)."""
+    try:
+        return torch.load(src, map_location="cpu", weights_only=True)  # no code from a file
+    except pickle.UnpicklingError as e:
+        text = str(e)
+        if "Weights only load failed" in text or "Unsupported global" in text:
+            found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", text)
+            what = f"objects of {found.group(1)}" if found else "objects other than tensors"
+            raise CheckpointError(f"{path} is not an stdr checkpoint or model file: it holds pickled {what}, which "
+                                  "stdr never loads (it runs no code from a file)") from None
+        raise _damaged(path, f"it cannot be read (UnpicklingError: {text.splitlines()[0][:200]})") from None
+    except Exception as e:  # noqa: BLE001 - truncated zip, bad record, ...: a damaged file
+        raise _damaged(path, f"it cannot be read ({type(e).__name__}: {str(e).splitlines()[0][:200]})") from None
+
+
 def load_checkpoint(path: str | Path, require: tuple[str, ...] = ()) -> dict[str, Any]:
     """The payload saved by save_checkpoint (also files written before the checksum: plain
     payloads, not verified). `require`: top-level entries that must be present. Never runs code
     from the file (weights_only). Errors name the file and, when damaged, the previous one."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"checkpoint not found: {path}")
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)  # no code from a file
-    except Exception as e:  # noqa: BLE001 - truncated zip, bad pickle, ...: all mean a damaged file
-        raise _damaged(path, f"it cannot be read ({type(e).__name__}: {str(e).splitlines()[0][:200]})") from None
+        raise MissingInput(f"checkpoint not found: {path}")
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if head != ZIP_MAGIC:  # every file torch.save writes (and so every stdr file) is a zip archive
+        raise CheckpointError(f"{path} is not an stdr checkpoint or model file: it is not a file torch.save writes "
+                              f"(it starts with {head!r}); pass a run folder, its checkpoints/last.pt or a "
+                              "model.stdrc")
+    ck = _torch_load(path, path)
     if isinstance(ck, dict) and ck.get("envelope") == ENVELOPE:
         data = ck.get("data")
         if not torch.is_tensor(data) or data.dtype != torch.uint8:
@@ -108,7 +136,7 @@ def load_checkpoint(path: str | Path, require: tuple[str, ...] = ()) -> dict[str
         raw = data.numpy().tobytes()
         if hashlib.sha256(raw).hexdigest() != ck.get("sha256"):
             raise _damaged(path, "its SHA-256 does not match the one written with it")
-        ck = torch.load(io.BytesIO(raw), map_location="cpu", weights_only=True)
+        ck = _torch_load(io.BytesIO(raw), path)
     if not isinstance(ck, dict):
         raise CheckpointError(f"checkpoint {path} holds a {type(ck).__name__}, not a stdr checkpoint")
     missing = [k for k in require if k not in ck]

@@ -11,6 +11,7 @@ import errno
 import socket
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
@@ -39,6 +40,47 @@ def check_port(host: str, port: int) -> None:
                 raise RuntimeError(f"port {port} on {host} is taken (another stdr-view, or another program): "
                                    "pick a free one with --port") from None
             raise RuntimeError(f"cannot serve on {host}:{port}: {e.strerror} (check --host)") from None
+
+
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+
+def allowed_origins(host: str, port: int, extra: tuple[str, ...] = ()) -> list[Optional[str]]:
+    """The WebSocket origins the viewer accepts: its own page, as a browser names it. On a
+    loopback host, http://127.0.0.1, localhost and [::1] at `port`; on another (e.g. 0.0.0.0), also
+    this machine's host name, its fully qualified name and its addresses. `extra`: origins to add
+    (a reverse proxy's, e.g. https://viewer.lab.example). No Origin header at all (a script, not a
+    browser) is accepted: the check is against web pages, which always send one."""
+    names = {"127.0.0.1", "localhost", "[::1]"}
+    if host not in LOOPBACK:
+        names.add(f"[{host}]" if ":" in host else host)
+        hn = socket.gethostname()
+        names |= {hn, socket.getfqdn()}
+        try:
+            names |= {f"[{a[4][0]}]" if ":" in a[4][0] else a[4][0] for a in socket.getaddrinfo(hn, None)}
+        except OSError:
+            pass
+        names.discard("0.0.0.0")
+        names.discard("[::]")
+    return [None, *sorted(f"{scheme}://{n}:{port}" for n in names for scheme in ("http", "https")), *extra]
+
+
+@contextmanager
+def _origins_checked(origins: list[Optional[str]]):
+    """viser has no setting for it: while its server starts, its WebSocket server (websockets'
+    `serve`) is given `origins`, so a handshake from any other page is refused with 403."""
+    import websockets.asyncio.server as ws
+
+    serve = ws.serve
+
+    def checked(*args, **kwargs):
+        kwargs["origins"] = origins
+        return serve(*args, **kwargs)
+    ws.serve = checked
+    try:
+        yield
+    finally:
+        ws.serve = serve
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -80,7 +122,7 @@ class Viewer:
     any train/val/test camera."""
 
     def __init__(self, run: ViewRun, host: str = "127.0.0.1", port: int = 8080, max_width: Optional[int] = None,
-                 verbose: bool = False):
+                 verbose: bool = False, allow_origins: tuple[str, ...] = ()):
         import viser
 
         check_port(host, port)
@@ -91,7 +133,9 @@ class Viewer:
         self.renderers: dict[int, _ClientRenderer] = {}
         cam0, t0 = run.default_camera()
         self.base_width = cam0.width
-        self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        self.origins = allowed_origins(host, port, tuple(allow_origins))
+        with _origins_checked(self.origins):  # only this viewer's own page may drive it
+            self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
         if self.server.get_port() != port:  # taken between the check and the start
             self.server.stop()
             raise RuntimeError(f"port {port} on {host} was taken while starting: pick another with --port")
