@@ -411,3 +411,38 @@ def test_the_compiled_check_is_the_default_on_the_cpu_and_finds_the_same_fault(t
     assert when(runs["null"]) == when(runs["false"]) and len(when(runs["null"])) == 1
     assert runs["null"].guard.recoveries[0]["reason"] == "non-finite grad of means"
     _same_params(runs["null"], runs["false"])
+
+
+def test_last_reset_is_the_schedule_reset_due_follows():
+    """DensifyStrategy.last_reset(step) is the last step <= step at which reset_due fires while
+    densifying (counted by brute force over the schedule, white start included)."""
+    from stdr.densify.strategy import DensifyStrategy
+    for kw in ({"reset_every": 30, "refine_start": 10, "refine_stop": 100},
+               {"reset_every": 0, "refine_start": 10, "refine_stop": 100},
+               {"reset_every": 30, "refine_start": 10, "refine_stop": 100, "reset_white_at_start": True}):
+        s = DensifyStrategy(**kw)
+        for white in (False, True):
+            state = {"white_background": white}
+            fired = [t for t in range(1, 130) if t < s.refine_stop and s.reset_due(t, state)]
+            for step in range(1, 130):
+                want = max([t for t in fired if t <= step], default=None)
+                assert s.last_reset(step, white) == want, (kw, white, step)
+
+
+def test_an_evaluation_right_after_an_opacity_reset_is_no_divergence(tmp_path):
+    """The reset drops the render by design (here 15.9 -> 12.6 dB at the reset at 200, back to
+    15.0 at 220). With train.guard.after_reset=0 a 2 dB detector takes the drop for a divergence,
+    restores, resets again and loses the run; with the window the run trains through, and an
+    evaluation far from a reset is still compared."""
+    keys = ["optim.iterations=240", "densify.reset_every=200", "train.eval_every=20", "train.guard.divergence_db=2"]
+    lost = _trainer(tmp_path, "lost", keys + ["train.guard.after_reset=0"])
+    with pytest.raises(TrainingDiverged, match="divergence"):
+        lost.train()
+    assert {r["found_at"] for r in lost.guard.recoveries} == {200}
+    tr = _trainer(tmp_path, "kept", keys)  # the default window, 500 steps
+    tr.train()
+    assert tr.guard.recoveries == [] and tr.step == 240
+    assert [h["iteration"] for h in tr.history if h["tag"] == "periodic"][-2:] == [200, 220]
+    assert tr.guard.best["step"] < 200  # the evaluations after the reset are neither best nor compared
+    tr.guard.after_evaluation(tr.state, tr.log, tr.guard.best["psnr"] - 10)  # far from a reset: compared
+    assert len(tr.guard.recoveries) == 1

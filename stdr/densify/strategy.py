@@ -198,6 +198,17 @@ class DensifyStrategy:
             return True
         return self.reset_white_at_start and bool(state.get("white_background")) and step == self.refine_start
 
+    def last_reset(self, step: int, white_background: bool = False) -> Optional[int]:
+        """The last step <= `step` (counted from 1) at which this schedule resets the opacities
+        (reset_due's steps; resets happen only while densifying); None before the first."""
+        out = []
+        end = min(step, self.refine_stop - 1)
+        if self.reset_every > 0 and end >= self.reset_every:
+            out.append(end // self.reset_every * self.reset_every)
+        if self.reset_white_at_start and white_background and self.refine_start <= end:
+            out.append(self.refine_start)
+        return max(out) if out else None
+
     def step_post_backward(self, params, optimizers, state, step: int, means2d: Tensor,
                            radii: Tensor, width: int, height: int,
                            generator: torch.Generator | None = None,

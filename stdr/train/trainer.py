@@ -425,7 +425,9 @@ class Trainer:
                 res = self.evaluate(cfg.data.eval_split, tag="periodic", frames=self.curve_frames(cfg.data.eval_split),
                                     lpips_fn=self._curve_lpips())
             if res is not None and self.monitor is not None:
-                self.guard.after_evaluation(self.state, self.log, self._monitor_psnr(res))
+                reset = self.strategy.last_reset(it, bool(self.strategy_state.get("white_background")))
+                self.guard.after_evaluation(self.state, self.log, self._monitor_psnr(res),
+                                            after_reset=reset is not None and it - reset < guard.after_reset)
                 if self.step != it:  # recovered: go on from the restored step
                     if bar is not None:
                         bar.n = self.step
