@@ -21,6 +21,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor
 
+from .errors import BadInput
 from .cameras import Camera
 from .baselines import build_deformation
 from .device import resolve_device
@@ -260,7 +261,7 @@ class DynamicGaussians:
     def load_state_dict(self, s: dict[str, Any], where: str = "checkpoint") -> None:
         have, want = sorted(p.name for p in self.plugins), sorted(s.get("plugins", {}))
         if have != want:
-            raise ValueError(f"{where}: saved with plug-ins {want or 'none'} but this model has {have or 'none'} "
+            raise BadInput(f"{where}: saved with plug-ins {want or 'none'} but this model has {have or 'none'} "
                              "(e.g. a plug-in's `enabled` differs); use the run's own config.yaml")
         self.params.clear()
         for k, v in s["params"].items():  # (an integer tensor, e.g. an 8-bit mask, takes no gradient)
@@ -314,7 +315,7 @@ def model_entry(ck: dict[str, Any], where: str) -> dict[str, Any]:
     """The model's part of a checkpoint (written by `DynamicGaussians.save` or by training)."""
     if has_model_entry(ck):
         return ck["model"]
-    raise ValueError(f"{where}: a checkpoint from before format {CHECKPOINT_FORMAT} (no model entry, no training "
+    raise BadInput(f"{where}: a checkpoint from before format {CHECKPOINT_FORMAT} (no model entry, no training "
                      "times): stdr-eval reads it from its run folder; load_model cannot rebuild it alone")
 
 
@@ -352,7 +353,7 @@ def model_from_checkpoint(ck: dict[str, Any], device: str | torch.device = "auto
         cfg = load_config(s["config"], str(path))
     tt = s["train_times"].numpy() if s.get("train_times") is not None else train_times
     if tt is None:
-        raise ValueError(f"{path}: no training times in the checkpoint; pass train_times")
+        raise BadInput(f"{path}: no training times in the checkpoint; pass train_times")
     if s.get("background") is not None:
         bg = s["background"]
     else:

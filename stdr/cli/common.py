@@ -47,3 +47,53 @@ def compose_config(overrides=(), config_name: str = "train", return_hydra_config
     register()
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
         return compose(config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)
+
+
+def _override_problem(e: Exception, overrides: list[str], config_name: str) -> str:
+    """Hydra's composition error as one sentence naming the override and what is allowed."""
+    import re
+    text = str(e)
+    m = re.search(r"Could not find '([^']+)/([^']+)'", text)
+    if m:
+        opts = [ln.strip() for ln in text.split("Available options in")[1].splitlines()[1:]
+                if ln.strip() and not ln.startswith(("Config search path", "\tprovider"))] if "Available options in" in text else []
+        opts = [o for o in opts if not o.startswith("provider=") and o != "Config search path:"]
+        import difflib
+        near = difflib.get_close_matches(m.group(2), opts, n=1, cutoff=0.7)
+        if near:
+            return f"{m.group(1)}={m.group(2)}: no such option; did you mean {m.group(1)}={near[0]}?"
+        return f"{m.group(1)}={m.group(2)}: no such option" + (f"; the options are {', '.join(opts)}" if opts else "")
+    m = re.search(r"Could not override '([^']+)'", text)
+    if m:  # a key the config does not have (Hydra would suggest '+', which adds an unknown key)
+        from ..validate import nearest_key, schema_keys
+        from ..config import typed_schema
+        from omegaconf import OmegaConf
+        base = compose_config([o for o in overrides if not o.lstrip("+~").startswith(m.group(1) + "=")], config_name)
+        raw = OmegaConf.to_container(base, resolve=False)
+        near = nearest_key(m.group(1), list(schema_keys(typed_schema(raw)))) if config_name == "train" else None
+        return f"unknown config key {m.group(1)}" + (f": did you mean {near}?" if near else "")
+    first = text.strip().splitlines()[0] if text.strip() else type(e).__name__
+    first = first.removeprefix("Error merging override ")
+    cause = e.__cause__
+    if cause is not None and str(cause).strip():
+        first += ": " + str(cause).strip().splitlines()[0]
+    rest = [ln.strip() for ln in text.strip().splitlines()[1:] if ln.strip()]
+    return " ".join([first, *rest[:3]])
+
+
+def check_overrides(prog: str, argv: list[str], config_name: str = "train") -> None:
+    """Compose the config a command line asks for before Hydra runs it, so that a bad override
+    (a key the config lacks, a value of the wrong type, an option that does not exist) ends in one
+    line and exit code 2, like every other user error (stdr.errors.reported). Command lines with
+    Hydra's own flags (--cfg, --help, -m, ...) are left to Hydra."""
+    if any(a.startswith("-") for a in argv):
+        return
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from ..errors import ConfigError, reported
+    with reported(prog):
+        try:
+            compose_config(list(argv), config_name)
+        except (HydraException, OmegaConfBaseException) as e:
+            raise ConfigError(_override_problem(e, list(argv), config_name)) from None

@@ -15,8 +15,8 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from ..config import load_config, register
-from ..errors import reported
-from .common import CONFIG_DIR, reproducible_blas
+from ..errors import BadInput, MissingInput, reported
+from .common import CONFIG_DIR, check_overrides, reproducible_blas
 
 register()
 
@@ -30,7 +30,7 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
     from ..eval.table import collect, find_run_dirs, markdown, table_row, write_tables
 
     if remeasure not in (None, "fps", "size", "fps+size"):
-        raise ValueError(f"remeasure={remeasure!r}: what can be redone alone is 'fps' (re-time the renders), "
+        raise BadInput(f"remeasure={remeasure!r}: what can be redone alone is 'fps' (re-time the renders), "
                          "'size' (model_mb from the checkpoint, for runs from before it was recorded) or 'fps+size'")
     if remeasure and reevaluate:
         reevaluate = False  # remeasure=fps re-times the renders and keeps every quality number
@@ -53,7 +53,7 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
         else:
             mp = rd / "metrics.json"
             if not mp.is_file():
-                raise FileNotFoundError(f"{mp} not found: run stdr-eval without reevaluate=false")
+                raise MissingInput(f"{mp} not found: run stdr-eval without reevaluate=false")
             res = json.loads(mp.read_text()).get(sp)
             if res is None:
                 raise KeyError(f"{mp} has no split {sp!r}")
@@ -118,7 +118,7 @@ def remeasure_run(rd: Path, cfg, split: str, eval_cfg, base: str, what: list[str
 
     mp = rd / "metrics.json"
     if not mp.is_file():
-        raise FileNotFoundError(f"{mp} not found: remeasure updates an evaluated run; evaluate it first")
+        raise MissingInput(f"{mp} not found: remeasure updates an evaluated run; evaluate it first")
     metrics = json.loads(mp.read_text())
     if split not in metrics:
         raise KeyError(f"{mp} has no split {split!r} (it has {sorted(metrics)}): evaluate that split first")
@@ -180,6 +180,7 @@ def main() -> None:
         quoted = ",".join("'" + r.replace("'", "\\'") + "'" for r in runs)
         args.append(f"runs=[{quoted}]")
     sys.argv = args
+    check_overrides("stdr-eval", args[1:], "eval")  # a bad override: one line, exit code 2
     _main()
 
 

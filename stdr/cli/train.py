@@ -9,7 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from ..config import register
 from ..errors import reported
-from .common import CONFIG_DIR, reproducible_blas, use_fast_allocator_hint
+from .common import CONFIG_DIR, check_overrides, reproducible_blas, use_fast_allocator_hint
 
 register()
 
@@ -111,6 +111,7 @@ def main() -> None:
     if "--cfg" in sys.argv or "-c" in sys.argv:
         if "--resolve" not in sys.argv:
             sys.argv.append("--resolve")
+    check_overrides("stdr-train", sys.argv[1:])  # a bad override: one line, exit code 2
     _main()
 
 

@@ -88,3 +88,27 @@ def finite_values(values: Sequence, where: str, what: str) -> np.ndarray:
     if not np.isfinite(a).all():
         raise BadInput(f"{where}: {what} has non-finite values: {values!r}")
     return a
+
+
+def numbers(value, where: str, key: str, shape: tuple = (), finite: bool = True) -> np.ndarray:
+    """A field that must hold finite numbers of `shape` (() for one number; -1 in a shape: any
+    length of at least 1), as float64, or a BadInput naming the file, the key and the value.
+    finite=False leaves non-finite values to a later check (check_pose names them)."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise BadInput(f"{where}: {key}={value!r:.60} is not {_shape_words(shape)}") from None
+    ok = a.ndim == len(shape) and all(s == -1 and d >= 1 or s == d for s, d in zip(shape, a.shape))
+    if not ok or isinstance(value, (bool, str)):
+        raise BadInput(f"{where}: {key}={value!r:.60} is not {_shape_words(shape)}")
+    if finite and not np.isfinite(a).all():
+        raise BadInput(f"{where}: {key}={value!r:.60} has non-finite values")
+    return a
+
+
+def _shape_words(shape: tuple) -> str:
+    if shape == ():
+        return "a number"
+    if len(shape) == 1:
+        return "a list of numbers" if shape[0] == -1 else f"a list of {shape[0]} numbers"
+    return f"a {'x'.join(str(d) for d in shape)} matrix of numbers"

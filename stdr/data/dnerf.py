@@ -67,6 +67,8 @@ def load_dnerf_split(root: str | Path, split: str, background=(1.0, 1.0, 1.0),
     root = Path(root)
     jp = root / f"transforms_{split}.json"
     meta = _read_json(jp)
+    if not isinstance(meta, dict):
+        raise BadInput(f"{jp}: expected an object with camera_angle_x and frames, got a {type(meta).__name__}")
     for key in ("camera_angle_x", "frames"):
         if key not in meta:
             raise MissingKey(f"{jp}: missing key {key!r}")
@@ -75,11 +77,16 @@ def load_dnerf_split(root: str | Path, split: str, background=(1.0, 1.0, 1.0),
     fov_x = check_fov(meta["camera_angle_x"], jp, "camera_angle_x")
     frames, size0, name0 = [], None, None
     for i, fr in enumerate(meta["frames"]):
+        if not isinstance(fr, dict):
+            raise BadInput(f"{jp}: frames[{i}] must be an object with file_path, time and transform_matrix, "
+                           f"got {fr!r:.40}")
         for key in ("file_path", "transform_matrix"):
             if key not in fr:
                 raise MissingKey(f"{jp}: frames[{i}] is missing key {key!r}")
         if "time" not in fr:
             raise MissingKey(f"{jp}: frames[{i}] has no 'time'; D-NeRF frames need a time in [0, 1]")
+        if not isinstance(fr["file_path"], str) or not fr["file_path"]:
+            raise BadInput(f"{jp}: frames[{i}].file_path={fr['file_path']!r:.40} is not a file path")
         where = f"{jp}: frames[{i}] ({fr['file_path']})"
         t = check_time(fr["time"], f"{jp}: frames[{i}]")
         try:

@@ -23,7 +23,7 @@ import torch
 
 from ..errors import BadInput, MissingInput, MissingKey
 from ..cameras import Camera
-from .checks import check_intrinsics, check_pose, finite_values
+from .checks import check_intrinsics, check_pose, finite_values, numbers
 from .colmap import ColmapModel, read_model
 from .dnerf import output_size
 from .distortion import LensCamera, remap, undistortion
@@ -46,9 +46,12 @@ def _read_json(path: Path, what: str) -> dict:
     if not path.is_file():
         raise MissingInput(f"{path} not found: {what}")
     try:
-        return json.loads(path.read_text())
+        doc = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise BadInput(f"{path}: malformed JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+    if not isinstance(doc, dict):
+        raise BadInput(f"{path}: expected a JSON object, got a {type(doc).__name__}")
+    return doc
 
 
 def _need(d: dict, key: str, path: Path, where: str = ""):
@@ -144,23 +147,23 @@ def frame_times(metadata: dict, ids: list[str], path: Path, time_key: str) -> tu
 def lens_from_camera_json(cam: dict, path: Path) -> LensCamera:
     """The 1x intrinsics of a Nerfies camera file (checked: finite, positive focal lengths, the
     principal point inside the image_size it gives)."""
-    f = float(finite_values(_need(cam, "focal_length", path), path, "focal_length"))
-    pp = list(finite_values(_need(cam, "principal_point", path), path, "principal_point").reshape(-1))
-    size = list(finite_values(_need(cam, "image_size", path), path, "image_size").reshape(-1))
-    if len(pp) != 2 or len(size) != 2:
-        raise BadInput(f"{path}: principal_point and image_size must have two values [x, y] / [w, h]")
-    radial = list(cam.get("radial_distortion", [0.0, 0.0, 0.0]))
+    f = float(numbers(_need(cam, "focal_length", path), path, "focal_length"))
+    pp = list(numbers(_need(cam, "principal_point", path), path, "principal_point", (2,)))
+    size = list(numbers(_need(cam, "image_size", path), path, "image_size", (2,)))
+    if any(v != int(v) or v < 1 for v in size):
+        raise BadInput(f"{path}: image_size={size} must be two whole numbers >= 1 [w, h]")
+    radial = list(numbers(cam.get("radial_distortion", [0.0, 0.0, 0.0]), path, "radial_distortion", (-1,)))
     if not 1 <= len(radial) <= 3:
         raise BadInput(f"{path}: radial_distortion must hold k1[, k2[, k3]], got {radial}")
     radial = (radial + [0.0, 0.0])[:3]
-    tang = cam.get("tangential_distortion", cam.get("tangential", [0.0, 0.0]))
-    if len(tang) != 2:
-        raise BadInput(f"{path}: tangential_distortion must hold p1, p2, got {tang}")
-    par = float(finite_values(cam.get("pixel_aspect_ratio", 1.0), path, "pixel_aspect_ratio"))
+    tang = list(numbers(cam.get("tangential_distortion", cam.get("tangential", [0.0, 0.0])), path,
+                        "tangential_distortion", (2,)))
+    par = float(numbers(cam.get("pixel_aspect_ratio", 1.0), path, "pixel_aspect_ratio"))
+    skew = float(numbers(cam.get("skew", 0.0), path, "skew"))
     if f <= 0 or par <= 0:
         raise BadInput(f"{path}: focal_length and pixel_aspect_ratio must be positive")
     check_intrinsics(f, f * par, float(pp[0]), float(pp[1]), int(size[0]), int(size[1]), str(path))
-    return LensCamera(fx=f, fy=f * par, cx=float(pp[0]), cy=float(pp[1]), skew=float(cam.get("skew", 0.0)),
+    return LensCamera(fx=f, fy=f * par, cx=float(pp[0]), cy=float(pp[1]), skew=skew,
                       k=tuple(float(v) for v in radial), p=tuple(float(v) for v in tang),
                       width=int(size[0]), height=int(size[1]))
 
@@ -335,12 +338,8 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
     def load_frame(fid: str) -> Frame:
         cpath = root / "camera" / f"{fid}.json"
         cam = _read_json(cpath, f"every id needs a camera file (id {fid!r} from {dpath.name})")
-        R = np.asarray(_need(cam, "orientation", cpath), dtype=np.float64)
-        if R.shape != (3, 3):
-            raise BadInput(f"{cpath}: orientation must be a 3x3 matrix, got shape {R.shape}")
-        pos = np.asarray(_need(cam, "position", cpath), dtype=np.float64)
-        if pos.shape != (3,):
-            raise BadInput(f"{cpath}: position must have 3 values")
+        R = numbers(_need(cam, "orientation", cpath), cpath, "orientation", (3, 3), finite=False)
+        pos = numbers(_need(cam, "position", cpath), cpath, "position", (3,), finite=False)
         check_pose(R, pos, f"{cpath} (id {fid!r})", "camera (orientation, position)")
         lens1 = lens_from_camera_json(cam, cpath)
         ip = img_dir / f"{fid}.png"

@@ -13,6 +13,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+from ..errors import BadInput, MissingInput
+
 METRICS = ("psnr", "ssim", "lpips", "fps", "num_gaussians", "train_seconds")
 HEADERS = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓", "fps": "FPS↑",
            "num_gaussians": "#G", "train_seconds": "train s"}
@@ -45,7 +47,7 @@ def read_metrics(run: str | Path, split: str) -> dict[str, Any]:
     """metrics.json[split] of a run folder; the errors name the file and the splits it has."""
     mp = Path(run) / "metrics.json"
     if not mp.is_file():
-        raise FileNotFoundError(f"{mp} not found: the run has not finished, or {run} is not a stdr run directory")
+        raise MissingInput(f"{mp} not found: the run has not finished, or {run} is not a stdr run directory")
     allm = json.loads(mp.read_text())
     if split not in allm:
         raise KeyError(f"{mp} has no {split!r} entry; it has "
@@ -61,7 +63,7 @@ def find_run_dirs(paths: list[str | Path]) -> list[Path]:
         if p.is_file() and p.suffix == ".json":
             t = json.loads(p.read_text())
             if "cells" not in t:
-                raise ValueError(f"{p}: not a stdr-eval table.json (no 'cells')")
+                raise BadInput(f"{p}: not a stdr-eval table.json (no 'cells')")
             out += [Path(d) for m in t["cells"].values() for c in m.values() for d in c["run_dirs"]]
         elif (p / "config.yaml").is_file():
             out.append(p)
@@ -69,16 +71,16 @@ def find_run_dirs(paths: list[str | Path]) -> list[Path]:
             found = sorted(c.parent for c in p.rglob("config.yaml") if not c.parent.name.startswith("."))
             done = [d for d in found if (d / "metrics.json").is_file()]
             if not done:
-                raise ValueError(f"{p}: no finished run directories (folders with config.yaml and metrics.json) "
+                raise BadInput(f"{p}: no finished run directories (folders with config.yaml and metrics.json) "
                                  f"under it{f' ({len(found)} unfinished)' if found else ''}")
             if len(done) < len(found):  # a sweep still running: chart what has finished, say what not
                 print(f"[stdr] {p}: skipping {len(found) - len(done)} unfinished runs (no metrics.json): "
                       + ", ".join(str(d) for d in found if d not in done))
             out += done
         else:
-            raise FileNotFoundError(f"{p}: neither a run directory, a folder of runs nor a table.json")
+            raise MissingInput(f"{p}: neither a run directory, a folder of runs nor a table.json")
     if not out:
-        raise ValueError("no runs given")
+        raise BadInput("no runs given")
     return list(dict.fromkeys(out))
 
 
@@ -90,7 +92,7 @@ def load_run(run: str | Path, split: str) -> dict[str, Any]:
     run = Path(run)
     cp = run / "config.yaml"
     if not cp.is_file():
-        raise FileNotFoundError(f"{cp} not found: {run} is not a stdr run directory")
+        raise MissingInput(f"{cp} not found: {run} is not a stdr run directory")
     m = read_metrics(run, split)
     cfg = yaml.safe_load(cp.read_text())
     prof = run / "train_profile.json"
@@ -182,7 +184,7 @@ def collect(rows: list[dict[str, Any]]) -> dict[str, Any]:
                 diff = sorted(k for k in base.keys() | other.keys()
                               if base.get(k) != other.get(k) and k not in SEED_KEYS)
                 if diff:
-                    raise ValueError(f"runs {rs[0]['run_dir']} and {r['run_dir']} are both {m!r} on {sc!r} "
+                    raise BadInput(f"runs {rs[0]['run_dir']} and {r['run_dir']} are both {m!r} on {sc!r} "
                                      f"but their configs differ in {diff[:8]}; tabulate them separately")
         cell: dict[str, Any] = {}
         for k in METRICS:

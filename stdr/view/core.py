@@ -14,6 +14,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from ..errors import BadInput, MissingInput
 from ..cameras import Camera
 from ..data.colmap import qvec_to_rotmat
 from ..data.types import Frame
@@ -73,14 +74,14 @@ def open_run(run_dir: str | Path, device: Optional[str] = None, base: Optional[s
 
     rd = Path(run_dir)
     if not rd.is_dir():
-        raise FileNotFoundError(f"{rd}: no such folder (give a run directory: the folder with config.yaml "
+        raise MissingInput(f"{rd}: no such folder (give a run directory: the folder with config.yaml "
                                 "and checkpoints/last.pt that stdr-train wrote)")
     ckpt = Path(model_file) if model_file is not None else rd / CKPT
     if model_file is not None and not ckpt.is_file():
-        raise FileNotFoundError(f"--model {ckpt}: no such file (a compact model file is written by stdr-tool pack RUN)")
+        raise MissingInput(f"--model {ckpt}: no such file (a compact model file is written by stdr-tool pack RUN)")
     missing = [p for p in ("config.yaml", CKPT) if not (rd / p).is_file() and not (p == CKPT and model_file)]
     if missing:
-        raise FileNotFoundError(f"{rd} is not a trained run: {', '.join(missing)} missing (a run directory of "
+        raise MissingInput(f"{rd} is not a trained run: {', '.join(missing)} missing (a run directory of "
                                 "stdr-train holds config.yaml and checkpoints/last.pt)")
     cfg = load_config(rd / "config.yaml")
     if device is not None:
@@ -192,7 +193,7 @@ def render_view(model, camera: Camera, t: float, view: str = "rgb") -> np.ndarra
     Gaussian coloured by its mask value at t, blue 0 ... red 1) or dynamic (STDR after the freeze:
     each Gaussian coloured by its motion-branch probability d_i, blue static ... red moving)."""
     if view not in VIEWS:
-        raise ValueError(f"view {view!r} is not one of {VIEWS}")
+        raise BadInput(f"view {view!r} is not one of {VIEWS}")
     if view in ("rgb", "depth", "alpha"):
         out = model.render(camera, t)
         if view == "rgb":
@@ -211,22 +212,22 @@ def render_view(model, camera: Camera, t: float, view: str = "rgb") -> np.ndarra
         return to_uint8(img)
     stdr = model.plugin("stdr")
     if stdr is None:
-        raise ValueError(f"view {view!r} needs an STDR run (stdr.enabled=true); this run has no STDR plug-in")
+        raise BadInput(f"view {view!r} needs an STDR run (stdr.enabled=true); this run has no STDR plug-in")
     params = model.params
     if view == "mask":
         from ..plugins.stdr.mask import mask_at
         from ..plugins.stdr.plugin import COND_KEY, MASK_KEY
         if MASK_KEY not in params:
             if COND_KEY in params:  # a compact file with stdr_mask: derived keeps the field's output only
-                raise ValueError("view 'mask': this compact file stores the separated field's output in place of "
+                raise BadInput("view 'mask': this compact file stores the separated field's output in place of "
                                  "STDR's mask (stdr_mask: derived); view the run's checkpoint for the mask, or "
                                  "write the file with the mask (stdr-tool pack RUN --codec stdr_mask=q8)")
-            raise ValueError("view 'mask': this STDR run has no mask (stdr.mask=false)")
+            raise BadInput("view 'mask': this STDR run has no mask (stdr.mask=false)")
         return to_uint8(_recoloured(model, t, mask_at(params[MASK_KEY].detach(), t, stdr.knots), camera).image)
     model.conditioning(model.step)  # sets the motion branch's d_i (after the freeze)
     d = stdr.last_dynamic
     if d is None or d.shape[0] != params["means"].shape[0]:
-        raise ValueError("view 'dynamic': the motion branch exists after STDR's freeze (stdr.freeze_at) with "
+        raise BadInput("view 'dynamic': the motion branch exists after STDR's freeze (stdr.freeze_at) with "
                          "the separated field on; this run has none")
     return to_uint8(_recoloured(model, t, d[:, 0], camera).image)
 
