@@ -23,7 +23,7 @@ import torch
 
 from ..errors import BadInput, MissingInput, MissingKey
 from ..cameras import Camera
-from .checks import check_intrinsics, check_pose, finite_values, numbers
+from .checks import check_intrinsics, check_pose, numbers
 from .colmap import ColmapModel, read_model
 from .dnerf import output_size
 from .distortion import LensCamera, remap, undistortion
