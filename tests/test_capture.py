@@ -274,3 +274,31 @@ def test_capture_from_a_video_of_the_same_frames(shared_dir, tmp_path):
     meta = json.loads((out / "metadata.json").read_text())
     # time_id: milliseconds from the first kept frame at 10 fps
     assert [meta[i]["time_id"] for i in ids] == [100 * (int(i) - int(ids[0])) for i in ids]
+
+
+def test_a_camera_off_the_videos_track_is_dropped_and_named():
+    """A hand-held video's cameras move smoothly; one that SfM placed wrongly (turned 60 degrees,
+    or moved off the track) disagrees with both neighbours and is named; a smooth track, a fast
+    but steady turn and the ends of the track keep every frame."""
+    n = 24
+    ang = np.linspace(0, np.pi, n)
+    centres = np.stack([4 * np.cos(ang), 4 * np.sin(ang), np.zeros(n)], 1)
+    forwards = -centres / np.linalg.norm(centres, axis=1, keepdims=True)  # looking at the origin
+    ids = [f"{i:06d}" for i in range(n)]
+    assert cap.track_outliers(ids, centres, forwards) == {}
+    turned = forwards.copy()
+    c, s = np.cos(np.radians(60)), np.sin(np.radians(60))
+    f = turned[9]
+    turned[9] = np.array([c * f[0] - s * f[1], s * f[0] + c * f[1], f[2]])
+    out = cap.track_outliers(ids, centres, turned)
+    assert list(out) == ["000009"] and "60 degrees" in out["000009"]
+    moved = centres.copy()
+    moved[15] += np.array([0.0, 0.0, 5.0])  # 4.6 times the distance between its neighbours
+    out = cap.track_outliers(ids, moved, forwards)
+    assert list(out) == ["000015"] and "off their track" in out["000015"]
+    first = forwards.copy()
+    first[0] = -first[0]  # the first frame, facing away
+    assert list(cap.track_outliers(ids, centres, first)) == ["000000"]
+    fast = np.linspace(0, 4 * np.pi, n)  # a fast, steady turn: 30 degrees a frame
+    fc = np.stack([4 * np.cos(fast), 4 * np.sin(fast), np.zeros(n)], 1)
+    assert cap.track_outliers(ids, fc, -fc / 4) == {}

@@ -222,3 +222,4 @@ def test_prune_scale2d_null_turns_the_screen_size_prune_off_and_keeps_the_world_
         assert any(torch.equal(m, kept_row1) for m in p["means"].detach()) == (scale2d is None)
 
 
+

@@ -164,3 +164,11 @@ def test_a_run_stdr_train_writes_is_read_by_every_tool(tmp_path):
     assert res is not None and res["iterations"] == 35
     shutil.rmtree(rd)
     assert np.isfinite(res["psnr"])
+
+
+@pytest.mark.parametrize("argv", [["--width", "-5"], ["--width", "0"], ["--frames", "0"], ["--fps", "nan"]])
+def test_stdr_render_refuses_non_positive_sizes(tmp_path, argv, capsys):
+    from stdr.cli.view import render_main
+    with pytest.raises(SystemExit) as e:
+        render_main([str(tmp_path), *argv])
+    assert e.value.code == 2 and "must be > 0" in capsys.readouterr().err

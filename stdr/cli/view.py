@@ -11,6 +11,19 @@ from ..errors import reported
 from ..view.core import VIEWS
 
 
+def _positive(kind):
+    """argparse type: a number of `kind` > 0 (a width, a frame count, a rate)."""
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a {'whole number' if kind is int else 'number'}") from None
+        if not v > 0 or v != v or v == float("inf"):
+            raise argparse.ArgumentTypeError(f"{text}: must be > 0")
+        return v
+    return parse
+
+
 @reported("stdr-view")  # bad input: one line, exit code 2
 def view_main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="stdr-view", description="A web viewer of a trained stdr run (viser).")
@@ -20,7 +33,7 @@ def view_main(argv=None) -> None:
     ap.add_argument("--device", default=None, help="cpu | cuda | auto (default: the run's own)")
     ap.add_argument("--model", type=Path, default=None, help="a model file to show instead of the checkpoint, "
                     "e.g. RUN/model.stdrc (stdr-tool pack)")
-    ap.add_argument("--max-width", type=int, default=None, help="initial image width (default: the run's)")
+    ap.add_argument("--max-width", type=_positive(int), default=None, help="initial image width (default: the run's)")
     ap.add_argument("--allow-origin", action="append", default=[], metavar="URL",
                     help="another page address that may drive the viewer (e.g. a reverse proxy's "
                     "https://viewer.lab.example); by default only the viewer's own page can")
@@ -77,9 +90,9 @@ def render_main(argv=None) -> None:
     ap.add_argument("--out", type=Path, default=None, help="folder for the videos (default: RUN/videos)")
     ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated: {', '.join(KINDS)}")
     ap.add_argument("--view", default="rgb", choices=VIEWS)
-    ap.add_argument("--width", type=int, default=None, help="image width (default: the run's)")
-    ap.add_argument("--frames", type=int, default=60, help="frames of the time sweep and the orbit")
-    ap.add_argument("--fps", type=float, default=15.0)
+    ap.add_argument("--width", type=_positive(int), default=None, help="image width (default: the run's)")
+    ap.add_argument("--frames", type=_positive(int), default=60, help="frames of the time sweep and the orbit")
+    ap.add_argument("--fps", type=_positive(float), default=15.0)
     ap.add_argument("--split", default="test", help="the split the comparison walks through")
     ap.add_argument("--format", default="auto", choices=("auto", "mp4", "gif"))
     ap.add_argument("--path", type=Path, default=None,

@@ -271,7 +271,10 @@ def run_sfm(image_dir: Path, work: Path, names: list[str], cfg: CaptureConfig, l
     stats["matching_s"] = time.perf_counter() - t
     log(f"[capture] matching ({stats['matcher']}): {stats['matching_s']:.1f} s")
     t = time.perf_counter()
-    opts = pc.IncrementalPipelineOptions(random_seed=cfg.seed, num_threads=cfg.threads)
+    # mapping on one thread: COLMAP's multi-threaded mapping and bundle adjustment gave other
+    # cameras from run to run on the same frames (92 or 100 registered; once a camera 60 degrees
+    # off); on one thread, with the seed, the same frames give the same cameras
+    opts = pc.IncrementalPipelineOptions(random_seed=cfg.seed, num_threads=1)
     (work / "sparse").mkdir(parents=True, exist_ok=True)
     bar = _progress(len(names), "mapping (registered frames)")
     models = pc.incremental_mapping(db, image_dir, work / "sparse", options=opts,
@@ -292,6 +295,65 @@ def run_sfm(image_dir: Path, work: Path, names: list[str], cfg: CaptureConfig, l
         f"{stats['models']} model(s), {stats['points']:,} points, reprojection error "
         f"{stats['mean_reprojection_error_px']:.2f} px, {stats['mapping_s']:.1f} s")
     return rec, work / "sparse" / str(best), stats
+
+
+#: a registered frame is dropped when its camera disagrees with both neighbours along the video by
+#: more than these: its viewing direction by TURN_DEG beyond the neighbours' own turn, or its centre
+#: by JUMP times the larger of the neighbours' distance and the median step between frames
+TURN_DEG, JUMP = 20.0, 3.0
+
+
+def track_outliers(ids: list[str], centres: np.ndarray, forwards: np.ndarray) -> dict[str, str]:
+    """Frames (in video order) whose registered camera disagrees with its neighbours': {id: why}.
+    centres, forwards: [N, 3] camera centres and unit viewing directions. A camera that SfM placed
+    wrongly sits off the smooth track of a hand-held video; its neighbours agree with each other."""
+    n = len(ids)
+    if n < 3:
+        return {}
+    steps = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+    med = float(np.median(steps)) if len(steps) else 0.0
+    out = {}
+    for i in range(n):
+        nb = [j for j in (i - 1, i + 1) if 0 <= j < n]
+        if len(nb) == 2:
+            a, b = nb
+            mid_dir = forwards[a] + forwards[b]
+            mid_dir = mid_dir / max(np.linalg.norm(mid_dir), 1e-12)
+            own_turn = _angle(forwards[a], forwards[b])
+            turn = _angle(forwards[i], mid_dir)
+            jump = float(np.linalg.norm(centres[i] - 0.5 * (centres[a] + centres[b])))
+            scale = max(float(np.linalg.norm(centres[b] - centres[a])), med)
+        else:  # the first or last frame: against its one neighbour and the one after it
+            a = nb[0]
+            c = a + (a - i)
+            own_turn = _angle(forwards[a], forwards[c]) if 0 <= c < n else 0.0
+            turn = _angle(forwards[i], forwards[a])
+            jump = float(np.linalg.norm(centres[i] - centres[a]))
+            scale = max(float(np.linalg.norm(centres[c] - centres[a])) if 0 <= c < n else 0.0, med)
+        if turn > TURN_DEG + own_turn:
+            out[ids[i]] = f"looks {turn:.0f} degrees away from its neighbours' direction"
+        elif scale > 0 and jump > JUMP * scale:
+            out[ids[i]] = f"sits {jump / scale:.1f}x the neighbours' spacing off their track"
+    return out
+
+
+def _angle(u: np.ndarray, v: np.ndarray) -> float:
+    c = float(np.dot(u, v) / max(np.linalg.norm(u) * np.linalg.norm(v), 1e-12))
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def registered_track(rec, records: list[FrameRecord]) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """(ids in video order, camera centres [N, 3], viewing directions [N, 3]) of the registered frames."""
+    by_id = {img.name[:-4]: img for img in rec.images.values() if img.has_pose}
+    ids = [r.id for r in sorted(records, key=lambda r: r.source_index) if r.id in by_id]
+    cs, fs = [], []
+    for i in ids:
+        pose = by_id[i].cam_from_world()
+        R = np.asarray(pose.rotation.matrix(), dtype=np.float64)
+        t = np.asarray(pose.translation, dtype=np.float64)
+        cs.append(-R.T @ t)
+        fs.append(R[2])  # the camera's +z axis in the world
+    return ids, np.asarray(cs).reshape(-1, 3), np.asarray(fs).reshape(-1, 3)
 
 
 def _ranges(ids: list[str]) -> str:
@@ -333,10 +395,14 @@ def _near_far(points: np.ndarray, Rs: np.ndarray, ts: np.ndarray):
 
 
 def write_dataset(out: Path, records: list[FrameRecord], und_images: Path, und_model_dir: Path,
-                  cfg: CaptureConfig, source: Path, kind: str, stats: dict, timings: dict) -> dict:
+                  cfg: CaptureConfig, source: Path, kind: str, stats: dict, timings: dict,
+                  keep: Optional[set] = None) -> dict:
+    """The dataset folder from the undistorted model; `keep`: the frame ids to write (default: every
+    registered one)."""
     pc = _pycolmap()
     rec = pc.Reconstruction(str(und_model_dir))
-    by_name = {img.name: img for img in rec.images.values() if img.has_pose}
+    by_name = {img.name: img for img in rec.images.values() if img.has_pose
+               and (keep is None or img.name[:-4] in keep)}
     kept = [r for r in records if f"{r.id}.png" in by_name]
     (out / "rgb" / "1x").mkdir(parents=True)
     (out / "camera").mkdir()
@@ -432,6 +498,11 @@ def capture(source: str | Path, out: str | Path, cfg: Optional[CaptureConfig] = 
     rec, model_dir, stats = run_sfm(work / "images", work, names, cfg, log)
     timings["sfm"] = time.perf_counter() - t
     registered = {img.name[:-4] for img in rec.images.values() if img.has_pose}
+    dropped = track_outliers(*registered_track(rec, records))
+    for fid, why in dropped.items():
+        log(f"[capture] frame {fid} dropped: its camera {why} (a pose SfM got wrong)")
+    registered -= set(dropped)
+    stats["dropped"] = dropped
     check_registered(records, registered, cfg)
     if len(registered) < len(records):
         log(f"[capture] {len(records) - len(registered)} frame(s) not registered and left out: "
@@ -444,7 +515,8 @@ def capture(source: str | Path, out: str | Path, cfg: Optional[CaptureConfig] = 
     timings["undistort"] = time.perf_counter() - t
     log(f"[capture] undistort: {timings['undistort']:.1f} s")
     t = time.perf_counter()
-    info = write_dataset(part, records, und / "images", und / "sparse", cfg, source, kind, stats, timings)
+    info = write_dataset(part, records, und / "images", und / "sparse", cfg, source, kind, stats, timings,
+                         keep=registered)
     timings["write"] = time.perf_counter() - t
     info["timings_s"] = timings
     (part / "capture.json").write_text(json.dumps(info, indent=2))
