@@ -82,3 +82,28 @@ def test_plan_from_the_command_line_takes_the_overrides_after_the_dashes(tmp_pat
     q = qm.Queue.load(tmp_path / "q.json")
     assert len(q.runs) == 2 and all(r.overrides[-3:-1] == ["budget=gpu", "device=cuda"] for r in q.runs)
     assert "2 runs planned" in capsys.readouterr().out
+
+
+def test_sixteen_runs_at_once_one_thread_each(tmp_path, monkeypatch):
+    """A lent GPU machine has 16 cores: `--concurrent 16` keeps 16 runs going at once, one thread
+    each. The runs here stand in for stdr-train (a process that records when it ran and writes
+    metrics.json), so the test measures the scheduler, not training."""
+    q = qm.plan(["embedded_deform"], [], list(range(20)), [], est_s=1)
+    stamp = tmp_path / "stamps"
+    stamp.mkdir()
+
+    def fake(r, work, threads):
+        code = ("import json, os, sys, time; from pathlib import Path; t0 = time.time(); time.sleep(3); "
+                f"d = Path({str(work)!r}) / {r.id!r}; d.mkdir(parents=True, exist_ok=True); "
+                "(d / 'metrics.json').write_text('{}'); "
+                f"Path({str(stamp)!r}, {r.id!r}).write_text(json.dumps([t0, time.time(), "
+                "os.environ['OMP_NUM_THREADS'], sys.argv[1]]))")
+        return [sys.executable, "-c", code, f"train.threads={threads}"]
+    monkeypatch.setattr(qm, "_command", fake)
+    rec = qm.execute(q, tmp_path / "work", 16, 120, cores=16, poll_s=0.05, log=lambda m: None)
+    assert rec["threads_each"] == 1 and len(rec["finished"]) == 20 and rec["failed"] == []
+    spans = [json.loads(p.read_text()) for p in stamp.iterdir()]
+    assert all(s[2] == "1" and s[3] == "train.threads=1" for s in spans)
+    # the most runs alive at one moment: every start checked against every span
+    overlap = max(sum(a[0] <= s[0] < a[1] for a in spans) for s in spans)
+    assert overlap == 16, overlap
