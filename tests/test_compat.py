@@ -1,8 +1,7 @@
-"""What the renames of 2026-11-28 (CHANGELOG.md) keep working: the old module names, and a run folder
+"""What the renames of 2026-11-28 (CHANGELOG.md) keep working: a run folder
 written by the code before them (tests/data/run_7c77121.tar.xz: main at 7c77121, `stdr-train
 experiment=embedded_deform_stdr budget=demo` with the small sizes of RUN_OVERRIDES below, 30 steps;
 config.yaml, metrics.json, history.json and the checkpoint as that code wrote them)."""
-import importlib
 import json
 import sys
 import tarfile
@@ -17,34 +16,6 @@ RUN_OVERRIDES = ["experiment=embedded_deform_stdr", "budget=demo", "device=cpu",
                  "stdr.temporal_dim=4", "stdr.time_bins=8", "baseline.warmup=10", "stdr.warmup_end=15",
                  "stdr.freeze_at=25", "eval.lpips=false", "eval.save_images=false", "train.image_every=0",
                  "train.progress=false"]
-
-OLD_NAMES = {"stdr.deform": "stdr.baselines", "stdr.deform.hexplane": "stdr.baselines.hexplane",
-             "stdr.deform.registry": "stdr.baselines.registry", "stdr.decouple": "stdr.plugins.stdr",
-             "stdr.decouple.mask": "stdr.plugins.stdr.mask", "stdr.scene.strategy": "stdr.densify.strategy",
-             "stdr.scene.prune": "stdr.densify.prune", "stdr.scene.gaussians": "stdr.gaussians",
-             "stdr.scene.knn": "stdr.knn", "stdr.scene.ply": "stdr.io.ply", "stdr.scene.export": "stdr.io.export"}
-
-
-@pytest.mark.parametrize("old", sorted(OLD_NAMES))
-def test_an_old_module_name_is_the_new_module_and_warns(old, monkeypatch):
-    for name in [m for m in sys.modules if m.split(".")[:2] in (["stdr", "deform"], ["stdr", "decouple"],
-                                                                 ["stdr", "scene"])]:
-        monkeypatch.delitem(sys.modules, name)  # imported fresh: the warning is the first import's
-    with pytest.warns(DeprecationWarning, match="the old name will be removed"):
-        mod = importlib.import_module(old)
-    assert mod is importlib.import_module(OLD_NAMES[old])
-
-
-def test_the_old_learning_rate_and_adam_modules_keep_their_functions(monkeypatch):
-    from stdr.train import optim
-    for name in ("stdr.train.adam", "stdr.train.schedule"):
-        monkeypatch.delitem(sys.modules, name, raising=False)
-    with pytest.warns(DeprecationWarning):
-        from stdr.train.schedule import exp_lr
-    with pytest.warns(DeprecationWarning):
-        from stdr.train.adam import adam_step
-    assert exp_lr is optim.exp_lr and adam_step is optim.adam_step
-
 
 def _old_run(tmp_path) -> Path:
     run = tmp_path / "run"

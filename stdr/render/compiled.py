@@ -22,20 +22,6 @@ from torch.autograd.function import once_differentiable
 from ..extension import (BuildError, available, build_error, cache_root, clear_stale_lock,  # noqa: F401
                          load_extension, use_compiled)
 
-# moved to the family's own module (stdr.extension's table); the old names keep working
-_MOVED = {"hexplane_compiled": "stdr.baselines.hexplane", "HEXPLANE_DTYPES": "stdr.baselines.hexplane",
-          "image_loss_compiled": "stdr.metrics", "LOSS_DTYPES": "stdr.metrics",
-          "nonfinite_flags_compiled": "stdr.train.guard", "guard_update_compiled": "stdr.train.guard"}
-
-
-def __getattr__(name: str):
-    if name in _MOVED:
-        import importlib
-        import warnings
-        warnings.warn(f"stdr.render.compiled.{name} moved to {_MOVED[name]}.{name}", DeprecationWarning, stacklevel=2)
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
 
 class _Rasterize(torch.autograd.Function):
     @staticmethod
