@@ -1,11 +1,11 @@
-"""The checks that need an NVIDIA GPU, staged to fit one short device call.
+"""The checks that need an NVIDIA GPU, staged to fit one short job (a time-limited cloud or Slurm job).
 
     python scripts/gpu_check.py OUT --scene DNERF_SCENE [--budget 420] [--stages a b ...]
     python scripts/gpu_check.py OUT --dry-run           # every stage's plumbing, CPU, toy sizes (CI)
 
 Stages run in order of value; each has an estimate and a cap (seconds). A stage is skipped when
 its estimate no longer fits before the deadline (`--budget`), and killed at its cap. After each
-stage OUT holds everything that finished, in four files (a device call returns at most eight):
+stage OUT holds everything that finished, in four files (few and small: a job that copies back only some files keeps them):
 
     summary.json   one record per stage: status (ok, failed, timeout, skipped), rc, seconds, and
                    the facts the stage extracted (test counts, a run's PSNR and seconds, ...)
@@ -32,7 +32,7 @@ the rule in stdr/verified.py) -> run_gpu_deform_stdr -> run_deform_twin (the bud
 SH: what the compiled one saves) -> bench_raster -> bench_train_compile (baseline.compile=true) ->
 run_4dgs, run_deform_stdr, run_4dgs_stdr, run_scgs, run_spgs -> sanitize (compute-sanitizer
 memcheck over every kernel of the extension) -> run_paper_deform, run_paper_scgs (budget=paper at
-400 px, FAST on; a device call each). Where compute-sanitizer cannot run (some virtual machines
+400 px, FAST on; a job each). Where compute-sanitizer cannot run (some virtual machines
 refuse it the device), the stages that use it run without it and summary.md says so.
 
 Training pins render.backend=cuda and render.compiled_projection=true: a broken build fails

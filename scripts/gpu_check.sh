@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The checks that need an NVIDIA GPU, staged to fit one device call (scripts/gpu_check.py says
-# what each stage does; docs/development.md how to run it on a lent machine).
+# The checks that need an NVIDIA GPU, staged to fit one job with a time limit (scripts/gpu_check.py says
+# what each stage does; docs/development.md how to run it on a GPU machine).
 #
 #   bash scripts/gpu_check.sh OUT --scene DNERF_SCENE [--budget 420] [--stages a b ...]
 #   bash scripts/gpu_check.sh --dry-run OUT        # every stage's plumbing on the CPU (CI runs it)

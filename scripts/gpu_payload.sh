@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# build/gpucarry: what a lent GPU machine needs beside the tree (docs/install.md, "The next lent GPU"):
+# build/gpucarry: what a GPU machine without network access needs beside the checkout (docs/install.md,
+# "A GPU machine without network access"):
 # the four 400² D-NeRF scenes, the LPIPS-alex weights, and wheels (Python 3.12) of the packages the
-# machine's image lacks. About 45 MB; the device call carries it (carry: ["build/gpucarry"]).
+# machine's image lacks. About 45 MB; copy it over with the checkout.
 #
 #   bash scripts/gpu_payload.sh [SHARED]     # SHARED: the folder with data/dnerf and weights/lpips (../shared)
 set -euo pipefail

@@ -10,7 +10,7 @@ a cell whose trunk (WORK/<experiment>/<scene>/s<seed>, a finished headline run w
 checkpoints) is not there yet waits; `--follow` keeps polling for new trunks while the headline
 queue trains them (scripts/idle_run.py's machine lock makes the two queues take turns), until
 every cell is recorded; `--hold` pauses the headline queue between its runs while branches are
-runnable (WORK/pause.compact), so a session's trunks are branched before it ends. `touch <--work>/pause` makes it wait between runs.
+runnable (WORK/pause.compact), so the trunks trained so far are branched before the next one starts. `touch <--work>/pause` makes it wait between runs.
 `--scratch` adds the +STDR methods' `stdr.time_bins` variants (protocol.md, amendment 2): trained
 from scratch with the same seed and code, one at a time whenever no trunk waits for its branches.
 Records (config.yaml,

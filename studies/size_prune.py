@@ -6,8 +6,7 @@ GPU the first densification after it warns that the size prune removes most of t
 probe runs deform at `budget=gpu` on the CPU up to step 3300 (`train.stop_at`), which is past the first
 size prune of either value, with `densify.prune_big_after` at 1500 (the preset) and at 3000
 (`budget=paper`'s value in steps). It records the Gaussian count at chosen steps and every
-size-prune warning. It says nothing about accuracy: that needs the full runs on val (docs/install.md,
-"The next lent GPU").
+size-prune warning.
 
     python studies/size_prune.py run DNERF_DIR --work WORK [--scenes ...] [--values 1500 3000]
     python studies/size_prune.py table [--work WORK]    # WORK's runs as records, then table.md from the records

@@ -4,7 +4,7 @@ Reads the runs of `stdr-train -m +sweep=stability` (and of its seed runs: `stres
 seed=0,1,2`) from their folders: config.yaml gives method, scene, seed and the stress preset
 (data.stress.label / level), metrics.json[split] the numbers and the guard's record, and the
 sweep's failures.jsonl the crashes. An input may also be a table.json this tool wrote: its
-per-run records (`runs`) join those of the folders, so a study spread over machines or sessions
+per-run records (`runs`) join those of the folders, so a study spread over machines or days
 resumes from its committed table without the run folders. A folder that is also in a table
 replaces its record; one run (method, scene, seed, stress, level) from two different sources is
 an error. Writes OUT/table.md and table.json, and OUT/degradation_<metric>.{png,svg,csv}:

@@ -1,4 +1,5 @@
-"""A resumable queue of training runs, several at once, packed into time-boxed calls (a lent GPU).
+"""A resumable queue of training runs, several at once, in time-boxed calls (a GPU rented by the hour,
+a Slurm job with a wall-clock limit).
 
     # plan a grid: every experiment x scene x seed, with overrides for all (a queue file)
     stdr-tool queue plan QUEUE.json --experiments dnerf_deform dnerf_deform_stdr --scenes DIR/jumpingjacks ... \
