@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 BUDGET = ["budget=cpu", "eval.lpips=false", "train.progress=false", "eval.save_images=false",
           "train.image_every=0", "device=cpu"]
 
@@ -42,7 +43,8 @@ def _save(work: Path, rec: dict) -> None:
 
 
 def _stamp() -> dict:
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    from studies.common import commit as code_stamp
+    commit = code_stamp()
     cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
                 if ln.startswith("model name")), platform.processor())
     return {"commit": commit, "cpu": cpu, "cores": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 from pathlib import Path
 from typing import Callable
@@ -10,6 +9,14 @@ from typing import Callable
 ROOT = Path(__file__).resolve().parents[1]
 M = ROOT / "docs" / "measurements"
 ARCHIVE = "records.tar.xz"  # scripts/measurements.py's per-study archive
+
+
+def gmean(xs):
+    """The geometric mean of the numbers in xs that are not None; None when there are none or one
+    is not positive (a ratio of a missing or zero measurement)."""
+    import statistics
+    xs = [x for x in xs if x is not None]
+    return statistics.geometric_mean(xs) if xs and all(x > 0 for x in xs) else None
 
 
 def records_in(out: Path, sub: str) -> Path:
@@ -36,12 +43,14 @@ def records_to_write(out: Path, sub: str) -> Path:
 
 
 def commit() -> str:
-    """The checkout's short commit, `+dirty` when tracked files differ from it (a record's stamp).
-    Files under docs/measurements do not count: a study rewrites its own tables as it runs."""
-    out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-    dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no", "--", ".",
-                            ":(exclude)docs/measurements"], capture_output=True, text=True).stdout.strip()
-    return out.stdout.strip() + ("+dirty" if dirty else "")
+    """The checkout's short commit, `+dirty` when tracked files differ from it (a record's stamp:
+    stdr.eval.evaluate.code_version, the one stamp). Files under docs/measurements do not count: a
+    study rewrites its own tables as it runs."""
+    from stdr.eval.evaluate import code_version
+    v = code_version(exclude=("docs/measurements",), root=ROOT)
+    if v["commit"] is None:
+        return "unknown"
+    return v["commit"][:7] + ("+dirty" if v["dirty"] else "")
 
 
 def run_table_main(doc: str, out: Path, table_name: str, run: Callable, table: Callable[[Path], str],

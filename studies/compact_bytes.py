@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import math
 import os
 import statistics
 import subprocess
@@ -33,7 +32,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from studies.common import commit, records_in, records_to_write  # noqa: E402
+from studies.common import commit, gmean, records_in, records_to_write  # noqa: E402
 
 OUT = ROOT / "docs" / "measurements" / "compact_bytes"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
@@ -370,10 +369,6 @@ def full_records() -> dict:
     return out
 
 
-def _gmean(xs):
-    return math.exp(statistics.mean(math.log(x) for x in xs))
-
-
 def table_val() -> str:
     recs = load_val()
     dec = json.loads((OUT / "decision.json").read_text()) if (OUT / "decision.json").is_file() else {}
@@ -394,7 +389,7 @@ def table_val() -> str:
             c = [r["candidates"][n] for r in rs]
             kl = [x["mask_kl"] for x in c if x.get("mask_kl") is not None]
             lines.append(f"| {exp} | {n} | {len(rs)} | {statistics.mean(x['bytes'] for x in c) / 2**20:.3f} | "
-                         f"{_gmean([x['bytes'] / r['full_bytes'] for x, r in zip(c, rs)]):.1%} | "
+                         f"{gmean([x['bytes'] / r['full_bytes'] for x, r in zip(c, rs)]):.1%} | "
                          f"{statistics.mean(x['delta_psnr'] for x in c):+.3f} | {min(x['delta_psnr'] for x in c):+.3f} | "
                          f"{f'{statistics.mean(kl):.2e}' if kl else '–'} |")
     lines += ["", "## Decision", ""]
@@ -500,14 +495,14 @@ def table(out: Path = OUT, full: dict | None = None) -> str:
         cs = [full.get((exp, r["scene"], "compact")) for r in rs]
         paired = all(c is not None for c in cs)
         if paired:
-            ratio = _gmean([(r["bytes"] / r["model_bytes"]) * (c["model_mb"] / f["model_mb"]) for r, c, f in zip(rs, cs, fs)])
+            ratio = gmean([(r["bytes"] / r["model_bytes"]) * (c["model_mb"] / f["model_mb"]) for r, c, f in zip(rs, cs, fs)])
             dpsnr = (statistics.mean(r["file"]["psnr"] - r["model"]["psnr"] for r in rs)
                      + statistics.mean(c["psnr"] - f["psnr"] for c, f in zip(cs, fs)))
             targets += [(exp, "file bytes / full model bytes (paired)", "<= 0.15", ratio, ratio <= 0.15),
                         (exp, "PSNR file - full, dB (paired)", ">= -0.1", dpsnr, dpsnr >= -0.1)]
-        raw_ratio = _gmean([(r["bytes"] / 2**20) / f["model_mb"] for r, f in zip(rs, fs)])
+        raw_ratio = gmean([(r["bytes"] / 2**20) / f["model_mb"] for r, f in zip(rs, fs)])
         raw = row["models"][2]["psnr"] - row["models"][0]["psnr"]
-        fps = _gmean([r["file"]["fps"] / r["model"]["fps"] for r in rs])
+        fps = gmean([r["file"]["fps"] / r["model"]["fps"] for r in rs])
         targets += [(exp, "file bytes / full model bytes (unpaired)", "(reported)", raw_ratio, None),
                     (exp, "PSNR file - full, dB (unpaired)", "(reported)", raw, None),
                     (exp, "FPS file / compact=on", ">= 1", fps, fps >= 1.0)]
@@ -520,11 +515,11 @@ def table(out: Path = OUT, full: dict | None = None) -> str:
         common = sorted({r["scene"] for r in a} & {r["scene"] for r in s})
         if common:
             bs = {(r["experiment"], r["scene"]): r["bytes"] for r in a + s}
-            v = _gmean([bs[(f"dnerf_{b}_stdr", sc)] / bs[(f"dnerf_{b}", sc)] for sc in common])
+            v = gmean([bs[(f"dnerf_{b}_stdr", sc)] / bs[(f"dnerf_{b}", sc)] for sc in common])
             targets.append((f"dnerf_{b}_stdr", "+STDR file / plain file bytes", "<= 1.25", v, v <= 1.25))
             keys = [(e, sc) for sc in common for e in (f"dnerf_{b}", f"dnerf_{b}_stdr")]
             if all(k in wtotal for k in keys):  # the same models and codecs, the file format of `where`'s code
-                v = _gmean([wtotal[(f"dnerf_{b}_stdr", sc)] / wtotal[(f"dnerf_{b}", sc)] for sc in common])
+                v = gmean([wtotal[(f"dnerf_{b}_stdr", sc)] / wtotal[(f"dnerf_{b}", sc)] for sc in common])
                 targets.append((f"dnerf_{b}_stdr", f"+STDR file / plain file bytes, format of {wcode} (`where`)",
                                 "<= 1.25", v, v <= 1.25))
     lines += ["", "Targets (ratios: geometric mean over the scenes of the per-scene ratio; paired: this run's file "
@@ -534,7 +529,7 @@ def table(out: Path = OUT, full: dict | None = None) -> str:
     ratios = [r["file"]["fps"] / r["model"]["fps"] for r in recs]
     same = all(r["file"].get("num_gaussians", -1) == r["model"].get("num_gaussians", -2) for r in recs)
     lines += ["", f"FPS file / compact=on per run, all {len(ratios)} runs: {min(ratios):.3f} to {max(ratios):.3f} "
-              f"(geometric mean {_gmean(ratios):.3f})." + (
+              f"(geometric mean {gmean(ratios):.3f})." + (
                   " In every run the file's model renders as many Gaussians as the run's, with its tensors decoded "
                   "to float32, so this spread is the timing's own." if same else "")]
     if wrecs:

@@ -28,6 +28,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from studies.common import gmean  # noqa: E402
+
 RECORDS = ROOT / "docs" / "measurements" / "compact_prune" / "runs"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
 EXPERIMENTS = tuple(f"dnerf_{b}{s}" for b in ("deform", "scgs", "spgs", "4dgs") for s in ("", "_stdr"))
@@ -429,12 +432,6 @@ def run_test(args) -> int:
     return 1 if failed or todo else 0
 
 
-def _gmean(xs):
-    import math
-    xs = [x for x in xs if x is not None]
-    return math.exp(sum(math.log(x) for x in xs) / len(xs)) if xs and all(x > 0 for x in xs) else None
-
-
 #: the compactness targets (full vs compact per method; +STDR vs plain, both compact): (key, what, test, bound)
 TARGETS = (("psnr", "mean PSNR, compact - full (dB)", ">=", -0.1),
            ("num_gaussians", "Gaussians, compact / full", "<=", 0.5),
@@ -450,7 +447,7 @@ def _compare(a: dict, b: dict, key: str):
     pairs = [(a[s][key], b[s][key]) for s in SCENES if s in a and s in b]
     if len(pairs) != len(SCENES):
         return None
-    return _mean(x - y for x, y in pairs) if key == "psnr" else _gmean(x / y for x, y in pairs)
+    return _mean(x - y for x, y in pairs) if key == "psnr" else gmean(x / y for x, y in pairs)
 
 
 def _meets(value, op: str, bound: float):

@@ -25,6 +25,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from studies.common import commit  # noqa: E402
+
 RECORDS = ROOT / "docs" / "measurements" / "stdr_long"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
 METHODS = ("deform", "deform_stdr")
@@ -46,16 +49,6 @@ ITERATIONS = 10000
 def reference_of(variant: str) -> str:
     """The +STDR record folder `variant` is decided against: the default it would replace."""
     return REFERENCE.get(variant, "deform_stdr__nogate")
-
-
-def commit() -> str:
-    try:
-        out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-        dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True).stdout.strip()
-        return out.stdout.strip() + ("+dirty" if dirty else "")
-    except OSError:
-        return "unknown"
 
 
 def evaluate_splits(run_dir: Path, splits=SPLITS) -> dict:

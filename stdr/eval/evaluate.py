@@ -318,11 +318,13 @@ def best_and_last(curve: list[dict[str, Any]]) -> dict[str, Any]:
             "last": {k: curve[-1].get(k) for k in keys} if curve else None}
 
 
-def code_version() -> dict[str, Any]:
+def code_version(exclude: tuple[str, ...] = (), root=None) -> dict[str, Any]:
     """Which code wrote a number: the stdr package version, and, in a git checkout, its commit
-    and whether tracked files had uncommitted changes (None outside a checkout)."""
+    and whether tracked files had uncommitted changes (None outside a checkout). `exclude`:
+    folders of the checkout whose changes do not count (a study's own tables, rewritten as it runs).
+    `root`: the checkout (default: the one this package runs from)."""
     from .. import __version__, source_checkout
-    root = source_checkout()
+    root = source_checkout() if root is None else root
     out: dict[str, Any] = {"version": __version__, "commit": None, "dirty": None}
     if root is None:  # an installed copy: no commit to name (a checkout that holds the venv is not it)
         return out
@@ -331,8 +333,8 @@ def code_version() -> dict[str, Any]:
                               timeout=10)
         if head.returncode != 0:
             return out
-        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                                capture_output=True, text=True, timeout=30)
+        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no", "--", ".",
+                                 *(f":(exclude){e}" for e in exclude)], capture_output=True, text=True, timeout=30)
     except (OSError, subprocess.TimeoutExpired):
         return out
     out["commit"] = head.stdout.strip()
