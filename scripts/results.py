@@ -344,13 +344,13 @@ def long_budget(variant: str = LONG_DEFAULT) -> dict | None:
     """STDR (`variant`'s records) - plain deform at budget=cpu_long (studies/long_budget.py
     records): the pairs at the last step, per split, and the seeds; None before any pair."""
     sys.path.insert(0, str(ROOT))
-    from studies.long_budget import SPLITS, _at, by_run, load_records, pairs_of
+    from studies.long_budget import SPLITS, by_run, load_records, pairs_of, point_at
     pairs = pairs_of(by_run(load_records(M / "stdr_long")), variant)
     if not pairs:
         return None
     last = max(p["step"] for a, _ in pairs for p in a["points"])
     pairs = [(a, b) for a, b in pairs if any(p["step"] == last for p in b["points"])]
-    d = {sp: [_at(b, last)[sp]["psnr"] - _at(a, last)[sp]["psnr"] for a, b in pairs] for sp in SPLITS}
+    d = {sp: [point_at(b, last)[sp]["psnr"] - point_at(a, last)[sp]["psnr"] for a, b in pairs] for sp in SPLITS}
     return {"n": len(pairs), "step": last, "seeds": sorted({a["seed"] for a, _ in pairs}),
             "pairs": sorted(f"{a['scene']} s{a['seed']}" for a, _ in pairs),
             **{sp: statistics.fmean(v) for sp, v in d.items()}, "val_min": min(d["val"]), "val_max": max(d["val"])}

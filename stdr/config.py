@@ -370,7 +370,7 @@ def _sync_store(*_) -> None:
     _SYNCED[0] = _registries()
 
 
-def _experiments_resolver(data: str, *which: str) -> str:
+def experiments_on(data: str, *which: str) -> str:
     """`${stdr_experiments:dnerf}`: every experiment on data option `data` (each registered
     baseline, plain and with each plug-in) as a comma-separated sweep list;
     `${stdr_experiments:dnerf,<plug-in>}` (or `plain`) only those."""
@@ -404,7 +404,7 @@ def register() -> None:
     if not OmegaConf.has_resolver("stdr_schedule"):
         OmegaConf.register_new_resolver("stdr_schedule", _schedule_resolver)
     if not OmegaConf.has_resolver("stdr_experiments"):
-        OmegaConf.register_new_resolver("stdr_experiments", _experiments_resolver)
+        OmegaConf.register_new_resolver("stdr_experiments", experiments_on)
     if not OmegaConf.has_resolver("stdr_scene_path"):
         OmegaConf.register_new_resolver("stdr_scene_path", _scene_path_resolver)
     discover_baselines()  # baselines of other installed distributions (entry points)

@@ -134,7 +134,7 @@ def _reaches(rec: dict, step: int) -> bool:
     return any(p["step"] == step for p in rec["points"])
 
 
-def _at(rec: dict, step: int) -> dict:
+def point_at(rec: dict, step: int) -> dict:
     return next(p for p in rec["points"] if p["step"] == step)
 
 
@@ -194,8 +194,8 @@ def _difference(by: dict, variant: str, steps: list[int]) -> list[str]:
             both = [(a, b) for a, b in pairs if _reaches(a, s) and _reaches(b, s)]
             if not both:
                 continue
-            d = {sp: statistics.mean(_at(b, s)[sp]["psnr"] - _at(a, s)[sp]["psnr"] for a, b in both) for sp in SPLITS}
-            g = [statistics.mean(_at(r, s)["train"]["psnr"] - _at(r, s)["test"]["psnr"] for r in rs)
+            d = {sp: statistics.mean(point_at(b, s)[sp]["psnr"] - point_at(a, s)[sp]["psnr"] for a, b in both) for sp in SPLITS}
+            g = [statistics.mean(point_at(r, s)["train"]["psnr"] - point_at(r, s)["test"]["psnr"] for r in rs)
                  for rs in ([a for a, _ in both], [b for _, b in both])]
             lines.append(f"| {s} | {d['train']:+.2f} | {d['val']:+.2f} | {d['test']:+.2f} | {g[0]:.2f} | {g[1]:.2f} |")
         lines += _spread(pairs, steps[-1])
@@ -205,7 +205,7 @@ def _difference(by: dict, variant: str, steps: list[int]) -> list[str]:
 def _spread(pairs: list[tuple[dict, dict]], step: int) -> list[str]:
     """The val difference at `step` pair by pair, its mean by seed and its standard deviation over
     the pairs (the spread a mean of a few pairs carries)."""
-    val = {(a["scene"], a["seed"]): _at(b, step)["val"]["psnr"] - _at(a, step)["val"]["psnr"] for a, b in pairs
+    val = {(a["scene"], a["seed"]): point_at(b, step)["val"]["psnr"] - point_at(a, step)["val"]["psnr"] for a, b in pairs
            if _reaches(a, step) and _reaches(b, step)}
     if not val:
         return []
@@ -235,7 +235,7 @@ def decide(by: dict, variant: str) -> dict:
             if m == variant and (sc, sd, "deform") in by and (sc, sd, ref) in by]
     last = max((p["step"] for r in by.values() for p in r["points"]), default=0)
     trip = [t for t in trip if all(_reaches(r, last) for r in t)]
-    raise_ = [_at(v, last)["val"]["psnr"] - _at(d, last)["val"]["psnr"] for _, d, v in trip]
+    raise_ = [point_at(v, last)["val"]["psnr"] - point_at(d, last)["val"]["psnr"] for _, d, v in trip]
     pairs = [(a, b) for a, b in pairs_of(by, variant) if _reaches(b, last)]
     out = {"variant": variant, "reference": ref, "step": last, "triples": [f"{a['scene']} s{a['seed']}" for a, _, _ in trip],
            "raise": raise_, "pairs": len(pairs)}
@@ -246,7 +246,7 @@ def decide(by: dict, variant: str) -> dict:
         d["final_test"]["train_seconds"] for _, d, _ in trip)
     scenes = {sc for (sc, _, m) in by if m == "deform"}
     coverage = {a["scene"] for a, _, _ in trip} >= scenes and {a["seed"] for a, _, _ in trip} >= {0, 1}
-    level = statistics.fmean(_at(b, last)["val"]["psnr"] - _at(a, last)["val"]["psnr"] for a, b in pairs)
+    level = statistics.fmean(point_at(b, last)["val"]["psnr"] - point_at(a, last)["val"]["psnr"] for a, b in pairs)
     r1 = mean >= RAISE_R1 and cost <= COST_R1
     r2 = mean > RAISE_R2 and min(raise_) >= WORST_R2
     return {**out, "mean": mean, "worst": min(raise_), "cost": cost, "r1": r1, "r2": r2, "coverage": coverage,

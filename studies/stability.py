@@ -324,7 +324,7 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
     from matplotlib.lines import Line2D
     from matplotlib.ticker import MaxNLocator
 
-    from stdr.eval.chart import _save, _style
+    from stdr.eval.chart import baseline_colors, save_chart
     stresses = sorted({r["stress"] for r in rows if r["stress"] != "none"})
     if not stresses:
         raise SystemExit("python -m studies.stability: no stressed runs to chart")
@@ -334,7 +334,7 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
     panels = [(st, key, frames) for st in stresses
               for key, frames in (("psnr_drop", "all"), ("window_drop", "in window"))
               if key == "psnr_drop" or any(r["stress"] == st and r["window_drop"] is not None for r in rows)]
-    colors = _style(sorted({r["baseline"] for r in rows}))
+    colors = baseline_colors(sorted({r["baseline"] for r in rows}))
     ncol = min(len(panels), 4)
     nrow = -(-len(panels) // ncol)
     fig, axes = plt.subplots(nrow, ncol, figsize=(3.2 * ncol, 3.0 * nrow), squeeze=False, sharey=True)
@@ -364,15 +364,15 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False, fontsize=8,
                bbox_to_anchor=(0.5, -0.08))
     fig.tight_layout()
-    return _save(fig, out, "degradation_psnr", ["stress", "frames", "method", "level", "psnr_drop_db"], data)
+    return save_chart(fig, out, "degradation_psnr", ["stress", "frames", "method", "level", "psnr_drop_db"], data)
 
 
 def study_grid(data: str = "dnerf") -> tuple[list[tuple[str, str]], list[str]]:
     """The study sweep's methods as (experiment, method name) pairs, every registered baseline
     plain and +STDR, and its scenes (stdr/configs/sweep/stability.yaml)."""
-    from stdr.config import CONFIG_DIR, _experiments_resolver
+    from stdr.config import CONFIG_DIR, experiments_on
     exps = []
-    for e in _experiments_resolver(data).split(","):
+    for e in experiments_on(data).split(","):
         base = e[len(data) + 1:]
         cfg = {"baseline": {"name": base.removesuffix("_stdr")}, "stdr": {"enabled": base.endswith("_stdr")}}
         exps.append((e, method_name(cfg)))

@@ -88,3 +88,17 @@ def test_no_module_below_the_loop_takes_the_trainer():
                 if isinstance(node, ast.ImportFrom) and (node.module or "").endswith("trainer"):
                     bad.append(f"{path.relative_to(ROOT)}:{node.lineno} imports {node.module}")
     assert not bad, bad
+
+
+def test_studies_and_scripts_use_no_private_name_of_another_module():
+    """Studies and scripts are written on the public API: no `from stdr... import _x`, no
+    `from studies.<other> import _x`, no `module._x` of an imported stdr or studies module."""
+    import ast
+    bad = []
+    for folder in ("studies", "scripts"):
+        for path in sorted((ROOT / folder).glob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in ("stdr", "studies"):
+                    bad += [f"{path.relative_to(ROOT)}:{node.lineno} {node.module}.{a.name}"
+                            for a in node.names if a.name.startswith("_") and a.name != "__version__"]
+    assert bad == [], bad

@@ -139,7 +139,7 @@ def pareto(points: list[tuple[float, float]], higher_is_better: bool = True) -> 
 
 
 # ------------------------------------------------------------------ drawing
-def _style(baselines: list[str]):
+def baseline_colors(baselines: list[str]):
     """One colour per baseline, stable across charts: the registry's order, then any other."""
     import matplotlib
 
@@ -231,7 +231,9 @@ def palette_png(path: Path) -> None:
     q.save(path, format="PNG", optimize=True)
 
 
-def _save(fig, out: Path, name: str, header: list[str], data: list[list[Any]]) -> dict[str, Path]:
+def save_chart(fig, out: Path, name: str, header: list[str], data: list[list[Any]]) -> dict[str, Path]:
+    """Write a matplotlib figure as out/name.png (palette PNG), .svg and the plotted data as .csv
+    (`header`, then the rows); closes the figure. Returns the three paths."""
     out.mkdir(parents=True, exist_ok=True)
     paths = {ext: out / f"{name}.{ext}" for ext in ("png", "svg", "csv")}
     fig.savefig(paths["png"], dpi=130, bbox_inches="tight")
@@ -248,7 +250,7 @@ def _save(fig, out: Path, name: str, header: list[str], data: list[list[Any]]) -
 
 def draw_speed_accuracy(pts, metric, cap, out: Path) -> dict[str, Path]:
     import matplotlib.pyplot as plt
-    colors = _style([p["baseline"] for p in pts])
+    colors = baseline_colors([p["baseline"] for p in pts])
     scenes = ["mean"] + sorted({p["scene"] for p in pts} - {"mean"})
     cols = min(len(scenes), 3)
     nrows = math.ceil(len(scenes) / cols)
@@ -265,13 +267,13 @@ def draw_speed_accuracy(pts, metric, cap, out: Path) -> dict[str, Path]:
     fig.tight_layout(rect=(0, 0.05, 1, 1))
     data = [[p["method"], p["scene"], p["fps"], p[metric], p[f"{metric}_std"], p["num_gaussians"], p["model_mb"]]
             for p in pts]
-    return _save(fig, out, f"speed_accuracy_{metric}", ["method", "scene", "fps", metric, f"{metric}_std",
+    return save_chart(fig, out, f"speed_accuracy_{metric}", ["method", "scene", "fps", metric, f"{metric}_std",
                                                            "num_gaussians", "model_mb"], data)
 
 
 def draw_size_accuracy(pts, metric, cap, out: Path) -> dict[str, Path]:
     import matplotlib.pyplot as plt
-    colors = _style([p["baseline"] for p in pts])
+    colors = baseline_colors([p["baseline"] for p in pts])
     mean = [p for p in pts if p["scene"] == "mean"]
     panels = [("num_gaussians", "Gaussians (final count)")]
     if mean and all(p["model_mb"] is not None for p in mean):
@@ -289,7 +291,7 @@ def draw_size_accuracy(pts, metric, cap, out: Path) -> dict[str, Path]:
     _legend(fig, colors, mean)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
     data = [[p["method"], p["num_gaussians"], p["model_mb"], p[metric]] for p in mean]
-    return _save(fig, out, f"size_accuracy_{metric}", ["method", "num_gaussians", "model_mb", metric], data)
+    return save_chart(fig, out, f"size_accuracy_{metric}", ["method", "num_gaussians", "model_mb", metric], data)
 
 
 def _neg_formatter():
@@ -300,7 +302,7 @@ def _neg_formatter():
 def draw_learning_curves(pts, metric, cap, out: Path) -> dict[str, Path]:
     import matplotlib
     import matplotlib.pyplot as plt
-    colors = _style([p["baseline"] for p in pts])
+    colors = baseline_colors([p["baseline"] for p in pts])
     methods = list(dict.fromkeys(p["method"] for p in pts))
     kinds = {(p["baseline"], p["variant"]) for p in pts}
     # labelled runs of one baseline (e.g. training lengths) get a colour each, not the baseline's
@@ -320,7 +322,7 @@ def draw_learning_curves(pts, metric, cap, out: Path) -> dict[str, Path]:
                  f"scenes)\n{cap}", fontsize=9)
     fig.tight_layout()
     data = [[p["method"], p["step"], p["train_seconds"], p[metric], p["n_runs"], p["frames"]] for p in pts]
-    return _save(fig, out, f"learning_curves_{metric}", ["method", "step", "train_seconds", metric, "n_runs",
+    return save_chart(fig, out, f"learning_curves_{metric}", ["method", "step", "train_seconds", metric, "n_runs",
                                                            "min_frames"], data)
 
 
