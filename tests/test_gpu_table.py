@@ -43,7 +43,8 @@ def test_runs_from_archives_make_the_stamped_table_with_the_paper_beside(tmp_pat
     assert "| method | jumpingjacks | standup | mean PSNR |" in text
     assert "| deform | 36.00 | 38.00 | 37.00 | 0.9800 | 0.0200 | 80 |" in text
     assert "| deform_stdr | 36.50 | – | 36.50 |" in text
-    assert f"| ↳ paper | {gt.PAPER[('deform', 'jumpingjacks')]:.2f} |  |" in text  # context where transcribed
+    # context where transcribed: the paper's D-NeRF table (../shared/reference/paper-dnerf-table.md)
+    assert "| ↳ paper | 37.72 | 44.62 | 41.17 | | | |" in text
     assert "GPU NVIDIA H100" in text and "code abc1234" in text
     assert data["deform"]["scenes"] == {"jumpingjacks": 36.0, "standup": 38.0}
 
@@ -81,3 +82,26 @@ def test_the_rule_pairs_variant_runs_by_seed_and_reads_the_mean_gap(tmp_path):
     assert not v["4dgs jumpingjacks"]["passes"] and v["4dgs jumpingjacks"]["missing"] == list(CUDA_RUN_SEEDS[1:])
     with pytest.raises(SystemExit, match="__slow"):
         gt.rule(tmp_path / "t", "slow", "twin")
+
+
+def test_the_committed_table_queue_composes_for_every_run(tmp_path):
+    """docs/measurements/dnerf_gpu/queue.json (what the next GPU machine runs, 16 at a time): 32
+    runs, deform +- STDR first on all four scenes, and every run's command passes stdr-train's
+    checks (a scene folder stands in for build/gpucarry), so no typo costs a GPU window."""
+    from stdr.cli.common import compose_config
+    from stdr.tools.runqueue import Queue
+    from stdr.validate import check_run_config
+    q = Queue.load(gt_folder() / "queue.json")
+    assert len(q.runs) == 32 and len({r.id for r in q.runs}) == 32
+    assert [r.id.split("__")[0] for r in q.runs[:8]] == ["dnerf_deform"] * 4 + ["dnerf_deform_stdr"] * 4
+    for r in q.runs:
+        if r.state == "done":
+            continue
+        ov = [o if not o.startswith("data.path=") else f"data.path={tmp_path}" for o in r.overrides]
+        cfg = compose_config(ov)
+        assert cfg.budget == "gpu" and cfg.device == "cuda"
+        check_run_config(cfg)
+
+
+def gt_folder():
+    return _module().FOLDER

@@ -107,3 +107,18 @@ def test_sixteen_runs_at_once_one_thread_each(tmp_path, monkeypatch):
     # the most runs alive at one moment: every start checked against every span
     overlap = max(sum(a[0] <= s[0] < a[1] for a in spans) for s in spans)
     assert overlap == 16, overlap
+
+
+def test_a_plan_by_experiment_puts_the_first_experiments_on_every_scene_first(tmp_path):
+    """--order experiment: the table's main rows (deform +- STDR) on all four scenes come before
+    the next experiments; relative scene paths are kept as given (read where the queue runs)."""
+    scenes = [f"build/gpucarry/{s}" for s in ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")]
+    exps = ["dnerf_deform", "dnerf_deform_stdr", "dnerf_scgs", "dnerf_scgs_stdr"]
+    q = qm.plan(exps, scenes, [0], ["budget=gpu"], est_s=400, order="experiment")
+    assert [r.id.split("__")[0] for r in q.runs[:8]] == ["dnerf_deform"] * 4 + ["dnerf_deform_stdr"] * 4
+    assert [r.id.split("__")[1] for r in q.runs[:4]] == ["bouncingballs", "hellwarrior", "jumpingjacks", "standup"]
+    assert "data.path=build/gpucarry/bouncingballs" in q.runs[0].overrides
+    by_scene = qm.plan(exps, scenes, [0], [], est_s=400)
+    assert [r.id.split("__")[0] for r in by_scene.runs[:4]] == exps  # the default: a scene's methods together
+    with pytest.raises(ValueError, match="--order"):
+        qm.plan(exps, scenes, [0], [], est_s=400, order="seed")

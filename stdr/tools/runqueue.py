@@ -78,20 +78,27 @@ def parse_variant(text: str) -> tuple[str, list[str]]:
     return label, [o for o in rest.split(",") if o]
 
 
-def plan(experiments, scenes, seeds, overrides, est_s: float, variants=()) -> Queue:
+def plan(experiments, scenes, seeds, overrides, est_s: float, variants=(), order: str = "scene") -> Queue:
     """Every seed x scene x experiment (x variant), in that order: the methods of one scene and seed
     run next to each other, so a call that ends early leaves complete pairs, not one method's
-    column. No scenes: the experiments' own data (e.g. the embedded scene). variants: (label,
-    overrides) pairs, each a run of its own with its label in the id (e.g. the torch forms and the
-    speed keys side by side)."""
+    column. order="experiment": seed x experiment x scene instead, so the experiments named first
+    (e.g. the table's main rows) are done on every scene before the next ones start. No scenes: the
+    experiments' own data (e.g. the embedded scene). A relative scene path is kept as given: it is
+    read from the folder `queue run` runs in (a queue planned here runs on another machine).
+    variants: (label, overrides) pairs, each a run of its own with its label in the id (e.g. the
+    torch forms and the speed keys side by side)."""
+    if order not in ("scene", "experiment"):
+        raise ValueError(f"--order {order!r}: scene or experiment")
     runs = []
     for seed in seeds:
-        for scene in scenes or [None]:
-            for exp in experiments:
-                data = [f"data.path={Path(scene).resolve()}", f"data.name={Path(scene).name}"] if scene else []
-                for label, extra in variants or [("", [])]:
-                    rid = run_id(exp, scene, seed) + (f"__{label}" if label else "")
-                    runs.append(Run(rid, [f"experiment={exp}", *data, f"seed={seed}", *overrides, *extra], est_s))
+        pairs = [(sc, e) for sc in scenes or [None] for e in experiments]
+        if order == "experiment":
+            pairs = [(sc, e) for e in experiments for sc in scenes or [None]]
+        for scene, exp in pairs:
+            data = [f"data.path={scene}", f"data.name={Path(scene).name}"] if scene else []
+            for label, extra in variants or [("", [])]:
+                rid = run_id(exp, scene, seed) + (f"__{label}" if label else "")
+                runs.append(Run(rid, [f"experiment={exp}", *data, f"seed={seed}", *overrides, *extra], est_s))
     ids = [r.id for r in runs]
     if len(set(ids)) != len(ids):
         raise ValueError("two runs of the plan share an id (the same experiment, scene name and seed)")
@@ -204,6 +211,9 @@ def main(argv=None) -> None:
     p.add_argument("--seeds", type=int, nargs="+", default=[0])
     p.add_argument("--est-seconds", type=float, required=True, help="a run's expected wall seconds (concurrent)")
     p.add_argument("--variants", nargs="*", default=[], help="LABEL:KEY=V,KEY=V ... each a run of its own")
+    p.add_argument("--order", choices=("scene", "experiment"), default="scene",
+                   help="scene: the methods of one scene next to each other; experiment: each experiment on every "
+                   "scene before the next")
     p.epilog = "After --: the overrides every run gets (e.g. -- budget=gpu device=cuda)."
     r = sub.add_parser("run", help="run pending runs until the budget; pack the results")
     r.add_argument("queue", type=Path)
@@ -222,7 +232,7 @@ def main(argv=None) -> None:
         if args.queue.exists():
             raise SystemExit(f"stdr-tool queue: {args.queue} exists; a plan never overwrites a queue's state")
         q = plan(args.experiments, args.scenes, args.seeds, args.overrides, args.est_seconds,
-                 [parse_variant(v) for v in args.variants])
+                 [parse_variant(v) for v in args.variants], args.order)
         q.save(args.queue)
         print(f"[queue] {args.queue}: {len(q.runs)} runs planned")
     elif args.cmd == "run":
