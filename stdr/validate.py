@@ -155,14 +155,20 @@ CHOICES: dict[str, tuple] = {
 
 
 def _get(cfg, key: str):
+    """The value at dotted `key`, interpolations resolved (_MISSING: the key is absent, or its
+    interpolation cannot be resolved here: the run resolves it and says so itself)."""
     node = cfg
-    for part in key.split("."):
+    for part in key.split(".")[:-1]:
         if not isinstance(node, DictConfig) or part not in node:
             return _MISSING
         node = node._get_node(part)
-        if not isinstance(node, DictConfig):
-            node = node._value()
-    return node
+    leaf = key.split(".")[-1]
+    if not isinstance(node, DictConfig) or leaf not in node:
+        return _MISSING
+    try:
+        return node[leaf]
+    except Exception:  # noqa: BLE001 - an interpolation only the run can resolve
+        return _MISSING
 
 
 _MISSING = object()

@@ -31,7 +31,13 @@ def test_an_exported_time_renders_like_the_model(tmp_path, name):
         with torch.no_grad():
             want = model.render(frame.camera, time).image
             got = model.render_gaussians(activate(p), frame.camera).image
-        assert (got - want).abs().max().item() <= 1e-5, (time, (got - want).abs().max().item())
+        # the file stores opacity as a logit, so a Gaussian whose alpha lies within float rounding of the
+        # rasterizer's 1/255 cutoff may land on the other side of it (seen on an AMD EPYC: one pixel of
+        # 4,096 by 8e-4). Such a crossing moves a few pixels by at most that Gaussian's alpha (< 2/255);
+        # a wrong time, mask or SH band moves most of the image
+        d = (got - want).abs().amax(-1)
+        assert int((d > 1e-5).sum()) <= max(2, d.numel() // 1000) and d.max().item() < 2 / 255, \
+            (time, int((d > 1e-5).sum()), d.max().item())
     if "stdr" in name:  # the mask is in the exported opacity: it differs between times
         a, b = load_ply(tmp_path / "ply" / "t_0.0000.ply"), load_ply(tmp_path / "ply" / "t_1.0000.ply")
         assert not torch.equal(a["opacities"], b["opacities"])

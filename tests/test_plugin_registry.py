@@ -106,11 +106,11 @@ def test_registering_gives_group_keys_experiments_sweep_schedule_and_label(pulse
     with pytest.raises(NeverTrains, match="pulse.start=5000"):
         resolve_schedule(make_cfg(["pulse=on", "pulse.start=5000", "optim.iterations=2000"]))
     # the sweep list of the grids
-    from stdr.config import _experiments_resolver
-    assert _experiments_resolver("dnerf", "pulse").split(",") == [f"dnerf_{b}_pulse" for b in
+    from stdr.config import experiments_on
+    assert experiments_on("dnerf", "pulse").split(",") == [f"dnerf_{b}_pulse" for b in
                                                                    ("4dgs", "deform", "scgs", "spgs")]
     with pytest.raises(ValueError, match="'glow' is neither 'plain' nor a registered plug-in"):
-        _experiments_resolver("dnerf", "glow")
+        experiments_on("dnerf", "glow")
     # the row label: baseline, each enabled plug-in's label, its tags
     flat = OmegaConf.to_container(both, resolve=True)
     assert method_suffix(flat) == "+STDR+P"

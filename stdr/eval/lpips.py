@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
@@ -139,6 +140,21 @@ def _find(names, dirs) -> Optional[Path]:
     return None
 
 
+@contextmanager
+def _native_cpu_conv(device: torch.device):
+    """On the CPU, convolutions without oneDNN (mkldnn): oneDNN's convolutions give other bits on
+    other thread counts on some CPUs (measured: AMD EPYC, LPIPS-alex of one 200x200 pair, 1 thread
+    against 2), torch's own do not, so LPIPS is the same on any thread count (tests/test_threads.py)."""
+    if device.type != "cpu" or not torch.backends.mkldnn.enabled:
+        yield
+        return
+    torch.backends.mkldnn.enabled = False
+    try:
+        yield
+    finally:
+        torch.backends.mkldnn.enabled = True
+
+
 class LPIPS(nn.Module):
     def __init__(self, net: str = "vgg", weights_dir: Optional[str | Path] = None,
                  input_range: str = "[-1,1]"):
@@ -188,8 +204,10 @@ class LPIPS(nn.Module):
             img1, img2 = img1.permute(2, 0, 1)[None], img2.permute(2, 0, 1)[None]
         if self.input_range == "[-1,1]":
             img1, img2 = img1 * 2 - 1, img2 * 2 - 1
+        with _native_cpu_conv(img1.device):
+            feats1, feats2 = list(self._feats(img1)), list(self._feats(img2))
         total = 0.0
-        for lin, f1, f2 in zip(self.lins, self._feats(img1), self._feats(img2)):
+        for lin, f1, f2 in zip(self.lins, feats1, feats2):
             n1 = f1 / (f1.square().sum(1, keepdim=True).sqrt() + 1e-10)
             n2 = f2 / (f2.square().sum(1, keepdim=True).sqrt() + 1e-10)
             total = total + fixed_mean(lin((n1 - n2) ** 2), (2, 3))

@@ -109,7 +109,7 @@ def _torch_load(src, path: Path) -> Any:
             found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", text)
             what = f"objects of {found.group(1)}" if found else "objects other than tensors"
             raise CheckpointError(f"{path} is not an stdr checkpoint or model file: it holds pickled {what}, which "
-                                  "stdr never loads (it runs no code from a file)") from None
+                                  "the stdr package never loads (it runs no code from a file)") from None
         raise _damaged(path, f"it cannot be read (UnpicklingError: {text.splitlines()[0][:200]})") from None
     except Exception as e:  # noqa: BLE001 - truncated zip, bad record, ...: a damaged file
         raise _damaged(path, f"it cannot be read ({type(e).__name__}: {str(e).splitlines()[0][:200]})") from None
@@ -124,7 +124,7 @@ def load_checkpoint(path: str | Path, require: tuple[str, ...] = ()) -> dict[str
         raise MissingInput(f"checkpoint not found: {path}")
     with open(path, "rb") as f:
         head = f.read(4)
-    if head != ZIP_MAGIC:  # every file torch.save writes (and so every stdr file) is a zip archive
+    if head != ZIP_MAGIC:  # every file torch.save writes (and so every file of the stdr package) is a zip archive
         raise CheckpointError(f"{path} is not an stdr checkpoint or model file: it is not a file torch.save writes "
                               f"(it starts with {head!r}); pass a run folder, its checkpoints/last.pt or a "
                               "model.stdrc")
