@@ -94,13 +94,19 @@ def test_the_committed_table_queue_composes_for_every_run(tmp_path):
     q = Queue.load(gt_folder() / "queue.json")
     assert len(q.runs) == 32 and len({r.id for r in q.runs}) == 32
     assert [r.id.split("__")[0] for r in q.runs[:8]] == ["dnerf_deform"] * 4 + ["dnerf_deform_stdr"] * 4
-    for r in q.runs:
-        if r.state == "done":
+    seen = set()
+    for r in q.runs:  # runs differ by their scene only: one composition per experiment
+        exp = r.overrides[0]
+        assert exp.startswith("experiment=") and [o.split("=")[0] for o in r.overrides] == \
+            [o.split("=")[0] for o in q.runs[0].overrides]
+        if exp in seen:
             continue
+        seen.add(exp)
         ov = [o if not o.startswith("data.path=") else f"data.path={tmp_path}" for o in r.overrides]
         cfg = compose_config(ov)
         assert cfg.budget == "gpu" and cfg.device == "cuda"
         check_run_config(cfg)
+    assert len(seen) == 8
 
 
 def gt_folder():

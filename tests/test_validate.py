@@ -61,14 +61,20 @@ def test_scene_paths_must_be_folders(tmp_path):
 
 
 def test_every_shipped_experiment_and_budget_passes_the_checks(tmp_path):
-    """The checks refuse no configuration the project ships (a scene folder stands in)."""
+    """The checks refuse no configuration the project ships (a scene folder stands in): every
+    method on D-NeRF at every budget, and every other data option with deform+STDR."""
     from stdr.config import experiment_names
-    for exp in experiment_names():
-        for budget in ("cpu", "gpu", "paper"):
-            cfg = make_cfg([f"experiment={exp}", f"budget={budget}"])
-            if cfg.data.format != "procedural":
-                cfg.data.path = str(tmp_path)
-            check_run_config(cfg)
+    names = experiment_names()
+    dnerf = [e for e in names if e.startswith("dnerf_")]
+    others = sorted({e.rsplit("_deform_stdr", 1)[0] for e in names if e.endswith("_deform_stdr")} - {"dnerf"})
+    assert len(dnerf) == 8 and others
+    combos = [(e, b) for e in dnerf for b in ("cpu", "cpu_long", "gpu", "paper", "demo")]
+    combos += [(f"{d}_deform_stdr", "cpu") for d in others]
+    for exp, budget in combos:
+        cfg = make_cfg([f"experiment={exp}", f"budget={budget}"])
+        if cfg.data.format != "procedural":
+            cfg.data.path = str(tmp_path)
+        check_run_config(cfg)
 
 
 def _cli(args, cwd):
