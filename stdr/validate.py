@@ -212,14 +212,18 @@ def check_values(cfg) -> None:
     from .train.guard import check_guard_config
     for fn, node in ((check_prune_config, "prune"), (check_guard_config, "train.guard"), (check_stress, "data.stress")):
         sub = _get(cfg, node)
-        if sub is _MISSING:
-            continue
-        try:
-            fn(sub)
-        except ConfigError:
-            raise
-        except ValueError as e:
-            raise ConfigError(str(e)) from None
+        if sub is not _MISSING:
+            _as_config_error(fn, sub)
+
+
+def _as_config_error(fn, *args) -> None:
+    """fn(*args), its ValueError (a section's own check names the key) raised as a ConfigError."""
+    try:
+        fn(*args)
+    except ConfigError:
+        raise
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
 
 
 # ------------------------------------------------------------------ paths
@@ -253,9 +257,4 @@ def check_run_config(cfg, base: str | Path | None = None) -> None:
     check_keys(cfg)
     check_values(cfg)
     check_data_path(cfg.data, base)
-    try:
-        load_config(cfg)
-    except ConfigError:
-        raise
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
+    _as_config_error(load_config, cfg)
