@@ -28,7 +28,7 @@ import torch
 
 from hydra import compose, initialize_config_dir
 
-from stdr.cli.common import CONFIG_DIR
+from stdr.config import CONFIG_DIR
 from stdr.config import register
 from stdr.tools.bench_train import replicate, run_gaussians
 from stdr.train.trainer import Trainer
@@ -48,7 +48,7 @@ def main(argv=None):
     args = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
     args.overrides = overrides
     register()
-    with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
         cfg = compose("train", overrides=list(args.overrides) + [
             "densify.refine_start=1000000000", "train.progress=false", "eval.lpips=false"])
     gen = torch.Generator().manual_seed(0)

@@ -17,7 +17,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from stdr.cli.common import CONFIG_DIR
+from stdr.config import CONFIG_DIR
 from stdr.config import register
 from stdr.data.procedural import JUMP_A, JUMP_B, SceneOptions, jump_at_a
 from stdr.plugins.stdr import MASK_KEY
@@ -54,7 +54,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     register()
     res = {}
-    with tempfile.TemporaryDirectory() as tmp, initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
+    with tempfile.TemporaryDirectory() as tmp, initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
         for exp in ("embedded_deform", "embedded_deform_stdr"):
             cfg = compose("train", overrides=overrides(args.iterations, Path(tmp) / "cache") +
                           [f"experiment={exp}", f"seed={args.seed}"])

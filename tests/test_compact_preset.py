@@ -10,7 +10,7 @@ import torch
 from helpers import load_script
 from omegaconf import OmegaConf
 
-from stdr.cli.common import CONFIG_DIR
+from stdr.config import CONFIG_DIR
 from stdr.config import experiment_names
 from stdr.model import load_model
 from stdr.testing import make_cfg, tiny_config

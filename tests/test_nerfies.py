@@ -414,11 +414,11 @@ def test_toy_capture_short_training_run(toy, tmp_path):
     """A short deform run on the real capture (4x, 600 iterations) fits its held-out frames."""
     from hydra import compose, initialize_config_dir
 
-    from stdr.cli.common import CONFIG_DIR
+    from stdr.config import CONFIG_DIR
     from stdr.cli.train import run
     from stdr.config import register
     register()
-    with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
         cfg = compose("train", overrides=[
             "experiment=nerfds_deform", "data=nerfies", f"data.path={toy}", "data.split_mode=ids",
             "data.image_scale=4", "data.intrinsics=colmap", f"data.undistort_cache={tmp_path / 'cache'}",

@@ -229,3 +229,4 @@ def test_prune_scale2d_null_turns_the_screen_size_prune_off_and_keeps_the_world_
 
 
 
+

@@ -4,9 +4,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..config import CONFIG_DIR as _CONFIG_DIR
 
-CONFIG_DIR = str(_CONFIG_DIR)
 
 
 def use_fast_allocator_hint() -> None:
@@ -45,7 +43,8 @@ def compose_config(overrides=(), config_name: str = "train", return_hydra_config
 
     from ..config import register
     register()
-    with initialize_config_dir(config_dir=CONFIG_DIR, version_base=None):
+    from ..config import CONFIG_DIR
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
         return compose(config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)
 
 

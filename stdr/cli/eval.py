@@ -14,9 +14,9 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from ..config import load_config, register
+from ..config import CONFIG_DIR, load_config, register
 from ..errors import BadInput, MissingInput, reported
-from .common import CONFIG_DIR, check_overrides, reproducible_blas
+from .common import check_overrides, reproducible_blas
 
 register()
 
@@ -155,7 +155,7 @@ def _refresh_fps(entry: dict, timing: dict, model, rd: Path) -> None:
     print(f"[stdr] {rd}: FPS {entry['fps_history'][-1]['fps']} -> {fps:.2f}")
 
 
-@hydra.main(version_base=None, config_path=CONFIG_DIR, config_name="eval")
+@hydra.main(version_base=None, config_path=str(CONFIG_DIR), config_name="eval")
 def _main(cfg: DictConfig) -> None:
     if not cfg.runs:
         raise SystemExit("usage: stdr-eval RUN_DIR [RUN_DIR ...] [key=value ...]")

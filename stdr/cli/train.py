@@ -7,9 +7,9 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from ..config import register
+from ..config import CONFIG_DIR, register
 from ..errors import reported
-from .common import CONFIG_DIR, check_overrides, reproducible_blas, use_fast_allocator_hint
+from .common import check_overrides, reproducible_blas, use_fast_allocator_hint
 
 register()
 
@@ -91,7 +91,7 @@ def sweep_job(cfg: DictConfig, run_dir: Path, data_base: str) -> dict | None:
         return None
 
 
-@hydra.main(version_base=None, config_path=CONFIG_DIR, config_name="train")
+@hydra.main(version_base=None, config_path=str(CONFIG_DIR), config_name="train")
 def _main(cfg: DictConfig) -> None:
     from hydra.types import RunMode
     use_fast_allocator_hint()

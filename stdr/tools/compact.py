@@ -33,7 +33,7 @@ def preset_values() -> dict:
     when the preset writes no file)."""
     from omegaconf import OmegaConf
 
-    from ..cli.common import CONFIG_DIR
+    from ..config import CONFIG_DIR
     from .pack import spec_of_config
     node = OmegaConf.load(Path(CONFIG_DIR) / "compact" / "on.yaml")
     s, events = float(node.prune.share), len(node.prune.at)

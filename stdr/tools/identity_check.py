@@ -115,7 +115,7 @@ def experiment_names() -> list[str]:
         from stdr.config import experiment_names as names
         return names()
     except ImportError:
-        from stdr.cli.common import CONFIG_DIR
+        from stdr.config import CONFIG_DIR
         return sorted(p.stem for p in (Path(CONFIG_DIR) / "experiment").glob("*.yaml"))
 
 
