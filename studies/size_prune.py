@@ -107,26 +107,57 @@ def val_command(data: Path, scene: str, run: Path, stop: int, keys: list[str]) -
             "eval.save_images=false", *keys, f"hydra.run.dir={run}"]
 
 
-def _train(cmd: list[str], run: Path) -> None:
-    with open(run.with_name(run.name + ".log"), "w") as log:
+def _train(cmd: list[str], run: Path, append: bool = False) -> None:
+    with open(run.with_name(run.name + ".log"), "a" if append else "w") as log:
         subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, check=True)
 
 
+#: protocol amendment 2: where --ws-from-3000 is given, ws_1500 starts from s20_3000's checkpoint at
+#: this step (the two are one run until there when no Gaussian is big in the world: the world-size
+#: prune is all that differs before 3000, and on bouncingballs and hellwarrior it removed nothing)
+SHARED_UNTIL = 3000
+
+
+def _done(run: Path) -> bool:
+    from stdr.train.checkpoint import load_checkpoint
+    ck = run / "checkpoints" / "last.pt"
+    return ck.is_file() and (run / "train_profile.json").is_file() and \
+        int(load_checkpoint(ck)["model"]["step"]) >= VAL_STOP
+
+
+def _branch(src: Path, run: Path) -> None:
+    """A fresh run folder whose checkpoint is `src` (a branch killed midway starts again)."""
+    if run.exists():
+        shutil.rmtree(run)
+    (run / "checkpoints").mkdir(parents=True)
+    shutil.copy2(src, run / "checkpoints" / "last.pt")
+
+
 def val(args) -> None:
-    """Each scene's trunk, then its branches; a finished run (train_profile.json) is skipped, a
-    branch killed midway starts again from the trunk's checkpoint."""
+    """Each scene's trunk, then its branches; a finished run is skipped, a branch killed midway
+    starts again from its checkpoint of origin. With --ws-from-3000 (amendment 2), s20_3000 runs in
+    two legs, 1500 -> 3000 (its checkpoint kept as at3000.pt) and 3000 -> 3300, and ws_1500 branches
+    from at3000.pt."""
     for scene in args.scenes:
         trunk = args.work / f"trunk_{scene}"
         if not (trunk / "train_profile.json").is_file():
             _train(val_command(args.data, scene, trunk, BRANCH_AT, []), trunk)
         for name, keys in CANDIDATES.items():
             run = args.work / f"{name}_{scene}"
-            if (run / "train_profile.json").is_file():
+            if _done(run):
                 continue
-            if run.exists():
-                shutil.rmtree(run)
-            (run / "checkpoints").mkdir(parents=True)
-            shutil.copy2(trunk / "checkpoints" / "last.pt", run / "checkpoints" / "last.pt")
+            if args.ws_from_3000 and name == "s20_3000":
+                at = run / "at3000.pt"
+                if not at.is_file():
+                    _branch(trunk / "checkpoints" / "last.pt", run)
+                    _train(val_command(args.data, scene, run, SHARED_UNTIL, keys), run)
+                    shutil.copy2(run / "checkpoints" / "last.pt", at)
+                _train(val_command(args.data, scene, run, VAL_STOP, keys), run, append=True)  # resumes at 3000
+                continue
+            src = trunk / "checkpoints" / "last.pt"
+            if args.ws_from_3000 and name == "ws_1500":
+                src = args.work / f"s20_3000_{scene}" / "at3000.pt"
+            _branch(src, run)
             _train(val_command(args.data, scene, run, VAL_STOP, keys), run)
 
 
@@ -138,21 +169,28 @@ def val_record(work: Path, scene: str, name: str) -> dict | None:
     from stdr.eval.evaluate import machine_name
     from stdr.train.checkpoint import load_checkpoint
     run, trunk = work / f"{name}_{scene}", work / f"trunk_{scene}"
-    if not (run / "train_profile.json").is_file():
+    if not _done(run):
         return None
     ck = load_checkpoint(run / "checkpoints" / "last.pt")
+    shared = name == "ws_1500" and (work / f"s20_3000_{scene}" / "at3000.pt").is_file()
+    # the runs this branch's first steps are (amendment 2: ws_1500 is s20_3000 until 3000)
+    before = [trunk] + ([work / f"s20_3000_{scene}"] if shared else [])
     curve = [{k: h[k] for k in ("iteration", "psnr", "ssim", "num_gaussians", "train_seconds")}
              for h in ck["history"] if h["split"] == "val"]
     counts = {}
-    for rd in (trunk, run):
+    limit = {trunk: BRANCH_AT, work / f"s20_3000_{scene}": SHARED_UNTIL}
+    for rd in (*before, run):
         ev = EventAccumulator(str(rd / "tb"))
         ev.Reload()
-        counts.update({int(s.step): int(s.value) for s in ev.Scalars("gaussians/count")})
+        counts.update({int(s.step): int(s.value) for s in ev.Scalars("gaussians/count")
+                       if rd == run or int(s.step) <= limit[rd]})
     warns = []
-    for rd in (trunk, run):
+    for rd in (*before, run):
         log = rd.with_name(rd.name + ".log").read_text(errors="replace")
-        warns += [{"step": int(a), "removes": int(b), "of": int(c)} for a, b, c in WARNING.findall(log)]
+        warns += [{"step": int(a), "removes": int(b), "of": int(c)} for a, b, c in WARNING.findall(log)
+                  if rd == run or int(a) <= limit[rd]]
     return {"scene": scene, "candidate": name, "keys": CANDIDATES[name], "branch_at": BRANCH_AT, "stop_at": VAL_STOP,
+            "shared_with_s20_3000_until": SHARED_UNTIL if shared else None,
             "curve": curve, "counts": {str(k): counts[k] for k in sorted(counts)}, "warnings": warns,
             "train_seconds": float(ck["train_seconds"]),
             "command": " ".join(val_command(Path("DNERF"), scene, Path("WORK") / f"{name}_{scene}", VAL_STOP,
@@ -228,6 +266,8 @@ def main(argv=None) -> None:
     v = sub.add_parser("val")
     v.add_argument("data", type=Path)
     v.add_argument("--work", type=Path, required=True)
+    v.add_argument("--ws-from-3000", action="store_true", help="protocol amendment 2: ws_1500 branches from "
+                   "s20_3000 at step 3000")
     vt = sub.add_parser("val-table")
     vt.add_argument("--work", type=Path, default=None)
     for p in (v, vt):
