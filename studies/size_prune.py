@@ -222,8 +222,9 @@ def decide(records: list[dict]) -> dict:
                 "why": "no quiet candidate within 0.10 dB of the best: the preset stays"}
     top = max(scores[c] for c in ok)
     near = [c for c in ("ws_1500", "s20_3000", "s20_1500") if c in ok and scores[c] >= top - 0.05]
-    return {"scores": scores, "quiet": quiet, "choice": near[0],
-            "why": "the best quiet candidate (within 0.05 dB: the one nearer the reference)"}
+    why = f"the best-scoring of the quiet candidates within 0.10 dB of the best ({', '.join(ok)})" + (
+        "; of those within 0.05 dB of it, the nearest the reference" if len(near) > 1 else "")
+    return {"scores": scores, "quiet": quiet, "choice": near[0], "why": why}
 
 
 def val_table(records: list[dict]) -> str:

@@ -100,3 +100,26 @@ def test_a_records_stamp_ignores_the_tables_a_study_rewrites_but_not_code(tmp_pa
     assert common.commit() == head
     (tmp_path / "code.py").write_text("x = 2\n")
     assert common.commit() == head + "+dirty"
+
+
+def test_the_size_prune_rule_takes_the_best_quiet_candidate_and_refuses_partial_records():
+    """studies/size_prune.py decide(): protocol.md's rule on hand-made records."""
+    from helpers import load_script
+    sp = load_script(ROOT / "studies" / "size_prune.py", "size_prune")
+
+    def rec(c, s, psnr, warn=False):
+        return {"candidate": c, "scene": s, "curve": [{"iteration": sp.VAL_STOP, "psnr": psnr}],
+                "warnings": [{"step": 1600, "removes": 9, "of": 10}] if warn else []}
+    scenes = sp.SCENES
+    loud_best = [rec("s20_1500", s, 30.0, warn=True) for s in scenes] + [rec("s20_3000", s, 29.95) for s in scenes]
+    d = sp.decide(loud_best + [rec("ws_1500", s, 29.97) for s in scenes])
+    assert d["choice"] == "ws_1500" and not d["quiet"]["s20_1500"]  # within 0.05 of s20_3000: the reference's
+    d = sp.decide(loud_best + [rec("ws_1500", s, 29.0) for s in scenes])
+    assert d["choice"] == "s20_3000"
+    d = sp.decide([rec("s20_1500", s, 30.0) for s in scenes] + [rec("s20_3000", s, 29.0, warn=True) for s in scenes]
+                  + [rec("ws_1500", s, 29.5) for s in scenes])
+    assert d["choice"] == "s20_1500"  # quiet and best
+    d = sp.decide([rec("s20_1500", s, 30.0, warn=True) for s in scenes] + [rec("s20_3000", s, 29.0, warn=True)
+                  for s in scenes] + [rec("ws_1500", s, 29.5) for s in scenes])
+    assert d["choice"] == "s20_1500" and "preset stays" in d["why"]  # the quiet one loses 0.5 dB
+    assert sp.decide(loud_best)["choice"] is None  # a candidate without its scenes decides nothing
