@@ -217,16 +217,19 @@ MILESTONES = {"optim.iterations", "optim.means_lr_max_steps", "model.sh_interval
 @pytest.mark.parametrize("stdr", ["", "_stdr"])
 def test_gpu_preset_is_the_paper_preset_with_its_schedule_scaled_to_20k(name, stdr):
     """budget=gpu (docs/budgets.md): every schedule milestone of the baseline's paper run
-    scaled by 20k / its paper iterations (to within rounding to 100 steps), 400 px wide,
-    nothing else changed (networks, thresholds, the densification interval, STDR's own
-    settings; its phases follow the warm-up)."""
+    scaled by 20k / its paper iterations (to within rounding to 100 steps), 400 px wide, no
+    screen-size prune (docs/measurements/size_prune_val decided it on val), nothing else changed
+    (networks, thresholds, the densification interval, STDR's own settings; its phases follow the
+    warm-up)."""
     from stdr.eval.table import flatten
     exp = [f"experiment=dnerf_{name}{stdr}", "data.path=/x"]
     paper = flatten(OmegaConf.to_container(make_cfg(exp + ["budget=paper"]), resolve=True))
     gpu = flatten(OmegaConf.to_container(make_cfg(exp + ["budget=gpu"]), resolve=True))
     changed = {k for k in paper.keys() | gpu.keys() if paper.get(k) != gpu.get(k) and not k.startswith("schedule.")}
-    assert changed == {"budget", "data.max_width"} | {k for k in MILESTONES if paper.get(k)}, changed
+    assert changed == {"budget", "data.max_width", "densify.prune_scale2d"} | {k for k in MILESTONES if paper.get(k)}, \
+        changed
     assert gpu["data.max_width"] == 400 and gpu["optim.iterations"] == 20000
+    assert gpu["densify.prune_scale2d"] is None and paper["densify.prune_scale2d"] == 20.0
     f = 20000 / paper["optim.iterations"]
     for k in changed & MILESTONES:
         assert abs(gpu[k] - paper[k] * f) <= 50, (k, paper[k], gpu[k], f)
