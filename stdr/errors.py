@@ -20,18 +20,6 @@ class ConfigError(UserError, ValueError):
     """A config key or value that a run cannot use (unknown key, out-of-range value, wrong path)."""
 
 
-@contextmanager
-def reported(prog: str) -> Iterator[None]:
-    """Run a command's body; a UserError ends it with `<prog>: error: <message>` on stderr, one
-    line (the message's own line breaks folded), and exit code 2."""
-    try:
-        yield
-    except UserError as e:
-        msg = " ".join(str(e).split())
-        print(f"{prog}: error: {msg}", file=sys.stderr, flush=True)
-        raise SystemExit(USAGE_EXIT) from None
-
-
 class BadInput(UserError, ValueError):
     """A file or value the user handed over with a bad field (a scene's JSON, a camera, an image)."""
 
@@ -45,3 +33,15 @@ class MissingKey(UserError, KeyError):
 
     def __str__(self) -> str:  # KeyError quotes its message; this one is a sentence
         return str(self.args[0]) if self.args else ""
+
+
+@contextmanager
+def reported(prog: str) -> Iterator[None]:
+    """Run a command's body; a UserError ends it with `<prog>: error: <message>` on stderr, one
+    line (the message's own line breaks folded), and exit code 2."""
+    try:
+        yield
+    except UserError as e:
+        msg = " ".join(str(e).split())
+        print(f"{prog}: error: {msg}", file=sys.stderr, flush=True)
+        raise SystemExit(USAGE_EXIT) from None

@@ -67,32 +67,36 @@ def nearest_key(key: str, known: list[str]) -> Optional[str]:
     return leaves[hit[0]] if hit else None
 
 
+def unknown_key_hint(key: str, known: list[str]) -> str:
+    """What to say of the unknown dotted `key` among the `known` ones: the nearest valid key, else
+    what its section holds (the sections themselves for a top-level name)."""
+    near = nearest_key(key, known)
+    if near:
+        return f"did you mean {near}?"
+    parent = key.rpartition(".")[0]
+    siblings = [k.rpartition(".")[2] for k in known if k.rpartition(".")[0] == parent]
+    if not parent or not siblings:
+        sections = [k for k in known if "." not in k]
+        return f"the sections are {', '.join(sections)}; a plug-in's keys need the plug-in installed and registered"
+    listed = ", ".join(siblings[:12]) + (", ..." if len(siblings) > 12 else "")
+    return f"{parent} has {listed}; a baseline's or plug-in's keys need it selected (e.g. baseline=scgs, stdr=on)"
+
+
 def check_keys(cfg) -> None:
     """Refuse a key the run's schema does not have (a `+key` typo), naming the nearest valid one."""
+    import copy
+
     from .config import root_schema, typed_schema
     raw = OmegaConf.to_container(cfg, resolve=False) if OmegaConf.is_config(cfg) else dict(cfg)
     sections = list(root_schema().__dataclass_fields__)
     top = [k for k in raw if k not in sections]
     if top:
-        near = nearest_key(top[0], sections)
-        hint = f"did you mean {near}?" if near else (
-            f"the sections are {', '.join(sections)}; a plug-in's keys need the plug-in installed and registered")
-        raise ConfigError(f"unknown config section {top[0]}: {hint}")
-    import copy
+        raise ConfigError(f"unknown config section {top[0]}: {unknown_key_hint(top[0], sections)}")
     schema = typed_schema(copy.deepcopy(raw), "config")  # (it drops saved configs' legacy keys; a new run has none)
     bad = unknown_keys(raw, schema)
-    if not bad:
-        return
-    known = list(schema_keys(schema))
-    key = bad[0]
-    near = nearest_key(key, known)
-    parent = key.rpartition(".")[0]
-    siblings = [k.rpartition(".")[2] for k in known if k.rpartition(".")[0] == parent]
-    listed = ", ".join(siblings[:12]) + (", ..." if len(siblings) > 12 else "")
-    hint = f"did you mean {near}?" if near else (
-        f"{parent} has {listed}; a baseline's or plug-in's keys need it selected (e.g. baseline=scgs, stdr=on)")
-    more = f" (and {len(bad) - 1} more: {', '.join(bad[1:4])})" if len(bad) > 1 else ""
-    raise ConfigError(f"unknown config key {key}{more}: {hint}")
+    if bad:
+        more = f" (and {len(bad) - 1} more: {', '.join(bad[1:4])})" if len(bad) > 1 else ""
+        raise ConfigError(f"unknown config key {bad[0]}{more}: {unknown_key_hint(bad[0], list(schema_keys(schema)))}")
 
 
 # ------------------------------------------------------------------ values

@@ -5,8 +5,6 @@ import os
 from pathlib import Path
 
 
-
-
 def use_fast_allocator_hint() -> None:
     """Say once how to get the measured 2x CPU speed-up from tcmalloc when it is not in use."""
     lib = "/usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4"
@@ -50,27 +48,28 @@ def compose_config(overrides=(), config_name: str = "train", return_hydra_config
 
 def _override_problem(e: Exception, overrides: list[str], config_name: str) -> str:
     """Hydra's composition error as one sentence naming the override and what is allowed."""
+    import difflib
     import re
     text = str(e)
     m = re.search(r"Could not find '([^']+)/([^']+)'", text)
-    if m:
-        opts = [ln.strip() for ln in text.split("Available options in")[1].splitlines()[1:]
-                if ln.strip() and not ln.startswith(("Config search path", "\tprovider"))] if "Available options in" in text else []
-        opts = [o for o in opts if not o.startswith("provider=") and o != "Config search path:"]
-        import difflib
+    if m:  # Hydra lists the group's options, one a line, up to the search path
+        listing = text.partition("Available options in")[2].partition("Config search path")[0]
+        opts = [ln.strip() for ln in listing.splitlines()[1:] if ln.strip()]
         near = difflib.get_close_matches(m.group(2), opts, n=1, cutoff=0.7)
         if near:
             return f"{m.group(1)}={m.group(2)}: no such option; did you mean {m.group(1)}={near[0]}?"
         return f"{m.group(1)}={m.group(2)}: no such option" + (f"; the options are {', '.join(opts)}" if opts else "")
     m = re.search(r"Could not override '([^']+)'", text)
-    if m:  # a key the config does not have (Hydra would suggest '+', which adds an unknown key)
-        from ..validate import nearest_key, schema_keys
-        from ..config import typed_schema
+    if m and config_name == "train":  # a key the config lacks (Hydra would suggest '+', which adds it unchecked)
         from omegaconf import OmegaConf
+
+        from ..config import typed_schema
+        from ..validate import schema_keys, unknown_key_hint
         base = compose_config([o for o in overrides if not o.lstrip("+~").startswith(m.group(1) + "=")], config_name)
-        raw = OmegaConf.to_container(base, resolve=False)
-        near = nearest_key(m.group(1), list(schema_keys(typed_schema(raw)))) if config_name == "train" else None
-        return f"unknown config key {m.group(1)}" + (f": did you mean {near}?" if near else "")
+        known = list(schema_keys(typed_schema(OmegaConf.to_container(base, resolve=False))))
+        return f"unknown config key {m.group(1)}: {unknown_key_hint(m.group(1), known)}"
+    if m:
+        return f"unknown config key {m.group(1)}"
     first = text.strip().splitlines()[0] if text.strip() else type(e).__name__
     first = first.removeprefix("Error merging override ")
     cause = e.__cause__
