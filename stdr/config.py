@@ -9,19 +9,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
 from .data.procedural import SceneOptions
 from .data.stress import StressConfig
 # every baseline's config dataclass lives beside its module (stdr.baselines.registry)
 from .baselines import BASELINES, BaselineConfig, DeformConfig, HexPlaneConfig, ScgsConfig, SpgsConfig  # noqa: F401
-from .baselines.registry import add_listener, discover_baselines, get_baseline
-from .plugins import PLUGINS, add_listener as add_plugin_listener, registered_plugins, set_reserved_keys
-from .densify.prune import PruneConfig
+from .baselines.registry import get_baseline
+from .plugins import PLUGINS, enabled_plugins, plugin_node, registered_plugins, set_reserved_keys
+from .densify.prune import PruneConfig, prune_steps
 from .errors import ConfigError
-from .densify.strategy import STRATEGIES, DensifyStrategy, add_listener as add_strategy_listener, get_strategy
-from .train.guard import GuardConfig
+from .densify.strategy import DensifyStrategy, get_strategy
+from .schedule import Event, Schedule
 
 #: the YAML config groups; they ship inside the package, so an installed wheel has them too
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
@@ -106,6 +105,64 @@ class RenderConfig:
 
 
 @dataclass
+class GuardConfig:
+    """train.guard: non-finite and divergence recovery."""
+
+    # on by default: without a fault it changes nothing (bit-identical to enabled=false in the
+    # runs of tests/test_guard.py) and costs 0.2-0.6 % of a step
+    enabled: bool = True
+    snapshot_every: int = 100    # steps between in-memory snapshots of the last good state
+    lr_factor: float = 0.5       # every learning rate x this at each recovery
+    max_recoveries: int = 3      # one more stops the run (TrainingDiverged, checkpoint of the last good state)
+    # a periodic evaluation (train.eval_every) more than this many dB below the best one so far
+    # restores the best one's state (0 = off)
+    divergence_db: float = 10.0
+    # an evaluation within this many steps after an opacity reset (densify.reset_every) is not
+    # compared with the best: the reset drops the render by design (a D-NeRF scene at budget=gpu:
+    # 30.9 dB at step 2700, 15.2 dB right after the reset at 3000) and the model rebuilds it
+    after_reset: int = 500
+    # what the divergence detector evaluates. It restores earlier states, so what it reads steers
+    # training, and it never reads the test split: auto = val where the scene has a val split of
+    # its own (D-NeRF, the embedded scene), else train (Nerfies format: its val frames are its
+    # test frames); or val, or train (a fixed seeded subset of the training frames)
+    monitor: str = "auto"
+    # frames of the detector's own evaluation (a fixed seeded subset; 0 = all). When the monitor
+    # split is data.eval_split, the periodic evaluation itself is used (train.eval_frames)
+    monitor_frames: int = 10
+    # the step check without a host sync: its verdict stays a flag on the device, read at the steps
+    # that wait for the device anyway (log, evaluation, checkpoint, snapshot, the end); fused Adam
+    # skips every update from the faulty step on (its found_inf), and the read restores the last
+    # snapshot, the state an immediate check restores. null: on where it has been checked
+    # (stdr.verified.VERIFIED); true / false. Needs optim.fused_adam (false reads the check every step)
+    sync_free: Optional[bool] = None
+    # the check of a step's tensors as one compiled call (guard_update_compiled, below;
+    # instead of two operators a tensor and ten for the verdict) or as torch operators. null: compiled
+    # where it has been checked (stdr.verified.VERIFIED: the CPU; the CUDA kernel is built, not yet
+    # run on a GPU) and the extension builds; true / false
+    compiled: Optional[bool] = None
+    # fault injection, for tests and drills: a NaN in the gradient of the means at each step
+    # listed (counted from 1), once per process
+    inject_nan_grad_at: List[int] = field(default_factory=list)
+
+
+def check_guard_config(g) -> None:
+    """Errors that name the key, for values that cannot work."""
+    if g.snapshot_every < 1:
+        raise ValueError(f"train.guard.snapshot_every={g.snapshot_every}: must be at least 1")
+    if not 0.0 < g.lr_factor <= 1.0:
+        raise ValueError(f"train.guard.lr_factor={g.lr_factor}: must be in (0, 1] (each recovery multiplies "
+                         "every learning rate by it)")
+    if g.max_recoveries < 0:
+        raise ValueError(f"train.guard.max_recoveries={g.max_recoveries}: must be 0 or more")
+    if g.divergence_db < 0:
+        raise ValueError(f"train.guard.divergence_db={g.divergence_db}: must be 0 (off) or positive")
+    if g.after_reset < 0:
+        raise ValueError(f"train.guard.after_reset={g.after_reset}: must be 0 or more (steps after an opacity reset)")
+    if g.monitor_frames < 0:
+        raise ValueError(f"train.guard.monitor_frames={g.monitor_frames}: must be 0 (all frames) or positive")
+
+
+@dataclass
 class TrainConfig:
     eval_every: int = 0         # periodic evaluation (0 = only at the end and end of warm-up) -> metrics.json curve
     eval_frames: int = 0        # frames of each periodic / warm-up evaluation: 0 = all, N = a fixed subset (seeded)
@@ -144,12 +201,12 @@ class EvalConfig:
 
 @dataclass
 class PackConfig:
-    """The compact model file written at the end of training (stdr.io.compact_file; `stdr-tool
+    """The compact model file written at the end of training (stdr.compact.file; `stdr-tool
     pack` writes one for any trained run). `compact=on` turns it on with the codecs its study chose."""
     enabled: bool = False       # true: RUN/model.stdrc and RUN/pack.json after the final evaluation
-    # per-tensor codecs over stdr.io.compact_file.DEFAULT_SPEC (e.g. {shN: "vq:1024", state: f16})
+    # per-tensor codecs over stdr.compact.file.DEFAULT_SPEC (e.g. {shN: "vq:1024", state: f16})
     codecs: Dict[str, str] = field(default_factory=dict)
-    finetune: int = 0           # steps of the vq codebooks' fine-tune on the training frames (stdr.io.finetune)
+    finetune: int = 0           # steps of the vq codebooks' fine-tune on the training frames (stdr.compact.finetune)
     sh_degree: Optional[int] = None  # keep the SH rest to this degree's bands (null: all)
     evaluate: bool = True       # render the eval split from the file too (pack.json: PSNR / SSIM of both)
 
@@ -262,160 +319,6 @@ def eval_schema() -> type:
     return _schemas()[1]
 
 
-def _schedule_resolver(*, _root_) -> dict:
-    from .schedule import resolve_schedule
-    return resolve_schedule(_root_).as_dict()
-
-
-def data_options() -> list[str]:
-    """The options of the `data` group (stdr/configs/data/*.yaml)."""
-    return sorted(p.stem for p in (CONFIG_DIR / "data").glob("*.yaml"))
-
-
-def _experiment_files() -> set[str]:
-    return {p.stem for p in (CONFIG_DIR / "experiment").glob("*.yaml")}
-
-
-def derived_experiments(name: str) -> dict[str, dict]:
-    """The experiments baseline `name` gets, for every data option: `<data>_<name>` (every
-    plug-in off) and `<data>_<name>_<plug-in>` for each registered plug-in (that one on), each
-    selecting data, baseline and plug-ins, plus what every experiment on that data adds
-    (stdr/configs/experiment_data/<data>.yaml, optional: e.g. init from the capture's points).
-    A YAML file stdr/configs/experiment/<same name>.yaml, when present, is used instead."""
-    files = _experiment_files()
-    plugins = [s.name for s in registered_plugins()]
-    out = {}
-    for d in data_options():
-        for on in (None, *plugins):
-            exp = f"{d}_{name}" + (f"_{on}" if on else "")
-            if exp not in files:
-                out[exp] = {"defaults": [{"optional /experiment_data": d}, {"override /data": d},
-                                         {"override /baseline": name},
-                                         *({f"override /{p}": "on" if p == on else "off"} for p in plugins)],
-                            "name": exp}
-    return out
-
-
-def experiment_names() -> list[str]:
-    """Every experiment `stdr-train experiment=<name>` accepts."""
-    return sorted(_experiment_files() | {e for b in BASELINES for e in derived_experiments(b)})
-
-
-def experiment_table() -> list[dict[str, Any]]:
-    """Every experiment with what it composes: {name, data, baseline, plugins (those on), source}.
-    source: `derived` (made here for each data option x baseline x plug-in: derived_experiments),
-    or the YAML file under stdr/configs/experiment/ that defines it (and overrides a derived one
-    of the same name); data / baseline / plugins are None for a file (its defaults say)."""
-    rows = []
-    for b in BASELINES:
-        for name, node in derived_experiments(b).items():
-            picks = {k.split("/")[-1]: v for d in node["defaults"] for k, v in d.items() if k.startswith("override /")}
-            rows.append({"name": name, "data": picks["data"], "baseline": picks["baseline"],
-                         "plugins": [p for p, v in picks.items() if v == "on"], "source": "derived"})
-    for f in sorted(_experiment_files()):
-        rows.append({"name": f, "data": None, "baseline": None, "plugins": None,
-                     "source": f"stdr/configs/experiment/{f}.yaml"})
-    return sorted(rows, key=lambda r: r["name"])
-
-
-_STORED: dict[str, set[str]] = {"baseline": set(), "experiment": set(), "plugin": set(), "densify": set()}
-_SYNCED: list = [None]  # the registries' contents at the last _sync_store
-
-
-def _registries() -> tuple:
-    """What the stored configs are made from: the registered baselines, plug-ins and densification
-    strategies (specs compare by name and class)."""
-    return tuple(BASELINES.values()), tuple(registered_plugins()), tuple(STRATEGIES.items())
-
-
-def _sync_store(*_) -> None:
-    """Keep Hydra's ConfigStore in step with the registries of baselines and plug-ins: the
-    schemas (base_config with a default `<plug-in>: off` for each plug-in, base_eval), the
-    options baseline=<name> (the registered dataclass: typed defaults) and <plug-in>=on|off, and
-    the derived experiments. Called on every (un)registration."""
-    cs = ConfigStore.instance()
-    run, ev = _schemas()
-    import dataclasses
-    plugins = [s.name for s in registered_plugins()]
-    # the strategy's and the plug-ins' groups are selected by this defaults list (after the
-    # schema's own values)
-    stored = dataclasses.make_dataclass("BaseConfig", [("defaults", List[Any], field(
-        default_factory=lambda: ["_self_", {"densify": "default"}, *({p: "off"} for p in plugins)]))], bases=(run,))
-    cs.store(name="base_config", node=stored)
-    cs.store(name="base_eval", node=ev)
-    for name in _STORED["densify"] - set(STRATEGIES):
-        cs.repo.get("densify", {}).pop(f"{name}.yaml", None)
-    for name, cls in STRATEGIES.items():
-        cs.store(group="densify", name=name, node=cls)
-    _STORED["densify"] = set(STRATEGIES)
-    for group in _STORED["plugin"] - set(plugins):
-        cs.repo.pop(group, None)
-    for p in plugins:
-        cs.store(group=p, name="on", node={"enabled": True})
-        cs.store(group=p, name="off", node={"enabled": False})
-    _STORED["plugin"] = set(plugins)
-    for b in _STORED["baseline"] - set(BASELINES):
-        cs.repo.get("baseline", {}).pop(f"{b}.yaml", None)
-    for spec in BASELINES.values():
-        cs.store(group="baseline", name=spec.name, node=spec.config)
-    _STORED["baseline"] = set(BASELINES)
-    exps = {}
-    for b in BASELINES:
-        exps.update(derived_experiments(b))
-    for e in _STORED["experiment"] - set(exps):
-        cs.repo.get("experiment", {}).pop(f"{e}.yaml", None)
-    for e, node in exps.items():
-        cs.store(group="experiment", name=e, node=node, package="_global_")
-    _STORED["experiment"] = set(exps)
-    _SYNCED[0] = _registries()
-
-
-def experiments_on(data: str, *which: str) -> str:
-    """`${stdr_experiments:dnerf}`: every experiment on data option `data` (each registered
-    baseline, plain and with each plug-in) as a comma-separated sweep list;
-    `${stdr_experiments:dnerf,<plug-in>}` (or `plain`) only those."""
-    plugins = [s.name for s in registered_plugins()]
-    for w in which:
-        if w != "plain" and w not in plugins:
-            raise ValueError(f"stdr_experiments:{data},{w}: {w!r} is neither 'plain' nor a registered plug-in "
-                             f"({plugins})")
-    out = []
-    for b in sorted(BASELINES):
-        for on in (None, *plugins):
-            if not which or (on is None and "plain" in which) or on in which:
-                out.append(f"{data}_{b}" + (f"_{on}" if on else ""))
-    return ",".join(out)
-
-
-def _scene_path_resolver(root, name) -> str:
-    """`${stdr_scene_path:${data.root},${data.name}}` (the sweeps): root/name, or an error that
-    names the missing key (a null root must not become a path 'None/<scene>')."""
-    if root is None or root == "":
-        raise ValueError("data.root is not set: a sweep over scenes needs the dataset folder, e.g. "
-                         "data.root=/data/dnerf")
-    if name is None or name == "":
-        raise ValueError("data.name is not set: the scene folder under data.root")
-    return f"{root}/{name}"
-
-
-def register() -> None:
-    """Register the structured configs, every baseline and plug-in (and the ones registered later) and the
-    `stdr_schedule` / `stdr_experiments` resolvers with Hydra. Idempotent; the entry points call it."""
-    if not OmegaConf.has_resolver("stdr_schedule"):
-        OmegaConf.register_new_resolver("stdr_schedule", _schedule_resolver)
-    if not OmegaConf.has_resolver("stdr_experiments"):
-        OmegaConf.register_new_resolver("stdr_experiments", experiments_on)
-    if not OmegaConf.has_resolver("stdr_scene_path"):
-        OmegaConf.register_new_resolver("stdr_scene_path", _scene_path_resolver)
-    discover_baselines()  # baselines of other installed distributions (entry points)
-    registered_plugins()  # built-in plug-ins and those of other distributions
-    if _SYNCED[0] != _registries():  # (re-storing every node costs ~0.3 s; compose_config calls this each time)
-        _sync_store()
-    add_listener(_sync_store)
-    add_plugin_listener(_sync_store)
-    add_strategy_listener(_sync_store)
-
-
 # keys of other baselines that configs written before per-baseline config classes carried under
 # `baseline` (every run had baseline.scgs, .spgs and .hexplane); dropped when such a config is read
 _LEGACY_BASELINE_KEYS = ("scgs", "spgs", "hexplane")
@@ -467,3 +370,30 @@ def load_config(raw: Any, where: str = "config"):
         return OmegaConf.merge(schema, raw)
     except Exception as e:  # omegaconf's errors name the key; say which file
         raise ConfigError(f"{where}: {e}") from None
+
+
+def resolve_schedule(cfg) -> Schedule:
+    """Every boundary of a run from its config (a Config or DictConfig)."""
+    b = cfg.baseline
+    total = int(cfg.optim.iterations)
+    warm = int(b.warmup)
+    s = Schedule(iterations=total, static_warmup_end=warm)
+    if warm >= total:
+        s.never_trains(f"baseline.warmup={warm} is at or after the run's end (optim.iterations={total}): the "
+                         "deformation never trains in this run. Lower baseline.warmup, or leave it unset in the "
+                         "budget files (it then scales with the run)")
+    s.events.append(Event(0, "start", "canonical Gaussians rendered without deformation"))
+    s.events.append(Event(warm, "baseline.warmup", "static warm-up ends: the deformation network is on"))
+    events, windows = get_baseline(b.name).module.stages(b)
+    s.events += [Event(*e) for e in events]
+    s.windows = list(windows)
+    events, notes = get_strategy(getattr(cfg.densify, "name", None)).stages(cfg.densify)
+    s.events += [Event(*e) for e in events]
+    s.notes += notes
+    if getattr(cfg, "prune", None) is not None:  # configs saved before contribution pruning have no node
+        s.prune_steps = prune_steps(cfg.prune, total, int(cfg.densify.refine_stop))
+        s.events += [Event(k, "prune.at", f"contribution pruning: the {float(cfg.prune.share):.0%} least "
+                                          "significant Gaussians removed") for k in s.prune_steps]
+    for spec in enabled_plugins(cfg):  # their phases, kept out of the windows above
+        s.plugins[spec.name] = dict(spec.plugin.stages(plugin_node(cfg, spec.name), cfg, s))
+    return s

@@ -1,6 +1,10 @@
 """The `device` config key: where a run's tensors live."""
 from __future__ import annotations
 
+import os
+from pathlib import Path
+from typing import Optional
+
 import torch
 
 
@@ -35,3 +39,21 @@ def synchronize(device: torch.device) -> None:
     """Wait for queued kernels on `device` (for timings); a no-op on the CPU."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+def process_memory_mb(device: torch.device) -> Optional[float]:
+    """The training's memory now, in MiB: on CUDA the peak torch allocated on `device` since the
+    run reset it (Trainer.train); elsewhere the process's resident set (Linux /proc/self/statm),
+    which also holds what earlier runs of the same process (an in-process multirun) left behind.
+    None where neither can be read."""
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**20
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])  # [1]: resident pages
+        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+
+
+MEMORY_CONVENTION = {"cuda": "torch.cuda.max_memory_allocated since the run began",
+                     "cpu": "resident set of the process (/proc/self/statm), sampled every train.log_every steps"}

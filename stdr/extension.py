@@ -32,6 +32,7 @@ from typing import Optional
 import torch
 
 from .verified import verified_on
+from . import user_cache
 
 CSRC = Path(__file__).resolve().parent / "csrc"
 CPU_SOURCES = [CSRC / "cpu" / "ops_cpu.cpp"]
@@ -53,7 +54,6 @@ class BuildError(RuntimeError):
 def cache_root() -> Path:
     """Where compiled extensions live: $STDR_EXT_DIR, else the user cache's extensions folder
     (~/.cache/stdr/extensions; $XDG_CACHE_HOME moves it)."""
-    from . import user_cache
     env = os.environ.get("STDR_EXT_DIR")
     return Path(env) if env else user_cache() / "extensions"
 

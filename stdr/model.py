@@ -25,12 +25,17 @@ from .errors import BadInput
 from .cameras import Camera
 from .baselines import build_deformation
 from .device import resolve_device
-from .plugins import Plugin
+from .plugins import Plugin, enabled_plugins, plugin_node, registered_plugins
 from .ops import RowView, rows_of, sigmoid
 from .render import RenderOutput, render, resolve_backend
 from .render.reference import ALPHA_MIN
-from .schedule import Schedule, resolve_schedule
+from .schedule import Schedule
+from .config import load_config, resolve_schedule
+from .compact.codecs import nbytes
 from .gaussians import Gaussians, activate, init_params, num_gaussians, random_cube_points
+from .io.checkpoint import save_checkpoint, load_checkpoint
+from .compact.file import decode_model, is_compact
+from .data.dnerf import parse_background
 
 CHECKPOINT_FORMAT = 2
 CULL_MODES = ("off", "eval", "train")
@@ -45,7 +50,6 @@ def active_rows(opacities: Tensor) -> Tensor:
 def build_plugins(cfg, schedule: Schedule, train_times: Optional[np.ndarray], device: torch.device) -> list[Plugin]:
     """The registered plug-ins the config switches on (`<name>.enabled`), in registration order,
     each built by its `from_config`."""
-    from .plugins import enabled_plugins, plugin_node
     return [s.plugin.from_config(plugin_node(cfg, s.name), cfg, schedule, train_times, device)
             for s in enabled_plugins(cfg)]
 
@@ -273,7 +277,6 @@ class DynamicGaussians:
 
     def save(self, path: str | Path) -> None:
         """A checkpoint holding the model alone (no optimizer state): `load_model` reads it."""
-        from .train.checkpoint import save_checkpoint
         save_checkpoint(path, {"model": self.state_dict()})
 
 
@@ -322,23 +325,19 @@ def model_entry(ck: dict[str, Any], where: str) -> dict[str, Any]:
 def load_model(path: str | Path, device: str | torch.device = "auto", cfg=None,
                train_times: Optional[np.ndarray] = None) -> DynamicGaussians:
     """Rebuild a model from a checkpoint file, or a compact model file (`model.stdrc`,
-    stdr.io.compact_file), on `device` ("auto", "cpu", "cuda", ...).
+    stdr.compact.file), on `device` ("auto", "cpu", "cuda", ...).
 
     cfg: the config to build with (default: the one saved in the checkpoint; a run's own
     config.yaml may override render settings). A checkpoint written before format 2 has no
     config or training times: pass both (stdr-eval does, from the run folder and its data)."""
-    from .train.checkpoint import load_checkpoint
     return model_from_checkpoint(load_checkpoint(path), device, cfg, train_times, str(path))
 
 
 def model_from_checkpoint(ck: dict[str, Any], device: str | torch.device = "auto", cfg=None,
                           train_times: Optional[np.ndarray] = None, path: str = "checkpoint") -> DynamicGaussians:
     """`load_model` of an already loaded checkpoint dict."""
-    from .config import load_config
-    from .plugins import registered_plugins
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
-    from .io.compact_file import decode_model, is_compact
-    if is_compact(ck):  # a compact model file (stdr.io.compact_file): its entry, decoded
+    if is_compact(ck):  # a compact model file (stdr.compact.file): its entry, decoded
         ck = {"model": decode_model(ck, path)}
     if has_model_entry(ck):
         s = ck["model"]
@@ -357,8 +356,13 @@ def model_from_checkpoint(ck: dict[str, Any], device: str | torch.device = "auto
     if s.get("background") is not None:
         bg = s["background"]
     else:
-        from .data.dnerf import parse_background
         bg = torch.tensor(parse_background(cfg.data.background))
     model = build_model(cfg, tt, bg.float(), dev)
     model.load_state_dict(s, str(path))
     return model
+
+
+def model_bytes(model) -> int:
+    """Bytes of the model's tensors (Gaussians, deformation module, plug-in state): the size a
+    saved model takes without optimizer state."""
+    return int(nbytes(model.state_dict()))

@@ -90,35 +90,3 @@ def keep_out_of_windows(step: int, floor: int, windows: list[tuple[str, int, int
 
 class NeverTrains(ConfigError):
     """A component of the run would never train (its phase starts at or after the last iteration)."""
-
-
-def resolve_schedule(cfg) -> Schedule:
-    """Every boundary of a run from its config (a Config or DictConfig)."""
-    from .baselines import get_baseline
-    from .plugins import enabled_plugins, plugin_node
-    from .densify.strategy import get_strategy
-
-    b = cfg.baseline
-    total = int(cfg.optim.iterations)
-    warm = int(b.warmup)
-    s = Schedule(iterations=total, static_warmup_end=warm)
-    if warm >= total:
-        s.never_trains(f"baseline.warmup={warm} is at or after the run's end (optim.iterations={total}): the "
-                         "deformation never trains in this run. Lower baseline.warmup, or leave it unset in the "
-                         "budget files (it then scales with the run)")
-    s.events.append(Event(0, "start", "canonical Gaussians rendered without deformation"))
-    s.events.append(Event(warm, "baseline.warmup", "static warm-up ends: the deformation network is on"))
-    events, windows = get_baseline(b.name).module.stages(b)
-    s.events += [Event(*e) for e in events]
-    s.windows = list(windows)
-    events, notes = get_strategy(getattr(cfg.densify, "name", None)).stages(cfg.densify)
-    s.events += [Event(*e) for e in events]
-    s.notes += notes
-    if getattr(cfg, "prune", None) is not None:  # configs saved before contribution pruning have no node
-        from .densify.prune import prune_steps
-        s.prune_steps = prune_steps(cfg.prune, total, int(cfg.densify.refine_stop))
-        s.events += [Event(k, "prune.at", f"contribution pruning: the {float(cfg.prune.share):.0%} least "
-                                          "significant Gaussians removed") for k in s.prune_steps]
-    for spec in enabled_plugins(cfg):  # their phases, kept out of the windows above
-        s.plugins[spec.name] = dict(spec.plugin.stages(plugin_node(cfg, spec.name), cfg, s))
-    return s

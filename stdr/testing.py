@@ -8,7 +8,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from .cli.common import compose_config
+from .store import compose_config
+from .baselines import get_baseline
 
 #: the embedded scene at 64 px with 40 training, 2 val and 4 test frames
 TINY_SCENE = ["data.procedural.resolution=64", "data.procedural.n_train=40", "data.procedural.n_val=2",
@@ -25,7 +26,6 @@ def applicable(overrides, baseline: str) -> list[str]:
     """`overrides` without the `baseline.<sub>.*` keys that baseline `baseline`'s config does not
     have (e.g. baseline.scgs.num_nodes for deform), so one short schedule serves every baseline.
     stdr-train itself rejects such keys."""
-    from .baselines import get_baseline
     fields = get_baseline(baseline).config.__dataclass_fields__
     return [o for o in overrides if not ((m := _NESTED.match(o)) and m.group(1) not in fields)]
 

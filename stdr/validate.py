@@ -18,6 +18,10 @@ from typing import Any, Callable, Iterator, Optional
 from omegaconf import DictConfig, OmegaConf
 
 from .errors import ConfigError
+from .config import root_schema, typed_schema, check_guard_config, load_config
+from .data.stress import check_stress
+from .densify.prune import check_prune_config
+from .data.load import resolve_data_path
 
 
 # ------------------------------------------------------------------ keys
@@ -86,7 +90,6 @@ def check_keys(cfg) -> None:
     """Refuse a key the run's schema does not have (a `+key` typo), naming the nearest valid one."""
     import copy
 
-    from .config import root_schema, typed_schema
     raw = OmegaConf.to_container(cfg, resolve=False) if OmegaConf.is_config(cfg) else dict(cfg)
     sections = list(root_schema().__dataclass_fields__)
     top = [k for k in raw if k not in sections]
@@ -211,9 +214,6 @@ def check_values(cfg) -> None:
         v = _get(cfg, key)
         if v is not _MISSING and str(v).lower() not in allowed:
             raise ConfigError(f"{key}={v!r}: use one of {', '.join(allowed)}")
-    from .data.stress import check_stress
-    from .densify.prune import check_prune_config
-    from .train.guard import check_guard_config
     for fn, node in ((check_prune_config, "prune"), (check_guard_config, "train.guard"), (check_stress, "data.stress")):
         sub = _get(cfg, node)
         if sub is not _MISSING:
@@ -233,7 +233,6 @@ def _as_config_error(fn, *args) -> None:
 # ------------------------------------------------------------------ paths
 def check_data_path(data, base: str | Path | None = None) -> None:
     """data.path: a folder for a scene format, refused where the dataset does not read it."""
-    from .data.load import resolve_data_path
     fmt, path = data.format, data.path
     if fmt == "procedural":
         if path:
@@ -257,7 +256,6 @@ def check_data_path(data, base: str | Path | None = None) -> None:
 def check_run_config(cfg, base: str | Path | None = None) -> None:
     """Everything above, in the order a user would fix it: keys, values, the data path; then the
     config must read back as every tool reads a saved run (stdr.config.load_config)."""
-    from .config import load_config
     check_keys(cfg)
     check_values(cfg)
     check_data_path(cfg.data, base)

@@ -97,14 +97,14 @@ def _refuse_a_former_default(rd: Path) -> None:
 def _load(rd: Path):
     from stdr.config import load_config
     from stdr.model import load_model
-    from stdr.train.state import CKPT
+    from stdr.io.checkpoint import CKPT
     cfg = load_config(rd / "config.yaml")
     cfg.device = "cpu"
     return cfg, load_model(rd / CKPT, "cpu", cfg)
 
 
 def _file_model(model, cfg, spec: dict, tmp: Path, train_frames=None):
-    from stdr.io.compact_file import write_compact
+    from stdr.compact.pack import write_compact
     from stdr.model import load_model
     path = tmp / "m.stdrc"
     rec = write_compact(model, path, spec, train_frames if spec.get("finetune") else None)
@@ -305,8 +305,8 @@ def where_bytes(model, spec: dict) -> dict:
     """The bytes of `model`'s compact file with `spec`, by part: each per-Gaussian table (its
     codebook included), the deformation module's state, each plug-in's, and the rest (`other`). The fine-tune moves
     codewords and changes no byte, so the spec's `finetune` is left out."""
-    from stdr.io.codecs import nbytes
-    from stdr.io.compact_file import encode_model
+    from stdr.compact.codecs import nbytes
+    from stdr.compact.file import encode_model
     m = encode_model(model, {k: v for k, v in spec.items() if k != "finetune"})["model"]
     out = {"num_gaussians": model.num_gaussians, "params": {k: nbytes(v) for k, v in m["params"].items()},
            "deform": nbytes(m["deform"]), "plugins": {k: nbytes(v) for k, v in m["plugins"].items()}}

@@ -4,15 +4,15 @@
     python studies/compact_file.py run RUN_DIR [RUN_DIR ...] [--variants default state16]
     python studies/compact_file.py table
 
-For each run and variant, `stdr-tool pack`'s measurement (stdr/tools/pack.py) into a temporary
+For each run and variant, `stdr-tool pack`'s measurement (stdr/compact/pack.py) into a temporary
 file: the bytes of the full model and of the compact file, and val PSNR / SSIM of both renders.
-Variants: `default` (stdr.io.compact_file.DEFAULT_SPEC), `state16` (networks and grids in half
+Variants: `default` (stdr.compact.file.DEFAULT_SPEC), `state16` (networks and grids in half
 precision too), `all16` (the SH rest in half precision instead of 8 bits), `q8` (every per-Gaussian
 tensor but the means in 8 bits with a range per column, STDR's float mask included; networks in
 half precision), `q8m16` (as `q8`, the means in 16 bits with a range per axis), `q8m16_sh<d>` (as
 `q8m16`, the SH rest kept to degree d, the higher bands dropped without a fine-tune), `q8m16_vq<C>`
 (as `q8m16`, the SH rest as C k-means codewords, no fine-tune; `_ft`: the codebook fine-tuned for
-500 steps on the training frames, stdr.io.finetune), and for +STDR runs `vq1024_<m>`
+500 steps on the training frames, stdr.compact.finetune), and for +STDR runs `vq1024_<m>`
 (as `q8m16_vq1024`, STDR's mask in the form m: m8 its 8-bit form, m4 4 bits, lr<R> the activated
 mask at rank R; read back as the 8-bit mask, so the separated field reads logit(q / 255)); for runs
 trained with stdr.mask_after_freeze=false `mask8` (the default spec, the mask in its 8-bit form),
@@ -43,10 +43,10 @@ for _d in (0, 1, 2):  # q8m16 with the SH rest kept to degree d (no fine-tune)
     VARIANTS[f"q8m16_sh{_d}"] = {**VARIANTS["q8m16"], "sh_degree": _d}
 for _c in (256, 1024, 4096):  # q8m16 with the SH rest as a codebook of C codewords (k-means, no fine-tune)
     VARIANTS[f"q8m16_vq{_c}"] = {**VARIANTS["q8m16"], "shN": f"vq:{_c}"}
-for _c in (256, 1024):  # the same, the codebook fine-tuned (stdr.io.finetune's default steps)
+for _c in (256, 1024):  # the same, the codebook fine-tuned (stdr.compact.finetune's default steps)
     VARIANTS[f"q8m16_vq{_c}_ft"] = {**VARIANTS[f"q8m16_vq{_c}"], "finetune": 500}
 # STDR's mask on top of q8m16_vq1024 (runs with a mask only): its 8-bit form, 4 bits, rank R of the
-# activated mask; each read back as the 8-bit mask (stdr.io.compact_file, Plugin.compact_units)
+# activated mask; each read back as the 8-bit mask (stdr.compact.file, Plugin.compact_units)
 MASK_VARIANTS = {"m8": "q8", "m4": "q4", "lr4": "lowrank:4", "lr8": "lowrank:8", "lr16": "lowrank:16"}
 for _n, _c in MASK_VARIANTS.items():
     VARIANTS[f"vq1024_{_n}"] = {**VARIANTS["q8m16_vq1024"], "stdr_mask": _c}
@@ -65,7 +65,7 @@ def run(runs: list[Path], variants: list[str], out: Path, tag: str = "") -> None
     ablation's settings), so they never overwrite the records of the method's default runs."""
     from stdr.config import load_config
     from stdr.eval.evaluate import machine_name
-    from stdr.tools.pack import pack
+    from stdr.compact.pack import pack
     dest = records_to_write(out, "records")
     for rd in runs:
         cfg = load_config(rd / "config.yaml")

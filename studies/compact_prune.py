@@ -55,7 +55,7 @@ def same_parameters(a: Path, b: Path) -> dict:
     """Whether two checkpoints hold bit-identical model parameters and deformation weights."""
     import torch
 
-    from stdr.train.checkpoint import load_checkpoint
+    from stdr.io.checkpoint import load_checkpoint
     ma, mb = load_checkpoint(a)["model"], load_checkpoint(b)["model"]
     diff = [k for k in ma["params"] if k not in mb["params"] or not torch.equal(ma["params"][k], mb["params"][k])]
     diff += [f"deform.{k}" for k, v in ma["deform"].items() if not torch.equal(v, mb["deform"][k])]
@@ -65,7 +65,7 @@ def same_parameters(a: Path, b: Path) -> dict:
 def branch_point(ckpt: Path) -> dict:
     """The step and training seconds of the checkpoint a branch starts from (the headline run's; its
     seconds were measured there, so the table reports the branch's own seconds separately)."""
-    from stdr.train.checkpoint import load_checkpoint
+    from stdr.io.checkpoint import load_checkpoint
     ck = load_checkpoint(ckpt)
     return {"from_step": int(ck["model"]["step"]), "train_seconds_at_branch": float(ck["train_seconds"])}
 

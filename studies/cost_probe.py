@@ -29,7 +29,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from stdr.config import CONFIG_DIR
-from stdr.config import register
+from stdr.store import register
 from stdr.tools.bench_train import replicate, run_gaussians
 from stdr.train.trainer import Trainer
 

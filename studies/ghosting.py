@@ -18,7 +18,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from stdr.config import CONFIG_DIR
-from stdr.config import register
+from stdr.store import register
 from stdr.data.procedural import JUMP_A, JUMP_B, SceneOptions, jump_at_a
 from stdr.plugins.stdr import MASK_KEY
 from stdr.train.trainer import Trainer

@@ -26,7 +26,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from studies.common import commit  # noqa: E402
+from studies.common import commit, records_in, records_to_write  # noqa: E402
 
 RECORDS = ROOT / "docs" / "measurements" / "stdr_long"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
@@ -58,7 +58,7 @@ def evaluate_splits(run_dir: Path, splits=SPLITS) -> dict:
     from stdr.data.load import load_scene
     from stdr.eval.evaluate import evaluate_model
     from stdr.model import model_from_checkpoint
-    from stdr.train.checkpoint import load_checkpoint
+    from stdr.io.checkpoint import load_checkpoint
 
     cfg = load_config(run_dir / "config.yaml")
     ck = load_checkpoint(run_dir / "checkpoints" / "last.pt")
@@ -93,7 +93,7 @@ def run_queue(args) -> None:
         for scene in args.scenes:
             for method in args.methods:
                 name = f"{method}__{args.label}" if args.label else method
-                rec_path = args.records / "records" / name / f"{scene}_s{seed}.json"
+                rec_path = records_to_write(args.records, "records") / name / f"{scene}_s{seed}.json"
                 if rec_path.is_file():
                     continue
                 run_dir = args.work / name / f"{scene}_s{seed}"
@@ -127,7 +127,7 @@ def run_queue(args) -> None:
 
 
 def load_records(records: Path) -> list[dict]:
-    return [json.loads(p.read_text()) for p in sorted((records / "records").glob("*/*.json"))]
+    return [json.loads(p.read_text()) for p in sorted(records_in(records, "records").glob("*/*.json"))]
 
 
 def _reaches(rec: dict, step: int) -> bool:

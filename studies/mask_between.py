@@ -34,8 +34,8 @@ def measure(run: Path) -> dict:
     from stdr.data.load import load_scene
     from stdr.eval.evaluate import evaluate_model, machine_name
     from stdr.model import model_from_checkpoint
-    from stdr.train.checkpoint import load_checkpoint
-    from stdr.train.state import CKPT
+    from stdr.io.checkpoint import load_checkpoint
+    from stdr.io.checkpoint import CKPT
 
     cfg = load_config(run / "config.yaml")
     cfg.device = "cpu"

@@ -4,7 +4,7 @@ A machine-independent proxy for the launches of a GPU step (the step is launch-b
 docs/performance.md) and for the Python overhead of a CPU step. For each experiment: the
 trainer at budget=cpu on a D-NeRF scene, set near the end of its schedule (every phase on:
 the deformation, STDR's frozen mask, the full SH degree; densification off), three untimed
-steps, then one step counted with `stdr.train.syncs.OpCounter`, split by profiler section
+steps, then one step counted with `stdr.syncs.OpCounter`, split by profiler section
 (deform, render_fwd, loss, regularizers, backward, guard, optimizer, densify) with the most
 frequent operators of each. Two counts: every operator dispatched, and the "compute" ones that
 launch work (views such as t, view, slice or detach launch no kernel on a GPU, nor do bare
@@ -37,7 +37,7 @@ def count(exp: str, scene: Path, overrides: list[str]) -> dict:
 
     from torch.utils._python_dispatch import TorchDispatchMode
 
-    from stdr.cli.common import compose_config
+    from stdr.store import compose_config
     from stdr.train.trainer import Profiler, Trainer
 
     class OpCounter(TorchDispatchMode):

@@ -119,7 +119,7 @@ SHARED_UNTIL = 3000
 
 
 def _done(run: Path) -> bool:
-    from stdr.train.checkpoint import load_checkpoint
+    from stdr.io.checkpoint import load_checkpoint
     ck = run / "checkpoints" / "last.pt"
     return ck.is_file() and (run / "train_profile.json").is_file() and \
         int(load_checkpoint(ck)["model"]["step"]) >= VAL_STOP
@@ -167,7 +167,7 @@ def val_record(work: Path, scene: str, name: str) -> dict | None:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     from stdr.eval.evaluate import machine_name
-    from stdr.train.checkpoint import load_checkpoint
+    from stdr.io.checkpoint import load_checkpoint
     run, trunk = work / f"{name}_{scene}", work / f"trunk_{scene}"
     if not _done(run):
         return None

@@ -370,7 +370,8 @@ def draw(rows, out: Path, split: str) -> dict[str, Path]:
 def study_grid(data: str = "dnerf") -> tuple[list[tuple[str, str]], list[str]]:
     """The study sweep's methods as (experiment, method name) pairs, every registered baseline
     plain and +STDR, and its scenes (stdr/configs/sweep/stability.yaml)."""
-    from stdr.config import CONFIG_DIR, experiments_on
+    from stdr.config import CONFIG_DIR
+    from stdr.store import experiments_on
     exps = []
     for e in experiments_on(data).split(","):
         base = e[len(data) + 1:]

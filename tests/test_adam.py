@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from stdr.train.optim import adam_step, clear_grads
-from stdr.train.syncs import OpCounter
+from stdr.syncs import OpCounter
 
 
 def _setup(seed: int, fused: bool = True):

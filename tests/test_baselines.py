@@ -8,7 +8,7 @@ import torch
 
 from stdr.baselines.control_nodes import (FEATURE_KEY, ControlNodeDeformation, arap_energy, blend_translation,
                                        log_interp_schedule, skinning_weights)
-from stdr.baselines.geometry import farthest_point_sampling, quat_multiply, quat_to_rotmat, so3_exp, so3_exp_quat, so3_log
+from stdr.geometry import farthest_point_sampling, quat_multiply, quat_to_rotmat, so3_exp, so3_exp_quat, so3_log
 from stdr.baselines.hexplane import PAIRS, HexPlaneDeformation, HexPlaneField, sample_plane
 from stdr.baselines.superpoints import ASSOC_KEY, SuperpointDeformation
 from stdr.baselines import BASELINES
@@ -41,7 +41,7 @@ def test_so3_exp_log_round_trip_and_properties():
     torch.testing.assert_close(torch.linalg.det(R), torch.ones(500, dtype=torch.float64))
     torch.testing.assert_close(so3_log(R), w, atol=1e-9, rtol=1e-7)
     # exp(w) rotates about w by |w| (Rodrigues, checked against the matrix exponential)
-    from stdr.baselines.geometry import hat
+    from stdr.geometry import hat
     torch.testing.assert_close(R, torch.linalg.matrix_exp(hat(w)), atol=1e-12, rtol=0)
     # the quaternion of exp(w) gives the same matrix, and products compose
     torch.testing.assert_close(quat_to_rotmat(so3_exp_quat(w)), R, atol=1e-12, rtol=0)
@@ -330,7 +330,7 @@ STAGED = sorted(set(BASELINES) - {"deform"})
 def test_baseline_trains_on_the_embedded_scene_and_beats_its_static_warmup(tmp_path, name):
     from stdr.testing import tiny_config as _tiny
 
-    from stdr.cli.train import run
+    from stdr.train.run import run_training as run
     cfg = _tiny(tmp_path, [f"experiment=embedded_{name}", "optim.iterations=900", "baseline.warmup=300",
                            "densify.refine_stop=700", "densify.grow_grad2d=1e-4", "optim.means_lr_max_steps=900",
                            "baseline.lr_max_steps=900", "baseline.scgs.node_stage_end=500",

@@ -237,8 +237,8 @@ def test_capture_finds_the_phone_captures_cameras(toy_capture):
 @pytest.mark.slow
 def test_the_capture_trains_with_only_its_path(toy_capture, tmp_path):
     """`stdr-train experiment=nerfies_deform data.path=DIR` and nothing else about the data."""
-    from stdr.cli.common import compose_config
-    from stdr.cli.train import run
+    from stdr.store import compose_config
+    from stdr.train.run import run_training as run
     _, out, _ = toy_capture
     cfg = compose_config(["experiment=nerfies_deform", f"data.path={out}", "optim.iterations=20",
                           "baseline.warmup=10", "densify.refine_start=5", "densify.refine_every=5",

@@ -170,7 +170,7 @@ def test_where_bytes_add_up_to_the_compact_files_bytes(tmp_path):
     import numpy as np
     import torch
 
-    from stdr.io.compact_file import write_compact
+    from stdr.compact.pack import write_compact
     from stdr.model import build_model
     from stdr.testing import make_cfg
     from studies.compact_bytes import where_bytes

@@ -1,12 +1,13 @@
-"""The compact model file (stdr.io.compact_file) and its codecs (stdr.io.codecs): each codec's
+"""The compact model file (stdr.compact.file) and its codecs (stdr.compact.codecs): each codec's
 promise (exact where it says exact, within its bound where not), the file's round trip through
 load_model for a model with every kind of tensor (SP-GS's association table, STDR's mask and
 field), and the refusal of a file from a newer version."""
 import pytest
 import torch
 
-from stdr.io import codecs
-from stdr.io.compact_file import FORMAT, VERSION, decode_model, encode_model, write_compact
+from stdr.compact import codecs
+from stdr.compact.file import FORMAT, VERSION, decode_model, encode_model
+from stdr.compact.pack import write_compact
 
 
 def test_raw_and_f32_are_exact():
@@ -340,7 +341,7 @@ def test_stdr_train_with_pack_enabled_writes_the_compact_file_with_the_configure
     model.stdrc in the configured codecs and pack.json with both models' renders of the eval split."""
     import json
 
-    from stdr.cli.train import run
+    from stdr.train.run import run_training as run
     from stdr.model import load_model
     from stdr.testing import tiny_config
     cfg = tiny_config(tmp_path, ["experiment=embedded_deform", "model.init_num=300", "optim.iterations=20",
@@ -390,7 +391,7 @@ def test_the_sh_rest_kept_to_a_lower_degree_renders_as_that_degree(tmp_path):
 
 def test_a_file_from_a_newer_version_is_refused_with_a_clear_error(tmp_path):
     from stdr.model import load_model
-    from stdr.train.checkpoint import load_checkpoint, save_checkpoint
+    from stdr.io.checkpoint import load_checkpoint, save_checkpoint
     t = _trained(tmp_path, "embedded_deform")
     payload = encode_model(t.model)
     assert payload["format"] == FORMAT and payload["version"] == VERSION

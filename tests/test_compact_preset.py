@@ -11,7 +11,7 @@ from helpers import load_script
 from omegaconf import OmegaConf
 
 from stdr.config import CONFIG_DIR
-from stdr.config import experiment_names
+from stdr.store import experiment_names
 from stdr.model import load_model
 from stdr.testing import make_cfg, tiny_config
 
@@ -65,9 +65,9 @@ def test_the_preset_trains_every_baseline_with_stdr_into_a_pruned_model(tmp_path
 
 @pytest.mark.parametrize("gated", [False, True])
 def test_stdr_tool_compact_applies_the_preset_to_a_trained_run_by_default(tmp_path, gated):
-    from stdr.cli.train import run
+    from stdr.train.run import run_training as run
     from stdr.tools.compact import main
-    from stdr.tools.pack import spec_of_config
+    from stdr.compact.pack import spec_of_config
     run(tiny_config(tmp_path, ["stdr=on", *SCHED, f"stdr.mask_after_freeze={str(gated).lower()}"]), tmp_path / "run")
     before = json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]
     main([str(tmp_path / "run"), "--steps", "5"])
@@ -94,9 +94,9 @@ def test_the_presets_file_codecs_are_what_the_bytes_study_chose():
     """compact=on's `pack` section is the codecs docs/measurements/compact_bytes/decision.json chose
     (steps 1-3), one spec for every method: on a model without a 4DGS grid or an STDR mask the
     entries for them change nothing, so each method's file is what the study measured for it."""
-    from stdr.io.compact_file import encode_model
+    from stdr.compact.file import encode_model
     from stdr.model import build_model
-    from stdr.tools.pack import spec_of_config
+    from stdr.compact.pack import spec_of_config
     study = load_script(ROOT / "studies" / "compact_bytes.py", "compact_bytes_study")
     dec = json.loads((ROOT / "docs" / "measurements" / "compact_bytes" / "decision.json").read_text())
     assert dec["complete"] and dec["step3_measured"]
@@ -126,7 +126,7 @@ def _flat(x, p=""):
 def test_the_preset_refuses_a_gated_stdr_run_before_training_and_names_the_fix(tmp_path):
     """STDR's derived form needs stdr.mask_after_freeze=false: with true the preset's run stops at
     its start (no training), and the message names the 8-bit mask's key; that key then trains."""
-    from stdr.cli.train import run
+    from stdr.train.run import run_training as run
     gated = ["stdr=on", "compact=on", *SCHED, "stdr.mask_after_freeze=true"]
     with pytest.raises(ValueError, match=r"pack.codecs: stdr_mask=derived .*stdr_mask=q8"):
         run(tiny_config(tmp_path, gated), tmp_path / "gated")

@@ -57,7 +57,7 @@ def test_compiled_training_is_deterministic_on_the_cpu(tmp_path):
 
 
 def test_every_mlp_baseline_has_the_option_and_4dgs_names_the_key(tmp_path):
-    from stdr.cli.common import compose_config
+    from stdr.store import compose_config
     from stdr.baselines.registry import build_deformation
     for exp, trunk in (("embedded_deform", lambda m: m), ("embedded_scgs", lambda m: m.net),
                        ("embedded_spgs", lambda m: m.net)):

@@ -323,7 +323,7 @@ def test_training_with_either_backend_reaches_the_same_psnr(tmp_path):
     """
     import json
 
-    from stdr.cli.train import run
+    from stdr.train.run import run_training as run
     from stdr.testing import tiny_config as _tiny
 
     res = {}

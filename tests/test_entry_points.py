@@ -1,5 +1,5 @@
 """A baseline and a plug-in from another distribution: a throw-away package with
-`stdr.baselines` and `stdr.plugins` entry points, on the path of a fresh process, trains through
+`stdr.baselines`, `stdr.plugins` and `stdr.strategies` entry points, on the path of a fresh process, trains through
 stdr-train (the plug-in beside STDR), shows in stdr-eval's table and reloads from its checkpoint,
 with no edit to stdr."""
 import json
@@ -83,6 +83,20 @@ class Glow(Plugin):
 
 def register_glow():
     register_plugin("glow", Glow, GlowConfig, label="+glow")
+
+
+from stdr.densify.strategy import DensifyStrategy, register_strategy
+
+
+@dataclass
+class Eager(DensifyStrategy):
+    """The default strategy, growing from a lower gradient threshold."""
+    name: str = "eager"
+    grow_grad2d: float = 0.0001
+
+
+def register_eager():
+    register_strategy("eager", Eager)
 '''
 
 
@@ -93,7 +107,8 @@ def _distribution(root: Path, entry: str, plugin_entry: str = "stdr_wobble:regis
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: stdr-wobble\nVersion: 0.1\n")
     (info / "entry_points.txt").write_text(f"[stdr.baselines]\nwobble = {entry}\n\n"
-                                           f"[stdr.plugins]\nglow = {plugin_entry}\n")
+                                           f"[stdr.plugins]\nglow = {plugin_entry}\n\n"
+                                           "[stdr.strategies]\neager = stdr_wobble:register_eager\n")
 
 
 def _run(args, env):
@@ -143,7 +158,22 @@ def test_a_broken_entry_point_is_an_error_that_names_it(tmp_path):
 def test_a_broken_plugin_entry_point_is_an_error_that_names_it(tmp_path):
     _distribution(tmp_path / "site", "stdr_wobble:register", plugin_entry="stdr_wobble:register")  # registers no plug-in
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), str(ROOT)])}
-    p = _run(["-c", "from stdr.plugins import discover_plugins; discover_plugins()"], env)
+    p = _run(["-c", "from stdr.plugins import PLUGINS; PLUGINS.discover()"], env)
     assert p.returncode != 0
     assert ("entry point 'glow' = 'stdr_wobble:register' (group 'stdr.plugins', distribution stdr-wobble 0.1) "
             "registered nothing; it must name a function (or module) that calls stdr.plugins.register_plugin") in p.stderr
+
+
+def test_a_strategy_from_another_distribution_is_an_option_of_stdr_train(tmp_path):
+    """The `stdr.strategies` group: densify=eager composes with its own keys, found by name."""
+    _distribution(tmp_path / "site", "stdr_wobble:register")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), str(ROOT)])}
+    code = textwrap.dedent("""
+        from stdr.densify.strategy import get_strategy
+        from stdr.store import compose_config
+        cfg = compose_config(["densify=eager"])
+        print(get_strategy("eager").__module__, cfg.densify.name, get_strategy("eager")().grow_grad2d)
+    """)
+    p = _run(["-c", code], env)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert p.stdout.split() == ["stdr_wobble", "eager", "0.0001"]

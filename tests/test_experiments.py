@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from stdr import config as C
+from stdr import store as C
 from stdr.testing import make_cfg
 from stdr.tools import experiments as tool
 

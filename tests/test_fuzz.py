@@ -145,7 +145,7 @@ def test_config_overrides_compose_to_a_checked_config_or_one_named_error(pairs):
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from stdr.cli.common import compose_config
+    from stdr.store import compose_config
     from stdr.errors import ConfigError
     from stdr.validate import KINDS, RULES, check_run_config
     _count("config overrides")
@@ -175,7 +175,7 @@ def test_config_overrides_compose_to_a_checked_config_or_one_named_error(pairs):
 # ------------------------------------------------------------------ checkpoints
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
-    from stdr.train.checkpoint import save_checkpoint
+    from stdr.io.checkpoint import save_checkpoint
     path = tmp_path_factory.mktemp("fzc") / "last.pt"
     save_checkpoint(path, {"model": {"step": 3, "params": {"means": torch.randn(20, 3)}}, "optimizers": {}})
     return path
@@ -185,7 +185,7 @@ def checkpoint(tmp_path_factory):
 @given(cut=st.integers(0, 4000), flips=st.lists(st.tuples(st.integers(0, 10**6), st.integers(1, 255)), max_size=3),
        foreign=st.sampled_from([None, "path", "ndarray", "text"]))
 def test_damaged_or_foreign_checkpoints_are_named(checkpoint, tmp_path_factory, cut, flips, foreign):
-    from stdr.train.checkpoint import CheckpointError, load_checkpoint
+    from stdr.io.checkpoint import CheckpointError, load_checkpoint
     _count("checkpoints")
     raw = bytearray(checkpoint.read_bytes())
     if foreign == "path":  # another program's pickle: objects torch will not load without running code

@@ -88,7 +88,7 @@ def test_the_committed_table_queue_composes_for_every_run(tmp_path):
     """docs/measurements/dnerf_gpu/queue.json (what the next GPU machine runs, 16 at a time): 32
     runs, deform +- STDR first on all four scenes, and every run's command passes stdr-train's
     checks (a scene folder stands in for build/gpucarry), so no typo costs a GPU window."""
-    from stdr.cli.common import compose_config
+    from stdr.store import compose_config
     from stdr.tools.runqueue import Queue
     from stdr.validate import check_run_config
     q = Queue.load(gt_folder() / "queue.json")

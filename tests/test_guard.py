@@ -12,7 +12,7 @@ import time
 import pytest
 import torch
 from stdr.testing import tiny_config
-from stdr.train.checkpoint import CheckpointError, load_checkpoint, previous_path, save_checkpoint
+from stdr.io.checkpoint import CheckpointError, load_checkpoint, previous_path, save_checkpoint
 from stdr.train.guard import TrainingDiverged, all_finite, first_nonfinite
 
 # a short schedule that crosses densification, the warm-up end and an opacity reset
@@ -64,7 +64,7 @@ def test_guard_changes_nothing_without_a_fault(tmp_path, name):
 
 @pytest.mark.slow
 def test_nan_gradient_is_recovered_and_logged(tmp_path):
-    from stdr.cli.train import run
+    from stdr.train.run import run_training as run
     cfg = tiny_config(tmp_path, SCHED + ["train.guard.inject_nan_grad_at=[15]", "eval.fps_repeats=1"])
     res = run(cfg, tmp_path / "nan")
     m = json.loads((tmp_path / "nan" / "metrics.json").read_text())["test"]

@@ -98,7 +98,7 @@ def tagger():
     spec = register_plugin("tagger", Tagger, TaggerConfig, label="+tag")
     yield spec
     unregister_plugin("tagger")
-    from stdr.config import experiment_names
+    from stdr.store import experiment_names
     assert "tagger" not in PLUGINS and not any("tagger" in e for e in experiment_names())
 
 

@@ -415,8 +415,8 @@ def test_toy_capture_short_training_run(toy, tmp_path):
     from hydra import compose, initialize_config_dir
 
     from stdr.config import CONFIG_DIR
-    from stdr.cli.train import run
-    from stdr.config import register
+    from stdr.train.run import run_training as run
+    from stdr.store import register
     register()
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
         cfg = compose("train", overrides=[

@@ -10,7 +10,8 @@ import pytest
 from omegaconf import OmegaConf
 
 from stdr.plugins import PLUGINS, Plugin, enabled_plugins, method_suffix, register_plugin, unregister_plugin
-from stdr.schedule import Event, resolve_schedule
+from stdr.schedule import Event
+from stdr.config import resolve_schedule
 from stdr.testing import make_cfg
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,7 +84,7 @@ def test_registration_is_checked():
 
 
 def test_registering_gives_group_keys_experiments_sweep_schedule_and_label(pulse):
-    from stdr.config import experiment_names
+    from stdr.store import experiment_names
     cfg = make_cfg(["experiment=dnerf_deform_pulse", "data.path=/x", "pulse.strength=2.5"])
     assert cfg.pulse.enabled and cfg.pulse.strength == 2.5 and not cfg.stdr.enabled
     assert [s.name for s in enabled_plugins(cfg)] == ["pulse"]
@@ -106,7 +107,7 @@ def test_registering_gives_group_keys_experiments_sweep_schedule_and_label(pulse
     with pytest.raises(NeverTrains, match="pulse.start=5000"):
         resolve_schedule(make_cfg(["pulse=on", "pulse.start=5000", "optim.iterations=2000"]))
     # the sweep list of the grids
-    from stdr.config import experiments_on
+    from stdr.store import experiments_on
     assert experiments_on("dnerf", "pulse").split(",") == [f"dnerf_{b}_pulse" for b in
                                                                    ("4dgs", "deform", "scgs", "spgs")]
     with pytest.raises(ValueError, match="'glow' is neither 'plain' nor a registered plug-in"):
@@ -120,7 +121,7 @@ def test_registering_gives_group_keys_experiments_sweep_schedule_and_label(pulse
 
 
 def test_unregistering_removes_the_group_and_experiments(pulse):
-    from stdr.config import experiment_names
+    from stdr.store import experiment_names
     assert "dnerf_deform_pulse" in experiment_names()
     unregister_plugin("pulse")
     assert "dnerf_deform_pulse" not in experiment_names()
@@ -130,7 +131,7 @@ def test_unregistering_removes_the_group_and_experiments(pulse):
 
 
 def test_stdr_eval_takes_plugin_keys_but_not_the_switch():
-    from stdr.cli.common import compose_config
+    from stdr.store import compose_config
     e = compose_config(["runs=[a]", "stdr.mask_after_freeze=false"], config_name="eval")
     assert e.stdr.mask_after_freeze is False and e.stdr.lambda_temp is None  # null: the run's own
     with pytest.raises(Exception, match="enabled"):

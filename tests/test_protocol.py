@@ -47,7 +47,7 @@ def test_test_images_cannot_steer_training(tmp_path):
     a, b = runs["same"], runs["black"]
     assert a.monitor == b.monitor == "val" and a.step == b.step == 40
     # recorded: in the checkpoint (so stdr-eval's re-evaluation reports it) and metrics.json's guard
-    from stdr.train.checkpoint import load_checkpoint
+    from stdr.io.checkpoint import load_checkpoint
     from stdr.train.guard import Guard
     g = Guard()
     g.load_state_dict(load_checkpoint(tmp_path / "same" / "checkpoints" / "last.pt")["guard"])
@@ -102,7 +102,7 @@ def _flat(d, prefix=""):
 def test_plain_and_stdr_experiments_differ_only_in_stdr_keys(baseline):
     """experiment=<data>_<b>_stdr against <data>_<b>, for every data option and budget: only
     stdr.* keys, the experiment's name and the STDR phases of the derived schedule differ."""
-    from stdr.config import data_options
+    from stdr.store import data_options
     for data in data_options():
         for budget in ("demo", "cpu", "paper"):
             plain, stdr = (_flat(OmegaConf.to_container(make_cfg([f"experiment={data}_{baseline}{s}",

@@ -90,7 +90,7 @@ def test_an_event_removes_the_least_significant_rows_and_keeps_state_aligned(tmp
         seen["mask"] = mask.clone()
         return remove(params, optimizers, state, mask)
     monkeypatch.setattr(prune_mod, "significance", spy_score)
-    monkeypatch.setattr(strategy_mod, "remove", spy_remove)
+    monkeypatch.setattr(prune_mod, "remove", spy_remove)  # where the prune event looks it up
     tr = Trainer(tiny_config(tmp_path, SCHED + ["prune.share=0.25", "prune.at=[30]", "train.stop_at=30"]),
                  tmp_path / "r")
     tr.train()
@@ -168,7 +168,7 @@ def test_a_run_branched_from_a_checkpoint_at_the_event_prunes_as_an_uninterrupte
 def test_stdr_tool_compact_prunes_a_trained_run_into_a_new_one(tmp_path):
     import json
 
-    from stdr.cli.train import run
+    from stdr.train.run import run_training as run
     from stdr.tools.compact import compact, main
     cfg = tiny_config(tmp_path, SCHED + ["stdr=on", "eval.fps_repeats=1"])
     run(cfg, tmp_path / "run")

@@ -225,7 +225,7 @@ def test_prune_scale2d_null_turns_the_screen_size_prune_off_and_keeps_the_world_
 def test_budget_gpu_has_no_screen_size_prune_and_the_other_budgets_keep_theirs():
     """budget=gpu takes size_prune_val's decision (no screen-size prune, every baseline); the other
     budgets keep 20 px (their tables used it; budget=paper's is not measured)."""
-    from stdr.cli.common import compose_config
+    from stdr.store import compose_config
     from pathlib import Path
     dec = (Path(__file__).resolve().parents[1] / "docs" / "measurements" / "size_prune_val" / "table.md").read_text()
     assert "Decision: **ws_1500**" in dec  # the preset follows the generated decision

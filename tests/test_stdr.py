@@ -15,7 +15,7 @@ from stdr.baselines import DeformMLP
 from stdr.eval.table import method_name
 from stdr.gaussians import init_params
 from stdr.densify.strategy import DensifyStrategy
-from stdr.schedule import resolve_schedule
+from stdr.config import resolve_schedule
 
 from stdr.testing import TINY_SCENE, make_cfg
 
@@ -623,7 +623,7 @@ def test_mask_bits_8_stores_the_frozen_mask_in_8_bits_and_resumes_exactly(tmp_pa
     model_mb; densification after the freeze keeps its rows; resume across the freeze and
     load_model give exactly what the uninterrupted run has."""
     from stdr.plugins.stdr.mask import logits_of
-    from stdr.eval.evaluate import model_bytes
+    from stdr.model import model_bytes
     from stdr.model import load_model
     from stdr.train.trainer import Trainer
     sched = ["stdr=on", "optim.iterations=60", "baseline.warmup=10", "stdr.freeze_at=25", "densify.refine_start=10",

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from stdr.densify.strategy import STRATEGIES, DensifyStrategy, get_strategy, register_strategy, unregister_strategy
-from stdr.schedule import resolve_schedule
+from stdr.config import resolve_schedule
 from stdr.testing import make_cfg, tiny_config
 
 

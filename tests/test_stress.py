@@ -110,7 +110,7 @@ def test_bad_stress_keys_are_named(tmp_path, override, match):
 
 @pytest.mark.slow
 def test_a_stressed_run_records_the_stress_and_keeps_the_cap(tmp_path):
-    from stdr.cli.train import run
+    from stdr.train.run import run_training as run
     cfg = tiny_config(tmp_path, ["optim.iterations=60", "baseline.warmup=20", "densify.refine_start=5",
                                  "densify.refine_every=5", "densify.grow_grad2d=1e-7", "densify.max_gaussians=1600",
                                  "train.checkpoint_every=0", "train.eval_at_warmup_end=false",

@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from stdr.train.syncs import DeviceSyncCounter, SyncCounter, host_only
+from stdr.syncs import DeviceSyncCounter, SyncCounter, host_only
 from stdr.tools.identity_check import NAMES, SCHEDULE, STDR_PHASES
 
 
@@ -135,7 +135,7 @@ def test_on_cuda_an_ordinary_step_makes_only_the_rasterizers_syncs(name, tmp_pat
     """The ground truth of the test above: what the CUDA runtime reports as synchronizing is
     the rasterizer's buffer sizes (RASTERIZER_SYNCS, inside compiled code) and, for SC-GS, the
     SVD the CPU test names; nothing else in the stdr package."""
-    from stdr.train.syncs import RASTERIZER_SYNCS
+    from stdr.syncs import RASTERIZER_SYNCS
     counts, sites = _count(name, False, str(tmp_path), cuda=True)
     assert _outside(sites) == {APPLY}, sites
     if name.startswith("scgs"):  # the SVD on the steps with the ARAP term
@@ -150,7 +150,7 @@ def test_on_cuda_an_ordinary_step_makes_only_the_rasterizers_syncs(name, tmp_pat
 def test_on_cuda_the_guard_adds_one_sync_or_none(tmp_path, sync_free):
     """Read every step (CUDA's default until this test has passed on a GPU: stdr.verified.VERIFIED),
     the guard adds one sync; sync-free, none."""
-    from stdr.train.syncs import RASTERIZER_SYNCS
+    from stdr.syncs import RASTERIZER_SYNCS
     counts, sites = _count("deform_stdr", True, str(tmp_path), cuda=True, sync_free=sync_free)
     if sync_free:
         assert set(counts) == {RASTERIZER_SYNCS}, sites
@@ -165,7 +165,7 @@ def test_on_cuda_the_compiled_loss_and_check_add_no_sync(tmp_path):
     """The CUDA kernels of the loss (its gradient read on the device) and of the guard's check
     (before they are CUDA defaults in stdr.verified.VERIFIED) leave an
     ordinary step with the rasterizer's syncs alone, and the guard's fault recovery unchanged."""
-    from stdr.train.syncs import RASTERIZER_SYNCS
+    from stdr.syncs import RASTERIZER_SYNCS
     counts, sites = _count("deform_stdr", True, str(tmp_path), cuda=True, sync_free=True,
                            extra=["optim.fused_loss=true", "train.guard.compiled=true"])
     assert set(counts) == {RASTERIZER_SYNCS}, sites

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 import torch
-from stdr.cli.train import run
+from stdr.train.run import run_training as run
 from stdr.device import resolve_device
 from stdr.testing import make_cfg
 from stdr.testing import tiny_config as _tiny

@@ -63,7 +63,7 @@ def test_scene_paths_must_be_folders(tmp_path):
 def test_every_shipped_experiment_and_budget_passes_the_checks(tmp_path):
     """The checks refuse no configuration the project ships (a scene folder stands in): every
     method on D-NeRF at every budget, and every other data option with deform+STDR."""
-    from stdr.config import experiment_names
+    from stdr.store import experiment_names
     names = experiment_names()
     dnerf = [e for e in names if e.startswith("dnerf_")]
     others = sorted({e.rsplit("_deform_stdr", 1)[0] for e in names if e.endswith("_deform_stdr")} - {"dnerf"})
@@ -116,7 +116,7 @@ def test_a_foreign_pickle_is_named_as_not_ours_in_every_tool(tmp_path):
 
     import torch
 
-    from stdr.train.checkpoint import ENVELOPE, CheckpointError, load_checkpoint
+    from stdr.io.checkpoint import ENVELOPE, CheckpointError, load_checkpoint
     bare = tmp_path / "bare.pt"
     torch.save({"x": Path("/tmp")}, bare)  # an object torch will not load without running code
     buf = io.BytesIO()
@@ -149,7 +149,7 @@ def test_a_foreign_pickle_is_named_as_not_ours_in_every_tool(tmp_path):
 def test_a_run_stdr_train_writes_is_read_by_every_tool(tmp_path):
     """The round trip the key check guarantees: stdr-eval's loader, stdr-export, the viewer's
     loader and a resume all read what stdr-train wrote (with a plug-in's keys set)."""
-    from stdr.cli.train import run
+    from stdr.train.run import run_training as run
     from stdr.cli.view import export_main
     from stdr.config import load_config
     from stdr.testing import tiny_config

@@ -20,7 +20,7 @@ SCHED = ["optim.iterations=60", "baseline.warmup=20", "densify.refine_start=10",
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """A tiny STDR run (past its freeze: every view exists) and a tiny plain run."""
-    from stdr.cli.train import run
+    from stdr.train.run import run_training as run
     from stdr.testing import tiny_config
     root = tmp_path_factory.mktemp("view")
     run(tiny_config(root, SCHED + ["stdr=on", "stdr.warmup_end=25", "stdr.freeze_at=40"]), root / "stdr")

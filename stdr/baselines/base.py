@@ -20,7 +20,7 @@ import torch
 from omegaconf import II, OmegaConf
 from torch import Tensor, nn
 
-from ..ops import sigmoid
+from ..ops import RowView, rows_of, sigmoid
 from ..gaussians import Gaussians
 
 
@@ -204,7 +204,7 @@ class Deformation(nn.Module):
         return None
 
     def compact_columns(self, params) -> dict[str, Tensor]:
-        """For the compact file (stdr.io.compact_file): per-Gaussian tables of this baseline that a
+        """For the compact file (stdr.compact.file): per-Gaussian tables of this baseline that a
         trained model's renders read only at some columns of each row, {key: column indices [N, K]}.
         None by default."""
         return {}
@@ -245,7 +245,6 @@ class Deformation(nn.Module):
         modules with a part shared by all Gaussians (SC-GS's node conditioning, SP-GS's
         superpoints) compute that part from every row, so the kept rows' deltas are those of
         the full call."""
-        from ..ops import RowView, rows_of
         return self.forward(RowView(params, rows), t, rows_of(cond, rows))
 
     def deltas(self, params, t: float, cond: Optional[Tensor] = None, rows: Optional[Tensor] = None) -> Deltas:
@@ -266,7 +265,6 @@ class Deformation(nn.Module):
         those rows."""
         if rows is None:
             return self.deform(params, t, cond, delta_scale)
-        from ..ops import RowView, rows_of
         n = params["means"].shape[0]
         if cond is not None and cond.shape != (n, self.cond_dim):
             raise ValueError(f"conditioning must be [N, {self.cond_dim}], got {tuple(cond.shape)}")

@@ -26,11 +26,12 @@ from torch import Tensor, nn
 
 from ..ops import RowView, rows_of, scatter_mean, sigmoid, take_rows
 from ..knn import knn
-from ..train.syncs import host_only
+from ..syncs import host_only
 from .base import BaselineConfig, Deformation, Deltas, flag_value, mlp_kwargs, set_flag, stage_start
 from .deform3dgs import DeformMLP
 from .registry import register_baseline
-from .geometry import farthest_point_sampling, quat_to_rotmat
+from ..geometry import farthest_point_sampling, quat_to_rotmat
+from ..gaussians import Gaussians
 
 FEATURE_KEY = "scgs_feature"
 
@@ -269,7 +270,6 @@ class ControlNodeDeformation(Deformation):
     def apply(self, params, d: Deltas):
         """Node stage: isotropic, unrotated Gaussians moved by dxyz. Skinning: dxyz added to the
         means, the blended dq added to the *raw* quaternion, ds after activation (SC-GS)."""
-        from ..gaussians import Gaussians
         sh = torch.cat([params["sh0"], params["shN"]], 1)
         op = sigmoid(params["opacities"])
         if flag_value(self, "stage") == 1:

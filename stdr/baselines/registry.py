@@ -22,10 +22,11 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, Callable, Optional
+from typing import Any, Optional
 
 import numpy as np
 
+from ..registry import Registry
 from .base import BaselineConfig, Deformation
 
 
@@ -36,15 +37,10 @@ class BaselineSpec:
     config: type       # a BaselineConfig subclass whose `name` default is `name`
 
 
-BASELINES: dict[str, BaselineSpec] = {}
-# called with (spec, added) on every (un)registration; stdr.config.register() adds the one that
-# keeps Hydra's ConfigStore in step, so a baseline registered later still becomes an option
-_LISTENERS: list[Callable[[BaselineSpec, bool], None]] = []
-
-
-def add_listener(fn: Callable[[BaselineSpec, bool], None]) -> None:
-    if fn not in _LISTENERS:
-        _LISTENERS.append(fn)
+#: every baseline by name (stdr.registry.Registry; the entry-point group `stdr.baselines`)
+BASELINES: Registry[BaselineSpec] = Registry(
+    "baseline", "baseline.name", "stdr.baselines", "stdr.baselines.registry.register_baseline",
+    owner=lambda spec: spec.module)
 
 
 def register_baseline(name: str, module: type, config: type) -> BaselineSpec:
@@ -58,50 +54,22 @@ def register_baseline(name: str, module: type, config: type) -> BaselineSpec:
     if config().name != name:
         raise ValueError(f"register_baseline({name!r}): {config.__name__}.name defaults to {config().name!r}; "
                          f"set `name: str = {name!r}`")
-    if name in BASELINES and BASELINES[name].module is not module:
-        raise ValueError(f"baseline {name!r} is already registered (by {BASELINES[name].module.__name__})")
-    spec = BaselineSpec(name, module, config)
-    BASELINES[name] = spec
-    for fn in _LISTENERS:
-        fn(spec, True)
-    return spec
+    return BASELINES.add(name, BaselineSpec(name, module, config))
 
 
 def unregister_baseline(name: str) -> None:
     """Remove a baseline and its Hydra options (for tests that register a temporary one)."""
-    spec = BASELINES.pop(name, None)
-    if spec is not None:
-        for fn in _LISTENERS:
-            fn(spec, False)
-
-
-#: entry-point group through which another distribution adds baselines: in its pyproject.toml,
-#:   [project.entry-points."stdr.baselines"]
-#:   mine = "my_package.mine:register"     # a function that calls register_baseline (or a module
-#:                                         # whose import does)
-ENTRY_POINT_GROUP = "stdr.baselines"
-_discovered = False
+    BASELINES.remove(name)
 
 
 def discover_baselines() -> list[str]:
-    """Register the baselines that installed distributions provide through ENTRY_POINT_GROUP
-    (once per process; the CLIs' config registration and get_baseline call it). Returns the
-    names added. An entry point that fails, or registers nothing, is an error naming it."""
-    global _discovered
-    if _discovered:
-        return []
-    _discovered = True
-    from ..entry_points import load_group
-    return load_group(ENTRY_POINT_GROUP, lambda: BASELINES, "stdr.baselines.register_baseline")
+    """Register the baselines that installed distributions provide through the entry-point
+    group `stdr.baselines` (once per process). Returns the names added."""
+    return BASELINES.discover()
 
 
 def get_baseline(name: str) -> BaselineSpec:
-    if name not in BASELINES:
-        discover_baselines()
-    if name not in BASELINES:
-        raise ValueError(f"baseline.name={name!r} is not a registered baseline; choose one of {sorted(BASELINES)} "
-                         "(stdr.baselines.registry.register_baseline adds one)")
-    return BASELINES[name]
+    return BASELINES.get(name)
 
 
 def build_deformation(b: Any, cond_dim: int = 0, train_times: Optional[np.ndarray] = None, seed: int = 0,

@@ -25,7 +25,7 @@ from .base import (BaselineConfig, Deformation, Deltas, apply_post_activation, f
                    stage_start)
 from .deform3dgs import DeformMLP
 from .registry import register_baseline
-from .geometry import farthest_point_sampling, quat_multiply, so3_exp, so3_exp_quat
+from ..geometry import farthest_point_sampling, quat_multiply, so3_exp, so3_exp_quat
 
 ASSOC_KEY = "spgs_assoc"
 

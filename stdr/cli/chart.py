@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from ..eval.chart import CHARTS, METRIC_LABELS, chart
 
 
 def main(argv=None) -> None:
-    from ..eval.chart import CHARTS, METRIC_LABELS, chart
     ap = argparse.ArgumentParser(prog="stdr-chart", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", help="run folders, folders holding runs, or a stdr-eval table.json")

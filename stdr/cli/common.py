@@ -4,6 +4,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ..store import compose_config
+from ..config import typed_schema
+from ..validate import schema_keys, unknown_key_hint
+from ..errors import ConfigError, reported
+
 
 def use_fast_allocator_hint() -> None:
     """Say once how to get the measured 2x CPU speed-up from tcmalloc when it is not in use."""
@@ -33,19 +38,6 @@ def reproducible_blas() -> None:
         os.environ["MKL_DYNAMIC"] = "FALSE"
 
 
-def compose_config(overrides=(), config_name: str = "train", return_hydra_config: bool = False):
-    """The config `stdr-train` (config_name="train") or `stdr-eval` ("eval") would run with these
-    command-line overrides, composed with Hydra's compose API: for scripts, notebooks and tests
-    (return_hydra_config: with the `hydra` node, e.g. a launcher's or a sweep's settings)."""
-    from hydra import compose, initialize_config_dir
-
-    from ..config import register
-    register()
-    from ..config import CONFIG_DIR
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
-        return compose(config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)
-
-
 def _override_problem(e: Exception, overrides: list[str], config_name: str) -> str:
     """Hydra's composition error as one sentence naming the override and what is allowed."""
     import difflib
@@ -63,8 +55,6 @@ def _override_problem(e: Exception, overrides: list[str], config_name: str) -> s
     if m and config_name == "train":  # a key the config lacks (Hydra would suggest '+', which adds it unchecked)
         from omegaconf import OmegaConf
 
-        from ..config import typed_schema
-        from ..validate import schema_keys, unknown_key_hint
         base = compose_config([o for o in overrides if not o.lstrip("+~").startswith(m.group(1) + "=")], config_name)
         known = list(schema_keys(typed_schema(OmegaConf.to_container(base, resolve=False))))
         return f"unknown config key {m.group(1)}: {unknown_key_hint(m.group(1), known)}"
@@ -89,7 +79,6 @@ def check_overrides(prog: str, argv: list[str], config_name: str = "train") -> N
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from ..errors import ConfigError, reported
     with reported(prog):
         try:
             compose_config(list(argv), config_name)

@@ -18,6 +18,8 @@ from pathlib import Path
 from ..data import capture as capture_mod
 from ..data import fetch
 from ..errors import reported
+from ..eval.lpips import fetch_dir, fetch_weights
+from ..data.dnerf import _resolve_image
 
 
 def _list() -> None:
@@ -40,7 +42,6 @@ def _list() -> None:
 def _download_lpips(args) -> Path:
     """`stdr-data download lpips [--net vgg alex] [--dest DIR]`: the LPIPS weights the evaluation
     would fetch on first use, ahead of time (default: the user cache, where it looks)."""
-    from ..eval.lpips import fetch_dir, fetch_weights
     dest = Path(args.dest) if args.dest else fetch_dir()
     for net in args.net:
         fetch_weights(net, dest)
@@ -134,7 +135,6 @@ def prepare_dnerf(src: Path, dest: Path, size: int = 400) -> list[Path]:
 
     from PIL import Image
 
-    from ..data.dnerf import _resolve_image
     src, dest = Path(src), Path(dest)
     scenes = [src] if fetch.detect_format(src) == "dnerf" else sorted(
         p for p in src.iterdir() if p.is_dir() and fetch.detect_format(p) == "dnerf")

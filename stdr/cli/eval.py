@@ -14,9 +14,18 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from ..config import CONFIG_DIR, load_config, register
+from ..config import CONFIG_DIR, load_config
+from ..store import register
 from ..errors import BadInput, MissingInput, reported
 from .common import check_overrides, reproducible_blas
+from ..eval.table import collect, find_run_dirs, markdown, table_row, write_tables
+from ..eval.evaluate import evaluate_run, measure_fps, save_metrics, machine_name
+from ..train.state import RunState
+from ..data.load import load_scene
+from ..device import resolve_device
+from ..model import has_model_entry, model_from_checkpoint, model_bytes
+from ..io.checkpoint import load_checkpoint, CKPT
+from ..plugins import registered_plugins
 
 register()
 
@@ -27,7 +36,6 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
     """plugin_overrides: {plug-in name: its keys to change in each run's config (null: keep)}."""
     import json
 
-    from ..eval.table import collect, find_run_dirs, markdown, table_row, write_tables
 
     if remeasure not in (None, "fps", "size", "fps+size"):
         raise BadInput(f"remeasure={remeasure!r}: what can be redone alone is 'fps' (re-time the renders), "
@@ -69,8 +77,6 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
     """Load the run's state from its checkpoint (its model through the public API, stdr.model),
     and evaluate it as stdr-train does (stdr.eval.evaluate.evaluate_run: render `split`, merge the
     numbers into its metrics.json)."""
-    from ..eval.evaluate import evaluate_run
-    from ..train.state import RunState
 
     ck, model, scene = _load_for_eval(rd, cfg, split, base)
     state = RunState.from_checkpoint(ck, model, rd)
@@ -90,11 +96,6 @@ def apply_overrides(cfg, section: str, overrides) -> None:
 
 def _load_for_eval(rd: Path, cfg, split: str, base: str):
     """(model, scene) of a run folder for rendering `split`: the model from its checkpoint."""
-    from ..data.load import load_scene
-    from ..device import resolve_device
-    from ..model import has_model_entry, model_from_checkpoint
-    from ..train.checkpoint import load_checkpoint
-    from ..train.state import CKPT
 
     ck = load_checkpoint(rd / CKPT)
     dev = resolve_device(cfg.device)
@@ -114,7 +115,6 @@ def remeasure_run(rd: Path, cfg, split: str, eval_cfg, base: str, what: list[str
     (the tensors a saved model holds), for runs evaluated before it was recorded."""
     import json
 
-    from ..eval.evaluate import measure_fps, model_bytes, save_metrics
 
     mp = rd / "metrics.json"
     if not mp.is_file():
@@ -138,7 +138,6 @@ def _refresh_fps(entry: dict, timing: dict, model, rd: Path) -> None:
     """Put a new timing (measure_fps) in `entry`: fps, its passes, and the rows rendered per frame
     under the render settings it ran with (render.cull may differ from the run's); the replaced
     values go to fps_history."""
-    from ..eval.evaluate import machine_name
 
     conv = entry.get("conventions", {})
     entry.setdefault("fps_history", []).append(
@@ -161,7 +160,6 @@ def _main(cfg: DictConfig) -> None:
         raise SystemExit("usage: stdr-eval RUN_DIR [RUN_DIR ...] [key=value ...]")
     reproducible_blas()
     out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
-    from ..plugins import registered_plugins
     with reported("stdr-eval"):  # bad input: one line, exit code 2
         evaluate_dirs(list(cfg.runs), cfg.split, cfg.eval, cfg.render, cfg.reevaluate, out,
                       hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure,

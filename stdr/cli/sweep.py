@@ -7,6 +7,7 @@ from typing import Any
 
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
+from .train import FAILURES
 
 
 class SweepReport(Callback):
@@ -15,13 +16,11 @@ class SweepReport(Callback):
     and say how to rerun them. Failed jobs do not stop the others (stdr.cli.train.sweep_job)."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from .train import FAILURES
         f = Path(config.hydra.sweep.dir) / FAILURES
         if f.is_file():
             f.rename(f.with_suffix(".previous.jsonl"))
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        from .train import FAILURES
         sweep = Path(config.hydra.sweep.dir)
         f = sweep / FAILURES
         fails = [json.loads(line) for line in f.read_text().splitlines() if line.strip()] if f.is_file() else []

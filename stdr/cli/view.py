@@ -8,7 +8,13 @@ import time
 from pathlib import Path
 
 from ..errors import reported
-from ..view.core import VIEWS
+from ..view.core import VIEWS, open_run
+from ..view.server import Viewer, check_port
+from ..view.browser import screenshot
+from ..view.video import KINDS, path_frames, render_videos, write_video
+from ..view.camera_path import read_camera_path
+from ..model import load_model
+from ..io.export import export_times
 
 
 def _positive(kind):
@@ -41,8 +47,6 @@ def view_main(argv=None) -> None:
     ap.add_argument("--screenshot", type=Path, default=None,
                     help="open the page in headless Chromium, save a PNG once it shows a render, and exit")
     a = ap.parse_args(argv)
-    from ..view.core import open_run
-    from ..view.server import Viewer, check_port
     try:
         check_port(a.host, a.port)  # before loading the model: fail fast
         run = open_run(a.run, device=a.device, model_file=a.model)
@@ -56,7 +60,6 @@ def view_main(argv=None) -> None:
     if run.data_note:
         print(f"[stdr] {run.data_note}")
     if a.screenshot is not None:
-        from ..view.browser import screenshot
         try:
             n0 = 0
             path = screenshot(viewer.url, a.screenshot, ready=lambda: len(viewer.frame_ms) > n0)
@@ -84,7 +87,6 @@ def view_main(argv=None) -> None:
 
 @reported("stdr-render")  # bad input: one line, exit code 2
 def render_main(argv=None) -> None:
-    from ..view.video import KINDS
     ap = argparse.ArgumentParser(prog="stdr-render", description="Videos of a trained stdr run.")
     ap.add_argument("run", type=Path, help="a run directory (config.yaml + checkpoints/last.pt)")
     ap.add_argument("--out", type=Path, default=None, help="folder for the videos (default: RUN/videos)")
@@ -103,11 +105,8 @@ def render_main(argv=None) -> None:
                     "e.g. RUN/model.stdrc (stdr-tool pack)")
     a = ap.parse_args(argv)
     fps_given = any(x == "--fps" or x.startswith("--fps=") for x in (argv if argv is not None else sys.argv[1:]))
-    from ..view.core import open_run
-    from ..view.video import path_frames, render_videos, write_video
     try:
         if a.path is not None:
-            from ..view.camera_path import read_camera_path
             cp = read_camera_path(a.path, width=a.width)  # before loading the model: fail fast
         run = open_run(a.run, device=a.device, model_file=a.model)
         if a.path is not None:
@@ -127,8 +126,6 @@ def render_main(argv=None) -> None:
 @reported("stdr-export")  # bad input: one line, exit code 2
 def export_main(argv=None) -> None:
     """stdr-export RUN --times 0 0.5 1 --out DIR: the model at each time as a 3DGS PLY."""
-    from ..model import load_model
-    from ..io.export import export_times
     ap = argparse.ArgumentParser(prog="stdr-export", description="A trained run at given times as standard 3DGS "
                                  "PLY files (deformed, opacity with the plug-ins' factors), for splat viewers.")
     ap.add_argument("run", type=Path, help="a run directory (checkpoints/last.pt), a checkpoint file or a compact "

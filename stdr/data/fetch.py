@@ -33,6 +33,7 @@ from pathlib import Path, PurePosixPath
 from typing import Callable, Optional
 
 from ..errors import UserError
+from .dnerf import _read_json, _resolve_image
 
 CHUNK = 1 << 20
 LOCK_NAME = "stdr-data.lock.json"
@@ -351,7 +352,6 @@ def verify_scene(folder: Path, fmt: str) -> int:
     Raises DataError naming the first missing piece."""
     folder = Path(folder)
     if fmt == "dnerf":
-        from .dnerf import _read_json, _resolve_image
         n = 0
         for split in ("train", "val", "test"):
             jp = folder / f"transforms_{split}.json"

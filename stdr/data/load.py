@@ -10,6 +10,7 @@ from .nerfies import load_nerfies
 from .procedural import SceneOptions, embedded_scene
 from .stress import apply_stress, check_stress
 from .types import SceneData
+from .. import source_checkout, user_cache
 
 FORMATS = ("procedural", "dnerf", "nerfies")
 
@@ -19,7 +20,6 @@ def cache_base() -> Path:
     source checkout when stdr runs from one (pyproject.toml beside the package), else the user
     cache ($XDG_CACHE_HOME/stdr, default ~/.cache/stdr), so an installed wheel never writes into
     site-packages."""
-    from .. import source_checkout, user_cache
     return source_checkout() or user_cache()
 
 

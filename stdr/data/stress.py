@@ -23,8 +23,9 @@ from typing import Any, List, Optional
 import numpy as np
 import torch
 
-from ..baselines.geometry import so3_exp
+from ..geometry import so3_exp
 from .types import Frame, SceneData
+from ..gaussians import scene_extent
 
 
 @dataclass
@@ -83,7 +84,6 @@ def check_stress(cfg) -> None:
 
 
 def scene_radius(frames: list[Frame]) -> float:
-    from ..gaussians import scene_extent
     return scene_extent(np.stack([f.camera.center.double().cpu().numpy() for f in frames]))
 
 

@@ -22,6 +22,8 @@ from typing import Any, List, Optional
 
 import torch
 from torch import Tensor
+from ..render import contribution, project_for_render
+from .strategy import remove
 
 
 @dataclass
@@ -87,7 +89,6 @@ def significance(model, frames, step: Optional[int] = None) -> tuple[Tensor, Ten
     over the pixels of every training frame, frames at one time summed into that time's column.
     The model renders as in evaluation (eval mode, no culling: a row below 1/255 scores 0), with
     its own backend's score pass. The model is left in eval mode."""
-    from ..render import contribution, project_for_render
     model.eval()
     step = model.step if step is None else step
     times, col = time_columns(f.time for f in frames)
@@ -141,7 +142,6 @@ def prune_event(model, frames, optimizers, strategy_state, p, step: int) -> dict
     densification's `strategy_state`), return the event's record: step, before, after, seen per
     frame (fraction of the model contributing at one time) before and after, and the seconds of the
     score pass and of the whole event."""
-    from .strategy import remove
     t0 = time.perf_counter()
     S, _ = significance(model, frames, step=step)
     t_score = time.perf_counter() - t0

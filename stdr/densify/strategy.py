@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from ..gaussians import inverse_sigmoid
 from ..ops import sigmoid
 from ..render.projection import quat_to_rotmat
+from ..registry import Registry
 from ..render.reference import ALPHA_MIN
 
 
@@ -313,14 +314,11 @@ class DensifyStrategy:
 
 
 # ==================================================================== the registry
-STRATEGIES: dict[str, type] = {"default": DensifyStrategy}
-# called with (name, added) on every (un)registration; stdr.config keeps Hydra's options in step
-_LISTENERS: list[Callable[[str, bool], None]] = []
-
-
-def add_listener(fn: Callable[[str, bool], None]) -> None:
-    if fn not in _LISTENERS:
-        _LISTENERS.append(fn)
+#: every densification strategy by name (stdr.registry.Registry; the entry-point group
+#: `stdr.strategies`); `default` is this module's and stays
+STRATEGIES: Registry[type] = Registry(
+    "densification strategy", "densify.name", "stdr.strategies", "stdr.densify.strategy.register_strategy",
+    fixed=("default",), initial={"default": DensifyStrategy})
 
 
 def register_strategy(name: str, cls: type) -> type:
@@ -333,26 +331,15 @@ def register_strategy(name: str, cls: type) -> type:
     if cls().name != name:
         raise ValueError(f"register_strategy({name!r}): {cls.__name__}.name defaults to {cls().name!r}; "
                          f"set `name: str = {name!r}`")
-    if name in STRATEGIES and STRATEGIES[name] is not cls:
-        raise ValueError(f"densification strategy {name!r} is already registered (by {STRATEGIES[name].__name__})")
-    STRATEGIES[name] = cls
-    for fn in _LISTENERS:
-        fn(name, True)
-    return cls
+    return STRATEGIES.add(name, cls)
 
 
 def unregister_strategy(name: str) -> None:
-    if name != "default" and STRATEGIES.pop(name, None) is not None:
-        for fn in _LISTENERS:
-            fn(name, False)
+    STRATEGIES.remove(name)
 
 
 def get_strategy(name: Optional[str]) -> type:
-    name = name or "default"
-    if name not in STRATEGIES:
-        raise ValueError(f"densify.name={name!r} is not a registered densification strategy; choose one of "
-                         f"{sorted(STRATEGIES)} (stdr.densify.strategy.register_strategy adds one)")
-    return STRATEGIES[name]
+    return STRATEGIES.get(name or "default")
 
 
 def build_strategy(d) -> DensifyStrategy:

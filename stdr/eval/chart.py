@@ -22,6 +22,7 @@ from typing import Any
 
 from ..plugins import method_suffix, registered_plugins
 from .table import collect, find_run_dirs as find_runs, load_run, table_row
+from ..baselines import BASELINES
 
 METRIC_LABELS = {"psnr": "PSNR (dB) ↑", "ssim": "SSIM ↑", "lpips": "LPIPS ↓"}
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False}
@@ -143,7 +144,6 @@ def baseline_colors(baselines: list[str]):
     """One colour per baseline, stable across charts: the registry's order, then any other."""
     import matplotlib
 
-    from ..baselines import BASELINES
     cmap = matplotlib.colormaps["tab10"]
     order = sorted(BASELINES) + sorted(set(baselines) - set(BASELINES))
     present = set(baselines)

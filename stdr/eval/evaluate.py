@@ -21,19 +21,20 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from ..device import synchronize
+from ..device import MEMORY_CONVENTION, synchronize
+from ..model import model_bytes
 from ..metrics import psnr, ssim
 from ..render import use_compiled_projection
-from ..train.guard import MEMORY_CONVENTION
-from .lpips import LPIPS
+from .lpips import LPIPS, fetch_weights
+from ..data.fetch import DataError
+from ..densify.prune import seen_per_frame, significance
+from .. import __version__, source_checkout
 
 
 def make_lpips(eval_cfg) -> Optional[LPIPS]:
     """The LPIPS module, None when disabled or (with lpips=auto) when no weights can be had. Where
     eval.lpips_weights is unset and no search folder holds the weights, they are downloaded once
     into the user cache (eval.lpips_download; stdr.eval.lpips.fetch_weights)."""
-    from ..data.fetch import DataError
-    from .lpips import fetch_weights
 
     mode = str(eval_cfg.lpips).lower()
     if mode in ("false", "off", "0"):
@@ -146,7 +147,6 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
     passes += [timed_pass(model, frames, step)["fps"] for _ in range(int(fps_repeats) - 1)]
     seen_frac = None
     if seen:
-        from ..densify.prune import seen_per_frame, significance
         seen_frac = seen_per_frame(significance(model, frames, step)[0])
     return {
         "seen_per_frame": seen_frac,
@@ -185,13 +185,6 @@ def machine_name(cpuinfo: str | None = None) -> str:
     if isa:
         parts.append(isa.upper().replace("_", "."))
     return f"{', '.join(parts)}, {os.cpu_count()} logical CPUs"
-
-
-def model_bytes(model) -> int:
-    """Bytes of the model's tensors (Gaussians, deformation module, plug-in state): the size a
-    saved model takes without optimizer state."""
-    from ..io.codecs import nbytes
-    return int(nbytes(model.state_dict()))
 
 
 def metric_conventions(eval_cfg, lpips_fn, backend: str, device: torch.device) -> dict[str, Any]:
@@ -323,7 +316,6 @@ def code_version(exclude: tuple[str, ...] = (), root=None) -> dict[str, Any]:
     and whether tracked files had uncommitted changes (None outside a checkout). `exclude`:
     folders of the checkout whose changes do not count (a study's own tables, rewritten as it runs).
     `root`: the checkout (default: the one this package runs from)."""
-    from .. import __version__, source_checkout
     root = source_checkout() if root is None else root
     out: dict[str, Any] = {"version": __version__, "commit": None, "dirty": None}
     if root is None:  # an installed copy: no commit to name (a checkout that holds the venv is not it)

@@ -24,6 +24,8 @@ import torch
 from torch import Tensor, nn
 
 from ..ops import fixed_mean
+from .. import user_cache
+from ..data.fetch import DataError, download, sha256
 
 _VGG_CFG = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512]
 _VGG_TAPS = (3, 8, 15, 22, 29)        # relu1_2, relu2_2, relu3_3, relu4_3, relu5_3 (torchvision indices)
@@ -55,7 +57,6 @@ FETCHED = {"vgg": ("vgg16-397923af.pth", "vgg.pth"), "alex": ("alexnet-owt-7be5b
 
 def fetch_dir() -> Path:
     """Where fetched weights go: the user cache's lpips folder (one of default_search_dirs)."""
-    from .. import user_cache
     return user_cache() / "lpips"
 
 
@@ -64,7 +65,6 @@ def fetch_weights(net: str, dest: Optional[Path] = None, log=print) -> Path:
     against its pinned SHA-256; files already there with the right hash are kept. Returns the
     folder. A failed or corrupted download raises stdr.data.fetch.DataError naming the file and
     leaves nothing in `dest` under the file's name."""
-    from ..data.fetch import DataError, download, sha256
     if net not in FETCHED:
         raise ValueError(f"LPIPS net {net!r}: use 'vgg' or 'alex'")
     dest = Path(dest) if dest is not None else fetch_dir()
@@ -124,7 +124,6 @@ def default_search_dirs() -> list[Path]:
     dirs = []
     if os.environ.get("STDR_LPIPS_WEIGHTS"):
         dirs.append(Path(os.environ["STDR_LPIPS_WEIGHTS"]))
-    from .. import user_cache
     dirs += [user_cache() / "lpips", Path(torch.hub.get_dir()) / "checkpoints"]
     spec = importlib.util.find_spec("lpips")  # the pip package ships the linear heads
     if spec is not None and spec.submodule_search_locations:

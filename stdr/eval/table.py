@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import BadInput, MissingInput
+from ..plugins import method_suffix
 
 METRICS = ("psnr", "ssim", "lpips", "fps", "num_gaussians", "train_seconds")
 HEADERS = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓", "fps": "FPS↑",
@@ -107,7 +108,6 @@ def method_name(cfg) -> str:
     non-default switches (stdr.plugins.method_suffix; e.g. 'deform+<label> w/o <switch>'), then
     the contribution pruning when on ('pruned 0.3x2': share x events; ' tw1': its time weight),
     so ablation rows, and a compact run beside its full one, never merge."""
-    from ..plugins import method_suffix
     return cfg["baseline"]["name"] + method_suffix(cfg) + prune_tag(cfg)
 
 

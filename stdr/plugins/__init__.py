@@ -25,11 +25,12 @@ from __future__ import annotations
 import dataclasses
 import re
 from dataclasses import dataclass
-from typing import Any, Callable, Optional
+from typing import Any, Optional
 
 import numpy as np
 import torch
 from torch import Tensor, nn
+from ..registry import Registry
 
 
 class Plugin:
@@ -107,14 +108,14 @@ class Plugin:
         return set()
 
     def compact_units(self, params) -> dict[str, Tensor]:
-        """For the compact file (stdr.io.compact_file): this plug-in's per-Gaussian tables that a
+        """For the compact file (stdr.compact.file): this plug-in's per-Gaussian tables that a
         trained model reads only through an activation to [0, 1] and that it also accepts in 8 bits
         (uint8 q for q / 255), {key: the activated values, float [N, ...]}. A lossy codec named for
         such a key encodes these values, and the file reads them back as uint8. Default: none."""
         return {}
 
     def compact_derived(self, params, step: int) -> dict[str, tuple[str, Tensor]]:
-        """For the compact file's `derived` form (stdr.io.compact_file): per-Gaussian tables that a
+        """For the compact file's `derived` form (stdr.compact.file): per-Gaussian tables that a
         finished model reads only through a fixed function of them, {key: (the stored key, that
         function's values [N, D])}; the file stores the values in place of the table, and the
         plug-in reads them back from the stored key. A ValueError says why a table cannot be
@@ -176,13 +177,14 @@ class PluginSpec:
     label: str     # after the baseline's name in tables and charts (e.g. "+STDR")
 
 
-PLUGINS: dict[str, PluginSpec] = {}
-# called with (spec, added) on every (un)registration; stdr.config.register() adds the one that
-# keeps Hydra's ConfigStore in step
-_LISTENERS: list[Callable[[PluginSpec, bool], None]] = []
 #: the config's own sections and stdr-train's groups (names a plug-in may not take); stdr.config
 #: sets it when it loads (set_reserved_keys), so this module never imports the config
 _RESERVED: set[str] = set()
+#: every plug-in by name (stdr.registry.Registry; the entry-point group `stdr.plugins`); the
+#: built-in ones are registered by importing stdr.plugins.stdr
+PLUGINS: Registry[PluginSpec] = Registry(
+    "plug-in", "plug-in", "stdr.plugins", "stdr.plugins.register_plugin", builtin=("stdr.plugins.stdr",),
+    owner=lambda spec: spec.plugin)
 
 
 def set_reserved_keys(keys) -> None:
@@ -192,16 +194,6 @@ def set_reserved_keys(keys) -> None:
     clash = sorted(set(PLUGINS) & _RESERVED)
     if clash:
         raise ValueError(f"plug-in(s) {clash} registered under a config section's name; choose another name")
-#: modules whose import registers the plug-ins that ship with stdr
-BUILTIN = ("stdr.plugins.stdr",)
-#: entry-point group through which another distribution adds plug-ins (stdr.entry_points)
-ENTRY_POINT_GROUP = "stdr.plugins"
-_discovered = False
-
-
-def add_listener(fn: Callable[[PluginSpec, bool], None]) -> None:
-    if fn not in _LISTENERS:
-        _LISTENERS.append(fn)
 
 
 def register_plugin(name: str, plugin: type, config: type, label: Optional[str] = None) -> PluginSpec:
@@ -209,7 +201,7 @@ def register_plugin(name: str, plugin: type, config: type, label: Optional[str] 
     `from_config`; `config` a dataclass whose `enabled` defaults to False (its other fields are
     the plug-in's typed keys, `<name>.<key>`); `label` (default '+<name>') follows the baseline's
     name in table rows and chart legends."""
-    discover_plugins()  # the built-in and installed ones first, so a clash is seen either way
+    PLUGINS.discover()  # the built-in and installed ones first, so a clash is seen either way
     if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
         raise ValueError(f"register_plugin({name!r}): the name must be lower-case letters, digits and '_' "
                          "(it is a config key and an experiment suffix)")
@@ -225,51 +217,21 @@ def register_plugin(name: str, plugin: type, config: type, label: Optional[str] 
             or config().enabled is not False:
         raise TypeError(f"register_plugin({name!r}): config must be a dataclass with `enabled: bool = False`, "
                         f"got {config!r}")
-    if name in PLUGINS and PLUGINS[name].plugin is not plugin:
-        raise ValueError(f"plug-in {name!r} is already registered (by {PLUGINS[name].plugin.__name__})")
-    spec = PluginSpec(name, plugin, config, label if label is not None else f"+{name}")
-    PLUGINS[name] = spec
-    for fn in _LISTENERS:
-        fn(spec, True)
-    return spec
+    return PLUGINS.add(name, PluginSpec(name, plugin, config, label if label is not None else f"+{name}"))
 
 
 def unregister_plugin(name: str) -> None:
     """Remove a plug-in and its Hydra options (for tests that register a temporary one)."""
-    spec = PLUGINS.pop(name, None)
-    if spec is not None:
-        for fn in _LISTENERS:
-            fn(spec, False)
-
-
-def discover_plugins() -> list[str]:
-    """Register the built-in plug-ins and those that installed distributions provide through
-    ENTRY_POINT_GROUP (once per process). Returns the names added."""
-    global _discovered
-    if _discovered:
-        return []
-    _discovered = True
-    import importlib
-    before = set(PLUGINS)
-    for mod in BUILTIN:
-        importlib.import_module(mod)
-    from ..entry_points import load_group
-    load_group(ENTRY_POINT_GROUP, lambda: PLUGINS, "stdr.plugins.register_plugin")
-    return sorted(set(PLUGINS) - before)
+    PLUGINS.remove(name)
 
 
 def registered_plugins() -> list[PluginSpec]:
     """Every registered plug-in, in registration order (built-in ones first)."""
-    discover_plugins()
-    return list(PLUGINS.values())
+    return PLUGINS.registered()
 
 
 def get_plugin(name: str) -> PluginSpec:
-    discover_plugins()
-    if name not in PLUGINS:
-        raise ValueError(f"{name!r} is not a registered plug-in; choose one of {sorted(PLUGINS)} "
-                         "(stdr.plugins.register_plugin adds one)")
-    return PLUGINS[name]
+    return PLUGINS.get(name)
 
 
 def plugin_node(cfg, name: str):

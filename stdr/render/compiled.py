@@ -21,6 +21,7 @@ from torch.autograd.function import once_differentiable
 
 from ..extension import (BuildError, available, build_error, cache_root, clear_stale_lock,  # noqa: F401
                          load_extension, use_compiled)
+from .projection import frustum_limits, Projection
 
 
 class _Rasterize(torch.autograd.Function):
@@ -156,7 +157,6 @@ def camera_values(camera) -> list[float]:
     One host copy per camera: the values are kept on the camera object, keyed by its pose
     tensors and their versions (an in-place change of R or t recomputes them), so a training
     step on a dataset camera, which is on the device, does not wait for the device here."""
-    from .projection import frustum_limits
     key = (id(camera.R), camera.R._version, id(camera.t), camera.t._version,
            float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), camera.width, camera.height)
     hit = getattr(camera, "__dict__", {}).get("_host_values")
@@ -204,7 +204,6 @@ def project_sh_compiled(means: Tensor, quats: Tensor, scales: Tensor, opacities:
 
     means [N, 3], quats [N, 4], scales [N, 3] (activated), opacities [N] (activated),
     sh [N, K, 3] with (sh_degree + 1)^2 <= K <= 16."""
-    from .projection import Projection
     n = means.shape[0]
     if not 0 <= sh_degree <= 3:
         raise ValueError(f"SH degree must be in [0, 3], got {sh_degree}")

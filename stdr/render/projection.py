@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera
+from .sh import eval_sh
 
 SIGMA_EXTENT = 3.0  # a Gaussian's footprint is its 3-sigma ellipse; alpha is 0 outside it
 
@@ -109,7 +110,6 @@ def project_and_shade(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
     """(Projection, colours [N, 3]): `project_gaussians` and SH at the normalized view direction
     (camera centre to Gaussian; the gradient flows through it, as in 3DGS). The torch twin of
     `compiled.project_sh_compiled`."""
-    from .sh import eval_sh
     proj = project_gaussians(means, quats, scales, opacities, camera, near=near, eps2d=eps2d,
                              antialiased=antialiased)
     dirs = means - camera.center.to(means)

@@ -35,8 +35,9 @@ import torch
 
 from stdr.cameras import Camera
 from stdr.device import synchronize
-from stdr.render import render, resolve_backend
+from stdr.render import DEFAULT_TILE, rasterize, render, resolve_backend
 from stdr.render.projection import project_gaussians
+from stdr.extension import load_extension
 
 
 def make_scene(n: int, res: int, coverage: float, seed: int = 0, device: str = "cpu"):
@@ -78,7 +79,6 @@ def pair_work(p, width, height, tile: int = 16) -> tuple[int, int]:
     Evaluations = sum over tiles of (tile pixels) x (tile list entries up to the tile's last
     composited one): the alpha evaluations every pixel of the tile performs in the forward.
     """
-    from stdr.extension import load_extension
     c = lambda x: x.detach().cpu().contiguous()  # noqa: E731
     _, _, last, ids, *_ = load_extension("cpu").forward(
         c(p.means2d), c(p.conics), c(p.opacities), c(p.depths[:, None]), c(p.depths),
@@ -92,7 +92,6 @@ def pair_work(p, width, height, tile: int = 16) -> tuple[int, int]:
 
 def measure_row(backend: str, n: int, res: int, coverage: float, repeats: int, tile: int,
                 reference_device: str = "cpu") -> dict:
-    from stdr.render import DEFAULT_TILE, rasterize
     # the compiled backends run on their own device; the pure-torch reference on either
     device = {"cuda": "cuda", "cpu": "cpu"}.get(backend, reference_device)
     backend = resolve_backend(backend, device)

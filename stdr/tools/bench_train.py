@@ -36,13 +36,15 @@ from pathlib import Path
 
 import torch
 
-from ..cli.common import compose_config
+from ..store import compose_config
 from ..device import synchronize
 from ..eval.evaluate import code_version, machine_name
 from ..eval.table import fmt_value as fmt
 from ..eval.table import markdown_table, write_outputs
 from ..gaussians import GAUSSIAN_KEYS
 from ..train.trainer import Profiler, Trainer
+from ..io.checkpoint import load_checkpoint
+from ..syncs import DeviceSyncCounter, OpCounter, SyncCounter
 
 SECTIONS = ("deform", "render_fwd", "loss", "stdr_reg", "deform_reg", "backward", "optimizer", "densify")
 PARTS = ("loss+rasterizer", "projection+sh", "deformation+reg")
@@ -51,7 +53,6 @@ PARTS = ("loss+rasterizer", "projection+sh", "deformation+reg")
 
 def run_gaussians(run: Path) -> dict:
     """A finished run's Gaussian parameters (CPU tensors) from its checkpoint (format 1 or 2)."""
-    from ..train.checkpoint import load_checkpoint
     ck = load_checkpoint(Path(run) / "checkpoints" / "last.pt")
     return {k: v.cpu() for k, v in (ck["model"]["params"] if "model" in ck else ck["params"]).items()}
 
@@ -60,7 +61,6 @@ def replicate(params: dict, n: int, gen: torch.Generator) -> dict:
     """Resample the Gaussians of `params` to n: copies jittered by half their scale."""
     import math
 
-    from ..gaussians import GAUSSIAN_KEYS
     n0 = params["means"].shape[0]
     idx = torch.randint(0, n0, (n,), generator=gen) if n < n0 else torch.arange(n) % n0
     copies = max(1.0, n / n0)
@@ -111,7 +111,6 @@ def bench_one(tr: Trainer, source: dict, n: int, iters: int, warmup_iters: int, 
     prof = tr.profile
     # machine-independent proxies, counted on steps after the timed ones (the counters slow a step)
     # (and, on a GPU, the synchronizing calls the CUDA runtime reports, without the profiler's own)
-    from ..train.syncs import DeviceSyncCounter, OpCounter, SyncCounter
     ops, syncs, n_count = 0, 0, 3
     dev_syncs = 0 if dev.type == "cuda" else None
     tr.step = min(tr.step, tr.cfg.optim.iterations - 2 * n_count)
@@ -183,7 +182,7 @@ def markdown(res: dict) -> str:
         "Training step time by section (stdr-tool bench-train): median ms per step, sections as the mean ms "
         "per step of the trainer's profiler; `bwd:` splits the backward where its gradient reaches the "
         "projection's means2d and conics and then the deformed Gaussians; ops/step: ATen operators dispatched "
-        "(forward and backward), syncs/step: host syncs (stdr.train.syncs), over 3 further steps; CUDA syncs/step: "
+        "(forward and backward), syncs/step: host syncs (stdr.syncs), over 3 further steps; CUDA syncs/step: "
         "those the CUDA runtime reports (torch.cuda.set_sync_debug_mode), on a GPU, over 3 more.", "",
         f"Machine: {res['machine']}, {res['threads']} threads, torch {res['torch']}; torch.mm 2048² fp32: "
         f"{res['mm_ms_before']:.1f} ms before, {res['mm_ms_after']:.1f} ms after ({res['mm_gflops']:.0f} GFLOP/s); "

@@ -23,18 +23,21 @@ import copy
 import shutil
 from pathlib import Path
 from typing import Optional
+from ..config import CONFIG_DIR, resolve_schedule, load_config
+from ..compact.pack import spec_of_config, pack
+from ..plugins import enabled_plugins, plugin_node
+from ..train.run import run_training as run
+from ..io.checkpoint import load_checkpoint, CKPT
 
 
 def preset_values() -> dict:
     """The compact preset's keys (stdr/configs/compact/on.yaml) as this tool applies them to a
     trained run in one event: `share` = the fraction the preset's `prune.at` events remove
     together (1 - (1 - s)^events), `time_weight`, `mask_bits` (0: the preset keeps the mask's
-    form), `pack` (the compact file's spec, stdr.tools.pack.spec_of_config of its `pack` node; {}
+    form), `pack` (the compact file's spec, stdr.compact.pack.spec_of_config of its `pack` node; {}
     when the preset writes no file)."""
     from omegaconf import OmegaConf
 
-    from ..config import CONFIG_DIR
-    from .pack import spec_of_config
     node = OmegaConf.load(Path(CONFIG_DIR) / "compact" / "on.yaml")
     s, events = float(node.prune.share), len(node.prune.at)
     pk = OmegaConf.select(node, "pack", default=None)
@@ -47,7 +50,6 @@ def spec_for_run(cfg, spec: dict) -> tuple[dict, Optional[str]]:
     """`spec` as a trained run can take it: a plug-in's derived form that the run's keys do not
     allow (STDR's `stdr_mask: derived` on a run trained with stdr.mask_after_freeze=true) becomes
     that table's exact 8-bit form. Returns (spec, a note saying what changed, or None)."""
-    from ..plugins import enabled_plugins, plugin_node
     out, notes = dict(spec), []
     for p in enabled_plugins(cfg):
         try:
@@ -70,8 +72,6 @@ def compact_config(cfg, step: int, share: float, steps: int, time_weight: float 
     """`cfg` (a run's loaded config) continued for `steps` iterations past `step` with one pruning
     event at `step`; every schedule boundary at or before `step` kept where it was. An error names
     the boundary when that cannot be done by pinning."""
-    from ..plugins import enabled_plugins
-    from ..schedule import resolve_schedule
     if steps < 1:
         raise ValueError(f"--steps {steps}: the fine-tune needs at least one step")
     old = resolve_schedule(cfg)
@@ -108,11 +108,7 @@ def compact(run_dir: Path, share: float, steps: int = 300, time_weight: float = 
             split: Optional[str] = None, data_base: Optional[str] = None, mask_bits: int = 0,
             pack_spec: Optional[dict] = None) -> dict:
     """Prune run_dir's model by contribution, fine-tune `steps` iterations into `out`, evaluate, and
-    write the compact file of the result with `pack_spec` (stdr.io.compact_file; None: its defaults)."""
-    from ..cli.train import run
-    from ..config import load_config
-    from ..train.checkpoint import load_checkpoint
-    from ..train.state import CKPT
+    write the compact file of the result with `pack_spec` (stdr.compact.file; None: its defaults)."""
     run_dir = Path(run_dir)
     out = Path(out) if out is not None else run_dir.with_name(run_dir.name + "_compact")
     src = run_dir / CKPT
@@ -133,7 +129,6 @@ def compact(run_dir: Path, share: float, steps: int = 300, time_weight: float = 
     (out / CKPT).parent.mkdir(parents=True)
     shutil.copy2(src, out / CKPT)
     res = run(new, out, data_base)
-    from .pack import pack
     rec = pack(out, spec=spec, split=new.data.eval_split, data_base=data_base)  # out/model.stdrc, out/pack.json
     print(f"[stdr] {rec['file']}: {rec['bytes'] / 2**20:.2f} MiB ({rec['ratio']:.1%} of the model's tensors)")
     return res
@@ -168,8 +163,6 @@ def main(argv=None) -> None:
 
 def _has_stdr(run_dir: Path) -> bool:
     """Whether a run folder's config switches STDR on (the preset's mask form applies to it)."""
-    from ..config import load_config
-    from ..plugins import enabled_plugins
     cfg_path = Path(run_dir) / "config.yaml"
     if not cfg_path.is_file():
         raise SystemExit(f"stdr-tool compact: {run_dir}: not a trained run (no config.yaml)")

@@ -18,7 +18,8 @@ import torch
 
 from ..eval.table import write_outputs
 from ..render.reference import ALPHA_MIN
-from ..train.checkpoint import load_checkpoint
+from ..io.checkpoint import load_checkpoint
+from ..plugins.stdr.mask import activated
 
 QUANTILES = (0.1, 0.5, 0.9)
 FAINT = 0.02
@@ -61,7 +62,6 @@ def peak_opacity(run: Path) -> dict:
     p = payload["model"]["params"] if "model" in payload else payload["params"]
     peak = torch.sigmoid(p["opacities"].float())
     if "stdr_mask" in p:  # float logits, or the 8-bit form (stdr.mask_bits=8)
-        from ..plugins.stdr.mask import activated
         peak = peak * activated(p["stdr_mask"]).float().amax(1)
     q = torch.quantile(peak, torch.tensor(QUANTILES))
     return {"n": int(peak.numel()), "quantiles": {str(k): float(v) for k, v in zip(QUANTILES, q)},

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import argparse
 import json
+from ..store import experiment_table
 
 
 def main(argv=None) -> None:
-    from ..config import experiment_table
     ap = argparse.ArgumentParser(prog="stdr-tool experiments", description=__doc__.split("\n")[0])
     ap.add_argument("--data", default=None, help="only this data option")
     ap.add_argument("--baseline", default=None, help="only this baseline")

@@ -15,6 +15,9 @@ configuration, whether two saved files hold bit-identical tensors.
 run with) into a JSON file; `compare-configs` says which composed configs differ between two such
 files. Keys a commit removed on purpose are named with --removed (dotted paths, `*` matches one
 level) and reported apart from real differences.
+
+It imports stdr inside its functions, and looks names up where each commit keeps them
+(`_of_checkout`): the code it runs is that of whichever commit is checked out, not this one's.
 """
 from __future__ import annotations
 
@@ -40,7 +43,8 @@ def _dnerf_config(scene: Path, overrides: list[str]):
     schedule, composed by the checked-out code's own Hydra configs (any commit)."""
     from hydra import compose, initialize_config_dir
 
-    from stdr.config import CONFIG_DIR, register  # wherever that commit keeps its configs
+    from stdr.config import CONFIG_DIR
+    register = _of_checkout("register", "stdr.store", "stdr.config")
     try:  # per-baseline configs reject other baselines' keys
         from stdr.testing import applicable
     except ImportError:
@@ -109,11 +113,22 @@ def compare(a_path: Path, b_path: Path, labels: list[str], out: Path | None,
 BUDGETS = ("cpu", "demo", "paper")
 
 
+def _of_checkout(name: str, *modules: str):
+    """`name` from the first of `modules` (newest place first) that has it in the checked-out
+    code: the commits compared keep their configs' helpers in different modules."""
+    import importlib
+    for m in modules:
+        try:
+            return getattr(importlib.import_module(m), name)
+        except (ImportError, AttributeError):
+            continue
+    raise ImportError(f"{name} is in none of {modules} in this checkout")
+
+
 def experiment_names() -> list[str]:
     """Every selectable experiment: the registered ones (derived), else the YAML files of older commits."""
     try:
-        from stdr.config import experiment_names as names
-        return names()
+        return _of_checkout("experiment_names", "stdr.store", "stdr.config")()
     except ImportError:
         from stdr.config import CONFIG_DIR
         return sorted(p.stem for p in (Path(CONFIG_DIR) / "experiment").glob("*.yaml"))
@@ -122,7 +137,7 @@ def experiment_names() -> list[str]:
 def configs(out: Path) -> None:
     from omegaconf import OmegaConf
 
-    from stdr.cli.common import compose_config
+    compose_config = _of_checkout("compose_config", "stdr.store", "stdr.cli.common")
     res = {}
     for name in experiment_names():
         for budget in BUDGETS:

@@ -19,58 +19,16 @@ again from the first evaluation.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Iterable, List, Optional
+from typing import Any, Iterable, Optional
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from .. import extension
+from ..device import process_memory_mb
 from ..verified import verified_on
-
-
-@dataclass
-class GuardConfig:
-    """train.guard: non-finite and divergence recovery."""
-
-    # on by default: without a fault it changes nothing (bit-identical to enabled=false in the
-    # runs of tests/test_guard.py) and costs 0.2-0.6 % of a step
-    enabled: bool = True
-    snapshot_every: int = 100    # steps between in-memory snapshots of the last good state
-    lr_factor: float = 0.5       # every learning rate x this at each recovery
-    max_recoveries: int = 3      # one more stops the run (TrainingDiverged, checkpoint of the last good state)
-    # a periodic evaluation (train.eval_every) more than this many dB below the best one so far
-    # restores the best one's state (0 = off)
-    divergence_db: float = 10.0
-    # an evaluation within this many steps after an opacity reset (densify.reset_every) is not
-    # compared with the best: the reset drops the render by design (a D-NeRF scene at budget=gpu:
-    # 30.9 dB at step 2700, 15.2 dB right after the reset at 3000) and the model rebuilds it
-    after_reset: int = 500
-    # what the divergence detector evaluates. It restores earlier states, so what it reads steers
-    # training, and it never reads the test split: auto = val where the scene has a val split of
-    # its own (D-NeRF, the embedded scene), else train (Nerfies format: its val frames are its
-    # test frames); or val, or train (a fixed seeded subset of the training frames)
-    monitor: str = "auto"
-    # frames of the detector's own evaluation (a fixed seeded subset; 0 = all). When the monitor
-    # split is data.eval_split, the periodic evaluation itself is used (train.eval_frames)
-    monitor_frames: int = 10
-    # the step check without a host sync: its verdict stays a flag on the device, read at the steps
-    # that wait for the device anyway (log, evaluation, checkpoint, snapshot, the end); fused Adam
-    # skips every update from the faulty step on (its found_inf), and the read restores the last
-    # snapshot, the state an immediate check restores. null: on where it has been checked
-    # (stdr.verified.VERIFIED); true / false. Needs optim.fused_adam (false reads the check every step)
-    sync_free: Optional[bool] = None
-    # the check of a step's tensors as one compiled call (guard_update_compiled, below;
-    # instead of two operators a tensor and ten for the verdict) or as torch operators. null: compiled
-    # where it has been checked (stdr.verified.VERIFIED: the CPU; the CUDA kernel is built, not yet
-    # run on a GPU) and the extension builds; true / false
-    compiled: Optional[bool] = None
-    # fault injection, for tests and drills: a NaN in the gradient of the means at each step
-    # listed (counted from 1), once per process
-    inject_nan_grad_at: List[int] = field(default_factory=list)
 
 
 def resolve_sync_free(g, device: torch.device, fused_adam: bool) -> bool:
@@ -97,23 +55,6 @@ def resolve_compiled_check(g, device: torch.device) -> bool:
 
 class TrainingDiverged(RuntimeError):
     """More recoveries than train.guard.max_recoveries."""
-
-
-def check_guard_config(g) -> None:
-    """Errors that name the key, for values that cannot work."""
-    if g.snapshot_every < 1:
-        raise ValueError(f"train.guard.snapshot_every={g.snapshot_every}: must be at least 1")
-    if not 0.0 < g.lr_factor <= 1.0:
-        raise ValueError(f"train.guard.lr_factor={g.lr_factor}: must be in (0, 1] (each recovery multiplies "
-                         "every learning rate by it)")
-    if g.max_recoveries < 0:
-        raise ValueError(f"train.guard.max_recoveries={g.max_recoveries}: must be 0 or more")
-    if g.divergence_db < 0:
-        raise ValueError(f"train.guard.divergence_db={g.divergence_db}: must be 0 (off) or positive")
-    if g.after_reset < 0:
-        raise ValueError(f"train.guard.after_reset={g.after_reset}: must be 0 or more (steps after an opacity reset)")
-    if g.monitor_frames < 0:
-        raise ValueError(f"train.guard.monitor_frames={g.monitor_frames}: must be 0 (all frames) or positive")
 
 
 MONITORS = ("auto", "val", "train")
@@ -198,24 +139,6 @@ def clone_tree(x: Any) -> Any:
     if isinstance(x, tuple):
         return tuple(clone_tree(v) for v in x)
     return x
-
-
-def process_memory_mb(device: torch.device) -> Optional[float]:
-    """The training's memory now, in MiB: on CUDA the peak torch allocated on `device` since the
-    run reset it (Trainer.train); elsewhere the process's resident set (Linux /proc/self/statm),
-    which also holds what earlier runs of the same process (an in-process multirun) left behind.
-    None where neither can be read."""
-    if device.type == "cuda":
-        return torch.cuda.max_memory_allocated(device) / 2**20
-    try:
-        pages = int(Path("/proc/self/statm").read_text().split()[1])  # [1]: resident pages
-        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
-    except (OSError, ValueError, IndexError, AttributeError):
-        return None
-
-
-MEMORY_CONVENTION = {"cuda": "torch.cuda.max_memory_allocated since the run began",
-                     "cpu": "resident set of the process (/proc/self/statm), sampled every train.log_every steps"}
 
 
 @dataclass

@@ -25,11 +25,11 @@ import torch
 from torch import Tensor
 
 from .optim import clear_grads
-from .checkpoint import rng_state, save_checkpoint, set_rng_state
+from ..io.checkpoint import CKPT, rng_state, save_checkpoint, set_rng_state
 from .guard import Guard
-from .syncs import host_only
+from ..syncs import host_only
+from ..model import model_entry
 
-CKPT = "checkpoints/last.pt"
 # what a checkpoint a run resumes from must hold (the model entry, then the optimization's state)
 PAYLOAD_KEYS = ("model", "optimizers", "net_opt", "strategy_state", "sampler", "rng", "train_seconds")
 
@@ -148,7 +148,6 @@ class RunState:
         """Back to a payload's state (a checkpoint file's, or a guard snapshot's): the model, the
         optimizers (rebuilt for its parameters), the strategy, the sampler, every RNG and the records.
         The guard's own state is the caller's (a resume loads it; a recovery keeps its own)."""
-        from ..model import model_entry
 
         self.model.load_state_dict(model_entry(ck, where), where)
         self.train_seconds = float(ck["train_seconds"])

@@ -25,10 +25,13 @@ from ..io.ply import save_ply
 from ..densify.prune import prune_event
 from ..densify.strategy import build_strategy
 from .optim import adam_step
-from .checkpoint import load_checkpoint
-from .guard import Guard, check_guard_config, monitor_split, resolve_compiled_check, resolve_sync_free
+from ..io.checkpoint import load_checkpoint
+from ..config import check_guard_config
+from .guard import Guard, monitor_split, resolve_compiled_check, resolve_sync_free
 from .optim import exp_lr
-from .state import CKPT, PAYLOAD_KEYS, CameraSampler, RunLog, RunState
+from .state import PAYLOAD_KEYS, CameraSampler, RunLog, RunState
+from ..io.checkpoint import CKPT
+from ..eval.evaluate import make_lpips, evaluate_state, evaluate_run
 
 __all__ = ["CKPT", "PAYLOAD_KEYS", "CameraSampler", "Profiler", "RunLog", "RunState", "Trainer"]
 
@@ -515,7 +518,6 @@ class Trainer:
         if not self.cfg.train.eval_lpips:
             return None
         if getattr(self, "_lpips", None) is None:
-            from ..eval.evaluate import make_lpips
             lp = make_lpips(self.cfg.eval)
             if lp is None:
                 raise ValueError("train.eval_lpips=true but no LPIPS weights were found (eval.lpips, "
@@ -530,7 +532,6 @@ class Trainer:
         """Render `split` (or the frames at indices `frames` of it) at the model's state and
         compute metrics (stdr.eval.evaluate.evaluate_state): a point of the run's learning curve
         (`history`), with the training seconds so far (evaluation excluded)."""
-        from ..eval.evaluate import evaluate_state
         fr = self.scene.frames(split)
         if frames is not None:
             fr = [fr[i] for i in frames]
@@ -539,6 +540,5 @@ class Trainer:
 
     def evaluate_final(self, split: str, eval_cfg=None) -> dict[str, Any]:
         """The run's final evaluation of `split` into metrics.json (stdr.eval.evaluate.evaluate_run)."""
-        from ..eval.evaluate import evaluate_run
         return evaluate_run(self.state, self.scene, split, self.cfg.eval if eval_cfg is None else eval_cfg,
                             max_gaussians=getattr(self.strategy, "max_gaussians", 0), log=self.log)

@@ -27,6 +27,7 @@ import torch
 
 from ..cameras import Camera
 from ..data.colmap import qvec_to_rotmat
+from .core import _matrix_to_quat
 
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes (x right, y down, z forward) <-> OpenGL's
 
@@ -177,7 +178,6 @@ def _slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
 def interpolate(keyframes: list[tuple[Camera, float]], frames: int) -> tuple[list[Camera], list[float]]:
     """`frames` cameras and times along keyframes (camera, time): centres, field of view and time
     linear, orientation by spherical interpolation, evenly in keyframe index."""
-    from .core import _matrix_to_quat
     if len(keyframes) < 2:
         raise ValueError("a camera path needs at least two keyframes")
     if frames < 2:

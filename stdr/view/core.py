@@ -18,6 +18,14 @@ from ..errors import BadInput, MissingInput
 from ..cameras import Camera
 from ..data.colmap import qvec_to_rotmat
 from ..data.types import Frame
+from ..data.load import load_scene
+from ..config import load_config
+from ..device import resolve_device
+from ..model import model_from_checkpoint
+from ..io.checkpoint import load_checkpoint, CKPT
+from ..render.sh import rgb_to_sh
+from ..plugins.stdr.mask import mask_at
+from ..plugins.stdr.plugin import COND_KEY, MASK_KEY
 
 VIEWS = ("rgb", "depth", "alpha", "mask", "dynamic")
 SPLITS = ("train", "val", "test")
@@ -66,11 +74,6 @@ def open_run(run_dir: str | Path, device: Optional[str] = None, base: Optional[s
     """The model of a run folder (config.yaml + checkpoints/last.pt, or `model_file`: e.g. the
     run's compact model file model.stdrc) on `device` (default: the run's own), and the frames of
     `splits` when its data can be read; errors name what is missing."""
-    from ..config import load_config
-    from ..device import resolve_device
-    from ..model import model_from_checkpoint
-    from ..train.checkpoint import load_checkpoint
-    from ..train.state import CKPT
 
     rd = Path(run_dir)
     if not rd.is_dir():
@@ -92,7 +95,6 @@ def open_run(run_dir: str | Path, device: Optional[str] = None, base: Optional[s
     model.eval()
     run = ViewRun(rd, cfg, model)
     try:
-        from ..data.load import load_scene
         scene = load_scene(cfg.data, tuple(splits), base=base, seed=cfg.seed)
         run.frames = {s: v for s, v in scene.splits.items() if v}
     except (FileNotFoundError, ValueError, KeyError, OSError) as e:
@@ -177,7 +179,6 @@ def to_uint8(img: torch.Tensor) -> np.ndarray:
 def _recoloured(model, t: float, values: torch.Tensor, camera: Camera):
     """Every Gaussian at time t with its canonical opacity (the mask not applied, so switched-off
     Gaussians stay visible) and the colour of `values` [N] in [0, 1] (turbo)."""
-    from ..render.sh import rgb_to_sh
     g, _ = model.deformed_rows(t, cull=False)
     n = g.means.shape[0]
     sh = torch.zeros_like(g.sh)
@@ -215,8 +216,6 @@ def render_view(model, camera: Camera, t: float, view: str = "rgb") -> np.ndarra
         raise BadInput(f"view {view!r} needs an STDR run (stdr.enabled=true); this run has no STDR plug-in")
     params = model.params
     if view == "mask":
-        from ..plugins.stdr.mask import mask_at
-        from ..plugins.stdr.plugin import COND_KEY, MASK_KEY
         if MASK_KEY not in params:
             if COND_KEY in params:  # a compact file with stdr_mask: derived keeps the field's output only
                 raise BadInput("view 'mask': this compact file stores the separated field's output in place of "
@@ -236,7 +235,6 @@ def available_views(run: ViewRun) -> list[str]:
     """The views this run can show (mask and dynamic need STDR, dynamic its frozen field)."""
     views = ["rgb", "depth", "alpha"]
     if run.has_stdr:
-        from ..plugins.stdr.plugin import MASK_KEY
         if MASK_KEY in run.model.params:
             views.append("mask")
         p = run.model.plugin("stdr")

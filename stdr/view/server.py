@@ -19,6 +19,7 @@ import numpy as np
 
 from .core import (ViewRun, available_views, camera_from_viser, camera_to_viser, look_at_point, render_view,
                    with_size)
+from .camera_path import interpolate, write_camera_path
 
 MAX_FRUSTA = 200
 
@@ -225,7 +226,6 @@ class Viewer:
         self.set_status("keyframes cleared")
 
     def save_path(self) -> Optional[Path]:
-        from .camera_path import interpolate, write_camera_path
         if len(self.keyframes) < 2:
             self.set_status("a camera path needs at least two keyframes")
             return None

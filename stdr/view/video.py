@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from .core import ViewRun, look_at_point, render_view, scale_to_width, to_uint8
+from ..geometry import so3_exp
 
 KINDS = ("time", "orbit", "compare")
 
@@ -65,7 +66,6 @@ def write_video(frames: list[np.ndarray], stem: Path, fps: float, fmt: str = "au
 
 def _rotate_about(cam, pivot: np.ndarray, axis: np.ndarray, angle: float):
     """The camera turned by `angle` about the line through `pivot` along `axis` (world frame)."""
-    from ..baselines.geometry import so3_exp
     D = so3_exp(torch.tensor(axis / np.linalg.norm(axis) * angle, dtype=torch.float64)).numpy()  # world rotation
     R = cam.R.detach().double().cpu().numpy()
     c = cam.center.detach().double().cpu().numpy()

@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from ...ops import sigmoid, take_rows
+from ...knn import knn
 
 
 def knot_times(train_times, time_bins: int = 0) -> Tensor:
@@ -156,7 +157,6 @@ def sample_neighbours(means: Tensor, n_query: int, n_candidates: int, k: int,
     the candidates; neighbours are searched among the candidates (the query itself excluded).
     Returns empty tensors when there are not more than k candidates.
     """
-    from ...knn import knn
 
     N = means.shape[0]
     dev = means.device

@@ -30,6 +30,7 @@ from .. import Plugin
 from .field import SeparatedField
 from .mask import (BETWEEN, activated, faint_fraction, knot_times, logits_of, mask_at, quantize, sample_neighbours,
                    spatial_kl, temporal_entropy, temporal_loss)
+from ...schedule import Event, keep_out_of_windows
 
 MASK_KEY = "stdr_mask"
 #: the separated field's output [N, cond_dim] stored in place of the mask (the compact file's `derived` form)
@@ -123,7 +124,6 @@ class STDR(Plugin):
     def stages(cls, pcfg, cfg, schedule) -> dict:
         """Mask warm-up, regularized phase and freeze (resolve_phases), the freeze kept out of the
         baseline's switch windows (stdr.schedule.keep_out_of_windows)."""
-        from ...schedule import Event, keep_out_of_windows
         total = schedule.iterations
         w, f = resolve_phases(pcfg, schedule.static_warmup_end, total)
         f, moved = keep_out_of_windows(f, w, schedule.windows, "stdr.freeze_at", explicit=pcfg.freeze_at is not None)

@@ -1,4 +1,4 @@
-"""A short fine-tune of the compact file's codebooks (the `vq:C` codec, stdr.io.codecs) with the
+"""A short fine-tune of the compact file's codebooks (the `vq:C` codec, stdr.compact.codecs) with the
 training loss, after the file's codecs are applied.
 
 k-means places each codeword at the mean of its rows, which minimizes the error in the tensor, not
@@ -17,7 +17,7 @@ from typing import Any
 import torch
 
 from ..metrics import image_loss
-from .compact_file import MARK
+from .file import MARK
 
 #: defaults, fixed before any measurement (docs/measurements/compact_bytes/protocol.md, amendment 1)
 STEPS = 500
@@ -33,7 +33,7 @@ def vq_entries(payload: dict[str, Any]) -> dict[str, dict]:
 
 def finetune_codebooks(payload: dict[str, Any], model, frames, steps: int = STEPS, lr: float = LR,
                        lambda_dssim: float = LAMBDA_DSSIM, seed: int = 0) -> dict[str, Any]:
-    """Fine-tune, in place, the codebooks of `payload` (from stdr.io.compact_file.encode_model) on
+    """Fine-tune, in place, the codebooks of `payload` (from stdr.compact.file.encode_model) on
     `frames` (training frames), rendering with `model` (the payload's model read back, in eval mode).
     Returns {steps, loss_first, loss_last (means over the first and last 10 % of the steps), keys
     (the codebooks fine-tuned), fixed (those no gradient reaches, left as they were)}."""

@@ -16,6 +16,9 @@ import torch
 
 from ..errors import MissingInput, UserError
 
+#: a run's last checkpoint, under its run folder
+CKPT = "checkpoints/last.pt"
+
 
 def rng_state() -> dict[str, Any]:
     """Global RNG states as tensors and plain numbers (loadable with weights_only=True): the CPU

@@ -46,7 +46,7 @@ RASTERIZER_SYNCS = 2
 # batched SVD checks its convergence flags on the host
 DEVICE_SYNC_FUNCS = frozenset({"linalg_svd", "svd", "linalg_svdvals"})
 INDEX_FUNCS = frozenset({"__getitem__", "__setitem__", "index_put_", "index_put"})
-_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the stdr package
+_ROOT = os.path.dirname(os.path.abspath(__file__))  # the stdr package
 _THIS = os.path.abspath(__file__)
 _state = {"host": 0}
 

@@ -7,7 +7,7 @@ weights_only) whose payload is
 
     {"format": "stdr-compact", "version": 1, "spec": {...},
      "model": the model's entry (stdr.model.DynamicGaussians.state_dict) with every tensor
-              replaced by its codec's dict (stdr.io.codecs)}
+              replaced by its codec's dict (stdr.compact.codecs)}
 
 `spec` says which codec holds what: per-Gaussian parameter keys, and `state` for the deformation
 module's and the plug-ins' tensors (networks, HexPlane grids, STDR's field), `state:<part>` for
@@ -24,12 +24,11 @@ The spec value `derived` for such a table stores instead what a finished model c
 (`Plugin.compact_derived`: STDR's mask as the separated field's output [N, 17], with the field's
 weights left out; only for a model whose mask no longer multiplies opacity), under the plug-in's
 key for it, in the codec the spec names for that key (`stdr_cond: q8`; default `*`).
-Sized codecs are written "vq:1024", "lowrank:8" (stdr.io.codecs). A file with a higher version
+Sized codecs are written "vq:1024", "lowrank:8" (stdr.compact.codecs). A file with a higher version
 than this code reads is refused with an error that says so.
 """
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any, Optional
 
 import torch
@@ -172,27 +171,3 @@ def decode_model(payload: dict[str, Any], where: str = "compact file") -> dict[s
         raise ValueError(f"{where}: a {FORMAT} file of version {v}, written by a newer stdr; this stdr reads "
                          f"versions up to {VERSION}: upgrade stdr (pip install -U stdr) to load it")
     return _walk_decode(payload["model"])
-
-
-def write_compact(model, path: str | Path, spec: Optional[dict] = None, frames=None) -> dict[str, Any]:
-    """Write the compact file of `model` to `path` (atomic, checksummed). Returns {bytes (of its
-    tensors), full_bytes (the model's own tensors), spec}. With spec `finetune: STEPS` and `vq:C`
-    codecs, their codebooks are first fine-tuned for STEPS steps on `frames` (training frames;
-    stdr.io.finetune), and the result has `finetune` (its losses)."""
-    from ..eval.evaluate import model_bytes
-    from ..train.checkpoint import save_checkpoint
-    payload = encode_model(model, spec)
-    steps = int((spec or {}).get("finetune") or 0)
-    extra = {}
-    if steps:
-        from ..model import model_from_checkpoint
-        from .finetune import finetune_codebooks, vq_entries
-        if not vq_entries(payload):
-            raise ValueError("compact spec finetune: no tensor is stored with a vq:C codec, so there is nothing to fine-tune")
-        if not frames:
-            raise ValueError("compact spec finetune: pass the training frames (stdr-tool pack loads them from the run's data)")
-        small = model_from_checkpoint(payload, next(model.params.values()).device, model.cfg)
-        extra["finetune"] = finetune_codebooks(payload, small, frames, steps)
-        payload["spec"]["finetune"] = steps
-    save_checkpoint(path, payload)
-    return {"bytes": codecs.nbytes(payload["model"]), "full_bytes": model_bytes(model), "spec": payload["spec"], **extra}

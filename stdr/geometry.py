@@ -9,7 +9,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from ..render.projection import quat_to_rotmat
+from .render.projection import quat_to_rotmat
 
 __all__ = ["so3_exp", "so3_log", "so3_exp_quat", "quat_multiply", "quat_to_rotmat", "farthest_point_sampling",
            "hat"]

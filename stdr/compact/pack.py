@@ -1,0 +1,106 @@
+"""The compact file of a model or of a trained run: the one place the trainer (`pack.enabled`,
+`compact=on`), `stdr-tool pack` and `stdr-tool compact` write it from.
+
+* `check_pack_config(cfg)`: the run's `pack` section (codecs, and what the enabled plug-ins
+  accept), checked before training so that a bad codec never costs a run;
+* `write_compact(model, path, spec, frames)`: encode (stdr.compact.file), fine-tune the
+  codebooks when the spec asks (stdr.compact.finetune), write atomically;
+* `pack(run_dir, ...)`: a trained run's file, and its renders against the full model's
+  (RUN/model.stdrc, RUN/pack.json).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Optional
+
+from ..config import load_config
+from ..data.load import load_scene
+from ..eval.evaluate import evaluate_model
+from ..io.checkpoint import CKPT, save_checkpoint
+from ..model import load_model, model_bytes, model_from_checkpoint
+from ..plugins import enabled_plugins, plugin_node
+from . import codecs
+from .file import SUFFIX, check_spec, encode_model
+from .finetune import finetune_codebooks, vq_entries
+
+
+def check_pack_config(cfg) -> Optional[dict]:
+    """The compact spec of a run config with `pack.enabled`, checked (its codecs, and each enabled
+    plug-in's view of them), or None when the run writes no compact file. A bad spec is a
+    ValueError naming `pack.codecs`."""
+    if not cfg.pack.enabled:
+        return None
+    try:
+        spec = check_spec(spec_of_config(cfg.pack))
+        for p in enabled_plugins(cfg):
+            p.plugin.check_compact_spec(plugin_node(cfg, p.name), spec)
+    except ValueError as e:
+        raise ValueError(f"pack.codecs: {e}") from None
+    return spec
+
+
+def write_compact(model, path: str | Path, spec: Optional[dict] = None, frames=None) -> dict[str, Any]:
+    """Write the compact file of `model` to `path` (atomic, checksummed). Returns {bytes (of its
+    tensors), full_bytes (the model's own tensors), spec}. With spec `finetune: STEPS` and `vq:C`
+    codecs, their codebooks are first fine-tuned for STEPS steps on `frames` (training frames;
+    stdr.compact.finetune), and the result has `finetune` (its losses)."""
+    payload = encode_model(model, spec)
+    steps = int((spec or {}).get("finetune") or 0)
+    extra = {}
+    if steps:
+        if not vq_entries(payload):
+            raise ValueError("compact spec finetune: no tensor is stored with a vq:C codec, so there is nothing to fine-tune")
+        if not frames:
+            raise ValueError("compact spec finetune: pass the training frames (stdr-tool pack loads them from the run's data)")
+        small = model_from_checkpoint(payload, next(model.params.values()).device, model.cfg)
+        extra["finetune"] = finetune_codebooks(payload, small, frames, steps)
+        payload["spec"]["finetune"] = steps
+    save_checkpoint(path, payload)
+    return {"bytes": codecs.nbytes(payload["model"]), "full_bytes": model_bytes(model), "spec": payload["spec"], **extra}
+
+
+def pack(run_dir: Path, out: Optional[Path] = None, spec: Optional[dict] = None, split: Optional[str] = "val",
+         data_base: Optional[str] = None) -> dict:
+    """The compact file of run_dir's model, and (split not None) its renders against the full model's."""
+    run_dir = Path(run_dir)
+    src = run_dir / CKPT
+    if not (run_dir / "config.yaml").is_file() or not src.is_file():
+        raise FileNotFoundError(f"{run_dir}: not a trained run (config.yaml and {CKPT} are needed)")
+    out = Path(out) if out is not None else run_dir / f"model{SUFFIX}"
+    cfg = load_config(run_dir / "config.yaml")
+    cfg.device = "cpu"
+    full = load_model(src, "cpu", cfg)
+    frames = None
+    if (spec or {}).get("finetune"):  # the codebooks' fine-tune renders the training frames
+        frames = load_scene(cfg.data, ("train",), base=data_base, seed=cfg.seed).frames("train")
+    rec = {"file": str(out), **write_compact(full, out, spec, frames)}
+    rec["ratio"] = rec["bytes"] / rec["full_bytes"]
+    if split:
+        scene = load_scene(cfg.data, (split,), base=data_base, seed=cfg.seed)
+        small = load_model(out, "cpu", cfg)
+        a = evaluate_model(full, scene.frames(split), fps_warmup=0)
+        b = evaluate_model(small, scene.frames(split), fps_warmup=0)
+        rec.update({"split": split, "full": {k: a[k] for k in ("psnr", "ssim")},
+                    "compact": {k: b[k] for k in ("psnr", "ssim")}, "delta_psnr": b["psnr"] - a["psnr"]})
+    (run_dir / "pack.json").write_text(json.dumps(rec, indent=1) + "\n")
+    return rec
+
+
+def spec_of_config(pcfg) -> dict:
+    """The compact spec of a run's `pack` config section (stdr.config.PackConfig)."""
+    spec = {str(k): str(v) for k, v in (pcfg.codecs or {}).items()}
+    if pcfg.get("finetune"):
+        spec["finetune"] = int(pcfg.finetune)
+    if pcfg.get("sh_degree") is not None:
+        spec["sh_degree"] = int(pcfg.sh_degree)
+    return spec
+
+
+def summary(rec: dict) -> str:
+    line = (f"[stdr] {rec['file']}: {rec['bytes'] / 2**20:.2f} MiB of tensors, {rec['ratio']:.1%} of the model's "
+            f"{rec['full_bytes'] / 2**20:.2f} MiB")
+    if "delta_psnr" in rec:
+        line += (f"; {rec['split']} PSNR {rec['compact']['psnr']:.2f} dB vs {rec['full']['psnr']:.2f} "
+                 f"({rec['delta_psnr']:+.3f})")
+    return line

@@ -1,0 +1,188 @@
+"""Hydra's side of the config: the ConfigStore kept in step with the registries, the derived
+experiments, the resolvers, and `compose_config`.
+
+`register()` stores the run and stdr-eval schemas (stdr.config), one option per registered
+baseline (`baseline=<name>`), densification strategy (`densify=<name>`) and plug-in
+(`<plug-in>=on|off`), and the experiments derived for every data option; a component registered
+later becomes an option at once (the registries call back). The resolvers are `stdr_schedule`
+(the derived `schedule` node), `stdr_experiments` (sweep lists) and `stdr_scene_path`.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import field
+from typing import Any, List
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import OmegaConf
+
+from .baselines import BASELINES
+from .baselines.registry import discover_baselines
+from .config import CONFIG_DIR, _schemas, resolve_schedule
+from .densify.strategy import STRATEGIES
+from .plugins import PLUGINS, registered_plugins
+
+
+def _schedule_resolver(*, _root_) -> dict:
+    return resolve_schedule(_root_).as_dict()
+
+
+def data_options() -> list[str]:
+    """The options of the `data` group (stdr/configs/data/*.yaml)."""
+    return sorted(p.stem for p in (CONFIG_DIR / "data").glob("*.yaml"))
+
+
+def _experiment_files() -> set[str]:
+    return {p.stem for p in (CONFIG_DIR / "experiment").glob("*.yaml")}
+
+
+def derived_experiments(name: str) -> dict[str, dict]:
+    """The experiments baseline `name` gets, for every data option: `<data>_<name>` (every
+    plug-in off) and `<data>_<name>_<plug-in>` for each registered plug-in (that one on), each
+    selecting data, baseline and plug-ins, plus what every experiment on that data adds
+    (stdr/configs/experiment_data/<data>.yaml, optional: e.g. init from the capture's points).
+    A YAML file stdr/configs/experiment/<same name>.yaml, when present, is used instead."""
+    files = _experiment_files()
+    plugins = [s.name for s in registered_plugins()]
+    out = {}
+    for d in data_options():
+        for on in (None, *plugins):
+            exp = f"{d}_{name}" + (f"_{on}" if on else "")
+            if exp not in files:
+                out[exp] = {"defaults": [{"optional /experiment_data": d}, {"override /data": d},
+                                         {"override /baseline": name},
+                                         *({f"override /{p}": "on" if p == on else "off"} for p in plugins)],
+                            "name": exp}
+    return out
+
+
+def experiment_names() -> list[str]:
+    """Every experiment `stdr-train experiment=<name>` accepts."""
+    return sorted(_experiment_files() | {e for b in BASELINES for e in derived_experiments(b)})
+
+
+def experiment_table() -> list[dict[str, Any]]:
+    """Every experiment with what it composes: {name, data, baseline, plugins (those on), source}.
+    source: `derived` (made here for each data option x baseline x plug-in: derived_experiments),
+    or the YAML file under stdr/configs/experiment/ that defines it (and overrides a derived one
+    of the same name); data / baseline / plugins are None for a file (its defaults say)."""
+    rows = []
+    for b in BASELINES:
+        for name, node in derived_experiments(b).items():
+            picks = {k.split("/")[-1]: v for d in node["defaults"] for k, v in d.items() if k.startswith("override /")}
+            rows.append({"name": name, "data": picks["data"], "baseline": picks["baseline"],
+                         "plugins": [p for p, v in picks.items() if v == "on"], "source": "derived"})
+    for f in sorted(_experiment_files()):
+        rows.append({"name": f, "data": None, "baseline": None, "plugins": None,
+                     "source": f"stdr/configs/experiment/{f}.yaml"})
+    return sorted(rows, key=lambda r: r["name"])
+
+
+_STORED: dict[str, set[str]] = {"baseline": set(), "experiment": set(), "plugin": set(), "densify": set()}
+_SYNCED: list = [None]  # the registries' contents at the last _sync_store
+
+
+def _registries() -> tuple:
+    """What the stored configs are made from: the registered baselines, plug-ins and densification
+    strategies (specs compare by name and class)."""
+    return tuple(BASELINES.values()), tuple(registered_plugins()), tuple(STRATEGIES.items())
+
+
+def _sync_store(*_) -> None:
+    """Keep Hydra's ConfigStore in step with the registries of baselines and plug-ins: the
+    schemas (base_config with a default `<plug-in>: off` for each plug-in, base_eval), the
+    options baseline=<name> (the registered dataclass: typed defaults) and <plug-in>=on|off, and
+    the derived experiments. Called on every (un)registration."""
+    cs = ConfigStore.instance()
+    run, ev = _schemas()
+    plugins = [s.name for s in registered_plugins()]
+    # the strategy's and the plug-ins' groups are selected by this defaults list (after the
+    # schema's own values)
+    stored = dataclasses.make_dataclass("BaseConfig", [("defaults", List[Any], field(
+        default_factory=lambda: ["_self_", {"densify": "default"}, *({p: "off"} for p in plugins)]))], bases=(run,))
+    cs.store(name="base_config", node=stored)
+    cs.store(name="base_eval", node=ev)
+    for name in _STORED["densify"] - set(STRATEGIES):
+        cs.repo.get("densify", {}).pop(f"{name}.yaml", None)
+    for name, cls in STRATEGIES.items():
+        cs.store(group="densify", name=name, node=cls)
+    _STORED["densify"] = set(STRATEGIES)
+    for group in _STORED["plugin"] - set(plugins):
+        cs.repo.pop(group, None)
+    for p in plugins:
+        cs.store(group=p, name="on", node={"enabled": True})
+        cs.store(group=p, name="off", node={"enabled": False})
+    _STORED["plugin"] = set(plugins)
+    for b in _STORED["baseline"] - set(BASELINES):
+        cs.repo.get("baseline", {}).pop(f"{b}.yaml", None)
+    for spec in BASELINES.values():
+        cs.store(group="baseline", name=spec.name, node=spec.config)
+    _STORED["baseline"] = set(BASELINES)
+    exps = {}
+    for b in BASELINES:
+        exps.update(derived_experiments(b))
+    for e in _STORED["experiment"] - set(exps):
+        cs.repo.get("experiment", {}).pop(f"{e}.yaml", None)
+    for e, node in exps.items():
+        cs.store(group="experiment", name=e, node=node, package="_global_")
+    _STORED["experiment"] = set(exps)
+    _SYNCED[0] = _registries()
+
+
+def experiments_on(data: str, *which: str) -> str:
+    """`${stdr_experiments:dnerf}`: every experiment on data option `data` (each registered
+    baseline, plain and with each plug-in) as a comma-separated sweep list;
+    `${stdr_experiments:dnerf,<plug-in>}` (or `plain`) only those."""
+    plugins = [s.name for s in registered_plugins()]
+    for w in which:
+        if w != "plain" and w not in plugins:
+            raise ValueError(f"stdr_experiments:{data},{w}: {w!r} is neither 'plain' nor a registered plug-in "
+                             f"({plugins})")
+    out = []
+    for b in sorted(BASELINES):
+        for on in (None, *plugins):
+            if not which or (on is None and "plain" in which) or on in which:
+                out.append(f"{data}_{b}" + (f"_{on}" if on else ""))
+    return ",".join(out)
+
+
+def _scene_path_resolver(root, name) -> str:
+    """`${stdr_scene_path:${data.root},${data.name}}` (the sweeps): root/name, or an error that
+    names the missing key (a null root must not become a path 'None/<scene>')."""
+    if root is None or root == "":
+        raise ValueError("data.root is not set: a sweep over scenes needs the dataset folder, e.g. "
+                         "data.root=/data/dnerf")
+    if name is None or name == "":
+        raise ValueError("data.name is not set: the scene folder under data.root")
+    return f"{root}/{name}"
+
+
+def register() -> None:
+    """Register the structured configs, every baseline and plug-in (and the ones registered later) and the
+    `stdr_schedule` / `stdr_experiments` resolvers with Hydra. Idempotent; the entry points call it."""
+    if not OmegaConf.has_resolver("stdr_schedule"):
+        OmegaConf.register_new_resolver("stdr_schedule", _schedule_resolver)
+    if not OmegaConf.has_resolver("stdr_experiments"):
+        OmegaConf.register_new_resolver("stdr_experiments", experiments_on)
+    if not OmegaConf.has_resolver("stdr_scene_path"):
+        OmegaConf.register_new_resolver("stdr_scene_path", _scene_path_resolver)
+    discover_baselines()  # baselines of other installed distributions (entry points)
+    registered_plugins()  # built-in plug-ins and those of other distributions
+    STRATEGIES.discover()  # strategies of other distributions
+    if _SYNCED[0] != _registries():  # (re-storing every node costs ~0.3 s; compose_config calls this each time)
+        _sync_store()
+    for registry in (BASELINES, PLUGINS, STRATEGIES):
+        registry.add_listener(_sync_store)
+
+
+
+
+def compose_config(overrides=(), config_name: str = "train", return_hydra_config: bool = False):
+    """The config `stdr-train` (config_name="train") or `stdr-eval` ("eval") would run with these
+    command-line overrides, composed with Hydra's compose API: for scripts, notebooks and tests
+    (return_hydra_config: with the `hydra` node, e.g. a launcher's or a sweep's settings)."""
+    from hydra import compose, initialize_config_dir
+
+    register()
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
+        return compose(config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)

@@ -1,0 +1,50 @@
+"""One training run of a composed config, start to end (`run_training`)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from ..compact.pack import check_pack_config, pack, summary
+from ..data.load import scene_folder
+from ..eval.table import collect, markdown, table_row
+from ..validate import check_run_config
+from .trainer import Trainer
+
+
+def run_training(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -> dict | None:
+    """One training run of a composed config (stdr-train, each job of a sweep, stdr-tool compact):
+    the config checked, run_dir/config.yaml written, trained, evaluated on data.eval_split, the
+    compact file written when pack.enabled, and the result row printed. Returns the evaluation
+    (None for a run stopped early by train.stop_at)."""
+    check_run_config(cfg, data_base)  # keys, values and paths, before anything is written or trained
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if not cfg.data.name:  # label for tables: the scene folder's name
+        cfg.data.name = scene_folder(cfg.data, data_base).name
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    split = cfg.data.eval_split
+    spec = check_pack_config(cfg)  # the compact file's codecs are checked before training, not after it
+    trainer = Trainer(cfg, run_dir, splits=("train", split), data_base=data_base)
+    print(f"[stdr] {cfg.name}: {len(trainer.scene.frames('train'))} train / "
+          f"{len(trainer.scene.frames(split))} {split} frames at "
+          f"{trainer.scene.frames('train')[0].camera.width}x{trainer.scene.frames('train')[0].camera.height}, "
+          f"device={trainer.device}, backend={trainer.backend}, run dir {run_dir}")
+    print(f"[stdr] TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
+    print(trainer.model.schedule.describe())
+    trainer.train()
+    if trainer.step < cfg.optim.iterations:  # train.stop_at: an unfinished run is not evaluated
+        return None
+    res = trainer.evaluate_final(split, cfg.eval)
+    warm = [h for h in trainer.history if h["tag"] == "static_warmup"]
+    lp = "n/a" if res["lpips"] is None else f"{res['lpips']:.4f}"
+    print(f"[stdr] {split}: PSNR {res['psnr']:.2f} dB  SSIM {res['ssim']:.4f}  LPIPS {lp}  "
+          f"FPS {res['fps']:.1f}  Gaussians {res['num_gaussians']}  train {res['train_seconds']:.0f} s")
+    if warm:
+        print(f"[stdr] static warm-up (iteration {warm[-1]['iteration']}): PSNR {warm[-1]['psnr']:.2f} dB "
+              f"-> final {res['psnr']:.2f} dB")
+    if spec is not None:  # the compact model file (compact=on): RUN/model.stdrc and RUN/pack.json
+        print(summary(pack(run_dir, spec=spec, split=split if cfg.pack.evaluate else None,
+                           data_base=data_base)))
+    print(markdown(collect([table_row(OmegaConf.to_container(cfg, resolve=True), split, res, str(run_dir))])))
+    print(f"[stdr] metrics: {run_dir / 'metrics.json'}  (tables over runs: stdr-eval RUN_DIR ...)")
+    return res
