@@ -67,7 +67,7 @@ def main(argv=None):
                 if i >= args.warmup_iters:
                     times.append(time.perf_counter() - t0)
             s = statistics.median(times)
-            row = {"gaussians": tr.model.num_gaussians, "seconds_per_iter": s,
+            row = {"gaussians": tr.state.model.num_gaussians, "seconds_per_iter": s,
                    "iterations": cfg.optim.iterations, "hours_for_schedule": s * cfg.optim.iterations / 3600}
             rows.append(row)
             print(f"N={row['gaussians']:>8,}  {s:.3f} s/iter  -> {row['hours_for_schedule']:.1f} h for "

@@ -35,11 +35,11 @@ def overrides(iterations: int, cache: Path) -> list[str]:
 
 def mask_by_place(t: Trainer) -> dict:
     opt = SceneOptions(**OmegaConf.to_container(t.cfg.data.procedural))
-    at_a = torch.from_numpy(jump_at_a(t.model.plugin("stdr").knots.numpy(), opt))
-    a = torch.sigmoid(t.model.params[MASK_KEY].detach())
+    at_a = torch.from_numpy(jump_at_a(t.state.model.plugin("stdr").knots.numpy(), opt))
+    a = torch.sigmoid(t.state.model.params[MASK_KEY].detach())
     out = {}
     for name, place, on in (("A", JUMP_A, at_a), ("B", JUMP_B, ~at_a)):
-        near = (t.model.params["means"].detach() - torch.tensor(place, dtype=torch.float32)).norm(dim=1) < 0.3
+        near = (t.state.model.params["means"].detach() - torch.tensor(place, dtype=torch.float32)).norm(dim=1) < 0.3
         out[name] = {"gaussians_near": int(near.sum()), "mask_at_own_times": float(a[near][:, on].mean()),
                      "mask_at_other_times": float(a[near][:, ~on].mean())}
     return out
@@ -62,8 +62,8 @@ def main(argv=None):
             t.train()
             ev = t.evaluate("test")
             res[exp] = {"psnr": ev["psnr"], "per_frame_psnr": ev["per_frame_psnr"],
-                        "num_gaussians": ev["num_gaussians"], "train_seconds": t.train_seconds}
-            if t.model.plugin("stdr") is not None:
+                        "num_gaussians": ev["num_gaussians"], "train_seconds": t.state.train_seconds}
+            if t.state.model.plugin("stdr") is not None:
                 res[exp]["mask_by_place"] = mask_by_place(t)
             print(exp, json.dumps(res[exp]))
     if args.out:

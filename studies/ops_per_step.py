@@ -94,7 +94,7 @@ def count(exp: str, scene: Path, overrides: list[str]) -> dict:
         compute = dict(tr.profile.compute)
         compute["other"] = oc.compute - sum(compute.values())
         return {"experiment": exp, "ops": oc.ops, "compute_ops": oc.compute, "sections": sections,
-                "compute_sections": compute, "backend": tr.backend, "gaussians": tr.model.num_gaussians,
+                "compute_sections": compute, "backend": tr.backend, "gaussians": tr.state.model.num_gaussians,
                 "top_compute": {s: c.most_common(8) for s, c in tr.profile.by_op.items() if c}}
 
 

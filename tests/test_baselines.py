@@ -370,9 +370,9 @@ def test_resume_is_exact_across_the_baseline_stages(tmp_path, name):
     b = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "b")
     b.train()  # resumes at 30
     assert a.step == b.step == 60
-    for k in a.model.params:
-        assert torch.equal(a.model.params[k], b.model.params[k]), k
-    for (ka, va), (kb, vb) in zip(a.model.deform.state_dict().items(), b.model.deform.state_dict().items()):
+    for k in a.state.model.params:
+        assert torch.equal(a.state.model.params[k], b.state.model.params[k]), k
+    for (ka, va), (kb, vb) in zip(a.state.model.deform.state_dict().items(), b.state.model.deform.state_dict().items()):
         assert torch.equal(va, vb), ka
 
 

@@ -149,7 +149,7 @@ def test_the_compact_file_round_trips_through_load_model(tmp_path, experiment):
     from stdr.eval.evaluate import evaluate_model
     from stdr.model import load_model
     t = _trained(tmp_path, experiment)
-    full = t.model
+    full = t.state.model
     path = tmp_path / "model.stdrc"
     rec = write_compact(full, path)
     assert rec["bytes"] < rec["full_bytes"]
@@ -187,7 +187,7 @@ def test_stdr_mask_codecs_read_back_as_the_8_bit_mask(tmp_path):
     from stdr.plugins.stdr.mask import quantize
     from stdr.plugins.stdr.plugin import MASK_KEY
     t = _trained(tmp_path, "embedded_deform_stdr")
-    full = t.model
+    full = t.state.model
     assert full.params[MASK_KEY].is_floating_point()
     write_compact(full, tmp_path / "m8.stdrc", {MASK_KEY: "q8"})
     m8 = load_model(tmp_path / "m8.stdrc", "cpu").params[MASK_KEY]
@@ -218,7 +218,7 @@ def test_the_derived_mask_stores_the_fields_output_and_renders_the_same(tmp_path
     from stdr.model import load_model
     from stdr.plugins.stdr.plugin import COND_KEY, MASK_KEY
     t = _trained(tmp_path, "embedded_deform_stdr", ["stdr.mask_after_freeze=false"])
-    full = t.model
+    full = t.state.model
     n, k = full.params[MASK_KEY].shape
     cond_dim = full.plugin("stdr").cond_dim
     payload = encode_model(full, {MASK_KEY: "derived", COND_KEY: "f32"})
@@ -249,12 +249,12 @@ def test_the_derived_mask_stores_the_fields_output_and_renders_the_same(tmp_path
             a, b = evaluate_model(full, frames, fps_warmup=0), evaluate_model(small, frames, fps_warmup=0)
             for pa, pb in zip(a["per_frame_psnr"], b["per_frame_psnr"]):
                 assert abs(pa - pb) < 0.05, (pa, pb)
-    gated = _trained(tmp_path / "gated", "embedded_deform_stdr", ["stdr.mask_after_freeze=true"]).model
+    gated = _trained(tmp_path / "gated", "embedded_deform_stdr", ["stdr.mask_after_freeze=true"]).state.model
     with pytest.raises(ValueError, match=r"stdr_mask=derived.*stdr.mask_after_freeze=true"):
         encode_model(gated, {MASK_KEY: "derived"})
     # one spec serves every method (the compact preset's): a model without the mask stores no mask
     # entry and writes what the spec's other codecs make of it
-    plain = _trained(tmp_path / "plain", "embedded_deform").model
+    plain = _trained(tmp_path / "plain", "embedded_deform").state.model
     with_mask_key, without = encode_model(plain, {MASK_KEY: "derived"}), encode_model(plain)
     assert MASK_KEY not in with_mask_key["spec"] and MASK_KEY not in with_mask_key["model"]["params"]
     assert with_mask_key["spec"] == without["spec"]
@@ -271,7 +271,7 @@ def test_state_rules_quantize_4dgs_grid_planes_per_channel_and_leave_the_network
     channel's range; the networks, under `state` f32, read back exactly."""
     from stdr.model import load_model
     t = _trained(tmp_path, "embedded_4dgs")
-    full = t.model
+    full = t.state.model
     rec = write_compact(full, tmp_path / "g4.stdrc", {"state": "f32", "state:grids": "q4"})
     assert rec["spec"]["state:grids"] == "q4"
     small = load_model(tmp_path / "g4.stdrc", "cpu")
@@ -298,8 +298,8 @@ def test_the_codebook_fine_tune_lowers_the_training_loss_and_moves_only_the_code
     t = _trained(tmp_path, "embedded_deform", ["model.sh_interval=5"])
     frames = t.scene.frames("train")
     spec = {"shN": "vq:8"}
-    plain = write_compact(t.model, tmp_path / "vq.stdrc", spec)
-    tuned = write_compact(t.model, tmp_path / "ft.stdrc", {**spec, "finetune": 60}, frames)
+    plain = write_compact(t.state.model, tmp_path / "vq.stdrc", spec)
+    tuned = write_compact(t.state.model, tmp_path / "ft.stdrc", {**spec, "finetune": 60}, frames)
     assert tuned["spec"]["finetune"] == 60 and tuned["finetune"]["steps"] == 60 and tuned["bytes"] == plain["bytes"]
     a, b = load_model(tmp_path / "vq.stdrc", "cpu"), load_model(tmp_path / "ft.stdrc", "cpu")
     for k in a.params:
@@ -316,7 +316,7 @@ def test_the_codebook_fine_tune_lowers_the_training_loss_and_moves_only_the_code
             return sum(float(image_loss(m.render(f.camera, f.time).image, f.image, 0.2)[0]) for f in frames)
     assert loss(b) < loss(a)
     with pytest.raises(ValueError, match="nothing to fine-tune"):
-        write_compact(t.model, tmp_path / "x.stdrc", {"finetune": 10}, frames)
+        write_compact(t.state.model, tmp_path / "x.stdrc", {"finetune": 10}, frames)
 
 
 def test_the_fine_tune_leaves_a_codebook_no_gradient_reaches_and_tunes_the_others(tmp_path):
@@ -328,8 +328,8 @@ def test_the_fine_tune_leaves_a_codebook_no_gradient_reaches_and_tunes_the_other
     t = _trained(tmp_path, "embedded_deform_stdr", ["stdr.mask_after_freeze=false", "model.sh_interval=5"])
     frames = t.scene.frames("train")
     spec = {"shN": "vq:8", MASK_KEY: "derived", COND_KEY: "vq:16"}
-    write_compact(t.model, tmp_path / "vq.stdrc", spec)
-    rec = write_compact(t.model, tmp_path / "ft.stdrc", {**spec, "finetune": 20}, frames)
+    write_compact(t.state.model, tmp_path / "vq.stdrc", spec)
+    rec = write_compact(t.state.model, tmp_path / "ft.stdrc", {**spec, "finetune": 20}, frames)
     assert rec["finetune"]["keys"] == ["shN"] and rec["finetune"]["fixed"] == [COND_KEY]
     a, b = load_model(tmp_path / "vq.stdrc", "cpu"), load_model(tmp_path / "ft.stdrc", "cpu")
     assert torch.equal(a.params[COND_KEY], b.params[COND_KEY])
@@ -371,7 +371,7 @@ def test_the_sh_rest_kept_to_a_lower_degree_renders_as_that_degree(tmp_path):
     higher bands at zero, so it renders as the full model with those bands zeroed."""
     from stdr.model import load_model
     t = _trained(tmp_path, "embedded_deform", ["model.sh_interval=5"])
-    full = t.model
+    full = t.state.model
     exact = {k: "f32" for k in ("means", "scales", "quats", "opacities", "sh0", "shN", "*", "state")}
     rec = write_compact(full, tmp_path / "d1.stdrc", {**exact, "sh_degree": 1})
     assert rec["spec"]["sh_degree"] == 1
@@ -393,7 +393,7 @@ def test_a_file_from_a_newer_version_is_refused_with_a_clear_error(tmp_path):
     from stdr.model import load_model
     from stdr.io.checkpoint import load_checkpoint, save_checkpoint
     t = _trained(tmp_path, "embedded_deform")
-    payload = encode_model(t.model)
+    payload = encode_model(t.state.model)
     assert payload["format"] == FORMAT and payload["version"] == VERSION
     payload["version"] = VERSION + 1
     save_checkpoint(tmp_path / "new.stdrc", payload)
@@ -405,6 +405,6 @@ def test_a_file_from_a_newer_version_is_refused_with_a_clear_error(tmp_path):
         p["model"]["params"]["scales"]["codec"] = "zstd"
         decode_model(p)
     with pytest.raises(ValueError, match="compact spec shN='q3'"):
-        encode_model(t.model, {"shN": "q3"})
+        encode_model(t.state.model, {"shN": "q3"})
     with pytest.raises(ValueError, match="write vq:<C codewords>"):
-        encode_model(t.model, {"shN": "vq"})
+        encode_model(t.state.model, {"shN": "vq"})

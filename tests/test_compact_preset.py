@@ -53,14 +53,14 @@ def test_the_preset_trains_every_baseline_with_stdr_into_a_pruned_model(tmp_path
     tr = Trainer(tiny_config(tmp_path, [f"baseline={baseline}", "stdr=on", "compact=on", *SCHED]), tmp_path / "r")
     tr.train()
     share = float(ON.prune.share)
-    steps = [e["step"] for e in tr.prune_log]
+    steps = [e["step"] for e in tr.state.prune_log]
     assert steps == sorted({40 if a == "refine_stop" else round(float(a) * 60) for a in ON.prune.at})
-    for ev in tr.prune_log:  # no densification after step 40: each event alone changes the count
+    for ev in tr.state.prune_log:  # no densification after step 40: each event alone changes the count
         assert ev["after"] == ev["before"] - int(share * ev["before"])
-    assert tr.model.num_gaussians == tr.prune_log[-1]["after"]
+    assert tr.state.model.num_gaussians == tr.state.prune_log[-1]["after"]
     bits = OmegaConf.select(ON, "stdr.mask_bits", default=32)
-    assert tr.model.params["stdr_mask"].dtype == (torch.uint8 if bits == 8 else torch.float32)
-    assert tr.model.params["stdr_mask"].shape[0] == tr.model.num_gaussians
+    assert tr.state.model.params["stdr_mask"].dtype == (torch.uint8 if bits == 8 else torch.float32)
+    assert tr.state.model.params["stdr_mask"].shape[0] == tr.state.model.num_gaussians
 
 
 @pytest.mark.parametrize("gated", [False, True])

@@ -45,14 +45,14 @@ def test_compiled_training_is_deterministic_on_the_cpu(tmp_path):
     runs = []
     for name in ("a", "b"):
         tr = Trainer(tiny_config(tmp_path, sched), tmp_path / name)
-        assert tr.model.deform._compiled is not None
+        assert tr.state.model.deform._compiled is not None
         tr.train()
         runs.append(tr)
     a, b = runs
-    assert a.model.params.keys() == b.model.params.keys()
-    for k in a.model.params:
-        assert torch.equal(a.model.params[k], b.model.params[k]), k
-    for (ka, va), (kb, vb) in zip(a.model.deform.state_dict().items(), b.model.deform.state_dict().items()):
+    assert a.state.model.params.keys() == b.state.model.params.keys()
+    for k in a.state.model.params:
+        assert torch.equal(a.state.model.params[k], b.state.model.params[k]), k
+    for (ka, va), (kb, vb) in zip(a.state.model.deform.state_dict().items(), b.state.model.deform.state_dict().items()):
         assert torch.equal(va, vb), ka
 
 

@@ -56,7 +56,7 @@ def _render_and_grads(model, frame, cull, seed=1):
 @pytest.mark.parametrize("steps", [10, 60])  # static warm-up; after STDR's freeze and the baseline's stages
 def test_culled_render_equals_the_full_one(tmp_path, name, steps):
     tr = _trained(tmp_path, name, steps)
-    model = tr.model.eval()  # eval mode: no dropout, so both renders see one network
+    model = tr.state.model.eval()  # eval mode: no dropout, so both renders see one network
     _switch_off_entries(model, 0.6, seed=steps)
     for frame in (tr.scene.frames("train")[3], tr.scene.frames("test")[1]):  # a knot and a time between knots
         img_a, ga, na, rows_a = _render_and_grads(model, frame, cull=False)
@@ -89,7 +89,7 @@ def test_after_the_freeze_the_default_culls_by_the_gaussians_own_opacity_only(tm
     the mask switches off at t is rendered, and the rows kept are those whose own opacity reaches
     1/255; the culled render still equals the full one."""
     tr = _trained(tmp_path, "deform", 60, ["stdr.mask_after_freeze=false"])
-    model = tr.model.eval()
+    model = tr.state.model.eval()
     assert model.step >= model.plugin("stdr").freeze_at
     _switch_off_entries(model, 0.6, seed=3)
     with torch.no_grad():
@@ -155,7 +155,7 @@ def test_training_with_culling_equals_training_without(tmp_path):
         tr = _trained(d, "deform", 60, ["densify.count_invisible=false", f"render.cull={mode}",
                                         "stdr.freeze_cleanup=0.01"])
         runs[mode] = tr
-    a, b = runs["off"].model, runs["train"].model
+    a, b = runs["off"].state.model, runs["train"].state.model
     assert a.num_gaussians == b.num_gaussians
     for k in a.params:
         diff = (a.params[k] - b.params[k]).abs().max().item()
@@ -170,12 +170,12 @@ def test_training_with_culling_equals_training_without(tmp_path):
 def test_evaluation_reports_the_gaussians_rendered_per_frame(tmp_path):
     from stdr.eval.evaluate import evaluate_model
     tr = _trained(tmp_path, "deform", 60)
-    _switch_off_entries(tr.model, 0.6, seed=0)
-    tr.model.cfg.render.cull = "eval"
-    res = evaluate_model(tr.model, tr.scene.frames("test"))
-    tr.model.cfg.render.cull = "off"
-    ref = evaluate_model(tr.model, tr.scene.frames("test"))
-    n = tr.model.num_gaussians
+    _switch_off_entries(tr.state.model, 0.6, seed=0)
+    tr.state.model.cfg.render.cull = "eval"
+    res = evaluate_model(tr.state.model, tr.scene.frames("test"))
+    tr.state.model.cfg.render.cull = "off"
+    ref = evaluate_model(tr.state.model, tr.scene.frames("test"))
+    n = tr.state.model.num_gaussians
     assert res["render_cull"] == "eval" and ref["render_cull"] == "off"
     assert ref["active_gaussians_mean"] == ref["active_gaussians_max"] == n
     assert res["active_gaussians_mean"] <= res["active_gaussians_max"] < n

@@ -69,8 +69,8 @@ def test_no_step_creates_a_tensor_on_a_hard_coded_device(tmp_path, name):
         b.train()  # resumes at 35 from the checkpoint
         res = b.evaluate_final("test")
     assert b.step == a.step == 60
-    for k in a.model.params:
-        assert b.model.params[k].device.type == "cpu" and torch.equal(a.model.params[k], b.model.params[k]), k
+    for k in a.state.model.params:
+        assert b.state.model.params[k].device.type == "cpu" and torch.equal(a.state.model.params[k], b.state.model.params[k]), k
     assert res["psnr"] == pytest.approx(a.evaluate("test")["psnr"], abs=1e-6)
     entry = json.loads((tmp_path / "b" / "metrics.json").read_text())["test"]
     conv = entry["conventions"]
@@ -93,13 +93,13 @@ def test_training_on_cuda_keeps_every_tensor_there_and_resumes(tmp_path, name):
     a = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "a", splits=("train", "test"))
     assert a.backend == "cuda"
     a.train()
-    for k, p in a.model.params.items():
+    for k, p in a.state.model.params.items():
         assert p.device.type == "cuda", k
-        for v in a.optimizers[k].state[p].values():
+        for v in a.state.optimizers[k].state[p].values():
             assert not torch.is_tensor(v) or v.dim() == 0 or v.device.type == "cuda", k
-    assert all(v.device.type == "cuda" for v in a.strategy_state.values() if torch.is_tensor(v))
-    assert all(p.device.type == "cuda" for p in a.model.deform.parameters())
-    assert all(p.device.type == "cuda" for p in a.model.plugin("stdr").field.parameters())
+    assert all(v.device.type == "cuda" for v in a.state.strategy_state.values() if torch.is_tensor(v))
+    assert all(p.device.type == "cuda" for p in a.state.model.deform.parameters())
+    assert all(p.device.type == "cuda" for p in a.state.model.plugin("stdr").field.parameters())
     assert a.scene.frames("train")[0].image.device.type == "cuda"
     Trainer(_tiny(tmp_path, sched + ["optim.iterations=60", "train.stop_at=35"]), tmp_path / "b").train()
     b = Trainer(_tiny(tmp_path, sched + ["optim.iterations=60"]), tmp_path / "b", splits=("train", "test"))
@@ -132,11 +132,11 @@ def test_training_with_the_speed_keys_on_cuda_through_prunes_resets_and_a_recove
     runs = {}
     for label, keys in (("fast", SPEED_KEYS), ("torch", [k.replace("=true", "=false") for k in SPEED_KEYS])):
         t = Trainer(_tiny(tmp_path, sched + keys), tmp_path / label, splits=("train", "test"))
-        assert (t.fused_loss, t.guard.compiled, t.guard.sync_free) == ((True,) * 3 if label == "fast" else (False,) * 3)
+        assert (t.fused_loss, t.state.guard.compiled, t.state.guard.sync_free) == ((True,) * 3 if label == "fast" else (False,) * 3)
         t.train()
         torch.cuda.synchronize()
         assert t.step == 150
-        assert all(bool(torch.isfinite(p).all()) for p in t.model.params.values())
-        assert [r["step"] for r in t.guard.recoveries] == [57], t.guard.recoveries
+        assert all(bool(torch.isfinite(p).all()) for p in t.state.model.params.values())
+        assert [r["step"] for r in t.state.guard.recoveries] == [57], t.state.guard.recoveries
         runs[label] = t.evaluate("test")["psnr"]
     assert abs(runs["fast"] - runs["torch"]) < 1.0, runs

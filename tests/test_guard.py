@@ -27,10 +27,10 @@ def _trainer(tmp_path, name, extra=()):
 
 
 def _same_params(a, b):
-    assert a.model.params.keys() == b.model.params.keys()
-    for k in a.model.params:
-        assert torch.equal(a.model.params[k], b.model.params[k]), k
-    for (ka, va), (kb, vb) in zip(a.model.deform.state_dict().items(), b.model.deform.state_dict().items()):
+    assert a.state.model.params.keys() == b.state.model.params.keys()
+    for k in a.state.model.params:
+        assert torch.equal(a.state.model.params[k], b.state.model.params[k]), k
+    for (ka, va), (kb, vb) in zip(a.state.model.deform.state_dict().items(), b.state.model.deform.state_dict().items()):
         assert ka == kb and torch.equal(va, vb), ka
 
 
@@ -58,7 +58,7 @@ def test_guard_changes_nothing_without_a_fault(tmp_path, name):
     on.train()
     off = _trainer(tmp_path, "off", extra + ["train.guard.enabled=false"])
     off.train()
-    assert on.step == off.step == 60 and on.guard.recoveries == []
+    assert on.step == off.step == 60 and on.state.guard.recoveries == []
     _same_params(on, off)
 
 
@@ -94,17 +94,17 @@ def test_recovery_restores_the_snapshot_exactly_and_lowers_every_lr(tmp_path):
     ref.train()  # the state after 10 steps
     tr = _trainer(tmp_path, "tr", ["train.stop_at=25"])
     tr.train()  # snapshots at 0, 10, 20
-    assert tr.guard.snapshot["model"]["step"] == 20
-    tr.guard.snapshot = tr.guard.best_snapshot = None
+    assert tr.state.guard.snapshot["model"]["step"] == 20
+    tr.state.guard.snapshot = tr.state.guard.best_snapshot = None
     tr2 = _trainer(tmp_path, "tr2", ["train.stop_at=17"])
     tr2.train()  # last snapshot: step 10
-    tr2.guard.recover(tr2.state, tr2.log, "a test")
-    assert tr2.step == 10 and tr2.guard.lr_scale == 0.5
+    tr2.state.guard.recover(tr2.state, tr2.log, "a test")
+    assert tr2.step == 10 and tr2.state.guard.lr_scale == 0.5
     _same_params(ref, tr2)
     tr2._update_lrs(tr2.step)
-    for k, o in tr2.optimizers.items():
+    for k, o in tr2.state.optimizers.items():
         assert o.param_groups[0]["lr"] == pytest.approx(0.5 * tr2._lr(k, 10), rel=1e-12), k
-    for spec, g in zip(tr2.net_groups, tr2.net_opt.param_groups):
+    for spec, g in zip(tr2.net_groups, tr2.state.net_opt.param_groups):
         assert g["lr"] == pytest.approx(0.5 * tr2._net_lr(spec, 10), rel=1e-12)
 
 
@@ -117,7 +117,7 @@ def test_too_many_recoveries_stop_with_a_clear_error_and_a_good_checkpoint(tmp_p
                                      f"train.guard.sync_free={sync_free}", "train.log_every=50"])
     with pytest.raises(TrainingDiverged, match=r"max_recoveries=2.*last good state \(iteration 30\)"):
         tr.train()
-    recs = tr.guard.recoveries
+    recs = tr.state.guard.recoveries
     assert [r["step"] for r in recs] == [12, 23, 34] and [r["stopped"] for r in recs] == [False, False, True]
     assert [r["restored_to"] for r in recs] == [10, 20, 30]
     assert [r["found_at"] for r in recs] == ([20, 30, 40] if sync_free == "true" else [12, 23, 34])
@@ -136,8 +136,8 @@ def test_the_sync_free_check_recovers_exactly_as_the_check_of_every_step(tmp_pat
     free.train()
     each = _trainer(tmp_path, "each", nan + ["train.guard.sync_free=false"])
     each.train()
-    assert free.guard.sync_free and not each.guard.sync_free
-    (a,), (b,) = free.guard.recoveries, each.guard.recoveries
+    assert free.state.guard.sync_free and not each.state.guard.sync_free
+    (a,), (b,) = free.state.guard.recoveries, each.state.guard.recoveries
     assert a["found_at"] == 20 and b["found_at"] == 15
     assert {k: v for k, v in a.items() if k not in ("found_at", "train_seconds")} == \
         {k: v for k, v in b.items() if k not in ("found_at", "train_seconds")}
@@ -146,44 +146,44 @@ def test_the_sync_free_check_recovers_exactly_as_the_check_of_every_step(tmp_pat
 
 def test_a_faulty_step_applies_nothing_until_the_flag_is_read(tmp_path):
     tr = _trainer(tmp_path, "flag", ["train.guard.inject_nan_grad_at=[1]", "train.guard.sync_free=true"])
-    before = {k: v.detach().clone() for k, v in tr.model.params.items()}
+    before = {k: v.detach().clone() for k, v in tr.state.model.params.items()}
     tr.train_step()  # step 1: NaN in the gradient of the means
-    assert float(tr.guard.flag) == 1.0
-    for k, v in tr.model.params.items():
+    assert float(tr.state.guard.flag) == 1.0
+    for k, v in tr.state.model.params.items():
         assert torch.equal(v, before[k]), k
-        st = tr.optimizers[k].state.get(v, {}) if k in tr.optimizers else {}
+        st = tr.state.optimizers[k].state.get(v, {}) if k in tr.state.optimizers else {}
         assert "step" not in st or float(st["step"]) == 0, k  # Adam's step count did not advance
     tr.train_step()  # a clean step: still nothing applied until the flag is read
-    for k, v in tr.model.params.items():
+    for k, v in tr.state.model.params.items():
         assert torch.equal(v, before[k]), k
-    assert tr.guard.poll() == (1, "non-finite grad of means") and tr.guard.poll() is None
+    assert tr.state.guard.poll() == (1, "non-finite grad of means") and tr.state.guard.poll() is None
 
 
 def test_the_sync_free_check_needs_fused_adam(tmp_path):
     with pytest.raises(ValueError, match=r"train.guard.sync_free=true needs optim.fused_adam=true"):
         _trainer(tmp_path, "x", ["optim.fused_adam=false", "train.guard.sync_free=true"])
     tr = _trainer(tmp_path, "y", ["optim.fused_adam=false"])  # null: the check of every step
-    assert not tr.guard.sync_free and tr.guard.summary(None)["check"] == "every step"
+    assert not tr.state.guard.sync_free and tr.state.guard.summary(None)["check"] == "every step"
 
 
 @pytest.mark.slow
 def test_divergence_restores_the_best_evaluation(tmp_path):
     tr = _trainer(tmp_path, "div", ["optim.iterations=20", "baseline.warmup=10", "train.guard.divergence_db=5"])
     tr.train()
-    tr.guard.after_evaluation(tr.state, tr.log, 20.0)  # the best so far, at step 20
-    best_params = {k: v.detach().clone() for k, v in tr.model.params.items()}
+    tr.state.guard.after_evaluation(tr.state, tr.log, 20.0)  # the best so far, at step 20
+    best_params = {k: v.detach().clone() for k, v in tr.state.model.params.items()}
     tr.cfg.optim.iterations = 30
     tr.train()  # resumes from its own checkpoint (step 20) and goes on to 30
     assert tr.step == 30
-    tr.guard.after_evaluation(tr.state, tr.log, 16.0)  # 4 dB down: within the tolerance
-    assert tr.step == 30 and tr.guard.recoveries == []
-    tr.guard.after_evaluation(tr.state, tr.log, 14.0)  # 6 dB down: diverged
-    assert tr.step == 20 and len(tr.guard.recoveries) == 1
-    assert tr.guard.recoveries[0]["reason"].startswith("divergence") and tr.guard.lr_scale == 0.5
+    tr.state.guard.after_evaluation(tr.state, tr.log, 16.0)  # 4 dB down: within the tolerance
+    assert tr.step == 30 and tr.state.guard.recoveries == []
+    tr.state.guard.after_evaluation(tr.state, tr.log, 14.0)  # 6 dB down: diverged
+    assert tr.step == 20 and len(tr.state.guard.recoveries) == 1
+    assert tr.state.guard.recoveries[0]["reason"].startswith("divergence") and tr.state.guard.lr_scale == 0.5
     for k, v in best_params.items():
-        assert torch.equal(tr.model.params[k], v), k
-    tr.guard.after_evaluation(tr.state, tr.log, float("nan"))  # a non-finite evaluation is a recovery too
-    assert "non-finite evaluation" in tr.guard.recoveries[-1]["reason"]
+        assert torch.equal(tr.state.model.params[k], v), k
+    tr.state.guard.after_evaluation(tr.state, tr.log, float("nan"))  # a non-finite evaluation is a recovery too
+    assert "non-finite evaluation" in tr.state.guard.recoveries[-1]["reason"]
 
 
 @pytest.mark.slow
@@ -195,7 +195,7 @@ def test_a_run_with_a_recovery_resumes_exactly(tmp_path):
     b1.train()  # recovers at 15, stops at 35 (checkpoints at 10, 20, 30 and 35)
     b2 = _trainer(tmp_path, "b", nan + ["train.checkpoint_every=10"])
     b2.train()
-    assert a.guard.lr_scale == b2.guard.lr_scale == 0.5 and len(b2.guard.recoveries) == 1
+    assert a.state.guard.lr_scale == b2.state.guard.lr_scale == 0.5 and len(b2.state.guard.recoveries) == 1
     _same_params(a, b2)
 
 
@@ -405,11 +405,11 @@ def test_the_compiled_check_is_the_default_on_the_cpu_and_finds_the_same_fault(t
         tr = _trainer(tmp_path, key, [f"train.guard.compiled={key}", "train.guard.inject_nan_grad_at=[25]"])
         tr.train()
         runs[key] = tr
-    assert runs["null"].guard.compiled and not runs["false"].guard.compiled
+    assert runs["null"].state.guard.compiled and not runs["false"].state.guard.compiled
     def when(tr):  # each recovery but its clock
-        return [{k: v for k, v in r.items() if k != "train_seconds"} for r in tr.guard.recoveries]
+        return [{k: v for k, v in r.items() if k != "train_seconds"} for r in tr.state.guard.recoveries]
     assert when(runs["null"]) == when(runs["false"]) and len(when(runs["null"])) == 1
-    assert runs["null"].guard.recoveries[0]["reason"] == "non-finite grad of means"
+    assert runs["null"].state.guard.recoveries[0]["reason"] == "non-finite grad of means"
     _same_params(runs["null"], runs["false"])
 
 
@@ -438,11 +438,11 @@ def test_an_evaluation_right_after_an_opacity_reset_is_no_divergence(tmp_path):
     lost = _trainer(tmp_path, "lost", keys + ["train.guard.after_reset=0"])
     with pytest.raises(TrainingDiverged, match="divergence"):
         lost.train()
-    assert {r["found_at"] for r in lost.guard.recoveries} == {120}
+    assert {r["found_at"] for r in lost.state.guard.recoveries} == {120}
     tr = _trainer(tmp_path, "kept", keys)  # the default window, 500 steps
     tr.train()
-    assert tr.guard.recoveries == [] and tr.step == 140
-    assert [h["iteration"] for h in tr.history if h["tag"] == "periodic"][-2:] == [100, 120]
-    assert tr.guard.best["step"] < 120  # the evaluations after the reset are neither best nor compared
-    tr.guard.after_evaluation(tr.state, tr.log, tr.guard.best["psnr"] - 10)  # far from a reset: compared
-    assert len(tr.guard.recoveries) == 1
+    assert tr.state.guard.recoveries == [] and tr.step == 140
+    assert [h["iteration"] for h in tr.state.history if h["tag"] == "periodic"][-2:] == [100, 120]
+    assert tr.state.guard.best["step"] < 120  # the evaluations after the reset are neither best nor compared
+    tr.state.guard.after_evaluation(tr.state, tr.log, tr.state.guard.best["psnr"] - 10)  # far from a reset: compared
+    assert len(tr.state.guard.recoveries) == 1

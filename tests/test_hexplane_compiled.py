@@ -133,7 +133,7 @@ def test_4dgs_trains_with_it_and_the_key_composes(tmp_path, monkeypatch):
         tr = Trainer(cfg, tmp_path / setting / "run", splits=("train",))
         loss[setting] = float(tr.train_step()["loss"])
         assert calls == (["cpu"] if setting == "null" else []), setting
-        assert all(p.grad is None for p in tr.model.deform.grid.parameters())  # stepped and cleared
+        assert all(p.grad is None for p in tr.state.model.deform.grid.parameters())  # stepped and cleared
     assert abs(loss["null"] - loss["false"]) <= 1e-6 * abs(loss["false"])
 
 

@@ -107,24 +107,24 @@ def test_a_plugin_trains_through_the_hooks_alone(tmp_path, tagger):
     from stdr.train.trainer import Trainer
     t = Trainer(_tiny(tmp_path, SCHED + ["experiment=embedded_deform", "tagger=on"]), tmp_path / "run",
                 splits=("train", "test"))
-    p = t.model.plugin("tagger")
-    assert p is Tagger.made[-1] and t.model.deform.cond_dim == 2   # the network is built for its conditioning
-    n0 = t.model.num_gaussians
+    p = t.state.model.plugin("tagger")
+    assert p is Tagger.made[-1] and t.state.model.deform.cond_dim == 2   # the network is built for its conditioning
+    n0 = t.state.model.num_gaussians
     logs = None
     for _ in range(40):
         logs = t.train_step()
     # per-Gaussian state stays aligned through densification, and trains at its own lr
-    assert t.model.num_gaussians != n0 and t.model.params["tag"].shape == (t.model.num_gaussians, 1)
-    assert t.optimizers["tag"].param_groups[0]["lr"] == 0.01
-    assert float(t.model.params["tag"].detach().mean()) > 0.0  # pulled towards 1
+    assert t.state.model.num_gaussians != n0 and t.state.model.params["tag"].shape == (t.state.model.num_gaussians, 1)
+    assert t.state.optimizers["tag"].param_groups[0]["lr"] == 0.01
+    assert float(t.state.model.params["tag"].detach().mean()) > 0.0  # pulled towards 1
     assert "tagger_pull" in logs["losses"]
     assert p.calls["configure_step"] == 40 and p.calls["conditioning"] >= 30 and p.calls["prune_factor"] > 0
     # its network group follows its own schedule from its delay, not the deformation's
-    lrs = {g["name"]: g["lr"] for g in t.net_opt.param_groups}
+    lrs = {g["name"]: g["lr"] for g in t.state.net_opt.param_groups}
     assert lrs["tagger_net"] == pytest.approx(1e-4 * (1e-2 / 1e-4) ** (1 / 30), rel=1e-6)  # step 39 of 10..40
     assert lrs["tagger_net"] != pytest.approx(lrs["deform"])
     t._update_lrs(10)
-    assert {g["name"]: g["lr"] for g in t.net_opt.param_groups}["tagger_net"] == pytest.approx(1e-2)
+    assert {g["name"]: g["lr"] for g in t.state.net_opt.param_groups}["tagger_net"] == pytest.approx(1e-2)
     # statistics under its name in metrics.json
     res = t.evaluate_final("test")
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]["tagger"]["tag_mean"] == \
@@ -139,10 +139,10 @@ def test_the_model_reloads_alone_and_renders_what_training_rendered(tmp_path, ta
     t.train()
     ck = tmp_path / "run" / "checkpoints" / "last.pt"
     m = load_model(ck, device="cpu")   # config, training times and background from the checkpoint
-    assert m.step == 40 and m.num_gaussians == t.model.num_gaussians and m.plugin("tagger") is not None
+    assert m.step == 40 and m.num_gaussians == t.state.model.num_gaussians and m.plugin("tagger") is not None
     f = t.scene.frames("test")[0]
-    t.model.eval()
-    a = t.model.render(f.camera, f.time).image
+    t.state.model.eval()
+    a = t.state.model.render(f.camera, f.time).image
     b = m.render(f.camera, f.time).image
     assert torch.equal(a, b)
     # the same file after DynamicGaussians.save (no optimizer state)

@@ -185,11 +185,11 @@ def test_a_plugins_frozen_keys_lose_their_optimizer_whatever_their_dtype(tmp_pat
     STDRPlugin._frozen_now = False
     t = Trainer(tiny_config(tmp_path, ["experiment=embedded_deform_stdr", "optim.iterations=20", "baseline.warmup=5",
                                        "stdr.warmup_end=5", "stdr.freeze_at=10", "train.stop_at=12"]), tmp_path / "r")
-    assert "sh0" in t.optimizers
+    assert "sh0" in t.state.optimizers
     t.train()
     STDRPlugin._frozen_now = True
-    before = t.model.params["sh0"].detach().clone()
+    before = t.state.model.params["sh0"].detach().clone()
     t.cfg.train.stop_at = 16
     t.train()
-    assert "sh0" not in t.optimizers and "means" in t.optimizers
-    assert torch.equal(t.model.params["sh0"], before) and t.step == 16
+    assert "sh0" not in t.state.optimizers and "means" in t.state.optimizers
+    assert torch.equal(t.state.model.params["sh0"], before) and t.step == 16

@@ -51,18 +51,18 @@ def test_test_images_cannot_steer_training(tmp_path):
     from stdr.train.guard import Guard
     g = Guard()
     g.load_state_dict(load_checkpoint(tmp_path / "same" / "checkpoints" / "last.pt")["guard"])
-    assert g.summary(None)["monitor"] == "val" and a.guard.summary(None)["monitor"] == "val"
-    for k in a.model.params:
-        assert torch.equal(a.model.params[k], b.model.params[k]), k
-    for (ka, va), (kb, vb) in zip(a.model.deform.state_dict().items(), b.model.deform.state_dict().items()):
+    assert g.summary(None)["monitor"] == "val" and a.state.guard.summary(None)["monitor"] == "val"
+    for k in a.state.model.params:
+        assert torch.equal(a.state.model.params[k], b.state.model.params[k]), k
+    for (ka, va), (kb, vb) in zip(a.state.model.deform.state_dict().items(), b.state.model.deform.state_dict().items()):
         assert ka == kb and torch.equal(va, vb), ka
     # the detector's evaluations: the val split, at the periodic steps, identical in both runs
-    guard = [[(h["iteration"], h["psnr"]) for h in tr.history if h["tag"] == "guard"] for tr in (a, b)]
+    guard = [[(h["iteration"], h["psnr"]) for h in tr.state.history if h["tag"] == "guard"] for tr in (a, b)]
     assert [s for s, _ in guard[0]] == [10, 20, 30] and guard[0] == guard[1]
-    assert all(h["split"] == "val" for h in a.history if h["tag"] == "guard")
+    assert all(h["split"] == "val" for h in a.state.history if h["tag"] == "guard")
     # the curve on the test split did see the different images
-    test_a = [h["psnr"] for h in a.history if h["split"] == "test"]
-    test_b = [h["psnr"] for h in b.history if h["split"] == "test"]
+    test_a = [h["psnr"] for h in a.state.history if h["split"] == "test"]
+    test_b = [h["psnr"] for h in b.state.history if h["split"] == "test"]
     assert len(test_a) == len(test_b) >= 3 and all(abs(x - y) > 1.0 for x, y in zip(test_a, test_b))
     # and a detector that read them would have restored an earlier state in one run only
     assert all(y > x for x, y in zip(test_a, test_a[1:])) and any(y < x for x, y in zip(test_b, test_b[1:]))

@@ -62,11 +62,11 @@ def test_significance_sums_to_the_rendered_opacity(tmp_path, backend):
     tr = Trainer(tiny_config(tmp_path, SCHED + [f"render.backend={backend}", "train.stop_at=25"]), tmp_path / "r")
     tr.train()
     frames = tr.scene.frames("train")[:3]
-    S, times = significance(tr.model, frames)
-    assert S.shape == (tr.model.num_gaussians, 3) and times.numel() == 3
+    S, times = significance(tr.state.model, frames)
+    assert S.shape == (tr.state.model.num_gaussians, 3) and times.numel() == 3
     for f in frames:
         col = int((times == f.time).nonzero())
-        out = tr.model.render(f.camera, f.time, cull=False)
+        out = tr.state.model.render(f.camera, f.time, cull=False)
         want = float(out.alpha.detach().sum())
         assert want > 1.0
         assert float(S[:, col].sum()) == pytest.approx(want, rel=1e-4)
@@ -94,24 +94,24 @@ def test_an_event_removes_the_least_significant_rows_and_keeps_state_aligned(tmp
     tr = Trainer(tiny_config(tmp_path, SCHED + ["prune.share=0.25", "prune.at=[30]", "train.stop_at=30"]),
                  tmp_path / "r")
     tr.train()
-    assert tr.model.schedule.prune_steps == [30] and not tr.prune_log  # due once 30 steps are done
-    ev = prune_mod.prune_event(tr.model, tr.scene.frames("train"), tr.optimizers, tr.strategy_state, tr.cfg.prune, 30)
+    assert tr.state.model.schedule.prune_steps == [30] and not tr.state.prune_log  # due once 30 steps are done
+    ev = prune_mod.prune_event(tr.state.model, tr.scene.frames("train"), tr.state.optimizers, tr.state.strategy_state, tr.cfg.prune, 30)
     assert ev["step"] == 30
     assert ev["after"] == ev["before"] - int(0.25 * ev["before"])
     S, mask = seen["S"], seen["mask"]
     total = S.sum(1)
     assert int(mask.sum()) == ev["before"] - ev["after"]
     assert total[mask].max() <= total[~mask].min()  # the least significant went
-    n = tr.model.num_gaussians
+    n = tr.state.model.num_gaussians
     assert n == ev["after"]
-    for k, p in tr.model.params.items():  # the kept rows, unchanged and in order
+    for k, p in tr.state.model.params.items():  # the kept rows, unchanged and in order
         assert torch.equal(p.detach(), seen["params"][k][~mask]), k
-        st = tr.optimizers[k].state.get(p) if k in tr.optimizers else None
+        st = tr.state.optimizers[k].state.get(p) if k in tr.state.optimizers else None
         for sk, sv in (st or {}).items():
             if torch.is_tensor(sv) and sv.dim() > 0:
                 assert sv.shape[0] == n, (k, sk)
     for k in ("grad2d", "count", "max_radii"):
-        assert tr.strategy_state[k].shape[0] == n, k
+        assert tr.state.strategy_state[k].shape[0] == n, k
     assert ev["seen_after"] == pytest.approx(seen_per_frame(S[~mask]))
 
 
@@ -120,14 +120,14 @@ def test_the_loop_prunes_once_the_steps_are_done_and_logs_it(tmp_path):
     tr = Trainer(tiny_config(tmp_path, SCHED + ["prune.share=0.25", "prune.at=[30]", "train.stop_at=30"]),
                  tmp_path / "r")
     tr.train()
-    n = tr.model.num_gaussians
+    n = tr.state.model.num_gaussians
     logs = tr.train_step()  # the 31st step: the event first, then the step on the smaller model
-    assert [e["step"] for e in tr.prune_log] == [30] and tr.prune_log[0]["before"] == n
-    assert logs["densify"]["pruned_by_score"] == n - tr.prune_log[0]["after"]
-    assert tr.model.num_gaussians == tr.prune_log[0]["after"]  # (no refinement at step 31)
+    assert [e["step"] for e in tr.state.prune_log] == [30] and tr.state.prune_log[0]["before"] == n
+    assert logs["densify"]["pruned_by_score"] == n - tr.state.prune_log[0]["after"]
+    assert tr.state.model.num_gaussians == tr.state.prune_log[0]["after"]  # (no refinement at step 31)
     assert "prune" in tr.profile_summary()["seconds"]
     tr.train_step()
-    assert len(tr.prune_log) == 1  # once
+    assert len(tr.state.prune_log) == 1  # once
 
 
 def test_resume_across_a_pruning_event_is_exact(tmp_path):
@@ -135,15 +135,15 @@ def test_resume_across_a_pruning_event_is_exact(tmp_path):
     extra = ["prune.share=0.2", "prune.at=[refine_stop,50]"]
     a = Trainer(tiny_config(tmp_path, SCHED + extra), tmp_path / "a")
     a.train()
-    assert [e["step"] for e in a.prune_log] == [40, 50]
+    assert [e["step"] for e in a.state.prune_log] == [40, 50]
     b1 = Trainer(tiny_config(tmp_path, SCHED + extra + ["train.stop_at=45"]), tmp_path / "b")
     b1.train()
     b2 = Trainer(tiny_config(tmp_path, SCHED + extra), tmp_path / "b")
     b2.train()
-    assert [e["step"] for e in b2.prune_log] == [40, 50]
-    assert a.model.num_gaussians == b2.model.num_gaussians
-    for k in a.model.params:
-        assert torch.equal(a.model.params[k], b2.model.params[k]), k
+    assert [e["step"] for e in b2.state.prune_log] == [40, 50]
+    assert a.state.model.num_gaussians == b2.state.model.num_gaussians
+    for k in a.state.model.params:
+        assert torch.equal(a.state.model.params[k], b2.state.model.params[k]), k
 
 
 def test_a_run_branched_from_a_checkpoint_at_the_event_prunes_as_an_uninterrupted_one(tmp_path):
@@ -160,9 +160,9 @@ def test_a_run_branched_from_a_checkpoint_at_the_event_prunes_as_an_uninterrupte
     shutil.copytree(tmp_path / "base" / "checkpoints", tmp_path / "b" / "checkpoints")
     b = Trainer(tiny_config(tmp_path, SCHED + extra), tmp_path / "b")
     b.train()
-    assert [e["step"] for e in b.prune_log] == [40] and a.model.num_gaussians == b.model.num_gaussians
-    for k in a.model.params:
-        assert torch.equal(a.model.params[k], b.model.params[k]), k
+    assert [e["step"] for e in b.state.prune_log] == [40] and a.state.model.num_gaussians == b.state.model.num_gaussians
+    for k in a.state.model.params:
+        assert torch.equal(a.state.model.params[k], b.state.model.params[k]), k
 
 
 def test_stdr_tool_compact_prunes_a_trained_run_into_a_new_one(tmp_path):

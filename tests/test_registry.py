@@ -112,13 +112,13 @@ def test_a_baseline_is_one_module_and_one_config(tmp_path, drift):
              "stdr.freeze_at=20", "baseline.scgs.num_nodes=64"]  # another baseline's key: skipped by the helper
     t = Trainer(tiny_config(tmp_path, sched + ["experiment=embedded_drift_stdr"]), tmp_path / "run",
                 splits=("train", "test"))
-    assert isinstance(t.model.deform, Drift) and t.model.deform.cond_dim > 0
-    before = t.model.deform.speed.detach().clone()
+    assert isinstance(t.state.model.deform, Drift) and t.state.model.deform.cond_dim > 0
+    before = t.state.model.deform.speed.detach().clone()
     t.train()
-    assert not torch.equal(before, t.model.deform.speed.detach())  # it learned
+    assert not torch.equal(before, t.state.model.deform.speed.detach())  # it learned
     psnr = t.evaluate("test")["psnr"]
     m = load_model(tmp_path / "run" / "checkpoints" / "last.pt", device="cpu")
-    assert isinstance(m.deform, Drift) and torch.equal(m.deform.speed, t.model.deform.speed)
+    assert isinstance(m.deform, Drift) and torch.equal(m.deform.speed, t.state.model.deform.speed)
     from stdr.eval.evaluate import evaluate_model
     assert evaluate_model(m, t.scene.frames("test"))["psnr"] == pytest.approx(psnr, abs=1e-4)
 
@@ -247,7 +247,7 @@ def test_a_baseline_without_budget_files_trains_its_deformation_under_every_budg
     from stdr.train.trainer import Trainer
     t = Trainer(tiny_config(tmp_path, ["experiment=embedded_drift", f"budget={budget}", "optim.iterations=60",
                                        "train.checkpoint_every=0", "train.eval_at_warmup_end=false"]), tmp_path / "run")
-    assert t.model.warmup == round(0.075 * 60) and t.model.warmup < 60
-    before = t.model.deform.speed.detach().clone()
+    assert t.state.model.warmup == round(0.075 * 60) and t.state.model.warmup < 60
+    before = t.state.model.deform.speed.detach().clone()
     t.train()
-    assert not torch.equal(before, t.model.deform.speed.detach())
+    assert not torch.equal(before, t.state.model.deform.speed.detach())

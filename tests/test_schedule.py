@@ -56,7 +56,7 @@ def test_components_read_their_boundaries_from_the_schedule(tmp_path):
     t = Trainer(_tiny(tmp_path, ["experiment=embedded_scgs_stdr", "baseline.warmup=30",
                                  "baseline.scgs.node_stage_end=60", "baseline.scgs.main_warmup=10",
                                  "baseline.scgs.num_nodes=64", "optim.iterations=100"]), tmp_path / "run")
-    s, m = t.model.schedule, t.model
+    s, m = t.state.model.schedule, t.state.model
     assert m.warmup == s.static_warmup_end == 30 == m.deform.start_step
     st = m.plugin("stdr")
     ph = s.plugins["stdr"]

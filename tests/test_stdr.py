@@ -239,30 +239,30 @@ def test_phases_in_the_training_loop(tmp_path):
     the mask is bit-identical step to step, p rows sum to 1, the field and the deformation train."""
     from stdr.train.trainer import Trainer
     t = Trainer(_stdr_cfg(tmp_path, ["densify.refine_start=1000", "stdr.freeze_opacity=true"]), tmp_path / "run")
-    assert t.model.plugin("stdr").warmup_end == 6 and t.model.plugin("stdr").freeze_at == 12 and MASK_KEY in t.model.params
-    assert t.model.params[MASK_KEY].shape == (t.model.params["means"].shape[0], t.model.plugin("stdr").K)
-    assert t.model.plugin("stdr").K == len(t.scene.frames("train"))
-    o0, m0 = t.model.params["opacities"].detach().clone(), t.model.params[MASK_KEY].detach().clone()
+    assert t.state.model.plugin("stdr").warmup_end == 6 and t.state.model.plugin("stdr").freeze_at == 12 and MASK_KEY in t.state.model.params
+    assert t.state.model.params[MASK_KEY].shape == (t.state.model.params["means"].shape[0], t.state.model.plugin("stdr").K)
+    assert t.state.model.plugin("stdr").K == len(t.scene.frames("train"))
+    o0, m0 = t.state.model.params["opacities"].detach().clone(), t.state.model.params[MASK_KEY].detach().clone()
     for _ in range(6):
         logs = t.train_step()
         # both regularizers are on in the warm-up (their values are pinned by the unit tests above)
         assert math.isfinite(logs["losses"]["stdr_temporal"]) and math.isfinite(logs["losses"]["stdr_spatial"])
-    assert torch.equal(t.model.params["opacities"].detach(), o0)
-    assert t.optimizers["opacities"].state.get(t.model.params["opacities"]) is None  # never stepped
-    assert not torch.equal(t.model.params[MASK_KEY].detach(), m0)
+    assert torch.equal(t.state.model.params["opacities"].detach(), o0)
+    assert t.state.optimizers["opacities"].state.get(t.state.model.params["opacities"]) is None  # never stepped
+    assert not torch.equal(t.state.model.params[MASK_KEY].detach(), m0)
     for _ in range(6):  # regularized: both train
-        o1 = t.model.params["opacities"].detach().clone()
+        o1 = t.state.model.params["opacities"].detach().clone()
         t.train_step()
-    assert not torch.equal(t.model.params["opacities"].detach(), o1)
-    field0 = [q.detach().clone() for q in t.model.plugin("stdr").field.parameters()]
-    m_frozen = t.model.params[MASK_KEY].detach().clone()
+    assert not torch.equal(t.state.model.params["opacities"].detach(), o1)
+    field0 = [q.detach().clone() for q in t.state.model.plugin("stdr").field.parameters()]
+    m_frozen = t.state.model.params[MASK_KEY].detach().clone()
     for _ in range(4):
         logs = t.train_step()
         assert "stdr_temporal" not in logs["losses"]
-        assert torch.equal(t.model.params[MASK_KEY].detach(), m_frozen)
-    p = t.model.plugin("stdr").probabilities(t.model.params)
+        assert torch.equal(t.state.model.params[MASK_KEY].detach(), m_frozen)
+    p = t.state.model.plugin("stdr").probabilities(t.state.model.params)
     torch.testing.assert_close(p.sum(1), torch.ones(p.shape[0]))
-    assert any(not torch.equal(a, b.detach()) for a, b in zip(field0, t.model.plugin("stdr").field.parameters()))
+    assert any(not torch.equal(a, b.detach()) for a, b in zip(field0, t.state.model.plugin("stdr").field.parameters()))
 
 
 @pytest.mark.slow
@@ -275,11 +275,11 @@ def test_resume_with_stdr_matches_an_uninterrupted_run(tmp_path):
     from stdr.eval.evaluate import evaluate_model
     from stdr.model import load_model
     e = load_model(tmp_path / "a" / "checkpoints" / "last.pt", device="cpu")
-    assert e.plugin("stdr").K == a.model.plugin("stdr").K and e.plugin("stdr").field is not None
-    assert e.step == a.step and e.num_gaussians == a.model.num_gaussians
+    assert e.plugin("stdr").K == a.state.model.plugin("stdr").K and e.plugin("stdr").field is not None
+    assert e.step == a.step and e.num_gaussians == a.state.model.num_gaussians
     assert evaluate_model(e, a.scene.frames("test"))["psnr"] == a.evaluate("test")["psnr"]
-    st = a.model.plugin("stdr").stats(a.model.params)
-    n, K = a.model.params["means"].shape[0], a.model.plugin("stdr").K
+    st = a.state.model.plugin("stdr").stats(a.state.model.params)
+    n, K = a.state.model.params["means"].shape[0], a.state.model.plugin("stdr").K
     assert st["mask_bytes"] == 4 * n * K and st["mask_adam_bytes"] == 8 * n * K
     assert st["knn_refreshes"] >= 3 and st["knn_seconds"] > 0 and 0 <= st["fraction_time_gated"] <= 1
     assert 0 < st["dynamic_probability_mean"] < 1
@@ -290,10 +290,10 @@ def test_resume_with_stdr_matches_an_uninterrupted_run(tmp_path):
         b1.train()
         b2 = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / f"b{stop}")
         b2.train()
-        for k in a.model.params:
-            assert torch.equal(a.model.params[k], b2.model.params[k]), (stop, k)
-        for (ka, va), (kb, vb) in zip(a.model.plugin("stdr").field.state_dict().items(),
-                                      b2.model.plugin("stdr").field.state_dict().items()):
+        for k in a.state.model.params:
+            assert torch.equal(a.state.model.params[k], b2.state.model.params[k]), (stop, k)
+        for (ka, va), (kb, vb) in zip(a.state.model.plugin("stdr").field.state_dict().items(),
+                                      b2.state.model.plugin("stdr").field.state_dict().items()):
             assert torch.equal(va, vb), (stop, ka)
     # a checkpoint with STDR cannot be loaded into a run without it
     c = Trainer(make_cfg(TINY_SCENE + [f"data.cache_dir={tmp_path / 'cache'}", "model.init_num=800"]),
@@ -456,9 +456,9 @@ def test_freeze_opacity_false_trains_like_an_empty_warmup_with_the_same_freeze(t
     b = Trainer(_stdr_cfg(tmp_path, sched + ["stdr.warmup_end=0", "stdr.freeze_at=12", "stdr.freeze_opacity=true"]),
                 tmp_path / "b")
     b.train()
-    assert (a.model.plugin("stdr").warmup_end, a.model.plugin("stdr").freeze_at, b.model.plugin("stdr").freeze_at) == (6, 12, 12)
-    for k in a.model.params:
-        assert torch.equal(a.model.params[k], b.model.params[k]), k
+    assert (a.state.model.plugin("stdr").warmup_end, a.state.model.plugin("stdr").freeze_at, b.state.model.plugin("stdr").freeze_at) == (6, 12, 12)
+    for k in a.state.model.params:
+        assert torch.equal(a.state.model.params[k], b.state.model.params[k]), k
 
 
 def test_white_background_reset_at_refine_start():
@@ -478,16 +478,16 @@ def test_training_loop_hands_the_rendered_conditioning_to_the_deformation_hooks(
     from stdr.train.trainer import Trainer
     t = Trainer(_stdr_cfg(tmp_path, ["densify.refine_start=1000"]), tmp_path / "run")
     seen = {}
-    orig_fwd, orig_before, orig_reg = t.model.deform.forward, t.model.deform.before_step, t.model.deform.regularizers
-    monkeypatch.setattr(t.model.deform, "forward", lambda p, tt, c=None: (seen.__setitem__("fwd", c), orig_fwd(p, tt, c))[1])
-    monkeypatch.setattr(t.model.deform, "before_step",
+    orig_fwd, orig_before, orig_reg = t.state.model.deform.forward, t.state.model.deform.before_step, t.state.model.deform.regularizers
+    monkeypatch.setattr(t.state.model.deform, "forward", lambda p, tt, c=None: (seen.__setitem__("fwd", c), orig_fwd(p, tt, c))[1])
+    monkeypatch.setattr(t.state.model.deform, "before_step",
                         lambda p, s, c=None: (seen.__setitem__("before", c), orig_before(p, s, c))[1])
-    monkeypatch.setattr(t.model.deform, "regularizers",
+    monkeypatch.setattr(t.state.model.deform, "regularizers",
                         lambda p, tt, s, c=None: (seen.__setitem__("reg", c), orig_reg(p, tt, s, c))[1])
-    while t.step <= t.model.plugin("stdr").freeze_at:
+    while t.step <= t.state.model.plugin("stdr").freeze_at:
         t.train_step()
     assert seen["fwd"] is seen["before"] is seen["reg"]
-    assert seen["fwd"].shape == (t.model.params["means"].shape[0], t.model.plugin("stdr").cond_dim) and seen["fwd"].abs().sum() > 0
+    assert seen["fwd"].shape == (t.state.model.params["means"].shape[0], t.state.model.plugin("stdr").cond_dim) and seen["fwd"].abs().sum() > 0
 
 
 def test_freeze_colliding_with_a_stage_switch_is_moved_by_rule_or_rejected_when_explicit():
@@ -545,19 +545,19 @@ def test_separated_field_has_its_own_group_and_optional_schedule(tmp_path):
     from stdr.train.trainer import Trainer
     sched = ["optim.iterations=30", "baseline.lr_init=1e-3", "baseline.lr_final=1e-5", "baseline.lr_max_steps=30"]
     t = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / "a")
-    names = [g["name"] for g in t.net_opt.param_groups]
+    names = [g["name"] for g in t.state.net_opt.param_groups]
     assert names.count("stdr_field") == 1
     for step in (0, 12, 29):
         t._update_lrs(step)
-        lr = {g["name"]: g["lr"] for g in t.net_opt.param_groups}
+        lr = {g["name"]: g["lr"] for g in t.state.net_opt.param_groups}
         assert lr["stdr_field"] == lr["deform"]
     t = Trainer(_stdr_cfg(tmp_path, sched + ["stdr.field_lr_init=4e-3", "stdr.field_lr_final=4e-5"]), tmp_path / "b")
-    s = t.model.plugin("stdr")
+    s = t.state.model.plugin("stdr")
     assert s.freeze_at == 12
     expect = {0: 4e-3, 12: 4e-3, 21: 4e-4, 30: 4e-5}  # halfway from the freeze (12) to the end (30)
     for step, want in expect.items():
         t._update_lrs(step)
-        lr = {g["name"]: g["lr"] for g in t.net_opt.param_groups}
+        lr = {g["name"]: g["lr"] for g in t.state.net_opt.param_groups}
         assert lr["stdr_field"] == pytest.approx(want, rel=1e-9), step
     assert lr["deform"] == pytest.approx(1e-5)
 
@@ -631,29 +631,29 @@ def test_mask_bits_8_stores_the_frozen_mask_in_8_bits_and_resumes_exactly(tmp_pa
              "train.checkpoint_every=0", "train.eval_at_warmup_end=false"]
     a = Trainer(tiny_config(tmp_path, sched + ["stdr.mask_bits=8"]), tmp_path / "a", splits=("train", "test"))
     a.train()
-    m = a.model.params["stdr_mask"]
-    assert m.dtype == torch.uint8 and not m.requires_grad and "stdr_mask" not in a.optimizers
-    assert m.shape[0] == a.model.num_gaussians  # rows kept through the densification at 30 and 40
-    st = a.model.plugins[0].stats(a.model.params)
+    m = a.state.model.params["stdr_mask"]
+    assert m.dtype == torch.uint8 and not m.requires_grad and "stdr_mask" not in a.state.optimizers
+    assert m.shape[0] == a.state.model.num_gaussians  # rows kept through the densification at 30 and 40
+    st = a.state.model.plugins[0].stats(a.state.model.params)
     assert st["mask_bits"] == 8 and st["mask_bytes"] == m.numel() and st["mask_adam_bytes"] == 0
-    n8 = model_bytes(a.model)
-    a.model.params["stdr_mask"] = torch.nn.Parameter(logits_of(m), requires_grad=False)  # the same, as float32
-    assert n8 == model_bytes(a.model) - 3 * m.numel()
-    a.model.params["stdr_mask"] = m
+    n8 = model_bytes(a.state.model)
+    a.state.model.params["stdr_mask"] = torch.nn.Parameter(logits_of(m), requires_grad=False)  # the same, as float32
+    assert n8 == model_bytes(a.state.model) - 3 * m.numel()
+    a.state.model.params["stdr_mask"] = m
     b1 = Trainer(tiny_config(tmp_path, sched + ["stdr.mask_bits=8", "train.stop_at=20"]), tmp_path / "b")
     b1.train()
-    assert b1.model.params["stdr_mask"].dtype == torch.float32  # before the freeze
+    assert b1.state.model.params["stdr_mask"].dtype == torch.float32  # before the freeze
     b2 = Trainer(tiny_config(tmp_path, sched + ["stdr.mask_bits=8", "train.stop_at=40"]), tmp_path / "b")
     b2.train()
     b3 = Trainer(tiny_config(tmp_path, sched + ["stdr.mask_bits=8"]), tmp_path / "b")
     b3.train()  # resumed from a checkpoint holding the 8-bit mask
-    for k in a.model.params:
-        assert torch.equal(a.model.params[k], b3.model.params[k]), k
+    for k in a.state.model.params:
+        assert torch.equal(a.state.model.params[k], b3.state.model.params[k]), k
     loaded = load_model(tmp_path / "a" / "checkpoints" / "last.pt", device="cpu")
     assert loaded.params["stdr_mask"].dtype == torch.uint8
     fr = a.scene.frames("test")[0]
     with torch.no_grad():
-        a.model.eval()
-        want = a.model.render(fr.camera, fr.time).image
+        a.state.model.eval()
+        want = a.state.model.render(fr.camera, fr.time).image
         got = loaded.eval().render(fr.camera, fr.time).image
     assert torch.equal(want, got)

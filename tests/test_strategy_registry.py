@@ -83,10 +83,10 @@ def test_a_second_strategy_trains_through_the_loop(tmp_path, thinning):
                                        "train.checkpoint_every=0", "train.eval_at_warmup_end=false"]),
                 tmp_path / "run")
     assert isinstance(t.strategy, Thinning)
-    n0 = t.model.num_gaussians
+    n0 = t.state.model.num_gaussians
     t.train()
     n = n0
     for _ in range(3):  # at 10, 20, 30
         n -= int(n * 0.1)
-    assert t.model.num_gaussians == n
-    assert all(v.shape[0] == n for v in t.model.params.values())
+    assert t.state.model.num_gaussians == n
+    assert all(v.shape[0] == n for v in t.state.model.params.values())

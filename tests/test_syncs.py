@@ -185,8 +185,8 @@ def test_on_cuda_the_sync_free_guard_recovers_a_fault(tmp_path, compiled_check):
                                  "train.guard.sync_free=true", "device=cuda", "render.backend=cuda",
                                  f"train.guard.compiled={str(compiled_check).lower()}"])
     tr = Trainer(cfg, tmp_path / "run", splits=("train",))
-    assert tr.guard.compiled == compiled_check
+    assert tr.state.guard.compiled == compiled_check
     tr.train()
-    (rec,) = tr.guard.recoveries
+    (rec,) = tr.state.guard.recoveries
     assert (rec["step"], rec["found_at"], rec["restored_to"], rec["reason"]) == (15, 20, 10, "non-finite grad of means")
-    assert tr.step == 40 and all(torch.isfinite(v).all() for v in tr.model.params.values())
+    assert tr.step == 40 and all(torch.isfinite(v).all() for v in tr.state.model.params.values())

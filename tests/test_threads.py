@@ -142,7 +142,7 @@ def test_a_short_stdr_run_trains_to_the_same_bits_on_one_and_two_threads(tmp_pat
         torch.set_num_threads(n)
         t = Trainer(tiny_config(tmp_path, sched), tmp_path / f"t{n}", splits=("train",))
         t.train()
-        params[n] = {k: v.detach().clone() for k, v in t.model.params.items()}
+        params[n] = {k: v.detach().clone() for k, v in t.state.model.params.items()}
     assert params[1].keys() == params[2].keys()
     for k in params[1]:
         assert torch.equal(params[1][k], params[2][k]), k

@@ -55,13 +55,13 @@ def test_resume_gives_the_same_result_as_an_uninterrupted_run(tmp_path):
     b2.train()  # resumes from b/checkpoints/last.pt
     assert b2.step == a.step == 60
     # the curve survives the resume: steps 10..50 from both halves, training seconds increasing
-    pts = [h for h in b2.history if h["tag"] == "periodic"]
+    pts = [h for h in b2.state.history if h["tag"] == "periodic"]
     assert [h["iteration"] for h in pts] == [10, 20, 30, 40, 50] and all(h["frames"] == 2 for h in pts)
     secs = [h["train_seconds"] for h in pts]
-    assert secs == sorted(secs) and secs[-1] < b2.train_seconds
-    for k in a.model.params:
-        assert torch.equal(a.model.params[k], b2.model.params[k]), k
-    for (ka, va), (kb, vb) in zip(a.model.deform.state_dict().items(), b2.model.deform.state_dict().items()):
+    assert secs == sorted(secs) and secs[-1] < b2.state.train_seconds
+    for k in a.state.model.params:
+        assert torch.equal(a.state.model.params[k], b2.state.model.params[k]), k
+    for (ka, va), (kb, vb) in zip(a.state.model.deform.state_dict().items(), b2.state.model.deform.state_dict().items()):
         assert torch.equal(va, vb), ka
 
 

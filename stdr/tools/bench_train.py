@@ -87,7 +87,7 @@ def mm_reference(device: torch.device, n: int = 2048, repeats: int = 5) -> float
 
 def source_params(run: Path | None, trainer: Trainer) -> dict:
     if run is None:
-        return {k: trainer.model.params[k].detach().cpu() for k in GAUSSIAN_KEYS}
+        return {k: trainer.state.model.params[k].detach().cpu() for k in GAUSSIAN_KEYS}
     return run_gaussians(run)
 
 
@@ -95,7 +95,7 @@ def bench_one(tr: Trainer, source: dict, n: int, iters: int, warmup_iters: int, 
     """Time `iters` training steps of `tr` with n Gaussians replicated from `source`."""
     tr.replace_gaussians(replicate(source, n, torch.Generator().manual_seed(seed)))
     total = warmup_iters + iters
-    tr.step = max(tr.cfg.optim.iterations - total, tr.model.warmup)
+    tr.step = max(tr.cfg.optim.iterations - total, tr.state.model.warmup)
     dev = tr.device
     times, active = [], []
     for i in range(total):
@@ -125,7 +125,7 @@ def bench_one(tr: Trainer, source: dict, n: int, iters: int, warmup_iters: int, 
             dev_syncs += dc.total
     return {"ops_per_step": ops / n_count, "syncs_per_step": syncs / n_count,
             "device_syncs_per_step": None if dev_syncs is None else dev_syncs / n_count,
-            "gaussians": tr.model.num_gaussians, "active_mean": statistics.mean(active),
+            "gaussians": tr.state.model.num_gaussians, "active_mean": statistics.mean(active),
             "ms": statistics.median(times) * 1e3, "ms_mean": statistics.mean(times) * 1e3,
             "sections_ms": {k: v * 1e3 / iters for k, v in prof.seconds.items()},
             "backward_parts_ms": {k: v * 1e3 / iters for k, v in prof.backward_parts.items()},

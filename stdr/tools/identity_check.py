@@ -78,7 +78,8 @@ def run(out: Path, scene: Path | None = None) -> None:
             t = Trainer(cfg, d / "run", splits=("train", "test"))
             t.train()
             psnr = t.evaluate("test")["psnr"]
-            m = getattr(t, "model", t)  # the model object (since checkpoint format 2), or the old trainer
+            # the model: in the run's state (RunState), on the trainer (checkpoint format 2), or the old trainer itself
+            m = t.state.model if hasattr(t, "state") else getattr(t, "model", t)
             res[name] = {"params": {k: v.detach().cpu().clone() for k, v in m.params.items()},
                          "deform": {k: v.cpu().clone() for k, v in m.deform.state_dict().items()}, "psnr": psnr}
             print(f"{name}: {m.params['means'].shape[0]} Gaussians, test PSNR {psnr!r}", flush=True)

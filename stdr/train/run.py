@@ -30,12 +30,12 @@ def run_training(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -
           f"{trainer.scene.frames('train')[0].camera.width}x{trainer.scene.frames('train')[0].camera.height}, "
           f"device={trainer.device}, backend={trainer.backend}, run dir {run_dir}")
     print(f"[stdr] TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
-    print(trainer.model.schedule.describe())
+    print(trainer.state.model.schedule.describe())
     trainer.train()
     if trainer.step < cfg.optim.iterations:  # train.stop_at: an unfinished run is not evaluated
         return None
     res = trainer.evaluate_final(split, cfg.eval)
-    warm = [h for h in trainer.history if h["tag"] == "static_warmup"]
+    warm = [h for h in trainer.state.history if h["tag"] == "static_warmup"]
     lp = "n/a" if res["lpips"] is None else f"{res['lpips']:.4f}"
     print(f"[stdr] {split}: PSNR {res['psnr']:.2f} dB  SSIM {res['ssim']:.4f}  LPIPS {lp}  "
           f"FPS {res['fps']:.1f}  Gaussians {res['num_gaussians']}  train {res['train_seconds']:.0f} s")

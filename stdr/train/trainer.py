@@ -94,7 +94,7 @@ class Profiler:
 class Trainer:
     """Optimization of a `DynamicGaussians` model on a scene: optimizers and learning-rate
     schedules, the densification strategy, the camera sampler and the loop. The model is
-    `trainer.model`; nothing here is needed to render it."""
+    `trainer.state.model`; nothing here is needed to render it."""
 
     def __init__(self, cfg, run_dir: str | Path, splits=("train",), data_base: Optional[str] = None):
         self.cfg = cfg
@@ -152,51 +152,36 @@ class Trainer:
         self.log = RunLog(self.run_dir)  # TensorBoard (run_dir/tb), opened by the loop or the guard
         self.profile = Profiler()
 
-    # the run's state, by name (trainer.model is trainer.state.model, and so on)
-    model = property(lambda self: self.state.model)
-    guard = property(lambda self: self.state.guard)
-    optimizers = property(lambda self: self.state.optimizers, lambda self, v: setattr(self.state, "optimizers", v))
-    net_opt = property(lambda self: self.state.net_opt)
-    strategy_state = property(lambda self: self.state.strategy_state,
-                              lambda self, v: setattr(self.state, "strategy_state", v))
-    sampler = property(lambda self: self.state.sampler)
-    history = property(lambda self: self.state.history, lambda self, v: setattr(self.state, "history", v))
-    prune_log = property(lambda self: self.state.prune_log)
-    train_seconds = property(lambda self: self.state.train_seconds,
-                             lambda self, v: setattr(self.state, "train_seconds", v))
-    train_cpu_seconds = property(lambda self: self.state.train_cpu_seconds,
-                                 lambda self, v: setattr(self.state, "train_cpu_seconds", v))
-
     @property
     def step(self) -> int:
         """Iterations trained (the model's)."""
-        return self.model.step
+        return self.state.model.step
 
     @step.setter
     def step(self, value: int) -> None:
-        self.model.step = int(value)
+        self.state.model.step = int(value)
 
     @property
     def backend(self) -> str:
-        return self.model.backend
+        return self.state.model.backend
 
     def replace_gaussians(self, tensors: dict[str, Tensor]) -> None:
         """Continue from other Gaussians (e.g. a cost probe's N copies): the model's parameter dict
         becomes `tensors`; per-Gaussian tensors of the baseline and the plug-ins that are missing
         are created as for new Gaussians; the optimizers and the densification statistics restart."""
-        params = self.model.params
+        params = self.state.model.params
         params.clear()
         for k, v in tensors.items():
             params[k] = torch.nn.Parameter(v.detach().to(self.device).clone())
         n = params["means"].shape[0]
-        for k, v in self.model.deform.gaussian_params(n).items():
+        for k, v in self.state.model.deform.gaussian_params(n).items():
             if k not in params:
                 params[k] = torch.nn.Parameter(v.to(self.device))
-        for p in self.model.plugins:
+        for p in self.state.model.plugins:
             p.init_gaussians(params)
-        self.optimizers = self._make_optimizers()
-        st = self.strategy_state
-        self.strategy_state = self.strategy.initialize_state(n, st["scene_extent"], st["white_background"], self.device)
+        self.state.optimizers = self._make_optimizers()
+        st = self.state.strategy_state
+        self.state.strategy_state = self.strategy.initialize_state(n, st["scene_extent"], st["white_background"], self.device)
 
     # ----------------------------------------------------------------- optimizers
     def _lr(self, key: str, step: int) -> float:
@@ -208,7 +193,7 @@ class Trainer:
                  "sh0": o.sh0_lr, "shN": o.shN_lr}
         if key in fixed:
             return fixed[key]
-        for owner in [self.model.deform, *self.model.plugins]:
+        for owner in [self.state.model.deform, *self.state.model.plugins]:
             lr = owner.gaussian_lr(key)
             if lr is not None:
                 return lr
@@ -217,10 +202,10 @@ class Trainer:
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         """One Adam per per-Gaussian parameter, including those a plug-in freezes for a phase, so the
         optimizer set does not depend on the step; a parameter without a gradient is not updated."""
-        frozen = self.model.frozen_keys()
+        frozen = self.state.model.frozen_keys()
         return {k: torch.optim.Adam([{"params": [p], "lr": self._lr(k, 0), "name": k}], eps=1e-15,
                                     fused=self._fused_adam)
-                for k, p in self.model.params.items() if k not in frozen}
+                for k, p in self.state.model.params.items() if k not in frozen}
 
     @property
     def _fused_adam(self) -> bool:
@@ -231,8 +216,8 @@ class Trainer:
     def _net_groups(self) -> list[dict]:
         """Network parameter groups: the deformation's (each with an lr multiplier on the
         baseline's schedule), then each plug-in's (the baseline's schedule, or their own)."""
-        groups = [dict(g) for g in self.model.deform.param_groups()]
-        for p in self.model.plugins:
+        groups = [dict(g) for g in self.state.model.deform.param_groups()]
+        for p in self.state.model.plugins:
             groups += [dict(g) for g in p.param_groups()]
         return groups
 
@@ -245,11 +230,11 @@ class Trainer:
         return exp_lr(s, b.lr_init, b.lr_final, b.lr_max_steps) * g.get("lr_mult", 1.0)
 
     def _update_lrs(self, step: int) -> None:
-        scale = self.guard.lr_scale  # 1 until a recovery lowers it (train.guard.lr_factor)
-        for k, opt in self.optimizers.items():
+        scale = self.state.guard.lr_scale  # 1 until a recovery lowers it (train.guard.lr_factor)
+        for k, opt in self.state.optimizers.items():
             for g in opt.param_groups:
                 g["lr"] = self._lr(k, step) * scale
-        for spec, g in zip(self.net_groups, self.net_opt.param_groups):
+        for spec, g in zip(self.net_groups, self.state.net_opt.param_groups):
             g["lr"] = self._net_lr(spec, step) * scale
 
     # ----------------------------------------------------------------- checkpoints
@@ -265,38 +250,38 @@ class Trainer:
         """Resume: the model, the optimizers, the strategy, the sampler, every RNG and the guard."""
         ck = load_checkpoint(path, require=PAYLOAD_KEYS)
         self.state.restore(ck, str(path))
-        self.guard.load_state_dict(ck.get("guard", {}))
-        self.guard.clear()
-        self.guard.monitor = self.monitor  # this run's detector split, whatever the checkpoint's run had
+        self.state.guard.load_state_dict(ck.get("guard", {}))
+        self.state.guard.clear()
+        self.state.guard.monitor = self.monitor  # this run's detector split, whatever the checkpoint's run had
 
     # ----------------------------------------------------------------- training
     def train_step(self) -> dict[str, Any]:
         """One optimization step. Returns 0-d tensors (loss, l1, dssim, psnr), `densify` (the
         strategy's counts), `losses` (each regularizer's weighted value: plug-in terms as
         `<plug-in>_<term>`, the baseline's by name) and the step's render `out` and `frame`."""
-        cfg, it, prof, model = self.cfg, self.step, self.profile, self.model
+        cfg, it, prof, model = self.cfg, self.step, self.profile, self.state.model
         pruned = None
-        if it in model.schedule.prune_steps and all(e["step"] != it for e in self.prune_log):
+        if it in model.schedule.prune_steps and all(e["step"] != it for e in self.state.prune_log):
             # once `it` steps are done, before the next one: a checkpoint at `it` is from before
             # the event, so a run resumed from it (or branched from it with other prune.* keys)
             # prunes exactly as an uninterrupted one
             with prof("prune"):
-                pruned = prune_event(model, self.scene.frames("train"), self.optimizers, self.strategy_state,
+                pruned = prune_event(model, self.scene.frames("train"), self.state.optimizers, self.state.strategy_state,
                                      cfg.prune, it)
-            self.prune_log.append(pruned)
+            self.state.prune_log.append(pruned)
             print(f"[stdr] step {it}: contribution pruning removed {pruned['before'] - pruned['after']} of "
                   f"{pruned['before']} Gaussians (seen per frame {pruned['seen_before']:.1%} -> "
                   f"{pruned['seen_after']:.1%}; score pass over {pruned['frames']} frames "
                   f"{pruned['score_seconds']:.2f} s)")
         params = model.params
         self._update_lrs(it)
-        frame = self.scene.frames("train")[self.sampler.next()]
+        frame = self.scene.frames("train")[self.state.sampler.next()]
         model.train(True)
         for p in model.plugins:
             p.configure_step(params, it)
         frozen = model.frozen_keys()
-        for k in [k for k in self.optimizers if k not in params or k in frozen]:
-            del self.optimizers[k]  # a plug-in holds it fixed from now on (e.g. an 8-bit mask): no more updates
+        for k in [k for k in self.state.optimizers if k not in params or k in frozen]:
+            del self.state.optimizers[k]  # a plug-in holds it fixed from now on (e.g. an 8-bit mask): no more updates
         with prof("deform"):
             # one conditioning per step: the render, SC-GS's node resampling and its ARAP see the same
             cs = model.conditioning(it)
@@ -325,12 +310,12 @@ class Trainer:
                     loss = loss + v
         prof.backward(loss)
         found_inf = None  # the sync-free guard's flag: fused Adam applies no update while it is 1
-        if self.guard.sync_free:
+        if self.state.guard.sync_free:
             with prof("guard"):
-                found_inf = self.guard.flag_step(self.state, loss, it + 1)
+                found_inf = self.state.guard.flag_step(self.state, loss, it + 1)
         elif cfg.train.guard.enabled:
             with prof("guard"):
-                bad = self.guard.check_step(self.state, loss, it + 1)
+                bad = self.state.guard.check_step(self.state, loss, it + 1)
             if bad is not None:  # nothing is applied: the caller restores the last good state
                 self.zero_grads()
                 self.step = it + 1
@@ -338,11 +323,11 @@ class Trainer:
         with prof("optimizer"):
             # every optimizer's step() at once (stdr.train.optim: the same fused kernels, fewer
             # launches); found_inf is read by torch's fused Adam as GradScaler sets it
-            adam_step([*self.optimizers.values(), *([self.net_opt] if it >= model.warmup else [])], found_inf)
+            adam_step([*self.state.optimizers.values(), *([self.state.net_opt] if it >= model.warmup else [])], found_inf)
             self.zero_grads()
         with prof("densify"):
             info = self.strategy.step_post_backward(
-                params, self.optimizers, self.strategy_state, it + 1, out.means2d, out.radii,
+                params, self.state.optimizers, self.state.strategy_state, it + 1, out.means2d, out.radii,
                 frame.camera.width, frame.camera.height, opacity_fn=model.prune_opacity_fn(it),
                 reset_fn=model.reset_opacity_fn(it), rows=rows, opacities=out.projection.opacities)
         if pruned is not None:
@@ -372,7 +357,7 @@ class Trainer:
             print(f"[stdr] resumed from {ckpt} at iteration {self.step}")
         guard = cfg.train.guard
         if guard.enabled:
-            self.guard.take_snapshot(self.state, self.log)
+            self.state.guard.take_snapshot(self.state, self.log)
         if self.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(self.device)  # guard.peak_memory_mb: this run's peak
         total = cfg.optim.iterations
@@ -389,37 +374,37 @@ class Trainer:
             t0, c0 = time.perf_counter(), time.process_time()
             logs = self.train_step()
             dt = time.perf_counter() - t0
-            self.train_seconds += dt
-            if self.train_cpu_seconds is not None:
-                self.train_cpu_seconds += time.process_time() - c0
+            self.state.train_seconds += dt
+            if self.state.train_cpu_seconds is not None:
+                self.state.train_cpu_seconds += time.process_time() - c0
             if "rejected" in logs:
-                self.guard.recover(self.state, self.log, logs["rejected"])
+                self.state.guard.recover(self.state, self.log, logs["rejected"])
                 if bar is not None:
                     bar.n = self.step
                     bar.refresh()
                 continue
             it = self.step
-            if self.guard.sync_free and self._waits_for_the_device(it, end):
-                hit = self.guard.poll()  # the sync-free check, read where the loop waits anyway
+            if self.state.guard.sync_free and self._waits_for_the_device(it, end):
+                hit = self.state.guard.poll()  # the sync-free check, read where the loop waits anyway
                 if hit is not None:
-                    self.guard.recover(self.state, self.log, hit[1], step=hit[0])
+                    self.state.guard.recover(self.state, self.log, hit[1], step=hit[0])
                     if bar is not None:
                         bar.n = self.step
                         bar.refresh()
                     continue
-            self.guard.peak_gaussians = max(self.guard.peak_gaussians, self.model.num_gaussians)
+            self.state.guard.peak_gaussians = max(self.state.guard.peak_gaussians, self.state.model.num_gaussians)
             if it % cfg.train.log_every == 0 or it == total:
                 self._log_scalars(tb, it, logs, dt)
                 img_due = bool(cfg.train.image_every) and (it % cfg.train.image_every == 0 or it == total)
-                for p in self.model.plugins:
-                    p.log(tb, self.model.params, it - 1, images=img_due, x=it)
+                for p in self.state.model.plugins:
+                    p.log(tb, self.state.model.params, it - 1, images=img_due, x=it)
             if cfg.train.image_every and (it % cfg.train.image_every == 0 or it == total):
                 self._log_image(tb, it, logs["out"].image.detach(), logs["frame"].image)
             if bar is not None:
                 bar.update(1)
                 if it % cfg.train.log_every == 0 or it == total:  # reading the scalars waits for the device
                     bar.set_postfix(loss=f"{float(logs['loss']):.4f}", psnr=f"{float(logs['psnr']):.2f}",
-                                    N=self.model.num_gaussians)
+                                    N=self.state.model.num_gaussians)
             res = None
             if cfg.train.eval_at_warmup_end and it == warmup and warmup < total:
                 res = self.evaluate(cfg.data.eval_split, tag="static_warmup", step=warmup - 1,
@@ -428,8 +413,8 @@ class Trainer:
                 res = self.evaluate(cfg.data.eval_split, tag="periodic", frames=self.curve_frames(cfg.data.eval_split),
                                     lpips_fn=self._curve_lpips())
             if res is not None and self.monitor is not None:
-                reset = self.strategy.last_reset(it, bool(self.strategy_state.get("white_background")))
-                self.guard.after_evaluation(self.state, self.log, self._monitor_psnr(res),
+                reset = self.strategy.last_reset(it, bool(self.state.strategy_state.get("white_background")))
+                self.state.guard.after_evaluation(self.state, self.log, self._monitor_psnr(res),
                                             after_reset=reset is not None and it - reset < guard.after_reset)
                 if self.step != it:  # recovered: go on from the restored step
                     if bar is not None:
@@ -439,15 +424,15 @@ class Trainer:
             if cfg.train.checkpoint_every and it % cfg.train.checkpoint_every == 0 and it < total:
                 self.save()
             if guard.enabled and it % guard.snapshot_every == 0 and it < total:
-                self.guard.take_snapshot(self.state, self.log)
+                self.state.guard.take_snapshot(self.state, self.log)
         if bar is not None:
             bar.close()
         if self.step < total:
             print(f"[stdr] stopped at iteration {self.step} of {total} (train.stop_at); the same command without "
                   "train.stop_at resumes from the checkpoint")
-        self.guard.note_memory(self.device)
+        self.state.guard.note_memory(self.device)
         self.save()
-        save_ply(self.model.params, self.run_dir / "point_cloud.ply")
+        save_ply(self.state.model.params, self.run_dir / "point_cloud.ply")
         (self.run_dir / "train_profile.json").write_text(json.dumps(self.profile_summary(), indent=1))
 
     def _waits_for_the_device(self, it: int, end: int) -> bool:
@@ -472,15 +457,15 @@ class Trainer:
         for k in ("loss", "l1", "dssim"):
             tb.add_scalar(f"loss/{k}", logs[k], it)
         tb.add_scalar("train/psnr", logs["psnr"], it)
-        tb.add_scalar("gaussians/count", self.model.num_gaussians, it)
+        tb.add_scalar("gaussians/count", self.state.model.num_gaussians, it)
         tb.add_scalar("gaussians/rendered", logs["active"], it)  # after temporal culling (render.cull=train)
         tb.add_scalar("time/seconds_per_iteration", dt, it)
-        mb = self.guard.note_memory(self.device)
+        mb = self.state.guard.note_memory(self.device)
         if mb is not None:
             tb.add_scalar("memory/mb", mb, it)  # docs/stability.md: the process's memory (CUDA: peak allocated)
-        for k, o in self.optimizers.items():
+        for k, o in self.state.optimizers.items():
             tb.add_scalar(f"lr/{k}", o.param_groups[0]["lr"], it)
-        for g in self.net_opt.param_groups:
+        for g in self.state.net_opt.param_groups:
             tb.add_scalar(f"lr/{g.get('name', 'deform')}", g["lr"], it)
         for k, v in logs["densify"].items():
             tb.add_scalar(f"densify/{k}", v, it)
