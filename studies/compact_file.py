@@ -46,7 +46,7 @@ for _c in (256, 1024, 4096):  # q8m16 with the SH rest as a codebook of C codewo
 for _c in (256, 1024):  # the same, the codebook fine-tuned (stdr.compact.finetune's default steps)
     VARIANTS[f"q8m16_vq{_c}_ft"] = {**VARIANTS[f"q8m16_vq{_c}"], "finetune": 500}
 # STDR's mask on top of q8m16_vq1024 (runs with a mask only): its 8-bit form, 4 bits, rank R of the
-# activated mask; each read back as the 8-bit mask (stdr.compact.file, Plugin.compact_units)
+# activated mask; each read back as the 8-bit mask (stdr.compact.file, Plugin.compact_form)
 MASK_VARIANTS = {"m8": "q8", "m4": "q4", "lr4": "lowrank:4", "lr8": "lowrank:8", "lr16": "lowrank:16"}
 for _n, _c in MASK_VARIANTS.items():
     VARIANTS[f"vq1024_{_n}"] = {**VARIANTS["q8m16_vq1024"], "stdr_mask": _c}

@@ -18,10 +18,10 @@ as one of that degree). A baseline may name,
 per parameter, the columns its renders read (`Deformation.compact_columns`: SP-GS's association
 logits at each Gaussian's K nearest superpoints); those are stored with the `cols` codec. A
 plug-in may name tables it reads only through an activation to [0, 1] and accepts in 8 bits
-(`Plugin.compact_units`: STDR's mask); a codec the spec names for such a key encodes the activated
+(`Plugin.compact_form`'s units: STDR's mask); a codec the spec names for such a key encodes the activated
 values and the file reads them back as uint8 q (for q / 255), the form `stdr.mask_bits=8` stores.
 The spec value `derived` for such a table stores instead what a finished model computes from it
-(`Plugin.compact_derived`: STDR's mask as the separated field's output [N, 17], with the field's
+(`Plugin.compact_form`'s derived tables: STDR's mask as the separated field's output [N, 17], with the field's
 weights left out; only for a model whose mask no longer multiplies opacity), under the plug-in's
 key for it, in the codec the spec names for that key (`stdr_cond: q8`; default `*`).
 Sized codecs are written "vq:1024", "lowrank:8" (stdr.compact.codecs). A file with a higher version
@@ -114,16 +114,15 @@ def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
     spec = check_spec(spec)
     entry = model.state_dict()
     cols = model.deform.compact_columns(model.params)
-    units = {k: v for p in model.plugins for k, v in p.compact_units(model.params).items()}
     asked = {k for k, c in spec.items() if c == DERIVED}
-    derived, plugins = {}, dict(entry["plugins"])
+    units, derived, plugins = {}, {}, dict(entry["plugins"])
     for p in model.plugins:
-        d = p.compact_derived(model.params, model.step) if asked & set(model.params) else {}
-        d = {k: v for k, v in d.items() if k in asked}
-        derived.update(d)
-        # the plug-in's state without what a render does not read (STDR: its training caches, and
-        # the field's weights when the file stores the field's output)
-        plugins[p.name] = p.compact_state(plugins[p.name], set(d))
+        # its state without what a render does not read (STDR: its training caches, and the
+        # field's weights when the file stores the field's output)
+        form = p.compact_form(model.params, plugins[p.name], model.step, asked & set(model.params))
+        units.update(form.units)
+        derived.update({k: v for k, v in form.derived.items() if k in asked})
+        plugins[p.name] = form.state
     # a table this model does not have is not stored at all (a spec serves every method: the
     # preset's `stdr_mask: derived` on a run without STDR); one it has must be derived as asked
     missing = (asked & set(entry["params"])) - set(derived)

@@ -24,13 +24,30 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Optional
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 from ..registry import Registry
+
+
+@dataclass
+class CompactForm:
+    """A plug-in's part of a compact file (Plugin.compact_form)."""
+
+    #: per-Gaussian tables a trained model reads only through an activation to [0, 1] and also
+    #: accepts in 8 bits (uint8 q for q / 255): {key: the activated values, float [N, ...]}. A lossy
+    #: codec named for such a key encodes these values, and the file reads them back as uint8
+    units: dict[str, Tensor] = field(default_factory=dict)
+    #: the tables asked for in their `derived` form: {key: (the stored key, the values [N, D] of
+    #: the fixed function through which a finished model reads the table)}; the plug-in reads them
+    #: back from the stored key
+    derived: dict[str, tuple[str, Tensor]] = field(default_factory=dict)
+    #: the plug-in's state_dict for the file, without what a render of the finished model does not
+    #: read (training-only state, and what only the derivation needed)
+    state: dict[str, Any] = field(default_factory=dict)
 
 
 class Plugin:
@@ -107,26 +124,11 @@ class Plugin:
         (requires_grad) instead. Default: none."""
         return set()
 
-    def compact_units(self, params) -> dict[str, Tensor]:
-        """For the compact file (stdr.compact.file): this plug-in's per-Gaussian tables that a
-        trained model reads only through an activation to [0, 1] and that it also accepts in 8 bits
-        (uint8 q for q / 255), {key: the activated values, float [N, ...]}. A lossy codec named for
-        such a key encodes these values, and the file reads them back as uint8. Default: none."""
-        return {}
-
-    def compact_derived(self, params, step: int) -> dict[str, tuple[str, Tensor]]:
-        """For the compact file's `derived` form (stdr.compact.file): per-Gaussian tables that a
-        finished model reads only through a fixed function of them, {key: (the stored key, that
-        function's values [N, D])}; the file stores the values in place of the table, and the
-        plug-in reads them back from the stored key. A ValueError says why a table cannot be
-        derived at `step`. Default: none."""
-        return {}
-
-    def compact_state(self, state: dict[str, Any], derived: set[str]) -> dict[str, Any]:
-        """This plug-in's state_dict for a compact file, which stores the tables `derived` (maybe
-        none) in their derived form: without what a render of the finished model does not read
-        (training-only state, and what only the derivation needed). Default: as it is."""
-        return state
+    def compact_form(self, params, state: dict[str, Any], step: int, derive: set[str]) -> "CompactForm":
+        """What the compact file (stdr.compact.file) stores of this plug-in, for a model at `step`:
+        `state` is its state_dict, `derive` the per-Gaussian keys the file's spec asks in their
+        `derived` form (a ValueError says why one cannot be derived). Default: its state as it is."""
+        return CompactForm(state=state)
 
     def conditioning(self, params, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
         """(cond [N, cond_dim] or None, delta scale [N, 1] or None) at `step`."""

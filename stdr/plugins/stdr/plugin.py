@@ -26,7 +26,7 @@ from torch import Tensor
 
 from ...ops import sigmoid
 from ...encoding import positional_encoding, positional_encoding_dim
-from .. import Plugin
+from .. import CompactForm, Plugin
 from .field import SeparatedField
 from .mask import (BETWEEN, activated, faint_fraction, knot_times, logits_of, mask_at, quantize, sample_neighbours,
                    spatial_kl, temporal_entropy, temporal_loss)
@@ -161,7 +161,7 @@ class STDR(Plugin):
     @classmethod
     def check_compact_spec(cls, pcfg, spec: dict) -> None:
         """stdr_mask=derived needs a run whose mask stops multiplying opacity at the freeze and whose
-        separated field is on (compact_derived)."""
+        separated field is on (compact_form)."""
         if spec.get(MASK_KEY) != "derived":
             return
         if pcfg.mask_after_freeze or not pcfg.separated_field or not pcfg.mask:
@@ -301,18 +301,25 @@ class STDR(Plugin):
         """The mask once stored in 8 bits (stdr.mask_bits=8, from the freeze on): fixed for good."""
         return {MASK_KEY} if self.has_mask(params) and not params[MASK_KEY].is_floating_point() else set()
 
-    def compact_units(self, params) -> dict[str, Tensor]:
-        """The mask, read by renders as activated(m) and by the field as logits_of(m); both read
-        an 8-bit mask (stdr.mask_bits=8) as well as float logits."""
-        return {MASK_KEY: activated(params[MASK_KEY].detach()).float()} if self.has_mask(params) else {}
-
-    def compact_derived(self, params, step: int) -> dict[str, tuple[str, Tensor]]:
-        """The mask replaced by the separated field's output, cond = [z, d] [N, cond_dim]: past the
+    def compact_form(self, params, state: dict[str, Any], step: int, derive: set[str]) -> CompactForm:
+        """units: the mask, read by renders as activated(m) and by the field as logits_of(m); both
+        read an 8-bit mask (stdr.mask_bits=8) as well as float logits. derived (when `derive` names
+        the mask): the separated field's output cond = [z, d] [N, cond_dim] in its place. Past the
         freeze, with `stdr.mask_after_freeze=false`, a finished model reads the mask only through
-        the field (p = softmax_t(m) -> z, d), whose output is the same at every time; the file
-        stores cond (cond_dim numbers a Gaussian instead of K) and no field weights."""
+        the field (p = softmax_t(m) -> z, d), whose output is the same at every time, so the file
+        stores cond (cond_dim numbers a Gaussian instead of K) and no field weights. state: a
+        render reads neither the spatial regularizer's neighbour cache nor its random generator
+        (training state: 48 KB at 10,000 rows), so the file keeps neither."""
         if not self.has_mask(params):
-            return {}
+            return CompactForm(state={**state, "knn": None, "knn_valid": False, "gen": None})
+        units = {MASK_KEY: activated(params[MASK_KEY].detach()).float()}
+        derived = {MASK_KEY: (COND_KEY, self._derived_mask(params, step))} if MASK_KEY in derive else {}
+        out = {**state, "knn": None, "knn_valid": False, "gen": None}
+        return CompactForm(units, derived, {**out, "field": None} if derived else out)
+
+    def _derived_mask(self, params, step: int) -> Tensor:
+        """The separated field's output at `step`, or a ValueError saying why this model cannot
+        store its mask that way."""
         # the phase first: before the freeze the mask modulates opacity whatever mask_after_freeze says
         why = ("the model is not past the freeze" if self.phase(step) != Phase.FROZEN else
                "the mask still multiplies opacity at this step (stdr.mask_after_freeze=true)"
@@ -330,14 +337,7 @@ class STDR(Plugin):
                 cond, _ = self.conditioning(params, step)
         finally:
             self.field.train(was)
-        return {MASK_KEY: (COND_KEY, cond.detach().float())}
-
-    def compact_state(self, state: dict[str, Any], derived: set[str]) -> dict[str, Any]:
-        """A render reads neither the spatial regularizer's neighbour cache nor its random
-        generator (training state: 48 KB at 10,000 rows), so the file keeps neither; with the mask
-        stored derived, the field's weights are not needed either: the file has its output."""
-        out = {**state, "knn": None, "knn_valid": False, "gen": None}
-        return {**out, "field": None} if MASK_KEY in derived else out
+        return cond.detach().float()
 
     @torch.no_grad()
     def cleanup(self, params) -> int:
@@ -496,7 +496,7 @@ class STDR(Plugin):
         elif self.field is not None and COND_KEY not in params:
             raise ValueError("STDR state without the separated field's weights, and no stored field output "
                              f"({COND_KEY}) to read instead")
-        if s["gen"] is not None:  # None in a compact file (compact_state): the draws start afresh
+        if s["gen"] is not None:  # None in a compact file (compact_form): the draws start afresh
             self.gen.set_state(s["gen"])
         self._knn = None if s["knn"] is None else tuple(x.to(self.device) for x in s["knn"])
         self._knn_step = int(s["knn_step"])
