@@ -117,7 +117,7 @@ def _mask_kl(full, small) -> float | None:
     import torch
 
     from stdr.plugins.stdr.mask import logits_of
-    from stdr.plugins.stdr.plugin import MASK_KEY
+    from stdr.plugins.stdr.mask import MASK_KEY
     if MASK_KEY not in full.params or MASK_KEY not in small.params:  # a derived form stores no mask
         return None
     lp = torch.log_softmax(logits_of(full.params[MASK_KEY].detach()).double(), 1)

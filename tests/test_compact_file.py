@@ -185,7 +185,7 @@ def test_stdr_mask_codecs_read_back_as_the_8_bit_mask(tmp_path):
     form is within its SVD error of it, renders, and costs fewer bytes."""
     from stdr.model import load_model
     from stdr.plugins.stdr.mask import quantize
-    from stdr.plugins.stdr.plugin import MASK_KEY
+    from stdr.plugins.stdr.mask import MASK_KEY
     t = _trained(tmp_path, "embedded_deform_stdr")
     full = t.state.model
     assert full.params[MASK_KEY].is_floating_point()
@@ -216,7 +216,7 @@ def test_the_derived_mask_stores_the_fields_output_and_renders_the_same(tmp_path
     A model whose mask still gates opacity, or one without STDR, is refused by name."""
     from stdr.eval.evaluate import evaluate_model
     from stdr.model import load_model
-    from stdr.plugins.stdr.plugin import COND_KEY, MASK_KEY
+    from stdr.plugins.stdr.mask import COND_KEY, MASK_KEY
     t = _trained(tmp_path, "embedded_deform_stdr", ["stdr.mask_after_freeze=false"])
     full = t.state.model
     n, k = full.params[MASK_KEY].shape
@@ -324,7 +324,7 @@ def test_the_fine_tune_leaves_a_codebook_no_gradient_reaches_and_tunes_the_other
     fine-tune): the render reads the conditioning as a constant, so its codebook stays exactly as
     k-means placed it and is reported `fixed`; shN's codewords are tuned as without it."""
     from stdr.model import load_model
-    from stdr.plugins.stdr.plugin import COND_KEY, MASK_KEY
+    from stdr.plugins.stdr.mask import COND_KEY, MASK_KEY
     t = _trained(tmp_path, "embedded_deform_stdr", ["stdr.mask_after_freeze=false", "model.sh_interval=5"])
     frames = t.scene.frames("train")
     spec = {"shN": "vq:8", MASK_KEY: "derived", COND_KEY: "vq:16"}

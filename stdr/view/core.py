@@ -25,7 +25,7 @@ from ..model import model_from_checkpoint
 from ..io.checkpoint import load_checkpoint, CKPT
 from ..render.sh import rgb_to_sh
 from ..plugins.stdr.mask import mask_at
-from ..plugins.stdr.plugin import COND_KEY, MASK_KEY
+from ..plugins.stdr.mask import COND_KEY, MASK_KEY
 
 VIEWS = ("rgb", "depth", "alpha", "mask", "dynamic")
 SPLITS = ("train", "val", "test")

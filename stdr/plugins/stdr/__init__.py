@@ -4,8 +4,9 @@ from __future__ import annotations
 from .. import register_plugin
 from .config import StdrConfig
 from .field import SeparatedField
-from .mask import interp_weights, knot_times, mask_at, sample_neighbours, spatial_kl, temporal_entropy, temporal_loss
-from .plugin import MASK_KEY, STDR, Phase, phase_at, resolve_phases
+from .mask import MASK_KEY, interp_weights, knot_times, mask_at, sample_neighbours, spatial_kl, temporal_entropy, temporal_loss
+from .phases import Phase, phase_at, resolve_phases
+from .plugin import STDR
 
 register_plugin("stdr", STDR, StdrConfig, label="+STDR")
 

@@ -18,6 +18,11 @@ from torch import Tensor
 from ...ops import sigmoid, take_rows
 from ...knn import knn
 
+#: the mask's key in the model's parameter dict ([N, K] logits, or uint8 once stored in 8 bits)
+MASK_KEY = "stdr_mask"
+#: the separated field's output [N, cond_dim] stored in place of the mask (the compact file's `derived` form)
+COND_KEY = "stdr_cond"
+
 
 def knot_times(train_times, time_bins: int = 0) -> Tensor:
     """Knot times [K] (float64): the sorted distinct training times, or `time_bins` bins on [0, 1]."""

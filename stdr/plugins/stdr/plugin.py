@@ -16,9 +16,6 @@ it aligned; p = softmax_t(m) is a cache recomputed whenever the mask tensor is r
 """
 from __future__ import annotations
 
-import math
-import time
-from enum import IntEnum
 from typing import Any, Optional
 
 import torch
@@ -28,82 +25,15 @@ from ...ops import sigmoid
 from ...encoding import positional_encoding, positional_encoding_dim
 from .. import CompactForm, Plugin
 from .field import SeparatedField
-from .mask import (BETWEEN, activated, faint_fraction, knot_times, logits_of, mask_at, quantize, sample_neighbours,
-                   spatial_kl, temporal_entropy, temporal_loss)
-from ...schedule import Event, keep_out_of_windows
-
-MASK_KEY = "stdr_mask"
-#: the separated field's output [N, cond_dim] stored in place of the mask (the compact file's `derived` form)
-COND_KEY = "stdr_cond"
+from .mask import BETWEEN, COND_KEY, MASK_KEY, activated, knot_times, logits_of, mask_at, quantize
+from .monitor import log_to, stats_of
+from .regularizers import NeighbourCache, regularizer_terms
+from .phases import Phase, add_stages, logit, phase_at, resolve_init
 
 
 def _same_key(a: tuple, b: tuple) -> bool:
     """Two conditioning keys ((tensor, version), ...) name the same tensors at the same versions."""
     return len(a) == len(b) and all(x is y and vx == vy for (x, vx), (y, vy) in zip(a, b))
-
-
-class Phase(IntEnum):
-    WARMUP = 0       # [0, warmup_end): opacity frozen (stdr.freeze_opacity), mask trains, regularized
-    REGULARIZED = 1  # [warmup_end, freeze_at): opacity and mask train, regularized
-    FROZEN = 2       # [freeze_at, end): mask frozen, separated field on
-
-
-def resolve_phases(stdr_cfg, baseline_warmup: int, iterations: int) -> tuple[int, int]:
-    """(warmup_end, freeze_at) by `stdr.phase_rule`; explicit warmup_end / freeze_at win.
-
-    static_warmup: the baseline's static warm-up, and twice it (the paper's 3000 / 6000 at
-    Deformable 3DGS's 3000-step warm-up). fraction: the paper's share of the run,
-    warmup_fraction / freeze_fraction of `iterations` (3000 / 40000, 6000 / 40000).
-    """
-    rule = stdr_cfg.phase_rule
-    if rule == "static_warmup":
-        w_auto = int(baseline_warmup)
-    elif rule == "fraction":
-        w_auto = int(round(stdr_cfg.warmup_fraction * iterations))
-    else:
-        raise ValueError(f"stdr.phase_rule={rule!r}: use 'static_warmup' or 'fraction'")
-    w = w_auto if stdr_cfg.warmup_end is None else int(stdr_cfg.warmup_end)
-    if stdr_cfg.freeze_at is not None:
-        f = int(stdr_cfg.freeze_at)
-    elif rule == "fraction" and stdr_cfg.warmup_end is None:
-        f = int(round(stdr_cfg.freeze_fraction * iterations))
-    else:
-        f = 2 * w
-    if w < 0 or f < w:
-        raise ValueError(f"stdr.warmup_end={w} and stdr.freeze_at={f}: need 0 <= warmup_end <= freeze_at")
-    if f == 0 and stdr_cfg.mask:
-        raise ValueError("stdr.freeze_at resolves to 0, which freezes the mask at its initial value before it "
-                         "ever trains (stdr.warmup_end=0 gives freeze_at = 2 x 0). Set stdr.freeze_at to a step "
-                         "> 0, or switch the mask off with stdr.mask=false")
-    return w, f
-
-
-def phase_at(step: int, warmup_end: int, freeze_at: int) -> Phase:
-    if step >= freeze_at:
-        return Phase.FROZEN
-    return Phase.WARMUP if step < warmup_end else Phase.REGULARIZED
-
-
-def _logit(p: float) -> float:
-    return math.log(p / (1.0 - p))
-
-
-def resolve_init(cfg, init_opacity: float) -> tuple[Optional[float], float]:
-    """(opacity the Gaussians start with, or None to keep model.init_opacity; initial mask logit).
-
-    stdr.mask_init=null: the logit that makes sigmoid(o) * sigmoid(m) equal to model.init_opacity
-    at the start, so the mask, not the frozen opacity, carries the opacity during the warm-up
-    (it needs stdr.opacity_init > model.init_opacity)."""
-    o = cfg.opacity_init
-    if o is not None and not 0.0 < o < 1.0:
-        raise ValueError(f"stdr.opacity_init={o}: must lie in (0, 1), or be null (model.init_opacity)")
-    if cfg.mask_init is not None:
-        return o, float(cfg.mask_init)
-    base = init_opacity if o is None else o
-    if init_opacity >= base:
-        raise ValueError(f"stdr.mask_init=null needs stdr.opacity_init > model.init_opacity ({init_opacity}), "
-                         f"got {o}: the mask can only lower opacity")
-    return o, _logit(init_opacity / base)
 
 
 class STDR(Plugin):
@@ -122,26 +52,8 @@ class STDR(Plugin):
 
     @classmethod
     def stages(cls, pcfg, cfg, schedule) -> dict:
-        """Mask warm-up, regularized phase and freeze (resolve_phases), the freeze kept out of the
-        baseline's switch windows (stdr.schedule.keep_out_of_windows)."""
-        total = schedule.iterations
-        w, f = resolve_phases(pcfg, schedule.static_warmup_end, total)
-        f, moved = keep_out_of_windows(f, w, schedule.windows, "stdr.freeze_at", explicit=pcfg.freeze_at is not None)
-        if f >= total:
-            schedule.never_trains(f"STDR's freeze resolves to step {f}, at or after the run's end (optim.iterations="
-                                  f"{total}): the mask never freezes and the separated field never feeds the "
-                                  "network in this run. Set stdr.freeze_at (or stdr.warmup_end) below the end, or "
-                                  "use stdr.phase_rule=fraction")
-        held = "opacity frozen" if pcfg.freeze_opacity else "opacity trains"
-        schedule.events.append(Event(0, "stdr", f"STDR mask warm-up ({held}), L_temp and L_spatial on"))
-        schedule.events.append(Event(w, "stdr.warmup_end", "STDR warm-up ends" + (
-            ": opacity trains again, mask still regularized" if pcfg.freeze_opacity else
-            " (no change: stdr.freeze_opacity=false)")))
-        schedule.events.append(Event(f, "stdr.freeze_at" + (" (moved)" if moved else ""),
-                                     "STDR mask frozen, regularizers off, separated field feeds the network"))
-        if moved:
-            schedule.notes.append(f"STDR freeze moved {moved}")
-        return {"warmup_end": w, "freeze_at": f, "freeze_moved": moved}
+        """Mask warm-up, regularized phase and freeze (stdr.plugins.stdr.phases.add_stages)."""
+        return add_stages(pcfg, schedule)
 
     #: ablation switches and options whose non-default value tags the table row
     ABLATION_SWITCHES = ("mask", "temporal_reg", "spatial_reg", "separated_field")
@@ -189,13 +101,8 @@ class STDR(Plugin):
         self._cleaned = False
         self.cleaned_entries: Optional[int] = None  # set at the freeze
         self.xyz_freqs = xyz_freqs if cfg.field_pe_xyz else -1
-        self.gen = torch.Generator().manual_seed(seed + 7919)
-        self.knn_seconds = 0.0
-        self.knn_refreshes = 0
-        self._knn: Optional[tuple[Tensor, Tensor]] = None
-        self._knn_for: Optional[Tensor] = None   # mask tensor the neighbour cache was built for
+        self.neighbours = NeighbourCache(cfg, seed, self.device)  # the spatial term's queries and their KNN
         self._params = None  # the model's parameter dict (init_gaussians / load_state_dict): for state_dict
-        self._knn_step = -1
         self._p_for: Optional[tuple] = None  # (mask tensor, its version) the softmax cache was built from
         self._p: Optional[Tensor] = None
         self.last_dynamic: Optional[Tensor] = None
@@ -236,7 +143,7 @@ class STDR(Plugin):
                                                              device=params["means"].device))
             if self.opacity_init is not None:
                 with torch.no_grad():
-                    params["opacities"].fill_(_logit(self.opacity_init))
+                    params["opacities"].fill_(logit(self.opacity_init))
 
     def gaussian_lr(self, key: str) -> Optional[float]:
         return float(self.cfg.mask_lr) if key == MASK_KEY else None
@@ -262,8 +169,7 @@ class STDR(Plugin):
         self.device = torch.device(device)
         if self.field is not None:
             self.field.to(self.device)
-        if self._knn is not None:
-            self._knn = tuple(x.to(self.device) for x in self._knn)
+        self.neighbours.to(self.device)
         self._p_for = None
         self._cond_cache = None
         return self
@@ -452,39 +358,13 @@ class STDR(Plugin):
         if not self.has_mask(params) or self.phase(step) == Phase.FROZEN:
             return {}
         m = params[MASK_KEY]
-        out = {}
-        if self.cfg.temporal_reg and self.cfg.lambda_temp > 0:
-            out["temporal"] = self.cfg.lambda_temp * temporal_loss(m, self.cfg.temporal_reduction)
-        if self.cfg.spatial_reg and self.cfg.lambda_spatial > 0:
-            q, nbr = self.neighbours(params, step)
-            out["spatial"] = self.cfg.lambda_spatial * spatial_kl(m, q, nbr)
-        return out
-
-    def neighbours(self, params, step: int) -> tuple[Tensor, Tensor]:
-        """The sampled queries and their KNN, refreshed every knn_every steps or when rows change."""
-        m = params[MASK_KEY]
-        due = self._knn is None or self._knn_for is not m or \
-            (self.cfg.knn_every > 0 and step - self._knn_step >= self.cfg.knn_every)
-        if due:
-            t0 = time.perf_counter()
-            self._knn = sample_neighbours(params["means"], self.cfg.knn_samples, self.cfg.knn_candidates,
-                                          self.cfg.knn_k, self.gen)
-            self.knn_seconds += time.perf_counter() - t0
-            self.knn_refreshes += 1
-            self._knn_for, self._knn_step = m, step
-        return self._knn
+        return regularizer_terms(self.cfg, m, lambda: self.neighbours.get(params["means"], m, step))
 
     # ----------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:
+        mask = None if self._params is None else self._params.get(MASK_KEY)
         return {"knots": self.knots, "field": None if self.field is None else self.field.state_dict(),
-                "gen": self.gen.get_state(), "knn": self._knn, "knn_step": self._knn_step,
-                # whether the neighbour cache is of the current rows: densification replaces the mask
-                # tensor, and the next regularized step recomputes the cache; a run resumed from a
-                # checkpoint written in between must do the same
-                "knn_valid": self._knn is not None and self._params is not None
-                and self._knn_for is self._params.get(MASK_KEY),
-                "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes,
-                "cleaned": self._cleaned, "cleaned_entries": self.cleaned_entries}
+                **self.neighbours.state_dict(mask), "cleaned": self._cleaned, "cleaned_entries": self.cleaned_entries}
 
     def load_state_dict(self, s: dict[str, Any], params) -> None:
         if self.knots is None or not torch.equal(self.knots, s["knots"]):
@@ -496,85 +376,19 @@ class STDR(Plugin):
         elif self.field is not None and COND_KEY not in params:
             raise ValueError("STDR state without the separated field's weights, and no stored field output "
                              f"({COND_KEY}) to read instead")
-        if s["gen"] is not None:  # None in a compact file (compact_form): the draws start afresh
-            self.gen.set_state(s["gen"])
-        self._knn = None if s["knn"] is None else tuple(x.to(self.device) for x in s["knn"])
-        self._knn_step = int(s["knn_step"])
+        self.neighbours.device = self.device
+        self.neighbours.load_state_dict(s, params.get(MASK_KEY))
         self._params = params
-        self._knn_for = params.get(MASK_KEY) if self._knn is not None and s.get("knn_valid", True) else None
-        self.knn_seconds = float(s["knn_seconds"])
-        self.knn_refreshes = int(s["knn_refreshes"])
         self._cleaned = bool(s.get("cleaned", False))
         self.cleaned_entries = s.get("cleaned_entries")
         self._cond_cache = None
 
     # ----------------------------------------------------------------- monitoring
     def log(self, tb, params, step: int, images: bool, x: Optional[int] = None) -> None:
-        """TensorBoard: the phase of iteration `step`, mask statistics; with images also the
-        entropy and dynamic-probability histograms and the mask-over-time image. x: the axis value."""
-        x = step if x is None else x
-        tb.add_scalar("stdr/phase", int(self.phase(step)), x)
-        if not self.has_mask(params):
-            return
-        m = params[MASK_KEY].detach()
-        a = activated(m)
-        tb.add_scalar("stdr/mask_mean", float(a.mean()), x)
-        tb.add_scalar("stdr/mask_min_over_time_mean", float(a.amin(1).mean()), x)
-        if images:
-            tb.add_histogram("stdr/temporal_entropy", temporal_entropy(m), x)
-            if self.last_dynamic is not None and self.last_dynamic.shape[0] == m.shape[0]:
-                tb.add_histogram("stdr/dynamic_probability", self.last_dynamic.flatten(), x)
-            tb.add_image("stdr/mask_over_time", self.mask_image(a), x, dataformats="HW")
-
-    @staticmethod
-    def mask_image(a: Tensor, rows: int = 64, cell: int = 4) -> Tensor:
-        """[rows*cell, K*cell] grey image: activated mask of evenly spaced Gaussians (rows)
-        sorted by the time of their peak, time left to right."""
-        n = a.shape[0]
-        if n == 0:
-            return torch.zeros(cell, cell, device=a.device)
-        idx = torch.linspace(0, n - 1, min(rows, n), device=a.device).long()
-        s = a[idx]
-        s = s[torch.argsort(s.argmax(1), stable=True)]
-        return s.repeat_interleave(cell, 0).repeat_interleave(cell, 1).clamp(0, 1)
+        """TensorBoard: the phase, mask statistics and, with images, histograms and the mask over
+        time (stdr.plugins.stdr.monitor.log_to)."""
+        log_to(tb, self, params, step, images, x)
 
     def stats(self, params) -> dict[str, Any]:
-        """Numbers for metrics.json: mask size and memory, KNN time, mask and field statistics."""
-        out: dict[str, Any] = {"K": self.K, "warmup_end": self.warmup_end, "freeze_at": self.freeze_at,
-                               "opacity_init": self.opacity_init, "mask_init": self.mask_init,
-                               "freeze_moved": self.freeze_moved, "cleaned_entries": self.cleaned_entries,
-                               "knn_seconds": self.knn_seconds, "knn_refreshes": self.knn_refreshes}
-        if self.has_mask(params):
-            m = params[MASK_KEY].detach()
-            n = m.shape[0]
-            b = m.numel() * m.element_size()
-            a = activated(m)
-            ent = temporal_entropy(m)
-            out.update({
-                "num_gaussians": n,
-                # an 8-bit mask (stdr.mask_bits=8, after the freeze) has no optimizer state
-                "mask_bits": 8 * m.element_size(),
-                "mask_bytes": b, "mask_adam_bytes": 2 * b if m.is_floating_point() else 0,
-                "mask_total_mib": (3 if m.is_floating_point() else 1) * b / 2 ** 20,
-                "mask_mean": float(a.mean()),
-                "mask_min_over_time_mean": float(a.amin(1).mean()),
-                "fraction_time_gated": float((a.amin(1) < 0.5).float().mean()),  # off at some time
-                "fraction_never_off": float((a.amin(1) >= 0.5).float().mean()),
-                # (Gaussian, time) entries with masked opacity in [1/255, 0.05]: faint copies
-                "fraction_faint": faint_fraction(sigmoid(params["opacities"].detach()), m),
-                "temporal_entropy_mean": float(ent.mean()),
-                "temporal_entropy_quantiles": [float(x) for x in
-                                               torch.quantile(ent.float(), torch.tensor([0.1, 0.5, 0.9], device=ent.device))]
-                if n else [],
-            })
-        if self.field is not None:
-            was = self.field.training
-            self.field.eval()
-            with torch.no_grad():
-                self.conditioning(params, self.freeze_at)  # sets last_dynamic (eval mode)
-            self.field.train(was)
-            d = self.last_dynamic
-            if d is not None and d.numel():
-                out["dynamic_probability_mean"] = float(d.mean())
-                out["fraction_dynamic"] = float((d > 0.5).float().mean())
-        return out
+        """Numbers for metrics.json (stdr.plugins.stdr.monitor.stats_of)."""
+        return stats_of(self, params)
