@@ -38,7 +38,8 @@ def count(exp: str, scene: Path, overrides: list[str]) -> dict:
     from torch.utils._python_dispatch import TorchDispatchMode
 
     from stdr.store import compose_config
-    from stdr.train.trainer import Profiler, Trainer
+    from stdr.train.profile import Profiler
+    from stdr.train.trainer import Trainer
 
     class OpCounter(TorchDispatchMode):
         """Every ATen operator dispatched (`ops`, `by_op`) and those that launch work (`compute`):

@@ -101,11 +101,12 @@ def test_recovery_restores_the_snapshot_exactly_and_lowers_every_lr(tmp_path):
     tr2.state.guard.recover(tr2.state, tr2.log, "a test")
     assert tr2.step == 10 and tr2.state.guard.lr_scale == 0.5
     _same_params(ref, tr2)
-    tr2._update_lrs(tr2.step)
+    from stdr.train.optim import gaussian_lr, net_lr, update_lrs
+    update_lrs(tr2.cfg, tr2.state, tr2.net_groups, tr2.step)
     for k, o in tr2.state.optimizers.items():
-        assert o.param_groups[0]["lr"] == pytest.approx(0.5 * tr2._lr(k, 10), rel=1e-12), k
+        assert o.param_groups[0]["lr"] == pytest.approx(0.5 * gaussian_lr(tr2.cfg, tr2.state.model, k, 10), rel=1e-12), k
     for spec, g in zip(tr2.net_groups, tr2.state.net_opt.param_groups):
-        assert g["lr"] == pytest.approx(0.5 * tr2._net_lr(spec, 10), rel=1e-12)
+        assert g["lr"] == pytest.approx(0.5 * net_lr(tr2.cfg, spec, 10), rel=1e-12)
 
 
 @pytest.mark.slow

@@ -123,7 +123,8 @@ def test_a_plugin_trains_through_the_hooks_alone(tmp_path, tagger):
     lrs = {g["name"]: g["lr"] for g in t.state.net_opt.param_groups}
     assert lrs["tagger_net"] == pytest.approx(1e-4 * (1e-2 / 1e-4) ** (1 / 30), rel=1e-6)  # step 39 of 10..40
     assert lrs["tagger_net"] != pytest.approx(lrs["deform"])
-    t._update_lrs(10)
+    from stdr.train.optim import update_lrs
+    update_lrs(t.cfg, t.state, t.net_groups, 10)
     assert {g["name"]: g["lr"] for g in t.state.net_opt.param_groups}["tagger_net"] == pytest.approx(1e-2)
     # statistics under its name in metrics.json
     res = t.evaluate_final("test")

@@ -97,3 +97,68 @@ def exp_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> float:
         return lr_final
     s = min(max(step / max_steps, 0.0), 1.0)
     return math.exp(math.log(lr_init) * (1 - s) + math.log(lr_final) * s)
+
+
+# ----------------------------------------------------------------- the run's optimizers
+def uses_fused_adam(cfg, device: torch.device) -> bool:
+    """optim.fused_adam: torch's fused Adam (one kernel per parameter instead of ~10 elementwise
+    passes) where torch has it (CPU and CUDA)."""
+    return bool(cfg.optim.get("fused_adam", True)) and device.type in ("cpu", "cuda")
+
+
+def gaussian_lr(cfg, model, key: str, step: int) -> float:
+    """The learning rate of per-Gaussian parameter `key` at `step`: 3DGS's schedule for the six
+    Gaussian tensors, the owner's (the deformation module or a plug-in) for one it added."""
+    o = cfg.optim
+    s = o.spatial_lr_scale
+    if key == "means":
+        return exp_lr(step, o.means_lr_init * s, o.means_lr_final * s, o.means_lr_max_steps)
+    fixed = {"scales": o.scales_lr * s, "quats": o.quats_lr, "opacities": o.opacities_lr,
+             "sh0": o.sh0_lr, "shN": o.shN_lr}
+    if key in fixed:
+        return fixed[key]
+    for owner in [model.deform, *model.plugins]:
+        lr = owner.gaussian_lr(key)
+        if lr is not None:
+            return lr
+    raise KeyError(f"no learning rate configured for per-Gaussian parameter {key!r}")
+
+
+def make_optimizers(cfg, model, fused: bool) -> dict[str, torch.optim.Optimizer]:
+    """One Adam per per-Gaussian parameter, including those a plug-in freezes for a phase, so the
+    optimizer set does not depend on the step; a parameter without a gradient is not updated."""
+    frozen = model.frozen_keys()
+    return {k: torch.optim.Adam([{"params": [p], "lr": gaussian_lr(cfg, model, k, 0), "name": k}], eps=1e-15,
+                                fused=fused)
+            for k, p in model.params.items() if k not in frozen}
+
+
+def net_groups(model) -> list[dict]:
+    """Network parameter groups: the deformation's (each with an lr multiplier on the baseline's
+    schedule), then each plug-in's (the baseline's schedule, or their own)."""
+    groups = [dict(g) for g in model.deform.param_groups()]
+    for p in model.plugins:
+        groups += [dict(g) for g in p.param_groups()]
+    return groups
+
+
+def net_lr(cfg, g: dict, step: int) -> float:
+    """The learning rate of network group `g` at `step`: its own schedule when it gives one, else
+    the baseline's (from the warm-up's end with baseline.lr_from_warmup) times its multiplier."""
+    if "lr_init" in g:
+        s = max(step - int(g.get("lr_delay", 0)), 0)
+        return exp_lr(s, g["lr_init"], g["lr_final"], int(g["lr_max_steps"]))
+    b = cfg.baseline
+    s = max(step - b.warmup, 0) if b.lr_from_warmup else step
+    return exp_lr(s, b.lr_init, b.lr_final, b.lr_max_steps) * g.get("lr_mult", 1.0)
+
+
+def update_lrs(cfg, state, groups: list[dict], step: int) -> None:
+    """Every optimizer's learning rate at `step`, times the guard's scale (1 until a recovery
+    lowers it, train.guard.lr_factor); `groups`: net_groups of the run's model."""
+    scale = state.guard.lr_scale
+    for k, opt in state.optimizers.items():
+        for g in opt.param_groups:
+            g["lr"] = gaussian_lr(cfg, state.model, k, step) * scale
+    for spec, g in zip(groups, state.net_opt.param_groups):
+        g["lr"] = net_lr(cfg, spec, step) * scale

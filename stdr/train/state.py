@@ -78,6 +78,34 @@ class RunLog:
         if self.writer is not None:
             self.writer.add_scalar(tag, value, step)
 
+    def step_scalars(self, it: int, logs: dict[str, Any], dt: float, state: "RunState", device) -> None:
+        """A training step's scalars: losses, PSNR, Gaussian counts, seconds, memory, learning
+        rates and the densification's counts (`logs`: Trainer.train_step's result)."""
+        tb = self.open()
+        for k in ("loss", "l1", "dssim"):
+            tb.add_scalar(f"loss/{k}", logs[k], it)
+        tb.add_scalar("train/psnr", logs["psnr"], it)
+        tb.add_scalar("gaussians/count", state.model.num_gaussians, it)
+        tb.add_scalar("gaussians/rendered", logs["active"], it)  # after temporal culling (render.cull=train)
+        tb.add_scalar("time/seconds_per_iteration", dt, it)
+        mb = state.guard.note_memory(device)
+        if mb is not None:
+            tb.add_scalar("memory/mb", mb, it)  # docs/stability.md: the process's memory (CUDA: peak allocated)
+        for k, o in state.optimizers.items():
+            tb.add_scalar(f"lr/{k}", o.param_groups[0]["lr"], it)
+        for g in state.net_opt.param_groups:
+            tb.add_scalar(f"lr/{g.get('name', 'deform')}", g["lr"], it)
+        for k, v in logs["densify"].items():
+            tb.add_scalar(f"densify/{k}", v, it)
+        for k, v in logs["losses"].items():
+            tb.add_scalar(f"loss/{k}", v, it)
+
+    def render_and_truth(self, it: int, img: Tensor, gt: Tensor, tag: str = "train/render_gt_error") -> None:
+        """The render, the ground truth and 4x their error side by side ([H, 3W, 3])."""
+        err = (img - gt).abs().mean(-1, keepdim=True).expand(-1, -1, 3)
+        grid = torch.cat([img.clamp(0, 1), gt, (err * 4).clamp(0, 1)], 1)
+        self.open().add_image(tag, grid, it, dataformats="HWC")
+
 
 @dataclass
 class RunState:
