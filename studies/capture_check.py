@@ -66,6 +66,7 @@ def _split(ids_a, ids_b, every=8):
 
 def run(toy: Path, work: Path, seeds) -> None:
     from stdr.data import capture as cap
+    from stdr.data.pose_error import ray_errors
     work.mkdir(parents=True, exist_ok=True)
     rec = _load(work)
     rec.setdefault("stamp", _stamp())
@@ -85,7 +86,7 @@ def run(toy: Path, work: Path, seeds) -> None:
         def cams(folder, ids):
             return [json.loads((folder / "camera" / f"{i}.json").read_text()) for i in ids]
         rec["poses"] = {"common_ids": len(common), "toy_ids": len(ids_toy), "captured_ids": len(ids_cap),
-                        **cap.ray_errors(cams(out, common), cams(toy, common))}
+                        **ray_errors(cams(out, common), cams(toy, common))}
         _save(work, rec)
     train, val = _split(ids_cap, ids_toy)
     split = {"ids": sorted(set(train) | set(val)), "train_ids": train, "val_ids": val}

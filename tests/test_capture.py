@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from stdr.data import capture as cap
+from stdr.data import capture_input as frames_mod
+from stdr.data import pose_error
 
 pycolmap = pytest.importorskip("pycolmap", reason="stdr-data capture needs the `capture` extra")
 av = pytest.importorskip("av", reason="stdr-data capture needs the `capture` extra")
@@ -27,10 +29,10 @@ def test_similarity_alignment_recovers_a_known_transform():
     rng = np.random.default_rng(0)
     src = rng.normal(size=(20, 3))
     R, s, t = _rotation(rng), 3.7, np.array([1.0, -2.0, 0.5])
-    s2, R2, t2 = cap.align_similarity(src, s * src @ R.T + t)
+    s2, R2, t2 = pose_error.align_similarity(src, s * src @ R.T + t)
     assert s2 == pytest.approx(s) and np.allclose(R2, R, atol=1e-10) and np.allclose(t2, t, atol=1e-10)
     with pytest.raises(ValueError, match="N >= 3"):
-        cap.align_similarity(src[:2], src[:2])
+        pose_error.align_similarity(src[:2], src[:2])
 
 
 def _cam(R, c, f=300.0, pp=(100.0, 80.0), size=(200, 160)):
@@ -52,18 +54,18 @@ def test_ray_errors_are_zero_up_to_a_similarity_and_see_a_turned_camera():
     A, s, t = _rotation(rng), 0.25, np.array([3.0, 0.0, -1.0])
     est = [_cam(R @ A, (c - t) @ A / s) for R, c in zip(R_ref, c_ref)]
     ref = [_cam(R, c) for R, c in zip(R_ref, c_ref)]
-    e = cap.ray_errors(est, ref)
+    e = pose_error.ray_errors(est, ref)
     assert e["position_max"] < 1e-9 and e["ray_max_deg"] < 1e-5 and e["scale"] == pytest.approx(s)
     # one camera turned by 2 degrees about its own y axis: the ray through the centre turns by 2
     est[3]["orientation"] = (_turn_y(2.0) @ np.asarray(est[3]["orientation"])).tolist()
-    e = cap.ray_errors(est, ref)
+    e = pose_error.ray_errors(est, ref)
     assert e["ray_max_deg"] == pytest.approx(2.0, abs=1e-6) and e["ray_median_deg"] < 1e-5
     # one camera moved by 10 % of the trajectory's extent
     est = [_cam(R @ A, (c - t) @ A / s) for R, c in zip(R_ref, c_ref)]
     extent = np.linalg.norm(c_ref[:, None] - c_ref[None], axis=-1).max()
     moved = c_ref.copy()
     moved[5] += np.array([0.1 * extent, 0, 0])
-    e = cap.ray_errors(est, [_cam(R, c) for R, c in zip(R_ref, moved)])
+    e = pose_error.ray_errors(est, [_cam(R, c) for R, c in zip(R_ref, moved)])
     assert 0.05 < e["position_max"] < 0.11  # (the alignment absorbs a little of it)
 
 
@@ -78,7 +80,7 @@ def test_ray_errors_see_through_a_principal_point_traded_for_a_rotation():
     cs = rng.normal(size=(6, 3))
     centred = [_cam(R, c, f, (100.0, 80.0)) for R, c in zip(Rs, cs)]
     shifted = [_cam(_turn_y(-np.degrees(np.arctan(d / f))) @ R, c, f, (100.0 + d, 80.0)) for R, c in zip(Rs, cs)]
-    e = cap.ray_errors(shifted, centred)
+    e = pose_error.ray_errors(shifted, centred)
     assert e["ray_max_deg"] < 0.5  # quarter points differ a little (the two are not the same projection)
     assert np.degrees(np.arctan(d / f)) > 5.7
 
@@ -98,12 +100,12 @@ def _frames(n, h=48, w=64):
 
 def test_windows_keep_the_first_or_the_sharpest_frame():
     imgs = _frames(9)
-    sharp = [i for i, _, _ in cap._windows(enumerate(imgs), 3, "sharpest")]
-    first = [i for i, _, _ in cap._windows(enumerate(imgs), 3, "uniform")]
+    sharp = [i for i, _, _ in frames_mod._windows(enumerate(imgs), 3, "sharpest")]
+    first = [i for i, _, _ in frames_mod._windows(enumerate(imgs), 3, "uniform")]
     assert first == [0, 3, 6]
     # windows {0,1,2} {3,4,5} {6,7,8}: blurred frames are the odd ones
     assert all(i % 2 == 0 for i in sharp) and len(sharp) == 3 and sharp[1] == 4
-    assert cap.sharpness(imgs[1]) < cap.sharpness(imgs[0])
+    assert frames_mod.sharpness(imgs[1]) < frames_mod.sharpness(imgs[0])
 
 
 def _encode(frames, path: Path, fps: int) -> Path:
@@ -123,14 +125,14 @@ def test_video_frames_keep_a_stride_and_their_presentation_times(tmp_path):
     video = _encode(_frames(30), tmp_path / "v.mp4", fps=10)
     out = tmp_path / "f"
     out.mkdir()
-    recs = cap.video_frames(video, out, cap.CaptureConfig(frames=10, select="uniform"))
+    recs = frames_mod.video_frames(video, out, cap.CaptureConfig(frames=10, select="uniform"))
     assert [r.source_index for r in recs] == list(range(0, 30, 3))
     assert [r.time_sec for r in recs] == pytest.approx([i / 10 for i in range(0, 30, 3)])
     assert sorted(p.name for p in out.iterdir()) == [f"{i:06d}.png" for i in range(0, 30, 3)]
     assert cv2.imread(str(out / "000003.png")).shape == (48, 64, 3)
-    sharp = cap.video_frames(video, tmp_path / "f", cap.CaptureConfig(frames=10, select="sharpest"))
+    sharp = frames_mod.video_frames(video, tmp_path / "f", cap.CaptureConfig(frames=10, select="sharpest"))
     assert all(r.source_index % 2 == 0 for r in sharp)  # every window has a sharp (even) frame
-    small = cap.video_frames(video, tmp_path / "f", cap.CaptureConfig(frames=None, max_size=32))
+    small = frames_mod.video_frames(video, tmp_path / "f", cap.CaptureConfig(frames=None, max_size=32))
     assert len(small) == 30 and cv2.imread(str(out / "000001.png")).shape == (24, 32, 3)
 
 
@@ -219,7 +221,7 @@ def test_capture_finds_the_phone_captures_cameras(toy_capture):
     ids = json.loads((out / "dataset.json").read_text())["ids"]
     common = [i for i in ref_ids if i in set(ids)]
     assert len(common) >= 0.9 * len(ref_ids), (len(common), len(ref_ids))
-    e = cap.ray_errors(_cameras(out, common), _cameras(toy, common))
+    e = pose_error.ray_errors(_cameras(out, common), _cameras(toy, common))
     print(f"capture of {len(ids)} frames in {seconds:.0f} s ({info['timings_s']}); pose errors {e}")
     assert e["position_median"] < POS_MEDIAN and e["position_max"] < POS_MAX, e
     assert e["ray_median_deg"] < RAY_MEDIAN and e["ray_max_deg"] < RAY_MAX, e
@@ -267,7 +269,7 @@ def test_capture_from_a_video_of_the_same_frames(shared_dir, tmp_path):
     ref_ids = set(json.loads((toy / "dataset.json").read_text())["ids"])
     pairs = [(i, f"{int(i) + 1:06d}") for i in ids if f"{int(i) + 1:06d}" in ref_ids]
     assert len(pairs) >= 0.9 * len(ref_ids)
-    e = cap.ray_errors(_cameras(out, [a for a, _ in pairs]), _cameras(toy, [b for _, b in pairs]))
+    e = pose_error.ray_errors(_cameras(out, [a for a, _ in pairs]), _cameras(toy, [b for _, b in pairs]))
     print(f"video capture: {info['timings_s']}; pose errors {e}")
     assert e["position_median"] < POS_MEDIAN and e["position_max"] < POS_MAX, e
     assert e["ray_median_deg"] < RAY_MEDIAN and e["ray_max_deg"] < RAY_MAX, e

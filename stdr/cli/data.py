@@ -15,7 +15,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..data import capture as capture_mod
+from ..data.capture import capture
+from ..data.capture_input import MATCHERS, SELECT_MODES, CaptureConfig
 from ..data import fetch
 from ..errors import reported
 from ..eval.lpips import fetch_dir, fetch_weights
@@ -190,14 +191,14 @@ def main(argv=None) -> None:
                        "`stdr-train experiment=nerfies_deform data.path=OUT` trains on (docs/data.md).")
     c.add_argument("source", type=Path, help="a video file (.mp4, .mov, ...) or a folder of images")
     c.add_argument("--out", type=Path, required=True, help="the dataset folder to create")
-    cd = capture_mod.CaptureConfig()
+    cd = CaptureConfig()
     c.add_argument("--frames", type=int, default=cd.frames, help=f"about this many frames kept (default {cd.frames}; "
                    "0 keeps every frame)")
-    c.add_argument("--select", choices=capture_mod.SELECT_MODES, default=cd.select,
+    c.add_argument("--select", choices=SELECT_MODES, default=cd.select,
                    help="which frame of each stride window is kept (default: the sharpest)")
     c.add_argument("--max-size", type=int, default=cd.max_size, help=f"long side in pixels (default {cd.max_size}; 0 keeps)")
     c.add_argument("--val-every", type=int, default=cd.val_every, help=f"every k-th frame is held out (default {cd.val_every})")
-    c.add_argument("--matcher", choices=capture_mod.MATCHERS, default=cd.matcher,
+    c.add_argument("--matcher", choices=MATCHERS, default=cd.matcher,
                    help=f"auto: exhaustive up to {cd.exhaustive_max} frames, else sequential")
     c.add_argument("--vocab-tree", default=None, help="COLMAP vocabulary tree file: loop detection in sequential matching")
     c.add_argument("--min-registered", type=float, default=cd.min_registered,
@@ -219,11 +220,11 @@ def main(argv=None) -> None:
         elif args.cmd == "prepare":
             prepare_dnerf(args.src, args.dest)
         elif args.cmd == "capture":
-            cfg = capture_mod.CaptureConfig(
+            cfg = CaptureConfig(
                 frames=args.frames or None, select=args.select, max_size=args.max_size, val_every=args.val_every,
                 matcher=args.matcher, vocab_tree=args.vocab_tree, min_registered=args.min_registered,
                 camera_model=args.camera_model, seed=args.seed, threads=args.threads)
-            capture_mod.capture(args.source, args.out, cfg, overwrite=args.overwrite, keep_work=args.keep_work)
+            capture(args.source, args.out, cfg, overwrite=args.overwrite, keep_work=args.keep_work)
 
 
 if __name__ == "__main__":

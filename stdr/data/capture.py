@@ -27,203 +27,19 @@ module is written against pycolmap 4.2 (the `capture` extra pins it).
 from __future__ import annotations
 
 import json
-import math
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Optional
 
-import cv2
 import numpy as np
 
-from ..errors import UserError
+from .capture_input import (VIDEO_SUFFIXES, CaptureConfig, CaptureError, FrameRecord, progress_bar, folder_frames,
+                            video_frames)
 from .checks import check_intrinsics, check_pose
 
 PYCOLMAP_VERSION = "4.2.1"  # the version this module is written and tested against (pyproject: extra `capture`)
-VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-SELECT_MODES = ("sharpest", "uniform")
-MATCHERS = ("auto", "exhaustive", "sequential")
-
-
-class CaptureError(UserError, RuntimeError):
-    """A capture that cannot become a dataset; the message says why and what to try."""
-
-
-@dataclass
-class CaptureConfig:
-    frames: Optional[int] = 150       # about this many frames kept (None: every frame / image)
-    select: str = "sharpest"           # sharpest | uniform: which frame of each stride window is kept
-    max_size: int = 960                # long side in pixels after downscaling (0: keep)
-    val_every: int = 8                 # every k-th frame (by rank, offset k // 2) is held out
-    matcher: str = "auto"              # auto: exhaustive up to exhaustive_max frames, else sequential
-    exhaustive_max: int = 150
-    overlap: int = 10                  # sequential matching: neighbours on each side
-    vocab_tree: Optional[str] = None   # sequential matching: loop detection with this vocabulary tree
-    min_registered: float = 0.7        # fail when SfM registers a smaller share of the frames
-    camera_model: str = "OPENCV"
-    seed: int = 0
-    threads: int = -1                  # pycolmap's threads (-1: all cores)
-
-    def check(self) -> None:
-        if self.frames is not None and self.frames < 3:
-            raise CaptureError(f"--frames {self.frames}: a capture needs at least 3 frames")
-        if self.select not in SELECT_MODES:
-            raise CaptureError(f"--select {self.select!r}: use one of {', '.join(SELECT_MODES)}")
-        if self.matcher not in MATCHERS:
-            raise CaptureError(f"--matcher {self.matcher!r}: use one of {', '.join(MATCHERS)}")
-        if self.val_every < 2:
-            raise CaptureError(f"--val-every {self.val_every}: at least 2 (every k-th frame is held out)")
-        if not 0.0 < self.min_registered <= 1.0:
-            raise CaptureError(f"--min-registered {self.min_registered}: a share in (0, 1]")
-        if self.max_size < 0:
-            raise CaptureError(f"--max-size {self.max_size}: 0 (keep) or a positive number of pixels")
-        if self.vocab_tree is not None and not Path(self.vocab_tree).is_file():
-            raise CaptureError(f"--vocab-tree {self.vocab_tree}: file not found (COLMAP's vocabulary tree "
-                               "for loop detection; leave it out to match sequentially without loops)")
-
-
-@dataclass
-class FrameRecord:
-    id: str               # output id (rgb/1x/<id>.png, camera/<id>.json)
-    source: str           # source file name (images) or frame index (video)
-    source_index: int     # index among the source's frames (decode order) or images (name order)
-    time_sec: float       # presentation time (video) or rank (images)
-    sharpness: float      # variance of the Laplacian of the grey image (after downscaling)
-    registered: bool = False
-
-
-def sharpness(img: np.ndarray) -> float:
-    """Variance of the Laplacian of the grey image (higher: sharper)."""
-    grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
-    return float(cv2.Laplacian(grey, cv2.CV_64F).var())
-
-
-def downscale(img: np.ndarray, max_size: int) -> np.ndarray:
-    h, w = img.shape[:2]
-    if not max_size or max(h, w) <= max_size:
-        return img
-    s = max_size / max(h, w)
-    return cv2.resize(img, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
-
-
-def _stride(n: int, target: Optional[int]) -> int:
-    return 1 if (target is None or n <= target) else math.ceil(n / target)
-
-
-def _progress(total, desc):
-    from tqdm import tqdm
-    return tqdm(total=total, desc=f"[capture] {desc}", unit="frame", leave=True, mininterval=1.0)
-
-
-def _windows(items, stride: int, select: str, image_of=lambda it: it):
-    """Yield the kept (index, item, sharpness) of each window of `stride` consecutive (index, item)
-    pairs: its first (uniform) or its sharpest item."""
-    best, start = None, None
-    for i, it in items:
-        w = i // stride
-        if start is not None and w != start:
-            yield best
-            best = None
-        start = w
-        if select == "uniform":
-            if best is None:
-                best = (i, it, sharpness(image_of(it)))
-        else:
-            s = sharpness(image_of(it))
-            if best is None or s > best[2]:
-                best = (i, it, s)
-    if best is not None:
-        yield best
-
-
-def _write_png(path: Path, img: np.ndarray) -> None:
-    if not cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
-        raise CaptureError(f"could not write {path}")
-
-
-def video_frames(video: Path, out: Path, cfg: CaptureConfig) -> list[FrameRecord]:
-    """Decode `video`, keep one frame per stride window, save them as out/<id>.png (RGB)."""
-    try:
-        import av
-    except ImportError:
-        raise CaptureError("reading a video needs PyAV: pip install 'stdr[capture]' (or pip install av)") from None
-    try:
-        container = av.open(str(video))
-    except Exception as e:  # noqa: BLE001 - PyAV raises many error types for unreadable files
-        raise CaptureError(f"{video}: not a readable video ({type(e).__name__}: {e})") from None
-    with container:
-        if not container.streams.video:
-            raise CaptureError(f"{video}: has no video stream")
-        stream = container.streams.video[0]
-        n = stream.frames
-        if not n:  # the container does not say: count the packets
-            n = sum(1 for p in container.demux(stream) if p.size)
-            container.seek(0)
-        stride = _stride(n, cfg.frames)
-        tb = float(stream.time_base) if stream.time_base else None
-        t0 = None
-        records: list[FrameRecord] = []
-        bar = _progress(n, f"frames of {video.name} (every {stride})")
-
-        def decoded():
-            nonlocal t0
-            for i, fr in enumerate(container.decode(stream)):
-                bar.update(1)
-                img = fr.to_ndarray(format="rgb24")
-                rot = int(getattr(fr, "rotation", 0) or 0) % 360
-                if rot:  # display matrix: rotate counter-clockwise by `rot` degrees to show upright
-                    img = np.ascontiguousarray(np.rot90(img, k=rot // 90))
-                pts = fr.pts if fr.pts is not None else i
-                sec = pts * tb if tb else i / float(stream.average_rate or 30)
-                t0 = sec if t0 is None else t0
-                yield i, (downscale(img, cfg.max_size), sec - t0)
-
-        for i, (img, sec), score in _windows(decoded(), stride, cfg.select, image_of=lambda it: it[0]):
-            fid = f"{i:06d}"
-            _write_png(out / f"{fid}.png", img)
-            records.append(FrameRecord(id=fid, source=f"frame {i}", source_index=i, time_sec=float(sec),
-                                       sharpness=score))
-        bar.close()
-    if len(records) < 3:
-        raise CaptureError(f"{video}: only {len(records)} frame(s) decoded; a capture needs at least 3")
-    return records
-
-
-def folder_frames(folder: Path, out: Path, cfg: CaptureConfig) -> list[FrameRecord]:
-    """The images of `folder` in name order (time = rank), one per stride window, as out/<id>.png."""
-    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
-    if len(paths) < 3:
-        raise CaptureError(f"{folder}: {len(paths)} image(s) ({', '.join(IMAGE_SUFFIXES)}); a capture needs at least 3")
-    stems = [p.stem for p in paths]
-    keep_names = len(set(stems)) == len(stems) and all(s.replace("_", "").replace("-", "").isalnum() for s in stems)
-    stride = _stride(len(paths), cfg.frames)
-    bar = _progress(len(paths), f"images of {folder.name} (every {stride})")
-
-    def read():
-        size = None
-        for i, p in enumerate(paths):
-            bar.update(1)
-            img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-            if img is None:
-                raise CaptureError(f"could not decode image {p} (corrupt or unsupported format)")
-            size = size or (img.shape[:2], p.name)
-            if img.shape[:2] != size[0]:  # every image, as it is read
-                raise CaptureError(f"{p}: {img.shape[1]}x{img.shape[0]} pixels, but {size[1]} is "
-                                   f"{size[0][1]}x{size[0][0]}; one camera needs one image size")
-            yield i, downscale(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), cfg.max_size)
-
-    records = []
-    for i, img, score in _windows(read(), stride, cfg.select):
-        fid = stems[i] if keep_names else f"{i:06d}"
-        _write_png(out / f"{fid}.png", img)
-        records.append(FrameRecord(id=fid, source=paths[i].name, source_index=i, time_sec=float(i), sharpness=score))
-    bar.close()
-    return records
-
-
-# ----------------------------------------------------------------------------- structure from motion
 def _pycolmap():
     try:
         import pycolmap
@@ -278,7 +94,7 @@ def run_sfm(image_dir: Path, work: Path, names: list[str], cfg: CaptureConfig, l
     # on --threads threads, are not bit-identical; docs/data.md)
     opts = pc.IncrementalPipelineOptions(random_seed=cfg.seed, num_threads=1)
     (work / "sparse").mkdir(parents=True, exist_ok=True)
-    bar = _progress(len(names), "mapping (registered frames)")
+    bar = progress_bar(len(names), "mapping (registered frames)")
     models = pc.incremental_mapping(db, image_dir, work / "sparse", options=opts,
                                     next_image_callback=lambda: bar.update(1))
     bar.close()
@@ -535,57 +351,3 @@ def capture(source: str | Path, out: str | Path, cfg: Optional[CaptureConfig] = 
 
 
 # ----------------------------------------------------------------------------- checking against known cameras
-def align_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity (s, R, t) with dst ~ s R src + t (Umeyama 1991); src, dst [N, 3], N >= 3."""
-    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
-        raise ValueError(f"align_similarity: two [N, 3] arrays with N >= 3, got {src.shape} and {dst.shape}")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    cov = b.T @ a / len(src)
-    U, S, Vt = np.linalg.svd(cov)
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1
-    R = U @ D @ Vt
-    var = (a ** 2).sum() / len(src)
-    s = float(np.trace(np.diag(S) @ D) / var)
-    return s, R, mu_d - s * R @ mu_s
-
-
-def camera_rays(cam: dict, points=((0.5, 0.5), (0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75))) -> np.ndarray:
-    """World directions [P, 3] of the rays through image points given as fractions of the image
-    size, for a Nerfies camera file's content (its intrinsics and lens distortion applied)."""
-    R = np.asarray(cam["orientation"], dtype=np.float64)
-    f = float(cam["focal_length"])
-    fy = f * float(cam.get("pixel_aspect_ratio", 1.0))
-    cx, cy = cam["principal_point"]
-    W, H = cam["image_size"]
-    k = (list(cam.get("radial_distortion", [0.0, 0.0, 0.0])) + [0.0, 0.0])[:3]
-    p = list(cam.get("tangential_distortion", [0.0, 0.0]))
-    K = np.array([[f, float(cam.get("skew", 0.0)), cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    px = np.array([[[u * W, v * H]] for u, v in points], dtype=np.float64)
-    xy = cv2.undistortPoints(px, K, np.array([k[0], k[1], p[0], p[1], k[2]]))[:, 0]
-    d = np.concatenate([xy, np.ones((len(xy), 1))], 1) @ R  # R^T x for each row
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
-def ray_errors(cams_est: list[dict], cams_ref: list[dict]) -> dict:
-    """Camera poses of an estimate against a reference (Nerfies camera files' content, matched
-    by position), after the similarity that best maps the estimated centres onto the
-    reference's. Centres: distance in units of the reference trajectory's extent (the largest
-    distance between two reference centres). Orientation: the angle between the two world rays
-    through the same image points (centre and quarter points), each camera with its own
-    intrinsics and distortion, so that two solutions that trade a principal-point offset
-    against a rotation (which look alike in the image) are compared by what they see."""
-    c_est = np.stack([np.asarray(c["position"], np.float64) for c in cams_est])
-    c_ref = np.stack([np.asarray(c["position"], np.float64) for c in cams_ref])
-    s, A, t = align_similarity(c_est, c_ref)
-    c_al = (s * (A @ c_est.T)).T + t
-    extent = float(max(np.linalg.norm(c_ref[:, None] - c_ref[None], axis=-1).max(), 1e-12))
-    pos = np.linalg.norm(c_al - c_ref, axis=1) / extent
-    ang = np.array([np.degrees(np.arccos(np.clip(np.sum((camera_rays(a) @ A.T) * camera_rays(b), 1), -1, 1))).max()
-                    for a, b in zip(cams_est, cams_ref)])
-    return {"n": int(len(pos)), "scale": s, "extent": extent,
-            "position_median": float(np.median(pos)), "position_max": float(pos.max()),
-            "ray_median_deg": float(np.median(ang)), "ray_max_deg": float(ang.max())}
