@@ -12,10 +12,18 @@ the per-pixel source coordinates for cv2.remap.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import hashlib
+import json
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Optional
 
 import cv2
 import numpy as np
+
+from .images import read_image
+
+CACHE_VERSION = 2  # the undistortion cache's: bump when the cached content or manifest layout changes
 
 
 @dataclass(frozen=True)
@@ -157,3 +165,55 @@ def remap(img: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
     """Resample img [H, W, C] at the map coordinates (bilinear, edge pixels replicated)."""
     out = cv2.remap(img, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out if out.ndim == img.ndim else out[..., None]
+
+
+# ----------------------------------------------------------------------------- undistortion cache
+def _sha1(data: bytes) -> str:
+    return hashlib.sha1(data).hexdigest()
+
+
+class UndistortCache:
+    """Undistorted images as 16-bit PNGs with a manifest per image; a manifest mismatch (source
+    bytes, lens, version) recomputes. One folder per scene path and image scale."""
+
+    def __init__(self, root: Optional[Path], scene: Path, image_scale: int):
+        self.dir = None
+        if root is not None:
+            key = _sha1(str(scene.resolve()).encode())[:10]
+            self.dir = root / f"{scene.name}-{key}" / f"{image_scale}x"
+        self.maps: dict[LensCamera, tuple[LensCamera, np.ndarray, np.ndarray]] = {}
+        self.hits = 0
+        self.misses = 0
+
+    def _map(self, lens: LensCamera):
+        if lens not in self.maps:
+            self.maps[lens] = undistortion(lens)
+        return self.maps[lens]
+
+    def get(self, frame_id: str, src: Path, lens: LensCamera) -> tuple[np.ndarray, LensCamera]:
+        raw = src.read_bytes()
+        manifest = {"version": CACHE_VERSION, "source_sha1": _sha1(raw), "lens": asdict(lens)}
+        if self.dir is not None:
+            png, js = self.dir / f"{frame_id}.png", self.dir / f"{frame_id}.json"
+            if png.is_file() and js.is_file():
+                try:
+                    saved = json.loads(js.read_text())
+                except json.JSONDecodeError:
+                    saved = {}
+                if {k: saved.get(k) for k in manifest} == json.loads(json.dumps(manifest)):
+                    try:
+                        pin = LensCamera.from_dict(saved["pinhole"])
+                    except (KeyError, TypeError):  # unreadable manifest: recompute below
+                        pin = None
+                    if pin is not None:
+                        self.hits += 1
+                        return read_image(png), pin
+        pin, mx, my = self._map(lens)
+        img = remap(read_image(src), mx, my)  # [H, W, C] RGB(A), float in [0, 1]
+        self.misses += 1
+        if self.dir is not None:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            out = np.clip(np.round(img * 65535.0), 0, 65535).astype(np.uint16)
+            cv2.imwrite(str(png), out[..., [2, 1, 0, 3]] if out.shape[2] == 4 else out[..., ::-1])
+            js.write_text(json.dumps({**manifest, "pinhole": asdict(pin)}, indent=1))
+        return np.ascontiguousarray(img), pin

@@ -10,10 +10,8 @@ do with lens distortion are arguments, and every choice is recorded in `SceneDat
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
-from dataclasses import asdict
 from pathlib import Path
 from typing import Iterable, Optional
 
@@ -26,7 +24,7 @@ from ..cameras import Camera
 from .checks import check_intrinsics, check_pose, numbers
 from .colmap import ColmapModel, read_model
 from .dnerf import output_size
-from .distortion import LensCamera, remap, undistortion
+from .distortion import LensCamera, UndistortCache
 from .images import read_image, resize
 from .types import Frame, SceneData
 
@@ -38,7 +36,6 @@ DISTORTION_MODES = ("undistort", "error", "ignore")
 INTRINSICS_SOURCES = ("camera", "colmap")
 POINTS_SOURCES = ("auto", "points_npy", "colmap", "none")
 HELD_OUT = ("test", "val")  # both names address the held-out frames
-CACHE_VERSION = 2  # bump when the cached content or manifest layout changes
 COLMAP_DIR = "colmap/sparse/0"
 
 
@@ -202,58 +199,6 @@ def scale_for(w1: int, h1: int, w: int, h: int, image_scale: int, img_path: Path
                          "check data.image_scale and that the rgb folders are not mixed up")
 
 
-# ----------------------------------------------------------------------------- undistortion cache
-def _sha1(data: bytes) -> str:
-    return hashlib.sha1(data).hexdigest()
-
-
-class UndistortCache:
-    """Undistorted images as 16-bit PNGs with a manifest per image; a manifest mismatch (source
-    bytes, lens, version) recomputes. One folder per scene path and image scale."""
-
-    def __init__(self, root: Optional[Path], scene: Path, image_scale: int):
-        self.dir = None
-        if root is not None:
-            key = _sha1(str(scene.resolve()).encode())[:10]
-            self.dir = root / f"{scene.name}-{key}" / f"{image_scale}x"
-        self.maps: dict[LensCamera, tuple[LensCamera, np.ndarray, np.ndarray]] = {}
-        self.hits = 0
-        self.misses = 0
-
-    def _map(self, lens: LensCamera):
-        if lens not in self.maps:
-            self.maps[lens] = undistortion(lens)
-        return self.maps[lens]
-
-    def get(self, frame_id: str, src: Path, lens: LensCamera) -> tuple[np.ndarray, LensCamera]:
-        raw = src.read_bytes()
-        manifest = {"version": CACHE_VERSION, "source_sha1": _sha1(raw), "lens": asdict(lens)}
-        if self.dir is not None:
-            png, js = self.dir / f"{frame_id}.png", self.dir / f"{frame_id}.json"
-            if png.is_file() and js.is_file():
-                try:
-                    saved = json.loads(js.read_text())
-                except json.JSONDecodeError:
-                    saved = {}
-                if {k: saved.get(k) for k in manifest} == json.loads(json.dumps(manifest)):
-                    try:
-                        pin = LensCamera.from_dict(saved["pinhole"])
-                    except (KeyError, TypeError):  # unreadable manifest: recompute below
-                        pin = None
-                    if pin is not None:
-                        self.hits += 1
-                        return read_image(png), pin
-        pin, mx, my = self._map(lens)
-        img = remap(read_image(src), mx, my)  # [H, W, C] RGB(A), float in [0, 1]
-        self.misses += 1
-        if self.dir is not None:
-            self.dir.mkdir(parents=True, exist_ok=True)
-            out = np.clip(np.round(img * 65535.0), 0, 65535).astype(np.uint16)
-            cv2.imwrite(str(png), out[..., [2, 1, 0, 3]] if out.shape[2] == 4 else out[..., ::-1])
-            js.write_text(json.dumps({**manifest, "pinhole": asdict(pin)}, indent=1))
-        return np.ascontiguousarray(img), pin
-
-
 # ----------------------------------------------------------------------------- points
 def load_points(root: Path, source: str, model: Optional[ColmapModel]):
     """(points [P, 3], colours [P, 3] in [0, 1] or None, source used) in the data's world frame."""
@@ -276,6 +221,118 @@ def load_points(root: Path, source: str, model: Optional[ColmapModel]):
 
 
 # ----------------------------------------------------------------------------- the loader
+def _settings(root: Path, split_mode: Optional[str], image_scale) -> tuple[str, int, dict]:
+    """(split_mode, image_scale, the ones taken from the capture's capture.json): the keys a
+    Nerfies scene needs, from the arguments or else from a capture's own record of them."""
+    defaults = capture_defaults(root)
+    used = {}
+    if split_mode is None and "split_mode" in defaults:
+        split_mode = used["split_mode"] = defaults["split_mode"]
+    if image_scale is None and "image_scale" in defaults:
+        image_scale = used["image_scale"] = defaults["image_scale"]
+    if split_mode is None:
+        raise BadInput("data.split_mode is not set: use 'ids' (dataset.json train_ids/val_ids: NeRF-DS, "
+                       "HyperNeRF vrig) or 'interp' (every 4th frame trains, +2 tests: HyperNeRF interp)")
+    if image_scale is None or int(image_scale) != image_scale or image_scale < 1:
+        raise BadInput(f"data.image_scale={image_scale!r}: set the integer N of the rgb/<N>x folder to load")
+    return split_mode, int(image_scale), used
+
+
+def _normalization(spath: Path, normalize_scene: bool) -> tuple[np.ndarray, float]:
+    """scene.json's (center, scale), or the raw world frame's (0, 1)."""
+    if not normalize_scene:
+        return np.zeros(3), 1.0
+    sc = _read_json(spath, "set data.normalize_scene=false to use the raw world frame")
+    center = np.asarray(_need(sc, "center", spath), dtype=np.float64)
+    scale = float(_need(sc, "scale", spath))
+    if center.shape != (3,) or not scale > 0:
+        raise BadInput(f"{spath}: center must have 3 values and scale must be positive")
+    return center, scale
+
+
+class _FrameReader:
+    """One frame of a Nerfies scene: its camera file, image, lens (undistorted or not) and time,
+    in the normalized world frame and at the output size. `notes` collects what was checked or
+    ignored once (the intrinsics check, an ignored distortion) for SceneData.meta."""
+
+    def __init__(self, root: Path, dpath: Path, image_scale: int, intrinsics: str, distortion: str, model,
+                 cache: UndistortCache, times: dict, center: np.ndarray, scale: float, resolution_scale: float,
+                 max_width: Optional[int]):
+        self.root, self.dpath, self.image_scale = root, dpath, image_scale
+        self.img_dir, self.colmap_dir = root / "rgb" / f"{image_scale}x", root / COLMAP_DIR
+        self.intrinsics, self.distortion, self.model, self.cache = intrinsics, distortion, model, cache
+        self.times, self.center, self.scale = times, center, scale
+        self.resolution_scale, self.max_width = resolution_scale, max_width
+        self.notes: dict = {}
+
+    def _image_path(self, fid: str) -> Path:
+        ip = self.img_dir / f"{fid}.png"
+        if not ip.is_file():
+            alt = [p for p in (self.img_dir / f"{fid}.jpg", self.img_dir / f"{fid}.jpeg") if p.is_file()]
+            if not alt:
+                raise MissingInput(f"image for id {fid!r} not found: {ip}")
+            ip = alt[0]
+        return ip
+
+    def _lens(self, fid: str, lens: LensCamera, w: int, h: int, cpath: Path) -> LensCamera:
+        """The lens at the image's size: camera/<id>.json's, or COLMAP's (data.intrinsics=colmap);
+        the first frame's two are compared once, and a difference over 0.5 % is warned about."""
+        if self.intrinsics == "colmap":
+            return lens_from_colmap(self.model, fid, self.colmap_dir).scaled(w, h)
+        if self.model is not None and "intrinsics_check" not in self.notes:
+            other = lens_from_colmap(self.model, fid, self.colmap_dir).scaled(w, h)
+            rel = max(abs(other.fx / lens.fx - 1), abs(other.fy / lens.fy - 1))
+            self.notes["intrinsics_check"] = {"camera_json": [lens.fx, lens.fy, lens.cx, lens.cy],
+                                              "colmap": [other.fx, other.fy, other.cx, other.cy],
+                                              "max_rel_focal_diff": rel}
+            if rel > 5e-3:
+                log.warning("%s: focal lengths (fx, fy) = (%.2f, %.2f) differ from the COLMAP model's "
+                            "(%.2f, %.2f) by %.1f%%; set data.intrinsics=colmap to use COLMAP's "
+                            "(docs/data.md)", cpath, lens.fx, lens.fy, other.fx, other.fy, 100 * rel)
+        return lens
+
+    def _pinhole(self, fid: str, ip: Path, lens: LensCamera, w: int, h: int, cpath: Path):
+        """(image, pinhole camera): as read for a pinhole lens or data.distortion=ignore, else
+        undistorted (cached), or an error with data.distortion=error."""
+        if lens.is_pinhole or self.distortion == "ignore":
+            if not lens.is_pinhole and "ignored" not in self.notes:
+                self.notes["ignored"] = {"k": lens.k, "p": lens.p, "skew": lens.skew}
+                log.warning("%s: lens distortion k=%s p=%s skew=%g IGNORED (data.distortion=ignore); "
+                            "geometry is wrong away from the image centre", cpath, lens.k, lens.p, lens.skew)
+            return read_image(ip), LensCamera.pinhole(lens.fx, lens.fy, lens.cx, lens.cy, w, h)
+        if self.distortion == "error":
+            raise BadInput(f"{cpath}: the camera has lens distortion (radial {list(lens.k)}, tangential "
+                           f"{list(lens.p)}, skew {lens.skew}); set data.distortion=undistort to "
+                           "undistort the images once (cached), or data.distortion=ignore to reproduce "
+                           "the peers' pinhole approximation")
+        return self.cache.get(fid, ip, lens)
+
+    def frame(self, fid: str) -> Frame:
+        cpath = self.root / "camera" / f"{fid}.json"
+        cam = _read_json(cpath, f"every id needs a camera file (id {fid!r} from {self.dpath.name})")
+        R = numbers(_need(cam, "orientation", cpath), cpath, "orientation", (3, 3), finite=False)
+        pos = numbers(_need(cam, "position", cpath), cpath, "position", (3,), finite=False)
+        check_pose(R, pos, f"{cpath} (id {fid!r})", "camera (orientation, position)")
+        lens1 = lens_from_camera_json(cam, cpath)
+        ip = self._image_path(fid)
+        hdr = cv2.imread(str(ip), cv2.IMREAD_UNCHANGED)
+        if hdr is None:
+            raise BadInput(f"could not decode image {ip} (corrupt or unsupported format)")
+        h, w = hdr.shape[:2]
+        scale_for(lens1.width, lens1.height, w, h, self.image_scale, ip, cpath)
+        img, pin = self._pinhole(fid, ip, self._lens(fid, lens1.scaled(w, h), w, h, cpath), w, h, cpath)
+        img = img[..., :3]
+        c_world = (pos - self.center) * self.scale
+        camera = Camera(R=torch.from_numpy(R).float(), t=torch.from_numpy(-R @ c_world).float(), fx=pin.fx,
+                        fy=pin.fy, cx=pin.cx, cy=pin.cy, width=pin.width, height=pin.height)
+        W, H = output_size(w, h, self.resolution_scale, self.max_width)
+        if (W, H) != (w, h):
+            img = resize(img, W, H)
+            camera = camera.scaled(W / w, H / h)
+        return Frame(camera=camera, image=torch.from_numpy(np.ascontiguousarray(img)), time=self.times[fid],
+                     name=f"rgb/{self.image_scale}x/{ip.name}")
+
+
 def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *, split_mode: Optional[str],
                  image_scale: Optional[int], time_key: str = "auto", normalize_scene: bool = True,
                  distortion: str = "undistort", intrinsics: str = "camera", points_source: str = "auto",
@@ -284,18 +341,7 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
     root = Path(root)
     if not root.is_dir():
         raise MissingInput(f"Nerfies scene folder not found: {root} (set data.path)")
-    defaults = capture_defaults(root)
-    defaults_used = {}
-    if split_mode is None and "split_mode" in defaults:
-        split_mode = defaults_used["split_mode"] = defaults["split_mode"]
-    if image_scale is None and "image_scale" in defaults:
-        image_scale = defaults_used["image_scale"] = defaults["image_scale"]
-    if split_mode is None:
-        raise BadInput("data.split_mode is not set: use 'ids' (dataset.json train_ids/val_ids: NeRF-DS, "
-                         "HyperNeRF vrig) or 'interp' (every 4th frame trains, +2 tests: HyperNeRF interp)")
-    if image_scale is None or int(image_scale) != image_scale or image_scale < 1:
-        raise BadInput(f"data.image_scale={image_scale!r}: set the integer N of the rgb/<N>x folder to load")
-    image_scale = int(image_scale)
+    split_mode, image_scale, defaults_used = _settings(root, split_mode, image_scale)
     for name, value, allowed in (("distortion", distortion, DISTORTION_MODES),
                                  ("intrinsics", intrinsics, INTRINSICS_SOURCES)):
         _choice(name, value, allowed)
@@ -308,20 +354,12 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
     for s in splits:
         if s != "train" and s not in HELD_OUT:
             raise BadInput(f"split {s!r}: a Nerfies scene has 'train' and the held-out frames "
-                             "('test' or 'val', the same frames)")
+                           "('test' or 'val', the same frames)")
         if s in HELD_OUT and not held_ids:
             raise BadInput(f"{dpath}: val_ids is empty, so there is nothing to evaluate on; "
-                             "use data.split_mode=interp for a single-sequence capture")
+                           "use data.split_mode=interp for a single-sequence capture")
     times, used_key = frame_times(metadata, train_ids + held_ids, mpath, time_key)
-
-    center, scale = np.zeros(3), 1.0
-    if normalize_scene:
-        sc = _read_json(spath, "set data.normalize_scene=false to use the raw world frame")
-        center = np.asarray(_need(sc, "center", spath), dtype=np.float64)
-        scale = float(_need(sc, "scale", spath))
-        if center.shape != (3,) or not scale > 0:
-            raise BadInput(f"{spath}: center must have 3 values and scale must be positive")
-
+    center, scale = _normalization(spath, normalize_scene)
     colmap_dir = root / COLMAP_DIR
     model = read_model(colmap_dir) if (colmap_dir / "points3D.bin").is_file() else None
     if intrinsics == "colmap" and model is None:
@@ -330,74 +368,16 @@ def load_nerfies(root: str | Path, splits: Iterable[str] = ("train", "test"), *,
     if not img_dir.is_dir():
         have = sorted(p.name for p in (root / "rgb").glob("*x")) if (root / "rgb").is_dir() else []
         raise MissingInput(f"{img_dir} not found (data.image_scale={image_scale}); this scene has "
-                                f"rgb/{{{','.join(have)}}}")
-    cache_root = Path(cache_dir) if (cache_dir is not None and distortion == "undistort") else None
-    cache = UndistortCache(cache_root, root, image_scale)
-    notes: dict = {}
-
-    def load_frame(fid: str) -> Frame:
-        cpath = root / "camera" / f"{fid}.json"
-        cam = _read_json(cpath, f"every id needs a camera file (id {fid!r} from {dpath.name})")
-        R = numbers(_need(cam, "orientation", cpath), cpath, "orientation", (3, 3), finite=False)
-        pos = numbers(_need(cam, "position", cpath), cpath, "position", (3,), finite=False)
-        check_pose(R, pos, f"{cpath} (id {fid!r})", "camera (orientation, position)")
-        lens1 = lens_from_camera_json(cam, cpath)
-        ip = img_dir / f"{fid}.png"
-        if not ip.is_file():
-            alt = [p for p in (img_dir / f"{fid}.jpg", img_dir / f"{fid}.jpeg") if p.is_file()]
-            if not alt:
-                raise MissingInput(f"image for id {fid!r} not found: {ip}")
-            ip = alt[0]
-        hdr = cv2.imread(str(ip), cv2.IMREAD_UNCHANGED)
-        if hdr is None:
-            raise BadInput(f"could not decode image {ip} (corrupt or unsupported format)")
-        h, w = hdr.shape[:2]
-        scale_for(lens1.width, lens1.height, w, h, image_scale, ip, cpath)
-        lens = lens1.scaled(w, h)
-        if intrinsics == "colmap":
-            lens = lens_from_colmap(model, fid, colmap_dir).scaled(w, h)
-        elif model is not None and "intrinsics_check" not in notes:
-            other = lens_from_colmap(model, fid, colmap_dir).scaled(w, h)
-            rel = max(abs(other.fx / lens.fx - 1), abs(other.fy / lens.fy - 1))
-            notes["intrinsics_check"] = {"camera_json": [lens.fx, lens.fy, lens.cx, lens.cy],
-                                         "colmap": [other.fx, other.fy, other.cx, other.cy],
-                                         "max_rel_focal_diff": rel}
-            if rel > 5e-3:
-                log.warning("%s: focal lengths (fx, fy) = (%.2f, %.2f) differ from the COLMAP model's "
-                            "(%.2f, %.2f) by %.1f%%; set data.intrinsics=colmap to use COLMAP's "
-                            "(docs/data.md)", cpath, lens.fx, lens.fy, other.fx, other.fy, 100 * rel)
-        if lens.is_pinhole or distortion == "ignore":
-            if not lens.is_pinhole and "ignored" not in notes:
-                notes["ignored"] = {"k": lens.k, "p": lens.p, "skew": lens.skew}
-                log.warning("%s: lens distortion k=%s p=%s skew=%g IGNORED (data.distortion=ignore); "
-                            "geometry is wrong away from the image centre", cpath, lens.k, lens.p, lens.skew)
-            img = read_image(ip)
-            pin = LensCamera.pinhole(lens.fx, lens.fy, lens.cx, lens.cy, w, h)
-        elif distortion == "error":
-            raise BadInput(f"{cpath}: the camera has lens distortion (radial {list(lens.k)}, tangential "
-                             f"{list(lens.p)}, skew {lens.skew}); set data.distortion=undistort to "
-                             "undistort the images once (cached), or data.distortion=ignore to reproduce "
-                             "the peers' pinhole approximation")
-        else:
-            img, pin = cache.get(fid, ip, lens)
-        img = img[..., :3]
-        c_world = (pos - center) * scale
-        Rt = torch.from_numpy(R).float()
-        camera = Camera(R=Rt, t=torch.from_numpy(-R @ c_world).float(), fx=pin.fx, fy=pin.fy,
-                        cx=pin.cx, cy=pin.cy, width=pin.width, height=pin.height)
-        W, H = output_size(w, h, resolution_scale, max_width)
-        if (W, H) != (w, h):
-            img = resize(img, W, H)
-            camera = camera.scaled(W / w, H / h)
-        return Frame(camera=camera, image=torch.from_numpy(np.ascontiguousarray(img)), time=times[fid],
-                     name=f"rgb/{image_scale}x/{ip.name}")
-
-    data = {}
-    for s in splits:
-        data[s] = [load_frame(i) for i in (train_ids if s == "train" else held_ids)]
+                           f"rgb/{{{','.join(have)}}}")
+    cache = UndistortCache(Path(cache_dir) if (cache_dir is not None and distortion == "undistort") else None,
+                           root, image_scale)
+    reader = _FrameReader(root, dpath, image_scale, intrinsics, distortion, model, cache, times, center, scale,
+                          resolution_scale, max_width)
+    data = {s: [reader.frame(i) for i in (train_ids if s == "train" else held_ids)] for s in splits}
     pts, cols, psrc = load_points(root, points_source, model)
     if pts is not None:
         pts = (pts - center) * scale
+    notes = dict(reader.notes)
     if defaults_used:
         notes["settings_from_capture_json"] = defaults_used
     meta = {"format": "nerfies", "split_mode": split_mode, "image_scale": image_scale, "time_key": used_key,
