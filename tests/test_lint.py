@@ -118,3 +118,18 @@ def test_studies_and_scripts_use_no_private_name_of_another_module():
                     bad += [f"{path.relative_to(ROOT)}:{node.lineno} {node.module}.{a.name}"
                             for a in node.names if a.name.startswith("_") and a.name != "__version__"]
     assert bad == [], bad
+
+
+def test_units_a_reader_can_hold():
+    """No module in stdr/ over 400 lines and no function over 80: a unit that grows past them is
+    split where its concepts split."""
+    import ast
+    long_modules, long_functions = [], []
+    for f in sorted((ROOT / "stdr").rglob("*.py")):
+        text = f.read_text()
+        if text.count("\n") > 400:
+            long_modules.append(f"{f.relative_to(ROOT)}: {text.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > 80:
+                long_functions.append(f"{f.relative_to(ROOT)}:{node.lineno} {node.name}")
+    assert not long_modules and not long_functions, (long_modules, long_functions)

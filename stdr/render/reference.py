@@ -104,17 +104,7 @@ def _composite(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Ten
     # about eps * a * |m|^2; the 0.3 px^2 low-pass bounds a <= 1/0.3 and a Gaussian binned to a
     # tile has |m| <= tile_size/sqrt(2) + 3 sigma, so at 8x8 tiles in float32 the exponent is off
     # by < 2e-5 (relative alpha error < 2e-5). Tests pin it to a direct per-pixel loop in float64.
-    half = tile_size / 2.0
-    lc = torch.arange(tile_size, device=dev, dtype=dt) + 0.5 - half
-    v_, u_ = torch.meshgrid(lc, lc, indexing="ij")
-    u_, v_ = u_.reshape(-1), v_.reshape(-1)
-    basis = torch.stack([u_ * u_, u_ * v_, v_ * v_, u_, v_, torch.ones_like(u_)])  # [6, Pt]
-    ty, tx = tiles // ntx, tiles % ntx
-    centre = torch.stack([tx, ty], -1).to(dt) * tile_size + half  # [n_tiles, 2]
-    if score is not None:
-        px = tx[:, None] * tile_size + (u_ + half - 0.5).long()[None]  # [n_tiles, Pt] pixel columns
-        py = ty[:, None] * tile_size + (v_ + half - 0.5).long()[None]
-        inside = ((px < width) & (py < height)).to(dt)
+    basis, centre, inside = _tile_basis(tiles, ntx, tile_size, width, height, dt)
     log_op = torch.log(opacities.clamp_min(1e-30))
     # per-Gaussian cut-off on the exponent: inside the 3-sigma ellipse and alpha >= 1/255
     cut = torch.maximum(log_op - 0.5 * SIGMA_EXTENT ** 2, torch.full_like(log_op, math.log(ALPHA_MIN)))
@@ -164,10 +154,35 @@ def _composite(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Ten
     out_ids.append(ids)
     out_T.append(T)
     out_acc.append(acc)
-    order = torch.cat(out_ids)
+    return _tiles_to_image(torch.cat(out_ids), torch.cat(out_T, 0), torch.cat(out_acc, 0), ntx, nty, tile_size,
+                           width, height)
+
+
+def _tile_basis(tiles: Tensor, ntx: int, tile_size: int, width: int, height: int, dt) -> tuple[Tensor, Tensor, Tensor]:
+    """The per-pixel polynomial basis (u^2, uv, v^2, u, v, 1) [6, Pt] of a tile's pixel centres
+    relative to the tile centre, each tile's centre [n_tiles, 2], and which of its pixels lie
+    inside the image [n_tiles, Pt] (partial tiles at the right and bottom edges)."""
+    dev = tiles.device
+    half = tile_size / 2.0
+    lc = torch.arange(tile_size, device=dev, dtype=dt) + 0.5 - half
+    v_, u_ = torch.meshgrid(lc, lc, indexing="ij")
+    u_, v_ = u_.reshape(-1), v_.reshape(-1)
+    basis = torch.stack([u_ * u_, u_ * v_, v_ * v_, u_, v_, torch.ones_like(u_)])  # [6, Pt]
+    ty, tx = tiles // ntx, tiles % ntx
+    centre = torch.stack([tx, ty], -1).to(dt) * tile_size + half  # [n_tiles, 2]
+    px = tx[:, None] * tile_size + (u_ + half - 0.5).long()[None]  # [n_tiles, Pt] pixel columns
+    py = ty[:, None] * tile_size + (v_ + half - 0.5).long()[None]
+    return basis, centre, ((px < width) & (py < height)).to(dt)
+
+
+def _tiles_to_image(order: Tensor, T: Tensor, acc: Tensor, ntx: int, nty: int, tile_size: int, width: int,
+                    height: int) -> tuple[Tensor, Tensor]:
+    """Per-tile results ([n_tiles, Pt] transmittance, [n_tiles, Pt, F] colour) listed in the order
+    of tile ids `order`, as the cropped image ([H, W, F], [H, W])."""
     inv = torch.empty_like(order)
-    inv[order] = torch.arange(order.numel(), device=dev)
-    T_all, acc_all = torch.cat(out_T, 0)[inv], torch.cat(out_acc, 0)[inv]  # tile-index order
+    inv[order] = torch.arange(order.numel(), device=order.device)
+    T_all, acc_all = T[inv], acc[inv]  # tile-index order
+    F = acc.shape[-1]
     T_img = T_all.reshape(nty, ntx, tile_size, tile_size).permute(0, 2, 1, 3)
     acc_img = acc_all.reshape(nty, ntx, tile_size, tile_size, F).permute(0, 2, 1, 3, 4)
     T_img = T_img.reshape(nty * tile_size, ntx * tile_size)[:height, :width]
