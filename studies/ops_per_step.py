@@ -38,7 +38,7 @@ def count(exp: str, scene: Path, overrides: list[str]) -> dict:
     from torch.utils._python_dispatch import TorchDispatchMode
 
     from stdr.store import compose_config
-    from stdr.train.profile import Profiler
+    from stdr.train.timing import Profiler
     from stdr.train.trainer import Trainer
 
     class OpCounter(TorchDispatchMode):

@@ -66,7 +66,7 @@ def test_the_preset_trains_every_baseline_with_stdr_into_a_pruned_model(tmp_path
 @pytest.mark.parametrize("gated", [False, True])
 def test_stdr_tool_compact_applies_the_preset_to_a_trained_run_by_default(tmp_path, gated):
     from stdr.train.run import run_training as run
-    from stdr.tools.compact import main
+    from stdr.tools.compact_run import main
     from stdr.compact.pack import spec_of_config
     run(tiny_config(tmp_path, ["stdr=on", *SCHED, f"stdr.mask_after_freeze={str(gated).lower()}"]), tmp_path / "run")
     before = json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]

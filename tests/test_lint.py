@@ -133,3 +133,18 @@ def test_units_a_reader_can_hold():
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > 80:
                 long_functions.append(f"{f.relative_to(ROOT)}:{node.lineno} {node.name}")
     assert not long_modules and not long_functions, (long_modules, long_functions)
+
+
+def test_no_two_modules_share_a_name():
+    """Outside the commands (stdr/cli, whose modules are named after stdr-train, stdr-eval, ...),
+    no two modules or packages of stdr share a name, so `config`, `schedule` or `pack` each mean
+    one thing (the STDR plug-in's package shares the project's name on purpose)."""
+    import collections
+    names = collections.defaultdict(list)
+    for f in (ROOT / "stdr").rglob("*.py"):
+        if "cli" in f.relative_to(ROOT / "stdr").parts:
+            continue
+        path = f.parent if f.name == "__init__.py" else f
+        if path not in (ROOT / "stdr", ROOT / "stdr" / "plugins" / "stdr"):
+            names[path.stem].append(str(path.relative_to(ROOT)))
+    assert not {k: v for k, v in names.items() if len(v) > 1}

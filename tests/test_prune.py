@@ -169,7 +169,7 @@ def test_stdr_tool_compact_prunes_a_trained_run_into_a_new_one(tmp_path):
     import json
 
     from stdr.train.run import run_training as run
-    from stdr.tools.compact import compact, main
+    from stdr.tools.compact_run import compact, main
     cfg = tiny_config(tmp_path, SCHED + ["stdr=on", "eval.fps_repeats=1"])
     run(cfg, tmp_path / "run")
     before = json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]

@@ -143,7 +143,7 @@ def test_bench_train_times_the_step_by_section_at_fixed_counts(tmp_path):
 def test_profiler_adds_no_hooks_in_training():
     import torch
 
-    from stdr.train.profile import Profiler
+    from stdr.train.timing import Profiler
     p = Profiler()  # training's profiler: watch() must not touch the graph
     x = torch.ones(3, requires_grad=True)
     y = x * 2

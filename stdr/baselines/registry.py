@@ -26,7 +26,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..registry import Registry
+from ..registries import Registry
 from .base import BaselineConfig, Deformation
 
 
@@ -37,7 +37,7 @@ class BaselineSpec:
     config: type       # a BaselineConfig subclass whose `name` default is `name`
 
 
-#: every baseline by name (stdr.registry.Registry; the entry-point group `stdr.baselines`)
+#: every baseline by name (stdr.registries.Registry; the entry-point group `stdr.baselines`)
 BASELINES: Registry[BaselineSpec] = Registry(
     "baseline", "baseline.name", "stdr.baselines", "stdr.baselines.registry.register_baseline",
     owner=lambda spec: spec.module)

@@ -27,7 +27,7 @@ from torch import Tensor, nn
 from ..gaussians import inverse_sigmoid
 from ..ops import sigmoid
 from ..render.projection import quat_to_rotmat
-from ..registry import Registry
+from ..registries import Registry
 from ..render.reference import ALPHA_MIN
 
 
@@ -314,7 +314,7 @@ class DensifyStrategy:
 
 
 # ==================================================================== the registry
-#: every densification strategy by name (stdr.registry.Registry; the entry-point group
+#: every densification strategy by name (stdr.registries.Registry; the entry-point group
 #: `stdr.strategies`); `default` is this module's and stays
 STRATEGIES: Registry[type] = Registry(
     "densification strategy", "densify.name", "stdr.strategies", "stdr.densify.strategy.register_strategy",

@@ -30,7 +30,7 @@ from typing import Any, Optional
 import numpy as np
 import torch
 from torch import Tensor, nn
-from ..registry import Registry
+from ..registries import Registry
 
 
 @dataclass
@@ -182,7 +182,7 @@ class PluginSpec:
 #: the config's own sections and stdr-train's groups (names a plug-in may not take); stdr.config
 #: sets it when it loads (set_reserved_keys), so this module never imports the config
 _RESERVED: set[str] = set()
-#: every plug-in by name (stdr.registry.Registry; the entry-point group `stdr.plugins`); the
+#: every plug-in by name (stdr.registries.Registry; the entry-point group `stdr.plugins`); the
 #: built-in ones are registered by importing stdr.plugins.stdr
 PLUGINS: Registry[PluginSpec] = Registry(
     "plug-in", "plug-in", "stdr.plugins", "stdr.plugins.register_plugin", builtin=("stdr.plugins.stdr",),

@@ -11,8 +11,8 @@ TOOLS = {
     "bench-train": "bench_train",            # ms per training step by section at fixed counts and sizes
     "identity-check": "identity_check",      # bit-identity of training / composed configs between commits
     "variants": "variants",                  # variants of one method side by side (plain, +STDR, +cull, ...)
-    "compact": "compact",                    # prune a trained run by contribution, fine-tune, save as a new run
-    "pack": "pack",                          # a trained run's compact model file (model.stdrc) and its cost
+    "compact": "compact_run",                # prune a trained run by contribution, fine-tune, save as a new run
+    "pack": "pack_file",                     # a trained run's compact model file (model.stdrc) and its cost
     "queue": "runqueue",                     # a resumable queue of runs, several at once, time-boxed calls
     "experiments": "experiments",            # every experiment stdr-train accepts, with what it composes
 }

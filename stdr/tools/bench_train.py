@@ -42,7 +42,7 @@ from ..eval.evaluate import code_version, machine_name
 from ..eval.table import fmt_value as fmt
 from ..eval.table import markdown_table, write_outputs
 from ..gaussians import GAUSSIAN_KEYS
-from ..train.profile import Profiler
+from ..train.timing import Profiler
 from ..train.trainer import Trainer
 from ..io.checkpoint import load_checkpoint
 from ..syncs import DeviceSyncCounter, OpCounter, SyncCounter

@@ -26,7 +26,7 @@ from .optim import adam_step, make_optimizers, net_groups, update_lrs, uses_fuse
 from ..io.checkpoint import load_checkpoint
 from ..config import check_guard_config
 from .guard import Guard, monitor_split, resolve_compiled_check, resolve_sync_free
-from .profile import Profiler
+from .timing import Profiler
 from .state import PAYLOAD_KEYS, CameraSampler, RunLog, RunState
 from ..eval.evaluate import make_lpips, evaluate_state, evaluate_run
 

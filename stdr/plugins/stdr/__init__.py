@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from .. import register_plugin
-from .config import StdrConfig
+from .settings import StdrConfig
 from .field import SeparatedField
 from .mask import MASK_KEY, interp_weights, knot_times, mask_at, sample_neighbours, spatial_kl, temporal_entropy, temporal_loss
 from .phases import Phase, phase_at, resolve_phases
