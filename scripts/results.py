@@ -24,6 +24,10 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run by its path, a script sees scripts/ only; the studies are the checkout's package
+    sys.path.insert(0, str(ROOT))
+from studies.records import record_file, records_dir  # noqa: E402
+
 M = ROOT / "docs" / "measurements"
 RESULTS = ROOT / "docs" / "results.md"
 README = ROOT / "README.md"
@@ -88,12 +92,9 @@ def headline_from_records(runs_dir: Path | None = None, baselines=BASELINES, sce
     (stdr.eval.table.load_run / collect): ({method: mean row}, provenance), or (None, how many
     records exist) until every method has every scene at one seed at least. Only seeds that are
     complete over the whole grid enter the table, so each row averages the same runs."""
-    sys.path.insert(0, str(ROOT))
     from stdr.eval.table import collect, load_run, table_row
 
-    if runs_dir is None:  # the committed records: the folder, or the study's archive (scripts/measurements.py)
-        sys.path.insert(0, str(ROOT / "scripts"))
-        from measurements import records_dir
+    if runs_dir is None:  # the committed records: the folder, or the study's archive (studies/records.py)
         runs_dir = records_dir("dnerf_headline_cpu", "runs")
     methods = [m for b in baselines for m in (b, b + "+STDR")]
     dirs = sorted(p.parent for p in runs_dir.glob("*/*/s*/metrics.json")) if runs_dir.is_dir() else []
@@ -273,8 +274,6 @@ def unseen():
 
 # ----------------------------------------------------------------- stability
 def stability():
-    sys.path.insert(0, str(ROOT / "scripts"))
-    from measurements import record_file
     d = _read_json(record_file("stability", "table.json"))
     runs = d["runs"]
     crashed = sum(bool(r.get("crashed")) for r in runs)
@@ -343,7 +342,6 @@ LONG_DEFAULT, LONG_FORMER = "deform_stdr__nogate", "deform_stdr"
 def long_budget(variant: str = LONG_DEFAULT) -> dict | None:
     """STDR (`variant`'s records) - plain deform at budget=cpu_long (studies/long_budget.py
     records): the pairs at the last step, per split, and the seeds; None before any pair."""
-    sys.path.insert(0, str(ROOT))
     from studies.long_budget import SPLITS, by_run, load_records, pairs_of, point_at
     pairs = pairs_of(by_run(load_records(M / "stdr_long")), variant)
     if not pairs:

@@ -2,13 +2,13 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Callable
 
+from studies.records import ARCHIVE, records_dir
+
 ROOT = Path(__file__).resolve().parents[1]
 M = ROOT / "docs" / "measurements"
-ARCHIVE = "records.tar.xz"  # scripts/measurements.py's per-study archive
 
 
 def gmean(xs):
@@ -25,8 +25,6 @@ def records_in(out: Path, sub: str) -> Path:
     out = Path(out)
     if (out / sub).is_dir() or out.resolve().parent != M.resolve():
         return out / sub
-    sys.path.insert(0, str(ROOT / "scripts"))
-    from measurements import records_dir
     return records_dir(out.name, sub)
 
 

@@ -53,7 +53,6 @@ def reference_of(variant: str) -> str:
 
 def evaluate_splits(run_dir: Path, splits=SPLITS) -> dict:
     """PSNR and SSIM of every frame of each split, rendered from the run's last checkpoint."""
-    sys.path.insert(0, str(ROOT))
     from stdr.config import load_config
     from stdr.data.load import load_scene
     from stdr.eval.evaluate import evaluate_model

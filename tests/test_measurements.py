@@ -1,4 +1,4 @@
-"""scripts/measurements.py: a study's per-run records in one archive, read through records_dir."""
+"""studies/records.py (run as scripts/measurements.py): a study's per-run records in one archive, read through records_dir."""
 import io
 import subprocess
 import tarfile
@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module(monkeypatch, tmp_path):
-    mod = load_script(ROOT / "scripts" / "measurements.py", "measurements_script")
+    from studies import records as mod
     monkeypatch.setattr(mod, "M", tmp_path / "m")
     monkeypatch.setenv("STDR_MEASUREMENTS_CACHE", str(tmp_path / "cache"))
     return mod
@@ -104,7 +104,6 @@ def test_a_records_stamp_ignores_the_tables_a_study_rewrites_but_not_code(tmp_pa
 
 def test_the_size_prune_rule_takes_the_best_quiet_candidate_and_refuses_partial_records():
     """studies/size_prune.py decide(): protocol.md's rule on hand-made records."""
-    from helpers import load_script
     sp = load_script(ROOT / "studies" / "size_prune.py", "size_prune")
 
     def rec(c, s, psnr, warn=False):
