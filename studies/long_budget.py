@@ -115,7 +115,7 @@ def run_queue(args) -> None:
                 m = json.loads((run_dir / "metrics.json").read_text())["test"]
                 rec = {"scene": scene, "seed": seed, "method": name, "budget": "cpu_long",
                        "command": " ".join(cmd[1:]) if cmd else None, "code": commit(), "machine": machine_name(),
-                       "threads": args.threads, "wall_seconds_this_call": round(time.time() - t0, 1),
+                       "threads": args.threads, "wall_seconds_this_run": round(time.time() - t0, 1),
                        "points": sorted(state["points"], key=lambda q: q["step"]),
                        "extra": list(args.extra),
                        "final_test": {k: m.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds",
