@@ -542,13 +542,14 @@ def test_a_size_prune_that_would_remove_most_of_the_model_warns_and_names_the_ke
 def test_separated_field_has_its_own_group_and_optional_schedule(tmp_path):
     """stdr.field_lr_init=null: the field's group follows the deformation network's lr; a value:
     log-linear from it at the freeze (where the field starts training) to field_lr_final."""
+    from stdr.train.optim import update_lrs
     from stdr.train.trainer import Trainer
     sched = ["optim.iterations=30", "baseline.lr_init=1e-3", "baseline.lr_final=1e-5", "baseline.lr_max_steps=30"]
     t = Trainer(_stdr_cfg(tmp_path, sched), tmp_path / "a")
     names = [g["name"] for g in t.state.net_opt.param_groups]
     assert names.count("stdr_field") == 1
     for step in (0, 12, 29):
-        t._update_lrs(step)
+        update_lrs(t.cfg, t.state, t.net_groups, step)
         lr = {g["name"]: g["lr"] for g in t.state.net_opt.param_groups}
         assert lr["stdr_field"] == lr["deform"]
     t = Trainer(_stdr_cfg(tmp_path, sched + ["stdr.field_lr_init=4e-3", "stdr.field_lr_final=4e-5"]), tmp_path / "b")
@@ -556,7 +557,7 @@ def test_separated_field_has_its_own_group_and_optional_schedule(tmp_path):
     assert s.freeze_at == 12
     expect = {0: 4e-3, 12: 4e-3, 21: 4e-4, 30: 4e-5}  # halfway from the freeze (12) to the end (30)
     for step, want in expect.items():
-        t._update_lrs(step)
+        update_lrs(t.cfg, t.state, t.net_groups, step)
         lr = {g["name"]: g["lr"] for g in t.state.net_opt.param_groups}
         assert lr["stdr_field"] == pytest.approx(want, rel=1e-9), step
     assert lr["deform"] == pytest.approx(1e-5)

@@ -34,10 +34,10 @@ from typing import Any, Optional
 import torch
 from torch import Tensor
 
-from . import codecs
+from . import codecs, entropy
 
 FORMAT = "stdr-compact"
-VERSION = 1
+VERSION = 2  # 2: streams may be entropy coded (spec `entropy`); version 1 files read as before
 SUFFIX = ".stdrc"
 DERIVED = "derived"  # the spec value: store what the finished model computes from this table
 MARK = "__codec__"  # an encoded tensor's dict carries it (a state dict's own keys never do)
@@ -47,7 +47,10 @@ MARK = "__codec__"  # an encoded tensor's dict carries it (a state dict's own ke
 #: integer mask as it is, every other per-Gaussian tensor in half precision; networks and grids float32
 #: (integer and float64 tensors are always stored as they are: flags, an 8-bit mask, time knots)
 DEFAULT_SPEC = {"means": "f32", "scales": "f16", "quats": "f16", "opacities": "f16", "sh0": "f16", "shN": "q8",
-                "*": "f16", "state": "f32"}
+                "*": "f16", "state": "f32", "entropy": "none"}
+#: the spec's `entropy` values: none, or Zstandard over every stream (stdr.compact.entropy), at its
+#: default level or `zstd:<level>` (1 to 22)
+ENTROPY_CODERS = ("none", "zstd")
 
 
 def _enc(x: Tensor, codec: str, cols: Optional[Tensor] = None) -> dict:
@@ -98,8 +101,9 @@ def check_spec(spec: Optional[dict]) -> dict:
     spec = {**DEFAULT_SPEC, **(spec or {})}
     if spec.get("sh_degree") is not None and not 0 <= int(spec["sh_degree"]) <= 3:
         raise ValueError(f"compact spec sh_degree={spec['sh_degree']}: use 0 to 3 (or leave it out)")
+    entropy_level(spec)
     for k, c in spec.items():
-        if k in ("sh_degree", "finetune") or c == DERIVED:
+        if k in ("sh_degree", "finetune", "entropy") or c == DERIVED:
             continue
         try:
             codecs.parse(c)
@@ -108,9 +112,19 @@ def check_spec(spec: Optional[dict]) -> dict:
     return spec
 
 
-def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
+def entropy_level(spec: dict) -> Optional[int]:
+    """The Zstandard level of the spec's `entropy` (None: no entropy coding); a ValueError names
+    the key and what to write."""
+    name, _, arg = str(spec.get("entropy", "none")).partition(":")
+    if name not in ENTROPY_CODERS or (arg and (name == "none" or not arg.isdigit() or not 1 <= int(arg) <= 22)):
+        raise ValueError(f"compact spec entropy={spec.get('entropy')!r}: use none, zstd or zstd:<level 1-22>")
+    return None if name == "none" else int(arg or entropy.LEVEL)
+
+
+def encode_model(model, spec: Optional[dict] = None, pack: bool = True) -> dict[str, Any]:
     """The compact file's payload of a `DynamicGaussians` (its state_dict, encoded by `spec`,
-    DEFAULT_SPEC's entries where `spec` names none)."""
+    DEFAULT_SPEC's entries where `spec` names none), its streams entropy coded when the spec's
+    `entropy` says so (pack=False leaves that to the caller: `pack_streams`, after a fine-tune)."""
     spec = check_spec(spec)
     entry = model.state_dict()
     cols = model.deform.compact_columns(model.params)
@@ -152,9 +166,17 @@ def encode_model(model, spec: Optional[dict] = None) -> dict[str, Any]:
     used.update({k: DERIVED for k in derived})
     model_entry = {**entry, "params": params, "deform": _walk_encode(entry["deform"], spec),
                    "plugins": _walk_encode(plugins, spec)}
-    return {"format": FORMAT, "version": VERSION, "model": model_entry,
-            "spec": {**used, "state": spec["state"], **{k: c for k, c in spec.items() if k.startswith("state:")},
-                     **({"sh_degree": int(degree)} if degree is not None else {})}}
+    payload = {"format": FORMAT, "version": VERSION, "model": model_entry,
+               "spec": {**used, "state": spec["state"], **{k: c for k, c in spec.items() if k.startswith("state:")},
+                        **({"sh_degree": int(degree)} if degree is not None else {}), "entropy": spec["entropy"]}}
+    return pack_streams(payload) if pack else payload
+
+
+def pack_streams(payload: dict[str, Any]) -> dict[str, Any]:
+    """The payload with every stream of its model entry entropy coded as its spec says (no-op for
+    `entropy: none`)."""
+    level = entropy_level(payload["spec"])
+    return payload if level is None else {**payload, "model": entropy.pack_tree(payload["model"], level)}
 
 
 def is_compact(payload: Any) -> bool:
@@ -169,4 +191,4 @@ def decode_model(payload: dict[str, Any], where: str = "compact file") -> dict[s
     if v > VERSION:
         raise ValueError(f"{where}: a {FORMAT} file of version {v}, written by a newer stdr; this stdr reads "
                          f"versions up to {VERSION}: upgrade stdr (pip install -U stdr) to load it")
-    return _walk_decode(payload["model"])
+    return _walk_decode(entropy.unpack_tree(payload["model"]))

@@ -21,7 +21,7 @@ from ..io.checkpoint import CKPT, save_checkpoint
 from ..model import load_model, model_bytes, model_from_checkpoint
 from ..plugins import enabled_plugins, plugin_node
 from . import codecs
-from .file import SUFFIX, check_spec, encode_model
+from .file import SUFFIX, check_spec, encode_model, pack_streams
 from .finetune import finetune_codebooks, vq_entries
 
 
@@ -44,8 +44,9 @@ def write_compact(model, path: str | Path, spec: Optional[dict] = None, frames=N
     """Write the compact file of `model` to `path` (atomic, checksummed). Returns {bytes (of its
     tensors), full_bytes (the model's own tensors), spec}. With spec `finetune: STEPS` and `vq:C`
     codecs, their codebooks are first fine-tuned for STEPS steps on `frames` (training frames;
-    stdr.compact.finetune), and the result has `finetune` (its losses)."""
-    payload = encode_model(model, spec)
+    stdr.compact.finetune), and the result has `finetune` (its losses). With spec `entropy: zstd`
+    every stream is entropy coded last (stdr.compact.entropy)."""
+    payload = encode_model(model, spec, pack=False)
     steps = int((spec or {}).get("finetune") or 0)
     extra = {}
     if steps:
@@ -56,6 +57,7 @@ def write_compact(model, path: str | Path, spec: Optional[dict] = None, frames=N
         small = model_from_checkpoint(payload, next(model.params.values()).device, model.cfg)
         extra["finetune"] = finetune_codebooks(payload, small, frames, steps)
         payload["spec"]["finetune"] = steps
+    payload = pack_streams(payload)
     save_checkpoint(path, payload)
     return {"bytes": codecs.nbytes(payload["model"]), "full_bytes": model_bytes(model), "spec": payload["spec"], **extra}
 
