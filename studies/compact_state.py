@@ -1,0 +1,171 @@
+"""The compact file's fixed part in fewer bits: the networks in 8 bits, 4DGS's grid in 4
+(docs/measurements/compact_state; protocol.md there, written before the runs).
+
+    python studies/compact_state.py train DNERF --work WORK [--experiments ...] [--scenes ...] [--seeds 2 3]
+    python studies/compact_state.py val DNERF --work WORK [...]    # records/val/<exp>__<scene>__s<seed>.json
+    python studies/compact_state.py decide                        # decision.json and table.md from the records
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from studies.common import commit, records_in, records_to_write  # noqa: E402
+
+OUT = ROOT / "docs" / "measurements" / "compact_state"
+EXPERIMENTS = ("dnerf_deform", "dnerf_4dgs", "dnerf_scgs")
+SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
+SEEDS = (2, 3)
+#: the preset's per-Gaussian codecs without the codebook fine-tune, entropy coded (protocol.md)
+BASE = {"means": "q16", "scales": "q8", "quats": "q8", "opacities": "q8", "sh0": "q8", "shN": "vq:256",
+        "state": "f16", "state:grids": "q8", "entropy": "zstd"}
+CANDIDATES = {"s16": {}, "s8": {"state": "q8"}, "s8g4": {"state": "q8", "state:grids": "q4"}}
+BOUND = -0.05  # dB, val PSNR against s16, mean over a method's runs
+
+
+def run_dir(work: Path, exp: str, scene: str, seed: int) -> Path:
+    return Path(work) / exp / f"{scene}_s{seed}"
+
+
+def train(args) -> None:
+    """Each run without metrics.json: `compact=on budget=cpu` at the seed, one subprocess a run."""
+    for seed in args.seeds:
+        for exp in args.experiments:
+            for scene in args.scenes:
+                rd = run_dir(args.work, exp, scene, seed)
+                if (rd / "metrics.json").is_file():
+                    continue
+                rd.parent.mkdir(parents=True, exist_ok=True)
+                cmd = [sys.executable, "-m", "stdr.cli.train", f"experiment={exp}", "compact=on", "budget=cpu",
+                       f"seed={seed}", f"data.path={Path(args.dnerf) / scene}", f"hydra.run.dir={rd}",
+                       "train.progress=false", "eval.save_images=false", "train.image_every=0",
+                       f"train.threads={args.threads}"]
+                t0 = time.time()
+                print(f"[compact_state] {time.strftime('%T')} train {exp} {scene} seed {seed}", flush=True)
+                with open(f"{rd}.log", "a") as log:
+                    rc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
+                                        stdout=log, stderr=subprocess.STDOUT).returncode
+                print(f"[compact_state]   {'done' if rc == 0 else f'FAILED rc={rc}'} in {time.time() - t0:.0f} s",
+                      flush=True)
+
+
+def applies(name: str, exp: str) -> bool:
+    """s8g4 differs from s8 only where there is a grid (4dgs)."""
+    return name != "s8g4" or "4dgs" in exp
+
+
+def val(args) -> None:
+    from stdr.compact.pack import write_compact
+    from stdr.config import load_config
+    from stdr.data.load import load_scene
+    from stdr.eval.evaluate import evaluate_model, machine_name
+    from stdr.io.checkpoint import CKPT
+    from stdr.model import load_model
+    for seed in args.seeds:
+        for exp in args.experiments:
+            for scene in args.scenes:
+                rd = run_dir(args.work, exp, scene, seed)
+                rec_path = records_to_write(OUT, "records") / "val" / f"{exp}__{scene}__s{seed}.json"
+                if rec_path.is_file() or not (rd / "metrics.json").is_file():
+                    continue
+                cfg = load_config(rd / "config.yaml")
+                cfg.device = "cpu"
+                full = load_model(rd / CKPT, "cpu", cfg)
+                frames = load_scene(cfg.data, ("val",), base=str(ROOT), seed=cfg.seed).frames("val")
+                rec = {"experiment": exp, "scene": scene, "seed": seed, "split": "val",
+                       "num_gaussians": full.num_gaussians, "full_bytes": None, "candidates": {}}
+                for name, extra in CANDIDATES.items():
+                    if not applies(name, exp):
+                        continue
+                    with tempfile.TemporaryDirectory() as tmp:
+                        w = write_compact(full, Path(tmp) / "m.stdrc", {**BASE, **extra})
+                        r = evaluate_model(load_model(Path(tmp) / "m.stdrc", "cpu", cfg), frames, fps_warmup=0)
+                    rec["full_bytes"] = w["full_bytes"]
+                    rec["candidates"][name] = {"bytes": w["bytes"], "psnr": r["psnr"], "ssim": r["ssim"]}
+                base = rec["candidates"]["s16"]
+                for c in rec["candidates"].values():
+                    c["delta_psnr"] = c["psnr"] - base["psnr"]
+                print(f"[compact_state] val {exp} {scene} s{seed}: " + ", ".join(
+                    f"{n} {c['bytes'] / 2**20:.3f} MiB {c['delta_psnr']:+.3f} dB" for n, c in rec["candidates"].items()),
+                    flush=True)
+                rec.update({"code": commit(), "machine": machine_name(), "date": time.strftime("%Y-%m-%d %H:%M")})
+                rec_path.parent.mkdir(parents=True, exist_ok=True)
+                rec_path.write_text(json.dumps(rec, indent=1) + "\n")
+
+
+def decide(recs: list[dict]) -> dict:
+    """protocol.md's rule: per candidate, mean bytes and val ΔPSNR against s16 per method; a method
+    whose runs are not all measured cannot pass (a partial mean is no decision)."""
+    need = len(SCENES) * len(SEEDS)
+    rows = {}
+    for name in CANDIDATES:
+        per = {}
+        for exp in EXPERIMENTS:
+            rs = [r for r in recs if r["experiment"] == exp and name in r["candidates"]]
+            if rs and applies(name, exp):
+                per[exp] = {"runs": len(rs), "delta_psnr": statistics.mean(r["candidates"][name]["delta_psnr"] for r in rs),
+                            "bytes": statistics.mean(r["candidates"][name]["bytes"] for r in rs),
+                            "file_over_model": statistics.mean(r["candidates"][name]["bytes"] / r["full_bytes"] for r in rs)}
+        rows[name] = {"per_method": per,
+                      "passes": bool(per) and all(v["runs"] == need and v["delta_psnr"] >= BOUND for v in per.values())}
+    chosen = {}
+    for exp in EXPERIMENTS:  # per method, the smallest passing candidate that applies to it
+        ok = [(rows[n]["per_method"][exp]["bytes"], n) for n in CANDIDATES
+              if exp in rows[n]["per_method"] and rows[n]["passes"]]
+        chosen[exp] = min(ok)[1] if ok else None
+    return {"rule": f"smallest candidate with val dPSNR vs s16 >= {BOUND} dB per method, {need} runs a method",
+            "candidates": rows, "chosen": chosen}
+
+
+def table(dec: dict, recs: list[dict]) -> str:
+    lines = ["# Compact state: the networks and 4DGS's grid in fewer bits (val)", "",
+             f"Generated by `python studies/compact_state.py decide` from {len(recs)} val records (code "
+             f"{', '.join(sorted({r['code'] for r in recs}))}; machine {recs[0]['machine'] if recs else '-'}). "
+             "Rule: protocol.md. Bytes: the compact file's tensors, entropy coded; model: the run's "
+             "`compact=on` model.", "",
+             "| candidate | method | runs | val ΔPSNR vs s16 (dB) | file KiB | file / model | passes |",
+             "|---|---|---|---|---|---|---|"]
+    for name, row in dec["candidates"].items():
+        for exp, v in row["per_method"].items():
+            lines.append(f"| {name} | {exp} | {v['runs']} | {v['delta_psnr']:+.3f} | {v['bytes'] / 1024:.1f} | "
+                         f"{v['file_over_model']:.3f} | {'yes' if row['passes'] else 'no'} |")
+    lines += ["", "Chosen: " + ", ".join(f"{e}: {c or 'none'}" for e, c in dec["chosen"].items())]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    for name in ("train", "val"):
+        p = sub.add_parser(name)
+        p.add_argument("dnerf", type=Path)
+        p.add_argument("--work", type=Path, required=True)
+        p.add_argument("--experiments", nargs="+", default=list(EXPERIMENTS), choices=EXPERIMENTS)
+        p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+        p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+        p.add_argument("--threads", type=int, default=1)
+    sub.add_parser("decide")
+    a = ap.parse_args(argv)
+    if a.cmd == "train":
+        train(a)
+    elif a.cmd == "val":
+        val(a)
+    else:
+        recs = [json.loads(p.read_text()) for p in sorted((records_in(OUT, "records") / "val").glob("*.json"))]
+        dec = decide(recs)
+        (OUT / "decision.json").write_text(json.dumps(dec, indent=1) + "\n")
+        (OUT / "table.md").write_text(table(dec, recs))
+        print(table(dec, recs), end="")
+
+
+if __name__ == "__main__":
+    main()
