@@ -148,3 +148,11 @@ def test_no_two_modules_share_a_name():
         if path not in (ROOT / "stdr", ROOT / "stdr" / "plugins" / "stdr"):
             names[path.stem].append(str(path.relative_to(ROOT)))
     assert not {k: v for k, v in names.items() if len(v) > 1}
+
+
+def test_studies_readme_lists_every_study():
+    """studies/README.md names every study script (the shared modules aside)."""
+    text = (ROOT / "studies" / "README.md").read_text()
+    missing = [p.name for p in sorted((ROOT / "studies").glob("*.py"))
+               if p.name not in ("__init__.py", "common.py", "records.py") and f"`{p.name}`" not in text]
+    assert not missing, f"studies/README.md does not list {missing}"
