@@ -7,7 +7,7 @@
 For each trained run: its model written with the `compact=on` preset's codecs (the compact_bytes
 study's decision) without and with entropy coding; bytes by stream (compact_bytes.where_bytes'
 parts), encode seconds, load seconds (`load_model`, median of 3) and whether the two files decode
-to bit-identical models.
+to bit-identical tensors.
 """
 from __future__ import annotations
 
@@ -49,9 +49,14 @@ def parts(model, spec: dict) -> dict:
     return out
 
 
-def _same(a, b) -> bool:
+def _decoded(path: Path) -> dict:
+    """Every tensor the file stores, decoded (its model entry, by dotted key): what a loader reads.
+    Not the loaded model: a file with STDR's derived mask stores no field weights, and a loaded
+    model draws them afresh (unused by its renders)."""
     import torch
-    sa, sb = a.state_dict(), b.state_dict()
+
+    from stdr.compact.file import decode_model
+    from stdr.io.checkpoint import load_checkpoint
 
     def flat(x, p=""):
         if isinstance(x, torch.Tensor):
@@ -62,8 +67,12 @@ def _same(a, b) -> bool:
         elif isinstance(x, (list, tuple)):
             for i, v in enumerate(x):
                 yield from flat(v, f"{p}.{i}")
-    fa, fb = dict(flat(sa)), dict(flat(sb))
-    return fa.keys() == fb.keys() and all(torch.equal(fa[k], fb[k]) for k in fa)
+    return dict(flat(decode_model(load_checkpoint(path), str(path))))
+
+
+def _same(a: dict, b: dict) -> bool:
+    import torch
+    return a.keys() == b.keys() and all(a[k].dtype == b[k].dtype and torch.equal(a[k], b[k]) for k in a)
 
 
 def measure(run_dir: Path) -> dict:
@@ -88,8 +97,9 @@ def measure(run_dir: Path) -> dict:
             loads = []
             for _ in range(3):
                 t0 = time.perf_counter()
-                loaded[mode] = load_model(path, "cpu")
+                load_model(path, "cpu")
                 loads.append(time.perf_counter() - t0)
+            loaded[mode] = _decoded(path)
             rec[mode] = {"bytes": parts(model, spec), "file_bytes": path.stat().st_size,
                          "encode_seconds": round(enc, 3), "load_seconds": round(statistics.median(loads), 3)}
     rec["bit_identical"] = _same(loaded["none"], loaded["zstd"])

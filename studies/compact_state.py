@@ -37,25 +37,23 @@ def run_dir(work: Path, exp: str, scene: str, seed: int) -> Path:
 
 
 def train(args) -> None:
-    """Each run without metrics.json: `compact=on budget=cpu` at the seed, one subprocess a run."""
-    for seed in args.seeds:
-        for exp in args.experiments:
-            for scene in args.scenes:
-                rd = run_dir(args.work, exp, scene, seed)
-                if (rd / "metrics.json").is_file():
-                    continue
-                rd.parent.mkdir(parents=True, exist_ok=True)
-                cmd = [sys.executable, "-m", "stdr.cli.train", f"experiment={exp}", "compact=on", "budget=cpu",
-                       f"seed={seed}", f"data.path={Path(args.dnerf) / scene}", f"hydra.run.dir={rd}",
-                       "train.progress=false", "eval.save_images=false", "train.image_every=0",
-                       f"train.threads={args.threads}"]
-                t0 = time.time()
-                print(f"[compact_state] {time.strftime('%T')} train {exp} {scene} seed {seed}", flush=True)
-                with open(f"{rd}.log", "a") as log:
-                    rc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
-                                        stdout=log, stderr=subprocess.STDOUT).returncode
-                print(f"[compact_state]   {'done' if rc == 0 else f'FAILED rc={rc}'} in {time.time() - t0:.0f} s",
-                      flush=True)
+    """Each run without metrics.json: `compact=on budget=cpu` at the seed, one subprocess a run
+    (--reverse: the last first, for a second worker that meets the first in the middle)."""
+    todo = [(seed, exp, scene) for seed in args.seeds for exp in args.experiments for scene in args.scenes]
+    for seed, exp, scene in (reversed(todo) if args.reverse else todo):
+        rd = run_dir(args.work, exp, scene, seed)
+        if (rd / "metrics.json").is_file():
+            continue
+        rd.parent.mkdir(parents=True, exist_ok=True)
+        cmd = [sys.executable, "-m", "stdr.cli.train", f"experiment={exp}", "compact=on", "budget=cpu",
+               f"seed={seed}", f"data.path={Path(args.dnerf) / scene}", f"hydra.run.dir={rd}",
+               "train.progress=false", "eval.save_images=false", "train.image_every=0", f"train.threads={args.threads}"]
+        t0 = time.time()
+        print(f"[compact_state] {time.strftime('%T')} train {exp} {scene} seed {seed}", flush=True)
+        with open(f"{rd}.log", "a") as log:
+            rc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
+                                stdout=log, stderr=subprocess.STDOUT).returncode
+        print(f"[compact_state]   {'done' if rc == 0 else f'FAILED rc={rc}'} in {time.time() - t0:.0f} s", flush=True)
 
 
 def applies(name: str, exp: str) -> bool:
@@ -153,6 +151,7 @@ def main(argv=None) -> None:
         p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
         p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
         p.add_argument("--threads", type=int, default=1)
+        p.add_argument("--reverse", action="store_true", help="train: the runs in reverse order")
     sub.add_parser("decide")
     a = ap.parse_args(argv)
     if a.cmd == "train":
