@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -33,27 +31,30 @@ BOUND = -0.05  # dB, val PSNR against s16, mean over a method's runs
 
 
 def run_dir(work: Path, exp: str, scene: str, seed: int) -> Path:
-    return Path(work) / exp / f"{scene}_s{seed}"
+    """A run's folder: the id `stdr-tool queue` gives it under WORK."""
+    from stdr.tools.runqueue import run_id
+    return Path(work) / run_id(exp, scene, seed)
 
 
 def train(args) -> None:
-    """Each run without metrics.json: `compact=on budget=cpu` at the seed, one subprocess a run
-    (--reverse: the last first, for a second worker that meets the first in the middle)."""
-    todo = [(seed, exp, scene) for seed in args.seeds for exp in args.experiments for scene in args.scenes]
-    for seed, exp, scene in (reversed(todo) if args.reverse else todo):
-        rd = run_dir(args.work, exp, scene, seed)
-        if (rd / "metrics.json").is_file():
-            continue
-        rd.parent.mkdir(parents=True, exist_ok=True)
-        cmd = [sys.executable, "-m", "stdr.cli.train", f"experiment={exp}", "compact=on", "budget=cpu",
-               f"seed={seed}", f"data.path={Path(args.dnerf) / scene}", f"hydra.run.dir={rd}",
-               "train.progress=false", "eval.save_images=false", "train.image_every=0", f"train.threads={args.threads}"]
-        t0 = time.time()
-        print(f"[compact_state] {time.strftime('%T')} train {exp} {scene} seed {seed}", flush=True)
-        with open(f"{rd}.log", "a") as log:
-            rc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
-                                stdout=log, stderr=subprocess.STDOUT).returncode
-        print(f"[compact_state]   {'done' if rc == 0 else f'FAILED rc={rc}'} in {time.time() - t0:.0f} s", flush=True)
+    """The runs, through the project's one run queue (`stdr-tool queue`, its state in
+    WORK/queue.json): `compact=on budget=cpu`, experiments x scenes x seeds, --concurrent at a
+    time with --threads each; a run whose metrics.json exists is done, an interrupted one resumes."""
+    from stdr.tools.runqueue import Queue, execute, plan
+    state = Path(args.work) / "queue.json"
+    if state.is_file():
+        q = Queue.load(state)
+    else:
+        q = plan(args.experiments, [str(Path(args.dnerf) / s) for s in args.scenes], args.seeds,
+                 ["compact=on", "budget=cpu", "eval.save_images=false", "train.image_every=0"], est_s=300)
+    for r in q.runs:  # folders finished outside the queue (a run copied in) count as done
+        if r.state != "done" and (Path(args.work) / r.id / "metrics.json").is_file():
+            r.state = "done"
+    try:
+        execute(q, Path(args.work), args.concurrent, args.budget, cores=args.concurrent * args.threads)
+    finally:
+        q.save(state)
+    print(f"[compact_state] {q.counts()}", flush=True)
 
 
 def applies(name: str, exp: str) -> bool:
@@ -151,7 +152,8 @@ def main(argv=None) -> None:
         p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
         p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
         p.add_argument("--threads", type=int, default=1)
-        p.add_argument("--reverse", action="store_true", help="train: the runs in reverse order")
+        p.add_argument("--concurrent", type=int, default=2, help="train: runs at a time")
+        p.add_argument("--budget", type=float, default=6 * 3600.0, help="train: seconds for this call")
     sub.add_parser("decide")
     a = ap.parse_args(argv)
     if a.cmd == "train":
