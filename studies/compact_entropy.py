@@ -117,7 +117,7 @@ def table(recs: list[dict]) -> str:
              "|---|---|---|---|---|---|---|---|---|"]
     for r in recs:
         a, b = r["none"], r["zstd"]
-        lines.append(f"| {r['run']} | {r['num_gaussians']} | {a['bytes']['total'] / 1024:.1f} | "
+        lines.append(f"| {r['experiment']} {r['run']} (seed {r['seed']}, {r['budget']}) | {r['num_gaussians']} | {a['bytes']['total'] / 1024:.1f} | "
                      f"{b['bytes']['total'] / 1024:.1f} | {b['bytes']['total'] / a['bytes']['total']:.3f} | "
                      f"{b['encode_seconds']:.2f} | {a['load_seconds']:.3f} | {b['load_seconds']:.3f} | "
                      f"{'yes' if r['bit_identical'] else 'NO'} |")
