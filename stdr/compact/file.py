@@ -45,9 +45,10 @@ MARK = "__codec__"  # an encoded tensor's dict carries it (a state dict's own ke
 #: the default codecs: positions exact, the other attributes in half precision, the SH rest (45 of
 #: 59 floats a Gaussian at degree 3) in 8 bits per coefficient with a per-coefficient range, an
 #: integer mask as it is, every other per-Gaussian tensor in half precision; networks and grids float32
-#: (integer and float64 tensors are always stored as they are: flags, an 8-bit mask, time knots)
+#: (integer and float64 tensors are always stored as they are: flags, an 8-bit mask, time knots);
+#: every stream then entropy coded (lossless; chosen by docs/measurements/compact_entropy's rule)
 DEFAULT_SPEC = {"means": "f32", "scales": "f16", "quats": "f16", "opacities": "f16", "sh0": "f16", "shN": "q8",
-                "*": "f16", "state": "f32", "entropy": "none"}
+                "*": "f16", "state": "f32", "entropy": "zstd"}
 #: the spec's `entropy` values: none, or Zstandard over every stream (stdr.compact.entropy), at its
 #: default level or `zstd:<level>` (1 to 22)
 ENTROPY_CODERS = ("none", "zstd")
