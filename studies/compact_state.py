@@ -26,7 +26,9 @@ SEEDS = (2, 3)
 #: the preset's per-Gaussian codecs without the codebook fine-tune, entropy coded (protocol.md)
 BASE = {"means": "q16", "scales": "q8", "quats": "q8", "opacities": "q8", "sh0": "q8", "shN": "vq:256",
         "state": "f16", "state:grids": "q8", "entropy": "zstd"}
-CANDIDATES = {"s16": {}, "s8": {"state": "q8"}, "s8g4": {"state": "q8", "state:grids": "q4"}}
+CANDIDATES = {"s16": {}, "s8": {"state": "q8"}, "s8g4": {"state": "q8", "state:grids": "q4"},
+              # amendment 1: the networks' weights and biases alone in 8 bits
+              "s8w": {"state:weight": "q8", "state:bias": "q8"}}
 BOUND = -0.05  # dB, val PSNR against s16, mean over a method's runs
 
 
@@ -74,22 +76,23 @@ def val(args) -> None:
             for scene in args.scenes:
                 rd = run_dir(args.work, exp, scene, seed)
                 rec_path = records_to_write(OUT, "records") / "val" / f"{exp}__{scene}__s{seed}.json"
-                if rec_path.is_file() or not (rd / "metrics.json").is_file():
+                rec = json.loads(rec_path.read_text()) if rec_path.is_file() else None
+                todo = [n for n in CANDIDATES if applies(n, exp) and (rec is None or n not in rec["candidates"])]
+                if not todo or not (rd / "metrics.json").is_file():
                     continue
                 cfg = load_config(rd / "config.yaml")
                 cfg.device = "cpu"
                 full = load_model(rd / CKPT, "cpu", cfg)
                 frames = load_scene(cfg.data, ("val",), base=str(ROOT), seed=cfg.seed).frames("val")
-                rec = {"experiment": exp, "scene": scene, "seed": seed, "split": "val",
-                       "num_gaussians": full.num_gaussians, "full_bytes": None, "candidates": {}}
-                for name, extra in CANDIDATES.items():
-                    if not applies(name, exp):
-                        continue
+                rec = rec or {"experiment": exp, "scene": scene, "seed": seed, "split": "val",
+                              "num_gaussians": full.num_gaussians, "full_bytes": None, "candidates": {}}
+                for name in todo:
+                    extra = CANDIDATES[name]
                     with tempfile.TemporaryDirectory() as tmp:
                         w = write_compact(full, Path(tmp) / "m.stdrc", {**BASE, **extra})
                         r = evaluate_model(load_model(Path(tmp) / "m.stdrc", "cpu", cfg), frames, fps_warmup=0)
                     rec["full_bytes"] = w["full_bytes"]
-                    rec["candidates"][name] = {"bytes": w["bytes"], "psnr": r["psnr"], "ssim": r["ssim"]}
+                    rec["candidates"][name] = {"bytes": w["bytes"], "psnr": r["psnr"], "ssim": r["ssim"], "code": commit()}
                 base = rec["candidates"]["s16"]
                 for c in rec["candidates"].values():
                     c["delta_psnr"] = c["psnr"] - base["psnr"]
