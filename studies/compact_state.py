@@ -20,7 +20,9 @@ sys.path.insert(0, str(ROOT))
 from studies.common import commit, records_in, records_to_write  # noqa: E402
 
 OUT = ROOT / "docs" / "measurements" / "compact_state"
-EXPERIMENTS = ("dnerf_deform", "dnerf_4dgs", "dnerf_scgs")
+EXPERIMENTS = ("dnerf_deform", "dnerf_4dgs", "dnerf_scgs",
+               # amendment 2: every method the preset serves
+               "dnerf_spgs", "dnerf_deform_stdr", "dnerf_scgs_stdr", "dnerf_spgs_stdr", "dnerf_4dgs_stdr")
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
 SEEDS = (2, 3)
 #: the preset's per-Gaussian codecs without the codebook fine-tune, entropy coded (protocol.md)
@@ -43,7 +45,7 @@ def train(args) -> None:
     WORK/queue.json): `compact=on budget=cpu`, experiments x scenes x seeds, --concurrent at a
     time with --threads each; a run whose metrics.json exists is done, an interrupted one resumes."""
     from stdr.tools.runqueue import Queue, execute, plan
-    state = Path(args.work) / "queue.json"
+    state = Path(args.work) / f"queue_{'_'.join(e.removeprefix('dnerf_') for e in args.experiments)}.json"
     if state.is_file():
         q = Queue.load(state)
     else:
@@ -124,8 +126,12 @@ def decide(recs: list[dict]) -> dict:
         ok = [(rows[n]["per_method"][exp]["bytes"], n) for n in CANDIDATES
               if exp in rows[n]["per_method"] and rows[n]["passes"]]
         chosen[exp] = min(ok)[1] if ok else None
+    # amendment 2: the preset (one spec for every method) takes a candidate that passes on all of them
+    full = [n for n in CANDIDATES if all(e in rows[n]["per_method"] and rows[n]["per_method"][e]["runs"] == need
+                                         and rows[n]["per_method"][e]["delta_psnr"] >= BOUND for e in EXPERIMENTS)]
+    preset = min(full, key=lambda n: statistics.mean(v["bytes"] for v in rows[n]["per_method"].values())) if full else None
     return {"rule": f"smallest candidate with val dPSNR vs s16 >= {BOUND} dB per method, {need} runs a method",
-            "candidates": rows, "chosen": chosen}
+            "candidates": rows, "chosen": chosen, "preset": preset}
 
 
 def table(dec: dict, recs: list[dict]) -> str:
@@ -140,7 +146,8 @@ def table(dec: dict, recs: list[dict]) -> str:
         for exp, v in row["per_method"].items():
             lines.append(f"| {name} | {exp} | {v['runs']} | {v['delta_psnr']:+.3f} | {v['bytes'] / 1024:.1f} | "
                          f"{v['file_over_model']:.3f} | {'yes' if row['passes'] else 'no'} |")
-    lines += ["", "Chosen: " + ", ".join(f"{e}: {c or 'none'}" for e, c in dec["chosen"].items())]
+    lines += ["", "Chosen: " + ", ".join(f"{e}: {c or 'none'}" for e, c in dec["chosen"].items()),
+              "", f"For `compact=on` (every method measured and passing, amendment 2): {dec.get('preset') or 'none yet'}"]
     return "\n".join(lines) + "\n"
 
 
