@@ -104,7 +104,7 @@ def _composite(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Ten
     # about eps * a * |m|^2; the 0.3 px^2 low-pass bounds a <= 1/0.3 and a Gaussian binned to a
     # tile has |m| <= tile_size/sqrt(2) + 3 sigma, so at 8x8 tiles in float32 the exponent is off
     # by < 2e-5 (relative alpha error < 2e-5). Tests pin it to a direct per-pixel loop in float64.
-    basis, centre, inside = _tile_basis(tiles, ntx, tile_size, width, height, dt)
+    basis, centre, inside = _tile_basis(tiles, ntx, tile_size, width, height, dt, score is not None)
     log_op = torch.log(opacities.clamp_min(1e-30))
     # per-Gaussian cut-off on the exponent: inside the 3-sigma ellipse and alpha >= 1/255
     cut = torch.maximum(log_op - 0.5 * SIGMA_EXTENT ** 2, torch.full_like(log_op, math.log(ALPHA_MIN)))
@@ -158,10 +158,12 @@ def _composite(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Ten
                            width, height)
 
 
-def _tile_basis(tiles: Tensor, ntx: int, tile_size: int, width: int, height: int, dt) -> tuple[Tensor, Tensor, Tensor]:
+def _tile_basis(tiles: Tensor, ntx: int, tile_size: int, width: int, height: int, dt,
+                with_inside: bool) -> tuple[Tensor, Tensor, Tensor | None]:
     """The per-pixel polynomial basis (u^2, uv, v^2, u, v, 1) [6, Pt] of a tile's pixel centres
     relative to the tile centre, each tile's centre [n_tiles, 2], and which of its pixels lie
-    inside the image [n_tiles, Pt] (partial tiles at the right and bottom edges)."""
+    inside the image [n_tiles, Pt] (partial tiles at the right and bottom edges; only the score
+    pass reads it, None without `with_inside`)."""
     dev = tiles.device
     half = tile_size / 2.0
     lc = torch.arange(tile_size, device=dev, dtype=dt) + 0.5 - half
@@ -170,6 +172,8 @@ def _tile_basis(tiles: Tensor, ntx: int, tile_size: int, width: int, height: int
     basis = torch.stack([u_ * u_, u_ * v_, v_ * v_, u_, v_, torch.ones_like(u_)])  # [6, Pt]
     ty, tx = tiles // ntx, tiles % ntx
     centre = torch.stack([tx, ty], -1).to(dt) * tile_size + half  # [n_tiles, 2]
+    if not with_inside:
+        return basis, centre, None
     px = tx[:, None] * tile_size + (u_ + half - 0.5).long()[None]  # [n_tiles, Pt] pixel columns
     py = ty[:, None] * tile_size + (v_ + half - 0.5).long()[None]
     return basis, centre, ((px < width) & (py < height)).to(dt)
