@@ -84,3 +84,15 @@ def test_a_file_with_entropy_coding_loads_to_the_model_of_the_file_without(tmp_p
         assert torch.equal(sa["params"][k], sb["params"][k]), k
     for (ka, va), (kb, vb) in zip(sa["deform"].items(), sb["deform"].items()):
         assert ka == kb and torch.equal(va, vb), ka
+
+
+def test_a_bad_entropy_value_is_a_config_error_naming_the_key():
+    """stdr-train checks pack.codecs before training: an unknown coder is a ConfigError (one line,
+    exit code 2) naming the key and what to write, never a traceback after the run."""
+    from stdr.compact.pack import check_pack_config
+    from stdr.errors import ConfigError
+    from stdr.store import compose_config
+    cfg = compose_config(["compact=on", "+pack.codecs.entropy=zz"])
+    with pytest.raises(ConfigError, match=r"pack\.codecs: compact spec entropy='zz': use none, zstd or zstd:<level"):
+        check_pack_config(cfg)
+    assert check_pack_config(compose_config(["compact=on", "+pack.codecs.entropy=zstd:3"]))["entropy"] == "zstd:3"

@@ -16,6 +16,7 @@ from typing import Any, Optional
 
 from ..config import load_config
 from ..data.load import load_scene
+from ..errors import ConfigError
 from ..eval.evaluate import evaluate_model
 from ..io.checkpoint import CKPT, save_checkpoint
 from ..model import load_model, model_bytes, model_from_checkpoint
@@ -28,7 +29,7 @@ from .finetune import finetune_codebooks, vq_entries
 def check_pack_config(cfg) -> Optional[dict]:
     """The compact spec of a run config with `pack.enabled`, checked (its codecs, and each enabled
     plug-in's view of them), or None when the run writes no compact file. A bad spec is a
-    ValueError naming `pack.codecs`."""
+    ConfigError (one line from stdr-train) naming `pack.codecs`."""
     if not cfg.pack.enabled:
         return None
     try:
@@ -36,7 +37,7 @@ def check_pack_config(cfg) -> Optional[dict]:
         for p in enabled_plugins(cfg):
             p.plugin.check_compact_spec(plugin_node(cfg, p.name), spec)
     except ValueError as e:
-        raise ValueError(f"pack.codecs: {e}") from None
+        raise ConfigError(f"pack.codecs: {e}") from None
     return spec
 
 
