@@ -1,6 +1,6 @@
 # Sourced at the start of a job on a GPU machine without network access (bash):
 #   source scripts/gpu_env.sh && <the commands of docs/install.md, "A GPU machine without network access">
-# installs build/gpucarry/wheels into /tmp/site (the image lacks hydra, omegaconf, antlr4, plyfile),
+# installs build/gpucarry/wheels into /tmp/site (the image lacks hydra, its joblib launcher, omegaconf, antlr4, plyfile),
 # puts it and the tree on PYTHONPATH, shares one extension build between the check and the queue's
 # runs (STDR_EXT_DIR=build/ext, built here once: CUDA and CPU), and prints the GPU.
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \

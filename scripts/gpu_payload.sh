@@ -24,7 +24,7 @@ chmod -R u+w "$G"
 PIP="python3 -m pip"
 $PIP download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
   --platform manylinux_2_28_x86_64 --platform manylinux2014_x86_64 -d "$G/wheels" \
-  hydra-core==1.3.2 omegaconf==2.3.0 plyfile==1.1.3
+  hydra-core==1.3.2 omegaconf==2.3.0 plyfile==1.1.3 hydra-joblib-launcher==1.2.0 joblib==1.6.0 cloudpickle==3.1.3
 $PIP wheel -q --no-deps -w "$G/wheels" antlr4-python3-runtime==4.9.3   # an sdist upstream: built here
 ls "$G/wheels"
 du -sh "$G"

@@ -38,7 +38,7 @@ class DataConfig:
     max_width: Optional[int] = None  # after resolution_scale, cap the width (aspect kept)
     eval_split: str = "test"    # test | val (D-NeRF lego's test split disagrees with train)
     procedural: SceneOptions = field(default_factory=SceneOptions)  # generator options
-    # Nerfies format (NeRF-DS, HyperNeRF); docs/data.md. Nothing is read from folder names.
+    # Nerfies format (NeRF-DS, HyperNeRF; docs/data.md); nothing is read from folder names
     split_mode: Optional[str] = None  # ids (train_ids / val_ids) | interp (ids[::4] / ids[2::4]); required
     image_scale: Optional[int] = None  # N of the rgb/<N>x folder; intrinsics scale to match; required
     time_key: str = "auto"       # auto (time_id, else warp_id) | time_id | warp_id; t = key / max key
@@ -48,8 +48,7 @@ class DataConfig:
     points_source: str = "auto"  # auto (points.npy, else COLMAP) | points_npy | colmap | none
     undistort_cache: Optional[str] = "data/cache/undistorted"  # repo-relative; null: no cache
     scenes: List[str] = field(default_factory=list)  # the benchmark's scene folders (scripts iterate them)
-    # a stressed training set (dropped or sparse times, fewer frames, pose and time noise), seeded;
-    # the evaluation splits are untouched (stdr.data.stress, docs/stability.md)
+    # a stressed training set, seeded; the evaluation splits untouched (stdr.data.stress, docs/stability.md)
     stress: StressConfig = field(default_factory=StressConfig)
 
 
@@ -172,14 +171,16 @@ class TrainConfig:
     log_every: int = 50
     image_every: int = 1000
     resume: bool = True         # resume from run_dir/checkpoints/last.pt when present
-    # stop after this iteration, as an interrupted run would (checkpoint written, no final
-    # evaluation); every schedule still follows optim.iterations, and a run without it resumes
+    # stop after this iteration as an interrupted run would (checkpoint, no final evaluation; the
+    # schedules follow optim.iterations; the same run without it resumes). deadline, start_by: Unix
+    # times: stop there as at stop_at; not started after start_by (a Slurm slot, a rented GPU's hour)
     stop_at: Optional[int] = None
+    deadline: Optional[float] = None
+    start_by: Optional[float] = None
     skip_finished: bool = True  # in a sweep (-m): a run whose metrics.json exists is skipped, not retrained
     threads: int = 0            # torch threads (0 = torch default)
     progress: bool = True
-    # non-finite loss / gradients / parameters and divergence: restore, lower the lrs, go on
-    # (docs/stability.md)
+    # non-finite loss / gradients / parameters and divergence: restore, lower the lrs, go on (docs/stability.md)
     guard: GuardConfig = field(default_factory=GuardConfig)
 
 

@@ -146,6 +146,7 @@ RULES: dict[str, str] = {
     "render.tile_size": "steps", "render.eps2d": "nonneg", "render.near": "positive",
     "train.eval_every": "steps", "train.eval_frames": "steps", "train.checkpoint_every": "steps",
     "train.log_every": "count", "train.image_every": "steps", "train.stop_at": "opt_count", "train.threads": "steps",
+    "train.deadline": "opt_positive", "train.start_by": "opt_positive",
     "eval.fps_warmup": "steps", "eval.fps_repeats": "count",
     "pack.finetune": "steps", "pack.sh_degree": "opt_sh_degree",
 }

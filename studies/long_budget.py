@@ -1,14 +1,15 @@
 """STDR at the longer CPU budget: deform ± STDR at `budget=cpu_long` on the shared D-NeRF scenes,
 with train, val and test PSNR along the learning curve (docs/measurements/stdr_long).
 
-    # the queue: resumable (a finished run's record is skipped; a run stopped midway resumes from
-    # its last checkpoint); one run at a time, each at --threads torch threads
-    python studies/long_budget.py run DNERF_ROOT --work WORK [--seeds 0 1] [--threads 1]
+    # resumable (a run with a record is skipped; a run stopped midway resumes from its last
+    # checkpoint), on the project's run queue: --concurrent runs at a time, --threads each
+    python studies/long_budget.py run DNERF_ROOT --work WORK [--seeds 0 1] [--threads 1] [--concurrent 1]
     # the table from the committed records (generated, stamped)
     python studies/long_budget.py table
 
 Each run trains in segments (`train.stop_at` at every --points step, then to the end; a stopped
-run resumes bit-exactly) and after each segment renders the whole train, val and test splits from
+run resumes bit-exactly; every run of the grid to one point, then to the next) and after each
+segment renders the whole train, val and test splits from
 the checkpoint (PSNR, SSIM). Its record, `records/<method>/<scene>_s<seed>.json`, holds those curve
 points, the final test metrics (with LPIPS) from the run's metrics.json, the command, the code
 commit and the machine. Choices are made on val; test is reported as measured.
@@ -17,9 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -71,23 +70,41 @@ def evaluate_splits(run_dir: Path, splits=SPLITS) -> dict:
     return out
 
 
-def train(root: Path, scene: str, seed: int, method: str, run_dir: Path, threads: int, stop_at: int | None,
-          extra=()) -> list[str]:
-    cmd = [sys.executable, "-m", "stdr.cli.train", f"experiment=dnerf_{method}", "budget=cpu_long",
-           f"data.path={root / scene}", f"seed={seed}", f"hydra.run.dir={run_dir}", "train.progress=false",
-           "eval.save_images=false", f"train.threads={threads}", "train.checkpoint_every=2500"]
-    cmd += list(extra)
-    if stop_at is not None:
-        cmd.append(f"train.stop_at={stop_at}")
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
-    with open(run_dir.parent / f"{run_dir.name}.log", "a") as log:
-        subprocess.run(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, check=True)
-    return cmd
+def overrides(root: Path, scene: str, seed: int, method: str, extra=()) -> list[str]:
+    """The stdr-train overrides of one run of the study (without its segment's train.stop_at)."""
+    return [f"experiment=dnerf_{method}", "budget=cpu_long", f"data.path={root / scene}", f"data.name={scene}",
+            f"seed={seed}", "eval.save_images=false", "train.checkpoint_every=2500", *extra]
+
+
+def _segment(cells: list[dict], stop: int | None, args) -> None:
+    """Every cell that lacks this point trains to it (`train.stop_at`, or to the end), through the
+    project's run queue (stdr-tool queue: one sweep, --concurrent at a time), and its three splits
+    are evaluated from the checkpoint."""
+    from stdr.tools.runqueue import Queue, Run, execute
+
+    step = stop if stop is not None else args.iterations
+    todo = [c for c in cells if step not in {p["step"] for p in c["state"]["points"]}]
+    if not todo:
+        return
+    q = Queue([Run(c["id"], c["overrides"] + ([f"train.stop_at={stop}"] if stop is not None else []), 0.0)
+               for c in todo])
+    execute(q, args.work, args.concurrent, budget_s=30 * 24 * 3600, cores=args.concurrent * args.threads)
+    for c, r in zip(todo, q.runs):
+        if r.state == "failed":
+            raise SystemExit(f"[long_budget] {r.id}: failed ({r.error})")
+        point = evaluate_splits(args.work / r.id)
+        c["state"]["points"].append(point)
+        c["state_path"].write_text(json.dumps(c["state"], indent=1))
+        print(f"[long_budget] {r.id} step {point['step']}: " + ", ".join(
+            f"{sp} {point[sp]['psnr']:.2f}" for sp in SPLITS), flush=True)
 
 
 def run_queue(args) -> None:
+    """The runs without a record, segment by segment: every run to the first point, each evaluated,
+    then to the next; then each run's record."""
     from stdr.eval.evaluate import machine_name
 
+    cells = []
     for seed in args.seeds:
         for scene in args.scenes:
             for method in args.methods:
@@ -95,34 +112,26 @@ def run_queue(args) -> None:
                 rec_path = records_to_write(args.records, "records") / name / f"{scene}_s{seed}.json"
                 if rec_path.is_file():
                     continue
-                run_dir = args.work / name / f"{scene}_s{seed}"
-                run_dir.parent.mkdir(parents=True, exist_ok=True)
-                state_path = run_dir.parent / f"{run_dir.name}.curve.json"
-                state = json.loads(state_path.read_text()) if state_path.is_file() else {"points": []}
-                done = {p["step"] for p in state["points"]}
-                t0 = time.time()
-                print(f"[long_budget] {name} {scene} seed {seed}: start ({sorted(done) or 'new'})", flush=True)
-                cmd = None
-                for p in (*args.points, None):
-                    if (p if p is not None else args.iterations) in done:
-                        continue
-                    cmd = train(args.root, scene, seed, method, run_dir, args.threads, p, args.extra)
-                    point = evaluate_splits(run_dir)
-                    state["points"].append(point)
-                    state_path.write_text(json.dumps(state, indent=1))
-                    print(f"[long_budget]   step {point['step']}: " + ", ".join(
-                        f"{sp} {point[sp]['psnr']:.2f}" for sp in SPLITS), flush=True)
-                m = json.loads((run_dir / "metrics.json").read_text())["test"]
-                rec = {"scene": scene, "seed": seed, "method": name, "budget": "cpu_long",
-                       "command": " ".join(cmd[1:]) if cmd else None, "code": commit(), "machine": machine_name(),
-                       "threads": args.threads, "wall_seconds_this_run": round(time.time() - t0, 1),
-                       "points": sorted(state["points"], key=lambda q: q["step"]),
-                       "extra": list(args.extra),
-                       "final_test": {k: m.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds",
-                                                            "model_mb", "iterations")}}
-                rec_path.parent.mkdir(parents=True, exist_ok=True)
-                rec_path.write_text(json.dumps(rec, indent=1) + "\n")
-                print(f"[long_budget] {name} {scene} seed {seed}: recorded {rec_path}", flush=True)
+                rid = f"{name}__{scene}__s{seed}"
+                state_path = args.work / f"{rid}.curve.json"
+                cells.append({"id": rid, "name": name, "scene": scene, "seed": seed, "rec_path": rec_path,
+                              "state_path": state_path, "overrides": overrides(args.root, scene, seed, method, args.extra),
+                              "state": json.loads(state_path.read_text()) if state_path.is_file() else {"points": []}})
+    args.work.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    for stop in (*args.points, None):
+        _segment(cells, stop, args)
+    for c in cells:
+        m = json.loads((args.work / c["id"] / "metrics.json").read_text())["test"]
+        rec = {"scene": c["scene"], "seed": c["seed"], "method": c["name"], "budget": "cpu_long",
+               "command": "stdr.cli.train " + " ".join(c["overrides"]), "code": commit(), "machine": machine_name(),
+               "threads": args.threads, "concurrent": args.concurrent, "wall_seconds_this_call": round(time.time() - t0, 1),
+               "points": sorted(c["state"]["points"], key=lambda q: q["step"]), "extra": list(args.extra),
+               "final_test": {k: m.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds",
+                                                    "model_mb", "iterations")}}
+        c["rec_path"].parent.mkdir(parents=True, exist_ok=True)
+        c["rec_path"].write_text(json.dumps(rec, indent=1) + "\n")
+        print(f"[long_budget] {c['id']}: recorded {c['rec_path']}", flush=True)
 
 
 def load_records(records: Path) -> list[dict]:
@@ -282,6 +291,7 @@ def main(argv=None) -> None:
     r.add_argument("--methods", nargs="+", default=list(METHODS))
     r.add_argument("--points", type=int, nargs="+", default=list(POINTS))
     r.add_argument("--threads", type=int, default=1)
+    r.add_argument("--concurrent", type=int, default=1, help="runs at a time")
     r.add_argument("--records", type=Path, default=RECORDS)
     r.add_argument("--iterations", type=int, default=ITERATIONS, help="the run's length (with --extra optim.iterations=N)")
     r.add_argument("--extra", nargs="*", default=[], help="more overrides (a record names them; with --label, an ablation)")

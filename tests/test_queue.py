@@ -27,16 +27,20 @@ def test_a_grid_runs_two_at_a_time_and_comes_back_in_one_archive(tmp_path):
                            "--budget", "600", "--cores", "2"], capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     state = qm.Queue.load(tmp_path / "out" / "queue.json")
-    assert state.counts()["done"] == 4 and all(r.tries == 1 for r in state.runs)
+    assert state.counts()["done"] == 4 and all(r.tries == 1 and r.seconds > 0 for r in state.runs)
     call = state.calls[-1]
     assert call["concurrent"] == 2 and call["threads_each"] == 1 and sorted(call["finished"]) == sorted(r.id for r in q.runs)
-    logs = [(tmp_path / "work" / f"{r.id}.log").read_text() for r in q.runs]
-    assert all("train.threads=1" in lg.splitlines()[0] for lg in logs)
+    assert call["sweep_exit"] == 0 and sorted(call["started"]) == sorted(r.id for r in q.runs)
+    # each run is a stdr-train of its own, in WORK/<id>, with the call's threads and deadline
+    first = [(tmp_path / "work" / r.id / "stdout.log").read_text().splitlines()[0] for r in q.runs]
+    assert all("train.threads=1" in c and "train.deadline=" in c and f"hydra.run.dir={tmp_path / 'work' / r.id}" in c
+               for c, r in zip(first, q.runs))
     with tarfile.open(tmp_path / "out" / "runs.tgz") as tar:
         names = set(tar.getnames())
         m = json.loads(tar.extractfile("embedded_4dgs__default__s1/metrics.json").read())
-    assert {f"{r.id}/{f}" for r in q.runs for f in qm.FILES} <= names
-    assert m["test"]["psnr"] > 5
+        tail = tar.extractfile("embedded_4dgs__default__s1/log_tail.txt").read().decode()
+    assert {f"{r.id}/{f}" for r in q.runs for f in qm.FILES} <= names and "queue_log_tail.txt" in names
+    assert m["test"]["psnr"] > 5 and "[stdr] metrics:" in tail
     # the next call finds nothing to do and packs the same runs again
     again = qm.Queue.load(tmp_path / "q.json")
     assert qm.execute(again, tmp_path / "work", 2, 60)["started"] == []
@@ -45,18 +49,27 @@ def test_a_grid_runs_two_at_a_time_and_comes_back_in_one_archive(tmp_path):
 def test_the_deadline_starts_nothing_that_would_not_fit_and_stops_what_runs(tmp_path):
     q = qm.plan(["embedded_deform"], [], [0, 1], _toy(tmp_path, iterations=5000), est_s=1)
     q.runs[1].est_s = 10_000  # its estimate does not fit the budget: never started
-    rec = qm.execute(q, tmp_path / "work", 2, budget_s=8, log=lambda m: None)
-    assert rec["started"] == [q.runs[0].id] and rec["finished"] == []
-    assert [r.state for r in q.runs] == ["pending", "pending"] and q.runs[0].tries == 1 and q.runs[0].seconds >= 8
-    assert not (tmp_path / "work" / q.runs[0].id / "metrics.json").exists()
+    rec = qm.execute(q, tmp_path / "work", 2, budget_s=25, log=lambda m: None)
+    assert rec["started"] == [q.runs[0].id] and rec["finished"] == [] and rec["sweep_exit"] == 0
+    assert rec["wall_s"] < 25 + 20  # the run stopped itself at the deadline: the sweep was not killed
+    assert [r.state for r in q.runs] == ["pending", "pending"] and q.runs[0].tries == 1 and q.runs[1].tries == 0
+    run, skipped = (tmp_path / "work" / r.id for r in q.runs)
+    assert not (run / "metrics.json").exists() and (run / "checkpoints" / "last.pt").is_file()
+    assert "(train.deadline); the same command without train.deadline resumes" in (run / "stdout.log").read_text()
+    assert "not started, train.start_by passed" in (skipped / "stdout.log").read_text()
+    assert not (skipped / "config.yaml").exists()
 
 
 def test_a_failing_run_is_marked_with_its_log_and_the_others_go_on(tmp_path):
     q = qm.plan(["embedded_deform"], [], [0], _toy(tmp_path), est_s=1)
     q.runs.insert(0, qm.Run("broken", ["experiment=embedded_deform", "optim.no_such_key=1"], 1))
-    qm.execute(q, tmp_path / "work", 1, budget_s=300, log=lambda m: None)
-    assert [r.state for r in q.runs] == ["failed", "done"]
-    assert "broken.log" in q.runs[0].error and "no_such_key" in (tmp_path / "work" / "broken.log").read_text()
+    q.runs.insert(1, qm.Run("no_data", ["experiment=embedded_deform", "data.format=dnerf",
+                                        f"data.path={tmp_path / 'no_such_scene'}"], 1))
+    rec = qm.execute(q, tmp_path / "work", 1, budget_s=300, log=lambda m: None)
+    assert [r.state for r in q.runs] == ["failed", "failed", "done"] and rec["failed"] == ["broken", "no_data"]
+    assert "no_such_key" in q.runs[0].error  # its config does not compose: never launched
+    assert "no_such_scene" in q.runs[1].error and "stdout.log" in q.runs[1].error
+    assert "no_such_scene" in (tmp_path / "work" / "no_data" / "stdout.log").read_text()
 
 
 def test_plan_never_overwrites_a_queue_and_ids_are_unique(tmp_path):
@@ -84,26 +97,45 @@ def test_plan_from_the_command_line_takes_the_overrides_after_the_dashes(tmp_pat
     assert "2 runs planned" in capsys.readouterr().out
 
 
+FAKE_APP = """
+import json, os, time
+from pathlib import Path
+import hydra
+from hydra.core.config_store import ConfigStore
+from hydra.core.hydra_config import HydraConfig
+
+ConfigStore.instance().store(name="fake", node={"experiment": "", "seed": 0, "stamps": "", "train": {
+    "threads": 0, "progress": True, "deadline": None, "start_by": None}})
+
+
+@hydra.main(version_base=None, config_path=None, config_name="fake")
+def main(cfg):
+    t0 = time.time()
+    time.sleep(8)
+    d = Path(HydraConfig.get().runtime.output_dir)
+    (d / "config.yaml").write_text("{}")
+    (d / "metrics.json").write_text("{}")
+    Path(cfg.stamps, d.name).write_text(json.dumps([t0, time.time(), os.environ["OMP_NUM_THREADS"],
+                                                    cfg.train.threads, os.getpid()]))
+
+
+main()
+"""
+
+
 def test_sixteen_runs_at_once_one_thread_each(tmp_path, monkeypatch):
     """A lent GPU machine has 16 cores: `--concurrent 16` keeps 16 runs going at once, one thread
-    each. The runs here stand in for stdr-train (a process that records when it ran and writes
-    metrics.json), so the test measures the scheduler, not training."""
-    q = qm.plan(["embedded_deform"], [], list(range(20)), [], est_s=1)
+    each. The runs here are jobs of a stand-in Hydra app (it records when it ran and writes
+    metrics.json) on the same sweeper and launcher, so the test measures the scheduling, not training."""
     stamp = tmp_path / "stamps"
     stamp.mkdir()
-
-    def fake(r, work, threads):
-        code = ("import json, os, sys, time; from pathlib import Path; t0 = time.time(); time.sleep(3); "
-                f"d = Path({str(work)!r}) / {r.id!r}; d.mkdir(parents=True, exist_ok=True); "
-                "(d / 'metrics.json').write_text('{}'); "
-                f"Path({str(stamp)!r}, {r.id!r}).write_text(json.dumps([t0, time.time(), "
-                "os.environ['OMP_NUM_THREADS'], sys.argv[1]]))")
-        return [sys.executable, "-c", code, f"train.threads={threads}"]
-    monkeypatch.setattr(qm, "_command", fake)
-    rec = qm.execute(q, tmp_path / "work", 16, 120, cores=16, poll_s=0.05, log=lambda m: None)
-    assert rec["threads_each"] == 1 and len(rec["finished"]) == 20 and rec["failed"] == []
+    (tmp_path / "fake_app.py").write_text(FAKE_APP)
+    monkeypatch.setattr(qm, "APP", [sys.executable, str(tmp_path / "fake_app.py")])
+    q = qm.plan(["embedded_deform"], [], list(range(20)), [f"stamps={stamp}"], est_s=1)
+    rec = qm.execute(q, tmp_path / "work", 16, 120, cores=16, log=lambda m: None)
+    assert rec["threads_each"] == 1 and len(rec["finished"]) == 20 and rec["failed"] == [], rec
     spans = [json.loads(p.read_text()) for p in stamp.iterdir()]
-    assert all(s[2] == "1" and s[3] == "train.threads=1" for s in spans)
+    assert all(s[2] == "1" and s[3] == 1 for s in spans)
     # the most runs alive at one moment: every start checked against every span
     overlap = max(sum(a[0] <= s[0] < a[1] for a in spans) for s in spans)
     assert overlap == 16, overlap

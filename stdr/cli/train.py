@@ -1,6 +1,11 @@
 """stdr-train: train one model (Hydra app). `stdr-train --help` lists the config groups."""
 from __future__ import annotations
 
+import json
+import shlex
+import subprocess
+import sys
+import traceback
 from pathlib import Path
 
 import hydra
@@ -17,23 +22,39 @@ register()
 
 
 FAILURES = "failures.jsonl"  # in a sweep folder: one line per failed job
+STDOUT = "stdout.log"  # in a run folder of a sweep whose jobs run in their own process
+
+
+def _in_own_process(hc, run_dir: Path, data_base: str) -> None:
+    """The job's run as `stdr-train <the job's overrides> hydra.run.dir=<its folder>` in a child
+    process (hydra.sweeper.isolate: stdr_queue): a crash or a broken CUDA context ends that run
+    alone, not the launcher's worker and the jobs after it. Its output: <run folder>/stdout.log."""
+    cmd = [sys.executable, "-m", "stdr.cli.train", *hc.overrides.task, f"hydra.run.dir={run_dir}"]
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with open(run_dir / STDOUT, "a") as log:
+        log.write("$ " + shlex.join(cmd) + "\n")
+        log.flush()
+        rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=data_base).returncode
+    if rc != 0:
+        last = (run_dir / STDOUT).read_text(errors="replace").strip().splitlines()[-1:]
+        raise RuntimeError(f"exit {rc}: {last[0] if last else 'no output'}")
 
 
 def sweep_job(cfg: DictConfig, run_dir: Path, data_base: str) -> dict | None:
     """One job of a sweep (stdr-train -m): skipped when finished (train.skip_finished and
     metrics.json present); a failure is recorded in <sweep dir>/failures.jsonl with the job's
     overrides and log, printed, and does not stop the other jobs (SweepReport sums them up)."""
-    import json
-    import traceback
-
     hc = HydraConfig.get()
     if cfg.train.skip_finished and (run_dir / "metrics.json").is_file():
         print(f"[stdr] skipping finished run {run_dir} (metrics.json present; train.skip_finished=false reruns it)")
         return None
+    isolate = bool(hc.sweeper.get("isolate", False))
     try:
+        if isolate:
+            return _in_own_process(hc, run_dir, data_base)
         return run_training(cfg, run_dir, data_base=data_base)
     except Exception as e:  # noqa: BLE001 - reported, the sweep goes on
-        log = run_dir / f"{hc.job.name}.log"
+        log = run_dir / (STDOUT if isolate else f"{hc.job.name}.log")
         rec = {"overrides": list(hc.overrides.task), "run_dir": str(run_dir), "log": str(log),
                "error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc()}
         sweep_dir = Path(hc.sweep.dir)
@@ -60,7 +81,6 @@ def _main(cfg: DictConfig) -> None:
 def main() -> None:
     """stdr-train. `--cfg job` prints the config with its derived `schedule` resolved (Hydra's
     --resolve is added), so the printed config shows every phase boundary of the run."""
-    import sys
     if "--cfg" in sys.argv or "-c" in sys.argv:
         if "--resolve" not in sys.argv:
             sys.argv.append("--resolve")

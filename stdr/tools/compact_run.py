@@ -78,7 +78,7 @@ def compact_config(cfg, step: int, share: float, steps: int, time_weight: float 
     new = copy.deepcopy(cfg)
     new.schedule = "${stdr_schedule:}"  # derived again from the new keys (the loaded one is the old run's)
     new.optim.iterations = int(step + steps)
-    new.train.stop_at = None
+    new.train.stop_at = new.train.deadline = new.train.start_by = None  # the old run's stops are not this one's
     new.train.resume = True
     new.prune.share = float(share)
     new.prune.at = [str(int(step))]

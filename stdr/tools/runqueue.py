@@ -10,12 +10,18 @@ a Slurm job with a wall-clock limit).
     stdr-tool queue run QUEUE.json --work WORK --out OUT --concurrent 8 --budget 540
     stdr-tool queue status QUEUE.json
 
-A run is one `stdr-train` command (`python -m stdr.cli.train ... hydra.run.dir=WORK/<id>`), so a
-run that a call's deadline stops resumes from its last checkpoint when the next call finds its
-folder (a machine kept warm), and starts again where the folder is gone. A run is `done` when its
-metrics.json exists; its metrics.json, config.yaml and train_profile.json then go into the archive
-under `<id>/` (with its log's tail), the three files the result tables read. With N runs on one
-GPU the CPU threads are split between them (`train.threads` = cores // N, at least 1).
+A call is one Hydra multirun of `stdr-train` (`hydra/sweeper=stdr_queue` reads the pending runs
+from the queue file; `hydra/launcher=joblib` runs N at once on this machine; `-- hydra/launcher=slurm ...`
+sends them to a Slurm cluster instead). Each run is a job in WORK/<id>, trained in its own process
+(a crash ends that run alone; its output is WORK/<id>/stdout.log). What the launchers do not do is
+this thin layer: the call's deadline (every job gets `train.deadline`, where it checkpoints and
+stops, and `train.start_by`, its estimate before the deadline, after which it is not started) and
+the grid's state across calls (the queue file: a stopped run stays pending and resumes from its
+checkpoint when the next call finds its folder, a machine kept warm, or starts again otherwise).
+A run is `done` when its metrics.json exists; its metrics.json, config.yaml and train_profile.json
+then go into the archive under `<id>/` (with its output's tail), the three files the result tables
+read. With N runs at once the CPU threads are split between them (`train.threads` = cores // N,
+at least 1).
 """
 from __future__ import annotations
 
@@ -105,84 +111,115 @@ def plan(experiments, scenes, seeds, overrides, est_s: float, variants=(), order
     return Queue(runs)
 
 
-def _command(r: Run, work: Path, threads: int) -> list[str]:
-    return [sys.executable, "-m", "stdr.cli.train", *r.overrides, f"hydra.run.dir={work / r.id}",
-            f"train.threads={threads}", "train.progress=false"]
+#: the Hydra app a queue's runs are jobs of
+APP = [sys.executable, "-m", "stdr.cli.train"]
+FAILURES = "failures.jsonl"  # stdr.cli.train's record of a sweep's failed jobs, in WORK
+
+
+def sweep_command(queue_file: Path, work: Path, concurrent: int, threads: int, deadline: float,
+                  launcher=()) -> list[str]:
+    """The call as one Hydra multirun: the queue's pending runs (hydra/sweeper=stdr_queue), each in
+    WORK/<id>, on joblib's local launcher with `concurrent` jobs (`launcher`: overrides after it,
+    e.g. hydra/launcher=slurm hydra.launcher.partition=gpu)."""
+    return [*APP, "-m", "hydra/sweeper=stdr_queue", f"hydra.sweeper.queue={queue_file}",
+            f"hydra.sweeper.deadline={deadline:.3f}", f"hydra.sweep.dir={work}", "hydra/launcher=joblib",
+            f"hydra.launcher.n_jobs={concurrent}", f"train.threads={threads}", "train.progress=false", *launcher]
+
+
+def _failures_since(path: Path, offset: int) -> dict[str, dict]:
+    """{run id: its failure record} of the lines written to WORK/failures.jsonl after `offset` bytes."""
+    if not path.is_file():
+        return {}
+    with open(path, "rb") as f:
+        f.seek(offset)
+        recs = [json.loads(line) for line in f.read().decode().splitlines() if line.strip()]
+    return {Path(r["run_dir"]).name: r for r in recs}
 
 
 def execute(q: Queue, work: Path, concurrent: int, budget_s: float, cores: int | None = None,
-            poll_s: float = 0.5, log=print) -> dict:
-    """Run pending runs, at most `concurrent` at a time, starting one only when its estimate fits
-    before the deadline; at the deadline the running ones are stopped (SIGTERM, then SIGKILL) and
-    stay pending. Returns this call's record (also appended to q.calls)."""
+            launcher=(), grace_s: float = 30.0, log=print) -> dict:
+    """Run the pending runs as one sweep on Hydra's launcher, at most `concurrent` at a time. Every
+    job gets the call's deadline: a run stops there with a checkpoint and stays pending (it resumes
+    where its folder is kept), and a run whose estimate does not fit before it is not started. The
+    sweep is killed `grace_s` after the deadline. Books each run (done: metrics.json; failed: a line
+    in WORK/failures.jsonl; else pending) and returns this call's record (also in q.calls)."""
     if concurrent < 1:
         raise ValueError(f"--concurrent must be at least 1, got {concurrent}")
+    work = Path(work).resolve()
     work.mkdir(parents=True, exist_ok=True)
-    t0 = time.monotonic()
+    t0 = time.time()
     deadline = t0 + budget_s
     threads = max(1, (cores or os.cpu_count() or 1) // concurrent)
-    active: dict[str, tuple[subprocess.Popen, float, Run]] = {}
-    started, finished, failed = [], [], []
     for r in q.runs:  # a run a killed call left as running is pending again
         if r.state == "running":
             r.state = "pending"
-    while True:
-        for rid, (proc, t_start, r) in list(active.items()):
-            rc = proc.poll()
-            if rc is None:
-                continue
-            del active[rid]
-            r.seconds += time.monotonic() - t_start
-            if rc == 0 and (work / rid / "metrics.json").is_file():
-                r.state = "done"
-                finished.append(rid)
-            else:
-                r.state, r.error = "failed", f"exit {rc}; see {work / (rid + '.log')}"
-                failed.append(rid)
-            log(f"[queue] {rid}: {r.state} ({r.seconds:.0f} s)")
-        now = time.monotonic()
-        pending = [r for r in q.runs if r.state == "pending"]
-        while pending and len(active) < concurrent and now + pending[0].est_s <= deadline:
-            r = pending.pop(0)
-            r.state, r.tries = "running", r.tries + 1
-            cmd = _command(r, work, threads)
-            logf = open(work / f"{r.id}.log", "a")
-            logf.write("$ " + shlex.join(cmd) + "\n")
+    batch = [r for r in q.runs if r.state == "pending"]
+    fails = work / FAILURES
+    offset = fails.stat().st_size if fails.is_file() else 0
+    rc = 0
+    if batch:
+        q.save(work / "queue_call.json")  # what the sweeper reads
+        cmd = sweep_command(work / "queue_call.json", work, concurrent, threads, deadline, launcher)
+        with open(work / "queue.log", "a") as logf:
+            logf.write(f"$ {shlex.join(cmd)}\n")
             logf.flush()
             proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True,
                                     env={**os.environ, "OMP_NUM_THREADS": str(threads)})
-            active[r.id] = (proc, time.monotonic(), r)
-            started.append(r.id)
-            log(f"[queue] {r.id}: started ({len(active)} running, {threads} threads each)")
-        if not active:
-            break
-        if time.monotonic() >= deadline:
-            for rid, (proc, t_start, r) in active.items():
+            log(f"[queue] {len(batch)} runs, {concurrent} at a time, {threads} threads each; log {work / 'queue.log'}")
+            try:
+                rc = proc.wait(timeout=max(1.0, deadline + grace_s - time.time()))
+            except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGTERM)
-            for rid, (proc, t_start, r) in active.items():
                 try:
                     proc.wait(timeout=10)
                 except subprocess.TimeoutExpired:
                     os.killpg(proc.pid, signal.SIGKILL)
                     proc.wait()
-                r.seconds += time.monotonic() - t_start
-                r.state = "pending"  # resumes from its checkpoint where its folder is kept
-                log(f"[queue] {rid}: stopped at the deadline; pending again")
-            active.clear()
-            break
-        time.sleep(poll_s)
-    rec = {"started": started, "finished": finished, "failed": failed, "wall_s": round(time.monotonic() - t0, 1),
-           "concurrent": concurrent, "threads_each": threads, "budget_s": budget_s,
+                rc = "killed"
+                log(f"[queue] the sweep ran {grace_s:.0f} s past the deadline: stopped")
+    failed_now = _failures_since(fails, offset)
+    started, finished, failed = [], [], []
+    now = time.time()
+    for r in batch:
+        d = work / r.id
+        began = (d / "config.yaml").is_file() and (d / "config.yaml").stat().st_mtime >= t0 - 1
+        if began:
+            ends = [p.stat().st_mtime for p in (d / "metrics.json", d / "checkpoints" / "last.pt") if p.is_file()]
+            r.tries += 1
+            r.seconds += max([e for e in ends if e >= t0] or [now]) - (d / "config.yaml").stat().st_mtime
+            started.append(r.id)
+        if (d / "metrics.json").is_file():
+            r.state = "done"
+            finished.append(r.id)
+        elif r.id in failed_now:
+            f = failed_now[r.id]
+            r.state, r.error = "failed", f"{f['error']}; log {f.get('log') or work / 'queue.log'}"
+            failed.append(r.id)
+        else:
+            r.state = "pending"  # stopped at the deadline or not started: resumes in a later call
+        if r.id in finished or r.id in failed:
+            log(f"[queue] {r.id}: {r.state} ({r.seconds:.0f} s)")
+    rec = {"started": started, "finished": finished, "failed": failed, "wall_s": round(time.time() - t0, 1),
+           "concurrent": concurrent, "threads_each": threads, "budget_s": budget_s, "sweep_exit": rc,
            "time": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
     q.calls.append(rec)
     return rec
 
 
 def pack(q: Queue, work: Path, out: Path) -> Path:
-    """OUT/runs.tgz: <id>/{metrics.json, config.yaml, train_profile.json, log_tail.txt} of every done
-    run whose folder is here (the runs of earlier calls are in their own archives)."""
+    """OUT/runs.tgz: <id>/{metrics.json, config.yaml, train_profile.json} of every done or failed
+    run whose folder is here (the runs of earlier calls are in their own archives), with the tail of
+    its output (log_tail.txt), and the tail of the sweep's log (queue_log_tail.txt)."""
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / "runs.tgz.tmp"
+
+    def add_tail(tar, src: Path, name: str, lines: int = 40) -> None:
+        if src.is_file():
+            tail = "\n".join(src.read_text(errors="replace").splitlines()[-lines:]).encode()
+            info = tarfile.TarInfo(name)
+            info.size = len(tail)
+            tar.addfile(info, io.BytesIO(tail))
+
     with tarfile.open(tmp, "w:gz") as tar:
         for r in q.runs:
             d = work / r.id
@@ -191,12 +228,8 @@ def pack(q: Queue, work: Path, out: Path) -> Path:
             for name in FILES:
                 if (d / name).is_file():
                     tar.add(d / name, arcname=f"{r.id}/{name}")
-            logp = work / f"{r.id}.log"
-            if logp.is_file():
-                tail = "\n".join(logp.read_text(errors="replace").splitlines()[-40:]).encode()
-                info = tarfile.TarInfo(f"{r.id}/log_tail.txt")
-                info.size = len(tail)
-                tar.addfile(info, io.BytesIO(tail))
+            add_tail(tar, d / "stdout.log", f"{r.id}/log_tail.txt")
+        add_tail(tar, work / "queue.log", "queue_log_tail.txt", 200)
     tmp.replace(out / "runs.tgz")
     return out / "runs.tgz"
 
@@ -222,6 +255,7 @@ def main(argv=None) -> None:
     r.add_argument("--concurrent", type=int, default=1)
     r.add_argument("--budget", type=float, default=540.0, help="seconds for this call")
     r.add_argument("--cores", type=int, default=None, help="CPU cores to split between the runs (default: all)")
+    r.epilog = "After --: Hydra overrides for the sweep (e.g. -- hydra/launcher=slurm hydra.launcher.partition=gpu)."
     s = sub.add_parser("status", help="the queue's counts and runs")
     s.add_argument("queue", type=Path)
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -237,11 +271,15 @@ def main(argv=None) -> None:
         print(f"[queue] {args.queue}: {len(q.runs)} runs planned")
     elif args.cmd == "run":
         q = Queue.load(args.queue)
-        rec = execute(q, args.work, args.concurrent, args.budget, args.cores)
+        rec = execute(q, args.work, args.concurrent, args.budget, args.cores, launcher=args.overrides)
         q.save(args.queue)
         args.out.mkdir(parents=True, exist_ok=True)
         q.save(args.out / "queue.json")
         pack(q, args.work, args.out)
+        if rec["sweep_exit"] != 0:
+            tail = (args.work / "queue.log").read_text(errors="replace").splitlines()[-15:]
+            print("\n".join(["[queue] the sweep itself failed (exit {}); the end of {}:".format(
+                rec["sweep_exit"], args.work / "queue.log"), *tail]), file=sys.stderr)
         print(f"[queue] call done in {rec['wall_s']} s: {len(rec['finished'])} finished, {len(rec['failed'])} failed; "
               f"{q.counts()}; results in {args.out / 'runs.tgz'}, state in {args.out / 'queue.json'}")
     else:

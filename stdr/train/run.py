@@ -1,6 +1,7 @@
 """One training run of a composed config, start to end (`run_training`)."""
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -16,8 +17,12 @@ def run_training(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -
     """One training run of a composed config (stdr-train, each job of a sweep, stdr-tool compact):
     the config checked, run_dir/config.yaml written, trained, evaluated on data.eval_split, the
     compact file written when pack.enabled, and the result row printed. Returns the evaluation
-    (None for a run stopped early by train.stop_at)."""
+    (None for a run stopped early by train.stop_at or train.deadline, or not started: train.start_by)."""
     check_run_config(cfg, data_base)  # keys, values and paths, before anything is written or trained
+    start_by = cfg.train.get("start_by")
+    if start_by is not None and time.time() > start_by:
+        print(f"[stdr] {run_dir}: not started, train.start_by passed {time.time() - start_by:.0f} s ago")
+        return None
     run_dir.mkdir(parents=True, exist_ok=True)
     if not cfg.data.name:  # label for tables: the scene folder's name
         cfg.data.name = scene_folder(cfg.data, data_base).name
@@ -32,7 +37,7 @@ def run_training(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -
     print(f"[stdr] TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
     print(trainer.state.model.schedule.describe())
     trainer.train()
-    if trainer.step < cfg.optim.iterations:  # train.stop_at: an unfinished run is not evaluated
+    if trainer.step < cfg.optim.iterations:  # stop_at or deadline: an unfinished run is not evaluated
         return None
     res = trainer.evaluate_final(split, cfg.eval)
     warm = [h for h in trainer.state.history if h["tag"] == "static_warmup"]

@@ -255,7 +255,8 @@ class Trainer:
         end = total if cfg.train.get("stop_at") is None else min(total, int(cfg.train.stop_at))
         if end < 1:
             raise ValueError(f"train.stop_at={cfg.train.stop_at}: must be a step >= 1 (null: train to optim.iterations)")
-        while self.step < end:
+        deadline = cfg.train.get("deadline")
+        while self.step < end and (deadline is None or time.time() < deadline):
             t0, c0 = time.perf_counter(), time.process_time()
             logs = self.train_step()
             dt = time.perf_counter() - t0
@@ -290,8 +291,9 @@ class Trainer:
         if bar is not None:
             bar.close()
         if self.step < total:
-            print(f"[stdr] stopped at iteration {self.step} of {total} (train.stop_at); the same command without "
-                  "train.stop_at resumes from the checkpoint")
+            why = "train.stop_at" if self.step >= end else "train.deadline"
+            print(f"[stdr] stopped at iteration {self.step} of {total} ({why}); the same command without "
+                  f"{why} resumes from the checkpoint")
         self.state.guard.note_memory(self.device)
         self.save()
         save_ply(self.state.model.params, self.run_dir / "point_cloud.ply")
