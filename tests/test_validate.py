@@ -40,6 +40,7 @@ def _refused(overrides, base=None):
     (["densify.refine_every=0"], "densify.refine_every=0: use a whole number >= 1"),
     (["densify.prune_scale2d=-1"], "densify.prune_scale2d=-1.0: use null (off) or a finite number > 0"),
     (["train.stop_at=0"], "train.stop_at=0: use null (no limit) or a whole number >= 1"),
+    (["train.deadline=-1"], "train.deadline=-1.0: use null (off) or a finite number > 0"),
     (["data.eval_split=tset"], "data.eval_split='tset': use one of test, val, train"),
     (["model.sh_degree=4"], "model.sh_degree=4: use 0, 1, 2 or 3"),
     (["prune.share=1.5"], "prune.share=1.5"),
@@ -81,6 +82,18 @@ def _cli(args, cwd):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.run([sys.executable, "-m", *args], cwd=cwd, capture_output=True, text=True, env=env,
                           timeout=300)
+
+
+def test_a_new_entry_of_a_map_is_told_to_take_a_plus(capsys):
+    """pack.codecs holds entries of the user's choosing: a new one needs Hydra's '+', and the error
+    says so with the override to type, not 'unknown config key'."""
+    from stdr.cli.common import check_overrides
+    with pytest.raises(SystemExit) as e:
+        check_overrides("stdr-train", ["compact=on", "pack.codecs.entropy=zstd"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "a new entry takes a '+': +pack.codecs.entropy=zstd" in err and "unknown config key" not in err
+    check_overrides("stdr-train", ["compact=on", "+pack.codecs.entropy=zstd"])  # with it, the line composes
 
 
 def test_stdr_train_prints_one_line_and_exits_2_without_training(tmp_path):

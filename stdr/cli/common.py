@@ -55,9 +55,15 @@ def _override_problem(e: Exception, overrides: list[str], config_name: str) -> s
     if m and config_name == "train":  # a key the config lacks (Hydra would suggest '+', which adds it unchecked)
         from omegaconf import OmegaConf
 
-        base = compose_config([o for o in overrides if not o.lstrip("+~").startswith(m.group(1) + "=")], config_name)
+        key = m.group(1)
+        base = compose_config([o for o in overrides if not o.lstrip("+~").startswith(key + "=")], config_name)
+        parent = OmegaConf.select(base, key.rpartition(".")[0]) if "." in key else None
+        if OmegaConf.is_dict(parent) and OmegaConf.get_type(parent) is dict:  # a map of the user's own entries
+            given = next((o for o in overrides if o.startswith(key + "=")), key + "=VALUE")
+            return (f"{key}: {key.rpartition('.')[0]} has no entry '{key.rpartition('.')[2]}' yet; "
+                    f"a new entry takes a '+': +{given}")
         known = list(schema_keys(typed_schema(OmegaConf.to_container(base, resolve=False))))
-        return f"unknown config key {m.group(1)}: {unknown_key_hint(m.group(1), known)}"
+        return f"unknown config key {key}: {unknown_key_hint(key, known)}"
     if m:
         return f"unknown config key {m.group(1)}"
     first = text.strip().splitlines()[0] if text.strip() else type(e).__name__
