@@ -16,7 +16,7 @@
 # the seeds (default "0 1 2"). Run it on an otherwise idle machine: train seconds are reported.
 # To use the machine for something else meanwhile, `touch WORK_DIR/pause`: the queue finishes the
 # run in progress, then waits (no run is timed while paused) until the file is removed; any
-# WORK_DIR/pause.<name> does the same (studies/compact_prune.py --hold uses WORK_DIR/pause.compact).
+# WORK_DIR/pause.<name> does the same (another study's hold on the machine).
 set -uo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 ROOT=${1:?usage: headline_table.sh DNERF_ROOT [WORK_DIR]}
@@ -56,7 +56,7 @@ shared=0
            "data.name=$scene" data.eval_split=test train.progress=false "hydra.run.dir=$run")
       if [ "${HEADLINE_DRY:-0}" = 1 ]; then echo "${cmd[*]}"; continue; fi
       # WORK/pause (yours) or WORK/pause.<name> (a study that branches this queue's runs and wants
-      # the machine first, e.g. studies/compact_prune.py --hold) stops the queue between runs
+      # the machine first) stops the queue between runs
       [ -n "$(paused)" ] && echo "[headline] $(date +%T) paused ($(paused))"
       while [ -n "$(paused)" ]; do sleep 10; done
       echo "[headline] $(date +%T) $exp $scene seed $seed"
