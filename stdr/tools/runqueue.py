@@ -26,6 +26,8 @@ at least 1).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import fcntl
 import io
 import json
 import os
@@ -116,14 +118,39 @@ APP = [sys.executable, "-m", "stdr.cli.train"]
 FAILURES = "failures.jsonl"  # stdr.cli.train's record of a sweep's failed jobs, in WORK
 
 
-def sweep_command(queue_file: Path, work: Path, concurrent: int, threads: int, deadline: float,
-                  launcher=()) -> list[str]:
+def sweep_command(queue_file: Path, work: Path, concurrent: int, threads: int, deadline: float | None,
+                  launcher=(), command=None) -> list[str]:
     """The call as one Hydra multirun: the queue's pending runs (hydra/sweeper=stdr_queue), each in
     WORK/<id>, on joblib's local launcher with `concurrent` jobs (`launcher`: overrides after it,
-    e.g. hydra/launcher=slurm hydra.launcher.partition=gpu)."""
-    return [*APP, "-m", "hydra/sweeper=stdr_queue", f"hydra.sweeper.queue={queue_file}",
-            f"hydra.sweeper.deadline={deadline:.3f}", f"hydra.sweep.dir={work}", "hydra/launcher=joblib",
-            f"hydra.launcher.n_jobs={concurrent}", f"train.threads={threads}", "train.progress=false", *launcher]
+    e.g. hydra/launcher=slurm hydra.launcher.partition=gpu). `command`: what each job runs instead
+    of `python -m stdr.cli.train` ({run_dir}: its folder)."""
+    extra = [] if deadline is None else [f"hydra.sweeper.deadline={deadline:.3f}"]
+    if command:
+        extra.append("hydra.sweeper.command=[" + ",".join(_quoted(a) for a in command) + "]")
+    return [*APP, "-m", "hydra/sweeper=stdr_queue", f"hydra.sweeper.queue={queue_file}", *extra,
+            f"hydra.sweep.dir={work}", "hydra/launcher=joblib", f"hydra.launcher.n_jobs={concurrent}",
+            f"train.threads={threads}", "train.progress=false", *launcher]
+
+
+def _quoted(text: str) -> str:
+    """One element of a Hydra override list, as a quoted string (paths, {run_dir}, '--')."""
+    return "'" + str(text).replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+@contextlib.contextmanager
+def work_lock(work: Path):
+    """One call at a time on a work folder: a second would train the same runs into the same
+    folders. Raises QueueBusy when another call holds WORK/.queue.lock."""
+    with open(work / ".queue.lock", "a") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise QueueBusy(f"another queue call is running on {work} (it holds {work / '.queue.lock'})") from None
+        yield
+
+
+class QueueBusy(RuntimeError):
+    pass
 
 
 def _failures_since(path: Path, offset: int) -> dict[str, dict]:
@@ -136,19 +163,26 @@ def _failures_since(path: Path, offset: int) -> dict[str, dict]:
     return {Path(r["run_dir"]).name: r for r in recs}
 
 
-def execute(q: Queue, work: Path, concurrent: int, budget_s: float, cores: int | None = None,
-            launcher=(), grace_s: float = 30.0, log=print) -> dict:
+def execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, cores: int | None = None,
+            launcher=(), command=None, grace_s: float = 30.0, log=print) -> dict:
     """Run the pending runs as one sweep on Hydra's launcher, at most `concurrent` at a time. Every
     job gets the call's deadline: a run stops there with a checkpoint and stays pending (it resumes
     where its folder is kept), and a run whose estimate does not fit before it is not started. The
-    sweep is killed `grace_s` after the deadline. Books each run (done: metrics.json; failed: a line
-    in WORK/failures.jsonl; else pending) and returns this call's record (also in q.calls)."""
+    sweep is killed `grace_s` after the deadline. budget_s None: no deadline. Books each run (done:
+    metrics.json; failed: a line in WORK/failures.jsonl; else pending) and returns this call's
+    record (also in q.calls). One call at a time per WORK (QueueBusy)."""
     if concurrent < 1:
         raise ValueError(f"--concurrent must be at least 1, got {concurrent}")
     work = Path(work).resolve()
     work.mkdir(parents=True, exist_ok=True)
+    with work_lock(work):
+        return _execute(q, work, concurrent, budget_s, cores, launcher, command, grace_s, log)
+
+
+def _execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, cores, launcher, command, grace_s,
+             log) -> dict:
     t0 = time.time()
-    deadline = t0 + budget_s
+    deadline = None if budget_s is None else t0 + budget_s
     threads = max(1, (cores or os.cpu_count() or 1) // concurrent)
     for r in q.runs:  # a run a killed call left as running is pending again
         if r.state == "running":
@@ -159,7 +193,7 @@ def execute(q: Queue, work: Path, concurrent: int, budget_s: float, cores: int |
     rc = 0
     if batch:
         q.save(work / "queue_call.json")  # what the sweeper reads
-        cmd = sweep_command(work / "queue_call.json", work, concurrent, threads, deadline, launcher)
+        cmd = sweep_command(work / "queue_call.json", work, concurrent, threads, deadline, launcher, command)
         with open(work / "queue.log", "a") as logf:
             logf.write(f"$ {shlex.join(cmd)}\n")
             logf.flush()
@@ -167,7 +201,7 @@ def execute(q: Queue, work: Path, concurrent: int, budget_s: float, cores: int |
                                     env={**os.environ, "OMP_NUM_THREADS": str(threads)})
             log(f"[queue] {len(batch)} runs, {concurrent} at a time, {threads} threads each; log {work / 'queue.log'}")
             try:
-                rc = proc.wait(timeout=max(1.0, deadline + grace_s - time.time()))
+                rc = proc.wait(timeout=None if deadline is None else max(1.0, deadline + grace_s - time.time()))
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGTERM)
                 try:
@@ -255,6 +289,8 @@ def main(argv=None) -> None:
     r.add_argument("--concurrent", type=int, default=1)
     r.add_argument("--budget", type=float, default=540.0, help="seconds for this call")
     r.add_argument("--cores", type=int, default=None, help="CPU cores to split between the runs (default: all)")
+    r.add_argument("--command", default=None, help="what each run executes instead of `python -m stdr.cli.train`, "
+                   "e.g. 'python scripts/idle_run.py --out {run_dir}/load.json -- CHECKOUT/scripts/run.sh stdr-train'")
     r.epilog = "After --: Hydra overrides for the sweep (e.g. -- hydra/launcher=slurm hydra.launcher.partition=gpu)."
     s = sub.add_parser("status", help="the queue's counts and runs")
     s.add_argument("queue", type=Path)
@@ -271,7 +307,11 @@ def main(argv=None) -> None:
         print(f"[queue] {args.queue}: {len(q.runs)} runs planned")
     elif args.cmd == "run":
         q = Queue.load(args.queue)
-        rec = execute(q, args.work, args.concurrent, args.budget, args.cores, launcher=args.overrides)
+        try:
+            rec = execute(q, args.work, args.concurrent, args.budget, args.cores, launcher=args.overrides,
+                          command=shlex.split(args.command) if args.command else None)
+        except QueueBusy as e:
+            raise SystemExit(f"stdr-tool queue: {e}") from None
         q.save(args.queue)
         args.out.mkdir(parents=True, exist_ok=True)
         q.save(args.out / "queue.json")
