@@ -4,9 +4,11 @@ import json
 import subprocess
 import sys
 import tarfile
+from pathlib import Path
 
 import pytest
 
+from helpers import load_script
 from stdr.testing import TINY_SCENE
 from stdr.tools import runqueue as qm
 
@@ -39,8 +41,13 @@ def test_a_grid_runs_two_at_a_time_and_comes_back_in_one_archive(tmp_path):
         names = set(tar.getnames())
         m = json.loads(tar.extractfile("embedded_4dgs__default__s1/metrics.json").read())
         tail = tar.extractfile("embedded_4dgs__default__s1/log_tail.txt").read().decode()
-    assert {f"{r.id}/{f}" for r in q.runs for f in qm.FILES} <= names and "queue_log_tail.txt" in names
+    assert {f"{r.id}/{f}" for r in q.runs for f in qm.FILES} <= names
     assert m["test"]["psnr"] > 5 and "[stdr] metrics:" in tail
+    assert "sweep finished" in (tmp_path / "out" / "queue_log_tail.txt").read_text()
+    # the GPU table takes the archive as it comes back: every member <run id>/<file>
+    gpu_table = load_script(Path(__file__).resolve().parents[1] / "scripts" / "gpu_table.py", "gpu_table")
+    assert sorted(gpu_table.add(tmp_path / "out" / "runs.tgz", tmp_path / "table")) != []
+    assert len(list((tmp_path / "table" / "runs").glob("*/metrics.json"))) == 4
     # the next call finds nothing to do and packs the same runs again
     again = qm.Queue.load(tmp_path / "q.json")
     assert qm.execute(again, tmp_path / "work", 2, 60)["started"] == []
@@ -223,7 +230,7 @@ def test_a_pause_file_holds_the_next_run_and_a_command_replaces_stdr_train(tmp_p
 def test_the_headline_study_records_idle_runs_and_runs_a_shared_one_again(tmp_path, monkeypatch):
     """studies/headline.py on the queue, with a stand-in for the timed stdr-train: every run of the
     seed is recorded; the one that shared the machine is run again in the next sweep and then recorded."""
-    sys.path.insert(0, str(qm.Path(__file__).resolve().parents[1]))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     import studies.headline as h
     (tmp_path / "fake_run.py").write_text(FAKE_RUN)
     stamps = tmp_path / "stamps"

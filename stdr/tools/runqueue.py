@@ -240,20 +240,17 @@ def _execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, core
     return rec
 
 
+def _tail(src: Path, lines: int) -> bytes:
+    return "\n".join(src.read_text(errors="replace").splitlines()[-lines:]).encode()
+
+
 def pack(q: Queue, work: Path, out: Path) -> Path:
-    """OUT/runs.tgz: <id>/{metrics.json, config.yaml, train_profile.json} of every done or failed
-    run whose folder is here (the runs of earlier calls are in their own archives), with the tail of
-    its output (log_tail.txt), and the tail of the sweep's log (queue_log_tail.txt)."""
+    """OUT/runs.tgz: <id>/{metrics.json, config.yaml, train_profile.json, log_tail.txt (the end of
+    its output)} of every done or failed run whose folder is here (the runs of earlier calls are in
+    their own archives); nothing else, so that a reader may refuse any other member. The end of the
+    sweep's log goes beside it, OUT/queue_log_tail.txt."""
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / "runs.tgz.tmp"
-
-    def add_tail(tar, src: Path, name: str, lines: int = 40) -> None:
-        if src.is_file():
-            tail = "\n".join(src.read_text(errors="replace").splitlines()[-lines:]).encode()
-            info = tarfile.TarInfo(name)
-            info.size = len(tail)
-            tar.addfile(info, io.BytesIO(tail))
-
     with tarfile.open(tmp, "w:gz") as tar:
         for r in q.runs:
             d = work / r.id
@@ -262,9 +259,14 @@ def pack(q: Queue, work: Path, out: Path) -> Path:
             for name in FILES:
                 if (d / name).is_file():
                     tar.add(d / name, arcname=f"{r.id}/{name}")
-            add_tail(tar, d / "stdout.log", f"{r.id}/log_tail.txt")
-        add_tail(tar, work / "queue.log", "queue_log_tail.txt", 200)
+            if (d / "stdout.log").is_file():
+                tail = _tail(d / "stdout.log", 40)
+                info = tarfile.TarInfo(f"{r.id}/log_tail.txt")
+                info.size = len(tail)
+                tar.addfile(info, io.BytesIO(tail))
     tmp.replace(out / "runs.tgz")
+    if (work / "queue.log").is_file():
+        (out / "queue_log_tail.txt").write_bytes(_tail(work / "queue.log", 200))
     return out / "runs.tgz"
 
 
