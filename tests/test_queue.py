@@ -251,3 +251,17 @@ def test_the_headline_study_records_idle_runs_and_runs_a_shared_one_again(tmp_pa
     assert tries == {f"{e}__{s}__s7": 1 if s == "a" else 2 for s in ("a", "b") for e in ("dnerf_deform", "dnerf_deform_stdr")}
     assert all(json.loads((p.parent / "load.json").read_text())["idle"] for p in records.rglob("metrics.json"))
     assert h.plan_seed(root, 7, records).runs == []  # resumable: nothing left to plan
+
+
+def test_run_one_trains_legs_in_one_folder_and_raises_on_failure(tmp_path):
+    """A study's trunk and branch legs: run_one to train.stop_at (pending, with a checkpoint), then
+    on to the end in the same folder (done, resumed there); a run that fails raises with its error."""
+    run = tmp_path / "work" / "trunk"
+    first = qm.run_one([*_toy(tmp_path, iterations=30), "experiment=embedded_deform", "train.stop_at=12"], run,
+                       log=lambda m: None)
+    assert first.state == "pending" and (run / "checkpoints" / "last.pt").is_file() and not (run / "metrics.json").exists()
+    done = qm.run_one([*_toy(tmp_path, iterations=30), "experiment=embedded_deform"], run, log=lambda m: None)
+    out = (run / "stdout.log").read_text()
+    assert done.state == "done" and "resumed from" in out and "at iteration 12" in out
+    with pytest.raises(RuntimeError, match="no_such_key"):
+        qm.run_one(["experiment=embedded_deform", "optim.no_such_key=1"], tmp_path / "work" / "bad", log=lambda m: None)

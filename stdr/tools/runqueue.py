@@ -240,6 +240,18 @@ def _execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, core
     return rec
 
 
+def run_one(overrides: list[str], run_dir: Path, threads: int = 1, log=print) -> Run:
+    """One run in `run_dir` through the queue (a sweep of one job, no deadline), for a study's
+    steps that must follow each other (a trunk, then its branches). A run stopped by
+    `train.stop_at` comes back pending; one that failed raises RuntimeError with its error."""
+    run_dir = Path(run_dir).resolve()
+    q = Queue([Run(run_dir.name, list(overrides), 0.0)])
+    execute(q, run_dir.parent, 1, None, cores=threads, log=log)
+    if q.runs[0].state == "failed":
+        raise RuntimeError(f"{run_dir}: {q.runs[0].error}")
+    return q.runs[0]
+
+
 def _tail(src: Path, lines: int) -> bytes:
     return "\n".join(src.read_text(errors="replace").splitlines()[-lines:]).encode()
 
