@@ -69,11 +69,11 @@ def test_the_deadline_starts_nothing_that_would_not_fit_and_stops_what_runs(tmp_
 
 def test_a_failing_run_is_marked_with_its_log_and_the_others_go_on(tmp_path):
     q = qm.plan(["embedded_deform"], [], [0], _toy(tmp_path), est_s=1)
-    q.runs.insert(0, qm.Run("broken", ["experiment=embedded_deform", "optim.no_such_key=1"], 1))
+    q.runs.insert(0, qm.Run("nested/broken", ["experiment=embedded_deform", "optim.no_such_key=1"], 1))
     q.runs.insert(1, qm.Run("no_data", ["experiment=embedded_deform", "data.format=dnerf",
                                         f"data.path={tmp_path / 'no_such_scene'}"], 1))
     rec = qm.execute(q, tmp_path / "work", 1, budget_s=300, log=lambda m: None)
-    assert [r.state for r in q.runs] == ["failed", "failed", "done"] and rec["failed"] == ["broken", "no_data"]
+    assert [r.state for r in q.runs] == ["failed", "failed", "done"] and rec["failed"] == ["nested/broken", "no_data"]
     assert "no_such_key" in q.runs[0].error  # its config does not compose: never launched
     assert "no_such_scene" in q.runs[1].error and "stdout.log" in q.runs[1].error
     assert "no_such_scene" in (tmp_path / "work" / "no_data" / "stdout.log").read_text()
@@ -265,3 +265,31 @@ def test_run_one_trains_legs_in_one_folder_and_raises_on_failure(tmp_path):
     assert done.state == "done" and "resumed from" in out and "at iteration 12" in out
     with pytest.raises(RuntimeError, match="no_such_key"):
         qm.run_one(["experiment=embedded_deform", "optim.no_such_key=1"], tmp_path / "work" / "bad", log=lambda m: None)
+
+
+def test_stopping_the_queue_stops_its_runs(tmp_path):
+    """SIGTERM to `stdr-tool queue run` (a job's time limit, Ctrl-C) ends the sweep and the runs it
+    started: none goes on orphaned, writing into WORK after the call has ended."""
+    import signal
+    import time
+    q = qm.plan(["embedded_deform"], [], [0], [], est_s=1)
+    q.save(tmp_path / "q.json")
+    work = tmp_path / "work"
+    started = work / q.runs[0].id / "started"  # the run's own command line names it (the queue's has {run_dir})
+    cmd = (f"{sys.executable} -c 'import pathlib, sys, time; pathlib.Path(sys.argv[1]).touch(); time.sleep(120)' "
+           "{run_dir}/started")
+    proc = subprocess.Popen([sys.executable, "-m", "stdr.cli.tool", "queue", "run", str(tmp_path / "q.json"), "--work",
+                             str(work), "--out", str(tmp_path / "out"), "--budget", "300", "--command", cmd],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+    def alive():
+        return subprocess.run(["pgrep", "-f", str(started)], capture_output=True).returncode == 0
+    deadline = time.time() + 120
+    while not started.exists():
+        assert proc.poll() is None and time.time() < deadline, proc.communicate()[0]
+        time.sleep(0.5)
+    assert alive()
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    time.sleep(1)
+    assert not alive()

@@ -36,6 +36,7 @@ import signal
 import subprocess
 import sys
 import tarfile
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -153,14 +154,28 @@ class QueueBusy(RuntimeError):
     pass
 
 
-def _failures_since(path: Path, offset: int) -> dict[str, dict]:
-    """{run id: its failure record} of the lines written to WORK/failures.jsonl after `offset` bytes."""
+def _failures_since(work: Path, offset: int) -> dict[str, dict]:
+    """{run id (its folder under WORK): its failure record} of the lines written to
+    WORK/failures.jsonl after `offset` bytes."""
+    path = work / FAILURES
     if not path.is_file():
         return {}
     with open(path, "rb") as f:
         f.seek(offset)
         recs = [json.loads(line) for line in f.read().decode().splitlines() if line.strip()]
-    return {Path(r["run_dir"]).name: r for r in recs}
+    return {Path(r["run_dir"]).resolve().relative_to(work).as_posix(): r for r in recs}
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """End the sweep and everything it started (its own process group): SIGTERM, then SIGKILL."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
 
 
 def execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, cores: int | None = None,
@@ -175,8 +190,18 @@ def execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, cores
         raise ValueError(f"--concurrent must be at least 1, got {concurrent}")
     work = Path(work).resolve()
     work.mkdir(parents=True, exist_ok=True)
-    with work_lock(work):
-        return _execute(q, work, concurrent, budget_s, cores, launcher, command, grace_s, log)
+    main = threading.current_thread() is threading.main_thread()
+    prev = signal.signal(signal.SIGTERM, _exit_on_term) if main else None  # SIGTERM stops the sweep too
+    try:
+        with work_lock(work):
+            return _execute(q, work, concurrent, budget_s, cores, launcher, command, grace_s, log)
+    finally:
+        if main:
+            signal.signal(signal.SIGTERM, prev)
+
+
+def _exit_on_term(signum, frame):
+    raise SystemExit(128 + signum)
 
 
 def _execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, cores, launcher, command, grace_s,
@@ -203,15 +228,13 @@ def _execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, core
             try:
                 rc = proc.wait(timeout=None if deadline is None else max(1.0, deadline + grace_s - time.time()))
             except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGTERM)
-                try:
-                    proc.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                    proc.wait()
+                _stop(proc)
                 rc = "killed"
                 log(f"[queue] the sweep ran {grace_s:.0f} s past the deadline: stopped")
-    failed_now = _failures_since(fails, offset)
+            except BaseException:  # interrupted (Ctrl-C, SIGTERM): the sweep's runs stop too, not run on orphaned
+                _stop(proc)
+                raise
+    failed_now = _failures_since(work, offset)
     started, finished, failed = [], [], []
     now = time.time()
     for r in batch:
