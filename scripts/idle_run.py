@@ -8,11 +8,11 @@ machine used meanwhile (/proc/stat: user, nice, system, irq, softirq, steal), ch
 command's own (its process tree, getrusage); foreign = busy - child is what other jobs took, and
 foreign_share = foreign / (wall x cpus) the share of the machine they had. Timings of a run with
 foreign_share above --max-foreign (default 0.05) are not comparable: `idle` says so, and the
-timed studies (scripts/headline_table.sh, studies/compact_prune.py) redo such runs. Needs Linux /proc/stat.
+timed studies (studies/headline.py) redo such runs. Needs Linux /proc/stat.
 
 One timed command at a time per machine: before it starts, the command waits for an exclusive
 lock (--lock, default $STDR_IDLE_LOCK or <tmp>/stdr-idle-run.lock; `--lock none` for no lock),
-so two queues on one machine (the headline table and a study branching its runs) take turns
+so two timed queues on one machine take turns
 instead of timing each other. The wait is not part of the measurement (`lock_wait_s`).
 """
 from __future__ import annotations

@@ -10,7 +10,7 @@ one line --check ignores.
 
 The D-NeRF headline table: when docs/measurements/dnerf_headline_cpu's runs/ (in its records.tar.xz,
 read through scripts/measurements.py) holds run records
-(the rerun at one commit, scripts/headline_table.sh), the table is built from them with stdr-eval's
+(the rerun at one commit, studies/headline.py), the table is built from them with stdr-eval's
 reader; until then the previous table (dnerf_default_cpu_table) is shown, marked as such.
 """
 from __future__ import annotations
@@ -122,7 +122,8 @@ def headline_from_records(runs_dir: Path | None = None, baselines=BASELINES, sce
                     f"{HEADLINE_PLANNED} planned recorded so far)",
             "code": ", ".join(f"{k} ({v} runs)" for k, v in sorted(commits.items())),
             "machine": ", ".join(f"{k} ({v} runs)" for k, v in sorted(machines.items())),
-            "command": "bash scripts/headline_table.sh ../shared/data/dnerf (docs/measurements/dnerf_headline_cpu/README.md)",
+            "command": "bash scripts/headline_table.sh ../shared/data/dnerf, in the tree of the records' commit; today "
+                       "python studies/headline.py ../shared/data/dnerf (docs/measurements/dnerf_headline_cpu/README.md)",
             "source": "runs/ in docs/measurements/dnerf_headline_cpu/records.tar.xz",
             "chart": "measurements/dnerf_headline_cpu/charts/speed_accuracy_psnr.png",
             "seeds": ("seed " if len(seeds) == 1 else "seeds ") + ", ".join(map(str, seeds)),

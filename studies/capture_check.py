@@ -20,7 +20,6 @@ import json
 import os
 import platform
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -29,6 +28,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from stdr.tools.runqueue import run_one  # noqa: E402
 BUDGET = ["budget=cpu", "eval.lpips=false", "train.progress=false", "eval.save_images=false",
           "train.image_every=0", "device=cpu"]
 
@@ -103,11 +103,10 @@ def run(toy: Path, work: Path, seeds) -> None:
                 continue
             run_dir = work / "runs" / name / f"s{seed}"
             shutil.rmtree(run_dir, ignore_errors=True)
-            cmd = [sys.executable, "-m", "stdr.cli.train", "experiment=nerfies_deform", f"data.path={folder}",
-                   "data.split_mode=ids", f"data.image_scale={scale}", "data.eval_split=val", f"seed={seed}",
-                   f"hydra.run.dir={run_dir}", *BUDGET]
-            print("[capture_check]", " ".join(cmd), flush=True)
-            subprocess.run(cmd, check=True, cwd=ROOT)
+            overrides = ["experiment=nerfies_deform", f"data.path={folder}", "data.split_mode=ids",
+                         f"data.image_scale={scale}", "data.eval_split=val", f"seed={seed}", *BUDGET]
+            print("[capture_check] stdr-train", " ".join(overrides), f"(in {run_dir})", flush=True)
+            run_one(overrides, run_dir, threads=os.cpu_count() or 1)  # the project's run queue; raises on failure
             m = json.loads((run_dir / "metrics.json").read_text())["val"]
             rec.setdefault("runs", {})[key] = {k: m[k] for k in ("psnr", "ssim", "num_gaussians", "train_seconds")}
             rec["runs"][key]["size"] = m["data"].get("num_ids")

@@ -21,9 +21,7 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import os
 import statistics
-import subprocess
 import sys
 import tarfile
 import tempfile
@@ -33,6 +31,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from studies.common import commit, gmean, records_in, records_to_write  # noqa: E402
+from stdr.tools.runqueue import run_one  # noqa: E402
 
 OUT = ROOT / "docs" / "measurements" / "compact_bytes"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
@@ -57,7 +56,8 @@ def run_dir(work: Path, exp: str, scene: str) -> Path:
 # ------------------------------------------------------------------------------------------ train
 def train(args, overrides=(), tag: str = "compact_bytes", refuse_former_default: bool = True) -> None:
     """Train each (experiment, scene) run of `args` that has no metrics.json: the study's
-    `compact=on` command plus `overrides` (compact_grid's grid), one subprocess a run, its log beside it."""
+    `compact=on` command plus `overrides` (compact_grid's grid), one at a time through the project's
+    run queue (stdr-tool queue; the run's output in RUN/stdout.log)."""
     for exp in args.experiments:
         for scene in args.scenes:
             rd = run_dir(args.work, exp, scene)
@@ -66,17 +66,17 @@ def train(args, overrides=(), tag: str = "compact_bytes", refuse_former_default:
             if (rd / "metrics.json").is_file():
                 continue
             rd.parent.mkdir(parents=True, exist_ok=True)
-            cmd = [sys.executable, "-m", "stdr.cli.train", f"experiment={exp}", "compact=on", "budget=cpu",
-                   f"seed={SEED}", f"data.path={Path(args.dnerf) / scene}", f"hydra.run.dir={rd}",
-                   "train.progress=false", "eval.save_images=false", "train.image_every=0",
-                   f"train.threads={args.threads}", *overrides]
+            keys = [f"experiment={exp}", "compact=on", "budget=cpu", f"seed={SEED}",
+                          f"data.path={Path(args.dnerf) / scene}", "train.progress=false", "eval.save_images=false",
+                          "train.image_every=0", *overrides]
             t0 = time.time()
             print(f"[{tag}] {time.strftime('%T')} train {exp} {scene}", flush=True)
-            with open(f"{rd}.log", "a") as log:
-                rc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)},
-                                    stdout=log, stderr=subprocess.STDOUT).returncode
-            print(f"[{tag}]   {'done' if rc == 0 else f'FAILED rc={rc} (log {rd}.log)'} "
-                  f"in {time.time() - t0:.0f} s", flush=True)
+            try:
+                run_one(keys, rd, threads=args.threads, log=lambda m: None)
+                said = "done"
+            except RuntimeError as e:
+                said = f"FAILED: {e}"
+            print(f"[{tag}]   {said} in {time.time() - t0:.0f} s", flush=True)
 
 
 def _refuse_a_former_default(rd: Path) -> None:

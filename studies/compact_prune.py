@@ -1,28 +1,20 @@
-"""Contribution pruning study (docs/measurements/compact_prune/protocol.md): branch each headline
-run (one seed, the trunk) at its step-1500 checkpoint into the protocol's variants, train the last
-500 steps, evaluate on val; then tabulate and apply the protocol's rule.
+"""Contribution pruning study (docs/measurements/compact_prune/protocol.md): the decision and
+tables from its committed records. The study is complete (its README): every val branch, the
+time_bins runs that settle rule 6, and the test stage are recorded.
 
-    python studies/compact_prune.py run DNERF_ROOT --headline WORK --seed 2 [--follow] [--work DIR] [--code CHECKOUT]
-    python studies/compact_prune.py table [--records DIR]
+    python studies/compact_prune.py table [--records DIR]          # table_val.md, the protocol's rule
+    python studies/compact_prune.py test-table [--test-records DIR]  # table_test.md, the targets
 
-`run` is a resumable queue: a (method, scene, variant) whose records are committed is skipped, and
-a cell whose trunk (WORK/<experiment>/<scene>/s<seed>, a finished headline run with its
-checkpoints) is not there yet waits; `--follow` keeps polling for new trunks while the headline
-queue trains them (scripts/idle_run.py's machine lock makes the two queues take turns), until
-every cell is recorded; `--hold` pauses the headline queue between its runs while branches are
-runnable (WORK/pause.compact), so the trunks trained so far are branched before the next one starts. `touch <--work>/pause` makes it wait between runs.
-`--scratch` adds the +STDR methods' `stdr.time_bins` variants (protocol.md, amendment 2): trained
-from scratch with the same seed and code, one at a time whenever no trunk waits for its branches.
-Records (config.yaml,
-metrics.json, history.json, train_profile.json, load.json, branch.json; `identity.json` for the
-control) go to docs/measurements/compact_prune/runs/<experiment>/<scene>/<variant>/.
+The runs were made by this file's `run` and `test` commands, which branched the headline runs at
+their step-1500 checkpoint with the code frozen at one commit, under scripts/idle_run.py's
+exclusive-machine check. Their code is in the history at the commit the records name;
+`git show 25ff87d:studies/compact_prune.py` is its last form. New grids of runs go through the
+project's one run queue (`stdr-tool queue`, docs/sweeps.md).
 """
 from __future__ import annotations
 
 import argparse
 import json
-import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -46,159 +38,6 @@ STDR_VARIANTS = {"m8": ["prune.share=0", "stdr.mask_bits=8"]}
 #: +STDR variants trained from scratch (no trunk: the mask's time columns are fixed at the start),
 #: with --scratch only; compared with the control branch of the same seed (protocol.md, amendment 2)
 SCRATCH_VARIANTS = {"tb50": ["prune.share=0", "stdr.time_bins=50"], "tb25": ["prune.share=0", "stdr.time_bins=25"]}
-AT = "prune.at=[refine_stop,0.9]"
-BRANCH_STEP = 1500
-KEEP = ("config.yaml", "metrics.json", "history.json", "train_profile.json")
-
-
-def same_parameters(a: Path, b: Path) -> dict:
-    """Whether two checkpoints hold bit-identical model parameters and deformation weights."""
-    import torch
-
-    from stdr.io.checkpoint import load_checkpoint
-    ma, mb = load_checkpoint(a)["model"], load_checkpoint(b)["model"]
-    diff = [k for k in ma["params"] if k not in mb["params"] or not torch.equal(ma["params"][k], mb["params"][k])]
-    diff += [f"deform.{k}" for k, v in ma["deform"].items() if not torch.equal(v, mb["deform"][k])]
-    return {"identical": not diff and ma["step"] == mb["step"], "differing": diff, "steps": [ma["step"], mb["step"]]}
-
-
-def branch_point(ckpt: Path) -> dict:
-    """The step and training seconds of the checkpoint a branch starts from (the headline run's; its
-    seconds were measured there, so the table reports the branch's own seconds separately)."""
-    from stdr.io.checkpoint import load_checkpoint
-    ck = load_checkpoint(ckpt)
-    return {"from_step": int(ck["model"]["step"]), "train_seconds_at_branch": float(ck["train_seconds"])}
-
-
-def trunk_dir(headline: Path, exp: str, scene: str, seed: int) -> Path:
-    return Path(headline) / exp / scene / f"s{seed}" / "checkpoints"
-
-
-def branch_once(args, code: Path, exp: str, scene: str, name: str, keys: list[str], src: Path, point: dict) -> str:
-    """Train one branch and record it: "recorded", "failed" or "shared" (not recorded: other jobs
-    used the machine)."""
-    rec = Path(args.records) / exp / scene / name
-    while (Path(args.work) / "pause").exists():
-        time.sleep(10)
-    run = Path(args.work) / exp / scene / name
-    if run.exists():
-        shutil.rmtree(run)  # a branch killed midway starts again from the checkpoint
-    (run / "checkpoints").mkdir(parents=True)
-    if src is not None:  # None: trained from scratch (SCRATCH_VARIANTS)
-        shutil.copy2(src / "last.previous.pt", run / "checkpoints" / "last.pt")
-        # the trunk's final state, for the control's check: the headline queue may retrain the trunk
-        # (a run that shared the machine) while this branch runs
-        shutil.copy2(src / "last.pt", run / "trunk_last.pt")
-    # `python -m` from the checkout imports its own stdr, whatever the environment's install
-    cmd = [str(code / "scripts" / "run.sh"), "python", "-m", "stdr.cli.train", f"experiment={exp}",
-           "budget=cpu", f"seed={args.seed}",
-           f"data.path={Path(args.dnerf) / scene}", f"data.name={scene}", "data.eval_split=val",
-           "train.progress=false", f"hydra.run.dir={run}", AT, *keys]
-    print(f"[compact] {time.strftime('%T')} {exp} {scene} {name} "
-          f"({'from scratch, seed' if src is None else 'trunk seed'} {args.seed})", flush=True)
-    load = Path(str(run) + ".load.json")  # scripts/idle_run.py: did it have the machine to itself?
-    with open(str(run) + ".log", "w") as log:
-        rc = subprocess.run([sys.executable, str(ROOT / "scripts" / "idle_run.py"), "--out", str(load),
-                             "--", *cmd], stdout=log, stderr=subprocess.STDOUT, cwd=code).returncode
-    if rc != 0 or not (run / "metrics.json").is_file():
-        print(f"[compact] FAILED {exp} {scene} {name} (log: {run}.log)", file=sys.stderr, flush=True)
-        return "failed"
-    if not json.loads(load.read_text())["idle"]:
-        print(f"[compact] SHARED {exp} {scene} {name}: other jobs used the machine ({load}); not "
-              "recorded, redone later", file=sys.stderr, flush=True)
-        return "shared"
-    rec.mkdir(parents=True, exist_ok=True)
-    (rec / "branch.json").write_text(json.dumps({**point, "trunk_seed": args.seed, "scratch": src is None}, indent=1))
-    shutil.copy2(load, rec / "load.json")
-    for f in KEEP:
-        if (run / f).is_file():
-            shutil.copy2(run / f, rec / f)
-    if name == "control":
-        ident = same_parameters(run / "checkpoints" / "last.pt", run / "trunk_last.pt")
-        (rec / "identity.json").write_text(json.dumps(ident, indent=1))
-    return "recorded"
-
-
-def _account(status: str, cell: tuple, failed: set, shared: dict) -> int:
-    """Book one branch's outcome: a failure is not retried in this process, a run that shared the
-    machine up to three times. Returns 1 when it was recorded."""
-    if status == "failed":
-        failed.add(cell)
-    elif status == "shared":
-        shared[cell] = shared.get(cell, 0) + 1
-    return int(status == "recorded")
-
-
-def run_queue(args) -> int:
-    """Every (method, scene, variant) without records whose trunk is there; with --follow, again
-    every --poll seconds until all are recorded. A branch that fails is not retried in this
-    process, one that shared the machine up to three times. With --hold, WORK/pause.compact
-    (WORK: the headline queue's folder) is kept while branches are runnable, so the headline
-    queue waits between its runs and a trunk's branches run before the next trunk is trained."""
-    import signal
-    code = Path(args.code).resolve()
-    hold = Path(args.headline) / "pause.compact" if args.hold else None
-    prev = signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the `finally` below: never leave the hold
-    failed, shared, warned = set(), {}, set()
-    try:
-        while True:
-            todo, ran = 0, 0
-            for exp in (args.experiments or EXPERIMENTS):
-                variants = {**VARIANTS, **(STDR_VARIANTS if exp.endswith("_stdr") else {})}
-                for scene in (args.scenes or SCENES):
-                    src = trunk_dir(args.headline, exp, scene, args.seed)
-                    for name, keys in variants.items():
-                        if args.variants and name not in args.variants:
-                            continue
-                        cell = (exp, scene, name)
-                        if (Path(args.records) / exp / scene / name / "metrics.json").is_file() or cell in failed \
-                                or shared.get(cell, 0) >= 3:
-                            continue
-                        todo += 1
-                        if not (src.parent / "metrics.json").is_file() or not (src / "last.previous.pt").is_file():
-                            continue  # the headline run is not there yet, or still training
-                        point = branch_point(src / "last.previous.pt")
-                        if point["from_step"] != BRANCH_STEP:
-                            if (exp, scene) not in warned:
-                                print(f"[compact] {src / 'last.previous.pt'}: step {point['from_step']}, not "
-                                      f"{BRANCH_STEP}; {exp} {scene} is skipped (protocol.md)", file=sys.stderr,
-                                      flush=True)
-                                warned.add((exp, scene))
-                            failed.add(cell)
-                            continue
-                        if hold is not None:
-                            hold.touch()
-                        ran += 1
-                        todo -= _account(branch_once(args, code, exp, scene, name, keys, src, point), cell, failed,
-                                         shared)
-            if not ran and hold is not None:
-                hold.unlink(missing_ok=True)  # nothing to branch: the headline queue goes on
-            scratch_ran = False
-            if args.scratch:  # once no trunk waits for branches: one from-scratch run, then look again
-                for exp in (e for e in (args.experiments or EXPERIMENTS) if e.endswith("_stdr")):
-                    for scene in SCENES:
-                        for name, keys in SCRATCH_VARIANTS.items():
-                            cell = (exp, scene, name)
-                            if (args.variants and name not in args.variants) or cell in failed or \
-                                    shared.get(cell, 0) >= 3 or \
-                                    (Path(args.records) / exp / scene / name / "metrics.json").is_file():
-                                continue
-                            todo += 1
-                            if ran:
-                                continue
-                            ran, scratch_ran = ran + 1, True
-                            todo -= _account(branch_once(args, code, exp, scene, name, keys, None, {"from_step": 0}),
-                                             cell, failed, shared)
-            if (not args.follow and not scratch_ran) or todo == 0:
-                break
-            if not ran:
-                time.sleep(args.poll)
-    finally:
-        if hold is not None:
-            hold.unlink(missing_ok=True)
-        signal.signal(signal.SIGTERM, prev)
-    print(f"[compact] done; {len(failed)} failed, {todo} not recorded")
-    return 1 if failed or todo else 0
 
 
 def load_records(root: Path) -> dict:
@@ -360,79 +199,6 @@ def preset_of(d: dict, exp: str) -> tuple[str, list[str]]:
     return d["choice"], keys
 
 
-def evaluate_once(args, code: Path, run: Path, out: Path, meta: dict) -> str:
-    """Evaluate one run folder's final checkpoint on the test split with the frozen code's stdr-eval,
-    alone on the machine, and record it in `out`: "recorded", "failed" or "shared"."""
-    while (Path(args.work) / "pause").exists():
-        time.sleep(10)
-    if not (run / "checkpoints" / "last.pt").is_file():
-        print(f"[compact] FAILED test {run}: no checkpoints/last.pt (the branch's work folder is gone)",
-              file=sys.stderr, flush=True)
-        return "failed"
-    cmd = [str(code / "scripts" / "run.sh"), "python", "-m", "stdr.cli.eval", str(run), "split=test",
-           f"out={run}/test_table"]
-    print(f"[compact] {time.strftime('%T')} test {meta['experiment']} {meta['scene']} {meta['role']} "
-          f"({meta['branch']})", flush=True)
-    load = Path(str(run) + ".test_load.json")
-    with open(str(run) + ".test.log", "w") as log:
-        rc = subprocess.run([sys.executable, str(ROOT / "scripts" / "idle_run.py"), "--out", str(load),
-                             "--", *cmd], stdout=log, stderr=subprocess.STDOUT, cwd=code).returncode
-    m = run / "metrics.json"
-    if rc != 0 or not m.is_file() or "test" not in json.loads(m.read_text()):
-        print(f"[compact] FAILED test {run} (log: {run}.test.log)", file=sys.stderr, flush=True)
-        return "failed"
-    if not json.loads(load.read_text())["idle"]:
-        print(f"[compact] SHARED test {run}: other jobs used the machine; evaluated again", file=sys.stderr, flush=True)
-        return "shared"
-    out.mkdir(parents=True, exist_ok=True)
-    for f in ("metrics.json", "config.yaml"):  # a run folder stdr-eval / stdr-chart can tabulate
-        shutil.copy2(run / f, out / f)
-    shutil.copy2(load, out / "load.json")
-    (out / "source.json").write_text(json.dumps(meta, indent=1))
-    return "recorded"
-
-
-def run_test(args) -> int:
-    """Amendment 4: train the `preset` branches the decision needs, then evaluate each method and
-    scene's full (control) and compact run once on test. Resumable: recorded cells are skipped."""
-    d = decide(load_records(Path(args.records)))
-    if not d["complete"] or d["mask_bits_8"] is None:
-        raise SystemExit("studies/compact_prune.py test: the val records are incomplete (every variant of every method "
-                         "and scene, m8 included, is needed for rules 1-5); run `studies/compact_prune.py run` first")
-    code = Path(args.code).resolve()
-    failed, shared = set(), {}
-    for exp in (args.experiments or EXPERIMENTS):
-        branch, keys = preset_of(d, exp)
-        for scene in SCENES:
-            cell = (exp, scene, branch)
-            while branch == "preset" and cell not in failed and shared.get(cell, 0) < 3 and \
-                    not (Path(args.records) / exp / scene / branch / "metrics.json").is_file():
-                src = trunk_dir(args.headline, exp, scene, args.seed)
-                if not (src / "last.previous.pt").is_file():
-                    print(f"[compact] FAILED {exp} {scene} preset: no trunk {src / 'last.previous.pt'} (protocol.md, "
-                          "amendment 3 retrains it)", file=sys.stderr, flush=True)
-                    failed.add(cell)
-                    break
-                _account(branch_once(args, code, exp, scene, branch, keys, src, branch_point(src / "last.previous.pt")),
-                         cell, failed, shared)
-            for role, name in (("full", "control"), ("compact", branch)):
-                if role == "compact" and cell in failed:
-                    continue  # its branch could not be trained
-                out = Path(args.test_records) / exp / scene / role
-                tcell = (exp, scene, role)
-                meta = {"experiment": exp, "scene": scene, "role": role, "branch": name,
-                        "keys": VARIANTS["control"] if role == "full" else keys, "decision": d["choice"],
-                        "mask_bits_8": d["mask_bits_8"]}
-                while tcell not in failed and shared.get(tcell, 0) < 3 and not (out / "metrics.json").is_file():
-                    _account(evaluate_once(args, code, Path(args.work) / exp / scene / name, out, meta),
-                             tcell, failed, shared)
-    todo = sum(not (Path(args.test_records) / e / s / r / "metrics.json").is_file()
-               for e in (args.experiments or EXPERIMENTS) for s in SCENES for r in ROLES)
-    print(f"[compact] test done; {len(failed)} failed, {todo} not recorded")
-    return 1 if failed or todo else 0
-
-
-#: the compactness targets (full vs compact per method; +STDR vs plain, both compact): (key, what, test, bound)
 TARGETS = (("psnr", "mean PSNR, compact - full (dB)", ">=", -0.1),
            ("num_gaussians", "Gaussians, compact / full", "<=", 0.5),
            ("fps", "render FPS, compact / full", ">=", 1.6),
@@ -552,38 +318,12 @@ def test_table(args) -> int:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
-    r = sub.add_parser("run")
-    r.add_argument("dnerf", help="folder with the D-NeRF scenes")
-    r.add_argument("--headline", required=True, help="the headline queue's WORK_DIR (its run folders)")
-    r.add_argument("--seed", type=int, default=0, help="the trunks' seed: branch WORK/<exp>/<scene>/s<seed>")
-    r.add_argument("--follow", action="store_true", help="wait for trunks the headline queue has yet to train")
-    r.add_argument("--records", default=str(RECORDS), help="where the records go (default: the study's runs/)")
-    r.add_argument("--hold", action="store_true", help="pause the headline queue (WORK/pause.compact) while branches "
-                   "are runnable, so each trunk is branched before the next is trained")
-    r.add_argument("--poll", type=float, default=30.0, help="with --follow: seconds between looks for new trunks")
-    r.add_argument("--variants", nargs="*", choices=[*VARIANTS, *STDR_VARIANTS, *SCRATCH_VARIANTS],
-                   help="only these variants (default: all)")
-    r.add_argument("--scratch", action="store_true", help="also train the from-scratch time_bins variants "
-                   "(protocol.md, amendment 2), one at a time whenever no trunk is waiting for its branches")
-    r.add_argument("--work", default=str(ROOT / "outputs" / "compact"))
-    r.add_argument("--code", default=str(ROOT), help="checkout whose scripts/run.sh trains (frozen at one commit)")
-    r.add_argument("--experiments", nargs="*", choices=EXPERIMENTS, help="only these methods (default: all)")
-    r.add_argument("--scenes", nargs="*", choices=SCENES, help="only these scenes' branches (default: all)")
     t = sub.add_parser("table")
     t.add_argument("--records", default=str(RECORDS))
-    e = sub.add_parser("test", help="amendment 4: evaluate each full and compact run once on test")
-    e.add_argument("dnerf", help="folder with the D-NeRF scenes")
-    e.add_argument("--headline", required=True, help="the headline queue's WORK_DIR (the trunks)")
-    e.add_argument("--seed", type=int, default=2, help="the trunks' seed")
-    e.add_argument("--records", default=str(RECORDS), help="the val records (the decision; `preset` branches go here)")
-    e.add_argument("--test-records", default=str(TEST_RECORDS), help="where the test records go")
-    e.add_argument("--work", default=str(ROOT / "outputs" / "compact"), help="the branches' run folders (`run`'s --work)")
-    e.add_argument("--code", default=str(ROOT), help="checkout whose scripts/run.sh trains and evaluates")
-    e.add_argument("--experiments", nargs="*", choices=EXPERIMENTS, help="only these methods (default: all)")
     tt = sub.add_parser("test-table")
     tt.add_argument("--test-records", default=str(TEST_RECORDS))
     args = ap.parse_args(argv)
-    return {"run": run_queue, "table": table, "test": run_test, "test-table": test_table}[args.cmd](args)
+    return {"table": table, "test-table": test_table}[args.cmd](args)
 
 
 if __name__ == "__main__":

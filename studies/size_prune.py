@@ -17,13 +17,13 @@ import argparse
 import json
 import re
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from studies.common import M, ROOT, commit, records_in, records_to_write  # noqa: E402
+from studies.common import M, commit, records_in, records_to_write  # noqa: E402
+from stdr.tools.runqueue import run_one  # noqa: E402
 
 OUT = M / "size_prune_probe"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
@@ -37,22 +37,26 @@ def run_dir(work: Path, scene: str, value: int) -> Path:
     return work / f"p{value}_{scene}"  # its log beside it: the same name + .log
 
 
-def command(data: Path, scene: str, value: int, work: Path) -> list[str]:
-    return [sys.executable, "-m", "stdr.cli.train", "experiment=dnerf_deform", "budget=gpu", "device=cpu",
-            f"data.path={data / scene}", f"data.name={scene}", "seed=0", f"densify.prune_big_after={value}",
-            f"train.stop_at={STOP}", "train.threads=1", "train.progress=false", "eval.save_images=false",
-            f"hydra.run.dir={run_dir(work, scene, value)}"]
+def command(data: Path, scene: str, value: int) -> list[str]:
+    """The probe run's stdr-train overrides (one thread; the queue adds train.threads=1)."""
+    return ["experiment=dnerf_deform", "budget=gpu", "device=cpu", f"data.path={data / scene}", f"data.name={scene}",
+            "seed=0", f"densify.prune_big_after={value}", f"train.stop_at={STOP}", "train.progress=false",
+            "eval.save_images=false"]
+
+
+def output(rd: Path) -> str:
+    """A run's printed output: RUN/stdout.log (the queue's), or RUN.log beside it (before the queue)."""
+    p = rd / "stdout.log" if (rd / "stdout.log").is_file() else rd.with_name(rd.name + ".log")
+    return p.read_text(errors="replace")
 
 
 def run(args) -> None:
+    """Every scene and value's probe, one at a time through the project's run queue (stdr-tool queue)."""
     for scene in args.scenes:
         for value in args.values:
             rd = run_dir(args.work, scene, value)
-            if (rd / "train_profile.json").is_file():
-                continue
-            with open(rd.with_name(rd.name + ".log"), "w") as log:
-                subprocess.run(command(args.data, scene, value, args.work), stdout=log, stderr=subprocess.STDOUT,
-                               cwd=ROOT, check=True)
+            if not (rd / "train_profile.json").is_file():
+                run_one(command(args.data, scene, value), rd, threads=1)
 
 
 def record(work: Path, scene: str, value: int) -> dict | None:
@@ -69,10 +73,9 @@ def record(work: Path, scene: str, value: int) -> dict | None:
     missing = [s for s in STEPS if s not in counts]
     if missing:
         raise SystemExit(f"{rd}: no gaussians/count logged at steps {missing}")
-    log = rd.with_name(rd.name + ".log").read_text(errors="replace")
-    warns = [{"step": int(a), "removes": int(b), "of": int(c)} for a, b, c in WARNING.findall(log)]
+    warns = [{"step": int(a), "removes": int(b), "of": int(c)} for a, b, c in WARNING.findall(output(rd))]
     return {"scene": scene, "prune_big_after": value, "stop_at": STOP, "counts": {str(s): counts[s] for s in STEPS},
-            "warnings": warns, "command": " ".join(command(Path("DNERF"), scene, value, Path("WORK"))[1:]),
+            "warnings": warns, "command": "stdr.cli.train " + " ".join(command(Path("DNERF"), scene, value)),
             "code": commit(), "machine": machine_name(), "date": time.strftime("%Y-%m-%d")}
 
 
@@ -100,16 +103,17 @@ VAL_EVERY = 300
 CANDIDATES = {"s20_1500": [], "s20_3000": ["densify.prune_big_after=3000"], "ws_1500": ["densify.prune_scale2d=null"]}
 
 
-def val_command(data: Path, scene: str, run: Path, stop: int, keys: list[str]) -> list[str]:
-    return [sys.executable, "-m", "stdr.cli.train", "experiment=dnerf_deform", "budget=gpu", "device=cpu",
-            f"data.path={data / scene}", f"data.name={scene}", "seed=0", "data.eval_split=val",
-            f"train.eval_every={VAL_EVERY}", f"train.stop_at={stop}", "train.threads=1", "train.progress=false",
-            "eval.save_images=false", *keys, f"hydra.run.dir={run}"]
+def val_command(data: Path, scene: str, stop: int, keys: list[str]) -> list[str]:
+    """A val run's stdr-train overrides (one thread; the queue adds train.threads=1)."""
+    return ["experiment=dnerf_deform", "budget=gpu", "device=cpu", f"data.path={data / scene}", f"data.name={scene}",
+            "seed=0", "data.eval_split=val", f"train.eval_every={VAL_EVERY}", f"train.stop_at={stop}",
+            "train.progress=false", "eval.save_images=false", *keys]
 
 
-def _train(cmd: list[str], run: Path, append: bool = False) -> None:
-    with open(run.with_name(run.name + ".log"), "a" if append else "w") as log:
-        subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, check=True)
+def _train(overrides: list[str], run: Path) -> None:
+    """One leg of a run (trunk, branch), through the project's run queue; its output is appended to
+    RUN/stdout.log."""
+    run_one(overrides, run, threads=1)
 
 
 #: protocol amendment 2: where --ws-from-3000 is given, ws_1500 starts from s20_3000's checkpoint at
@@ -141,7 +145,7 @@ def val(args) -> None:
     for scene in args.scenes:
         trunk = args.work / f"trunk_{scene}"
         if not (trunk / "train_profile.json").is_file():
-            _train(val_command(args.data, scene, trunk, BRANCH_AT, []), trunk)
+            _train(val_command(args.data, scene, BRANCH_AT, []), trunk)
         for name, keys in CANDIDATES.items():
             run = args.work / f"{name}_{scene}"
             if _done(run):
@@ -150,15 +154,15 @@ def val(args) -> None:
                 at = run / "at3000.pt"
                 if not at.is_file():
                     _branch(trunk / "checkpoints" / "last.pt", run)
-                    _train(val_command(args.data, scene, run, SHARED_UNTIL, keys), run)
+                    _train(val_command(args.data, scene, SHARED_UNTIL, keys), run)
                     shutil.copy2(run / "checkpoints" / "last.pt", at)
-                _train(val_command(args.data, scene, run, VAL_STOP, keys), run, append=True)  # resumes at 3000
+                _train(val_command(args.data, scene, VAL_STOP, keys), run)  # resumes at 3000
                 continue
             src = trunk / "checkpoints" / "last.pt"
             if args.ws_from_3000 and name == "ws_1500":
                 src = args.work / f"s20_3000_{scene}" / "at3000.pt"
             _branch(src, run)
-            _train(val_command(args.data, scene, run, VAL_STOP, keys), run)
+            _train(val_command(args.data, scene, VAL_STOP, keys), run)
 
 
 def val_record(work: Path, scene: str, name: str) -> dict | None:
@@ -186,15 +190,13 @@ def val_record(work: Path, scene: str, name: str) -> dict | None:
                        if rd == run or int(s.step) <= limit[rd]})
     warns = []
     for rd in (*before, run):
-        log = rd.with_name(rd.name + ".log").read_text(errors="replace")
-        warns += [{"step": int(a), "removes": int(b), "of": int(c)} for a, b, c in WARNING.findall(log)
+        warns += [{"step": int(a), "removes": int(b), "of": int(c)} for a, b, c in WARNING.findall(output(rd))
                   if rd == run or int(a) <= limit[rd]]
     return {"scene": scene, "candidate": name, "keys": CANDIDATES[name], "branch_at": BRANCH_AT, "stop_at": VAL_STOP,
             "shared_with_s20_3000_until": SHARED_UNTIL if shared else None,
             "curve": curve, "counts": {str(k): counts[k] for k in sorted(counts)}, "warnings": warns,
             "train_seconds": float(ck["train_seconds"]),
-            "command": " ".join(val_command(Path("DNERF"), scene, Path("WORK") / f"{name}_{scene}", VAL_STOP,
-                                            CANDIDATES[name])[1:]),
+            "command": "stdr.cli.train " + " ".join(val_command(Path("DNERF"), scene, VAL_STOP, CANDIDATES[name])),
             "code": commit(), "machine": machine_name(), "date": time.strftime("%Y-%m-%d")}
 
 

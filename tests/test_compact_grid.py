@@ -40,11 +40,10 @@ def test_a_partial_measurement_adopts_nothing():
 def test_the_grid_runs_are_compact_bytes_command_plus_the_grid(tmp_path, monkeypatch):
     """protocol.md: the compact_bytes runs' command, plus the candidate grid and pack.enabled=false."""
     import argparse
-    import subprocess
 
     from studies import compact_bytes, compact_grid
-    cmds = []
-    monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: cmds.append(cmd) or argparse.Namespace(returncode=0))
+    cmds = []  # each run's overrides, as the run queue gets them
+    monkeypatch.setattr(compact_bytes, "run_one", lambda overrides, rd, threads=1, log=None: cmds.append(overrides))
     args = argparse.Namespace(work=tmp_path, dnerf=tmp_path, experiments=["dnerf_4dgs"], scenes=["standup"], threads=1)
     compact_bytes.train(args)
     compact_grid.train(args)

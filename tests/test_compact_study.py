@@ -69,110 +69,6 @@ def test_time_bins_takes_the_fewest_columns_that_keep_every_stdr_method():
     assert decide(recs)["time_bins"] is None  # incomplete: no decision
 
 
-def _queue(tmp_path, monkeypatch, scenes, step_of):
-    """studies.compact_prune.run_queue with the training and checkpoint reads replaced: `step_of(scene)`
-    is the step of a trunk's last.previous.pt; each branch 'trains' by writing its metrics.json."""
-    import argparse
-
-    import studies.compact_prune as c
-    monkeypatch.setattr(c, "SCENES", scenes)
-    calls = []
-
-    def fake_branch(args, code, exp, scene, name, keys, src, point):
-        calls.append((exp, scene, name, src))
-        rec = Path(args.records) / exp / scene / name
-        rec.mkdir(parents=True)
-        (rec / "metrics.json").write_text("{}")
-        return "recorded"
-    monkeypatch.setattr(c, "branch_once", fake_branch)
-    monkeypatch.setattr(c, "branch_point", lambda ck: {"from_step": step_of(ck.parent.parent.parent.name),
-                                                       "train_seconds_at_branch": 1.0})
-    args = argparse.Namespace(headline=str(tmp_path / "headline"), seed=2, follow=False, work=str(tmp_path / "work"),
-                              code=str(tmp_path), experiments=["dnerf_deform"], dnerf=str(tmp_path),
-                              records=str(tmp_path / "records"), variants=None, hold=False, poll=60.0,
-                              scratch=False, scenes=None)
-    return c, args, calls
-
-
-def _trunk(tmp_path, scene, seed, finished=True):
-    """A headline run folder with its checkpoints, and its metrics.json once it has finished."""
-    d = tmp_path / "headline" / "dnerf_deform" / scene / f"s{seed}" / "checkpoints"
-    d.mkdir(parents=True, exist_ok=True)
-    for f in ("last.pt", "last.previous.pt"):
-        (d / f).write_bytes(b"")
-    if finished:
-        (d.parent / "metrics.json").write_text("{}")
-
-
-def test_the_queue_branches_the_chosen_seeds_trunks_at_step_1500_only(tmp_path, monkeypatch):
-    c, args, calls = _queue(tmp_path, monkeypatch, ("a", "b", "c"), lambda scene: 1000 if scene == "b" else 1500)
-    _trunk(tmp_path, "a", 2)
-    _trunk(tmp_path, "b", 2)  # its step-1500 checkpoint is not there: skipped, never branched
-    _trunk(tmp_path, "c", 0)  # another seed's trunk: not this queue's
-    assert c.run_queue(args) == 1  # b and c are not recorded
-    assert {(scene, name) for _, scene, name, _ in calls} == {("a", v) for v in VARIANTS}
-    assert all(src.parent.name == "s2" for *_, src in calls)
-    calls.clear()
-    assert c.run_queue(args) == 1 and calls == []  # resumable: recorded cells are skipped
-
-
-def test_follow_waits_for_trunks_the_headline_queue_has_yet_to_train(tmp_path, monkeypatch):
-    # a trunk still training has an earlier checkpoint as last.previous.pt (step 1000 while it runs 1500-2000)
-    done = lambda scene: (tmp_path / "headline" / "dnerf_deform" / scene / "s2" / "metrics.json").is_file()  # noqa: E731
-    c, args, calls = _queue(tmp_path, monkeypatch, ("a", "b"), lambda scene: 1500 if done(scene) else 1000)
-    args.follow = True
-    _trunk(tmp_path, "a", 2)
-    _trunk(tmp_path, "b", 2, finished=False)  # still training: its last.previous.pt is not step 1500 yet
-    sleeps = []
-
-    def sleep(s):  # while the queue waits, the headline queue finishes scene b's trunk
-        sleeps.append(s)
-        if len(sleeps) == 2:
-            _trunk(tmp_path, "b", 2)
-        assert len(sleeps) < 5
-    monkeypatch.setattr(c.time, "sleep", sleep)
-    assert c.run_queue(args) == 0
-    assert len(calls) == 2 * len(VARIANTS) and [n for _, s, n, _ in calls if s == "b"] == list(VARIANTS)
-
-
-def test_hold_pauses_the_headline_queue_only_while_branches_are_runnable(tmp_path, monkeypatch):
-    """--hold: WORK/pause.compact exists while a branch trains, is gone while the queue waits for
-    the next trunk, and is removed when the queue ends."""
-    c, args, calls = _queue(tmp_path, monkeypatch, ("a", "b"), lambda scene: 1500)
-    args.follow, args.hold = True, True
-    hold = tmp_path / "headline" / "pause.compact"
-    _trunk(tmp_path, "a", 2)
-    seen = []
-    inner = c.branch_once
-
-    def branch(*a):
-        seen.append(("branch", hold.exists()))
-        return inner(*a)
-    monkeypatch.setattr(c, "branch_once", branch)
-
-    def sleep(s):
-        seen.append(("wait", hold.exists()))
-        _trunk(tmp_path, "b", 2)
-    monkeypatch.setattr(c.time, "sleep", sleep)
-    assert c.run_queue(args) == 0
-    assert seen == [("branch", True)] * len(VARIANTS) + [("wait", False)] + [("branch", True)] * len(VARIANTS)
-    assert not hold.exists()
-
-
-def test_scratch_runs_train_from_nothing_and_only_while_no_trunk_waits(tmp_path, monkeypatch):
-    """--scratch: the time_bins variants (+STDR methods only) train without a trunk, one at a time,
-    after the branches of every trunk that is there; without --scratch they never run."""
-    c, args, calls = _queue(tmp_path, monkeypatch, ("a",), lambda scene: 1500)
-    args.experiments = ["dnerf_deform", "dnerf_deform_stdr"]
-    _trunk(tmp_path, "a", 2)
-    assert c.run_queue(args) == 1  # deform_stdr's trunk is not there: its cells wait
-    assert {n for *_, n, _ in calls} == set(VARIANTS)
-    calls.clear()
-    args.scratch = True
-    assert c.run_queue(args) == 1
-    assert [(e, n, src) for e, _, n, src in calls] == [("dnerf_deform_stdr", v, None) for v in SCRATCH_VARIANTS]
-
-
 def _decision(m8: float):
     base = {"s30": lambda e: -0.02, "s30_tw1": lambda e: -0.03, "s50": lambda e: -0.4, "s50_tw1": lambda e: -0.4}
     return decide(_recs({**base, "m8": lambda e: m8}))
@@ -186,74 +82,6 @@ def test_the_compact_run_is_the_chosen_variant_or_a_preset_branch_with_8_bits():
     assert preset_of(d, "dnerf_scgs_stdr") == ("preset", [*VARIANTS["s30"], "stdr.mask_bits=8"])
     d = _decision(-0.3)
     assert preset_of(d, "dnerf_scgs_stdr") == ("s30", VARIANTS["s30"])
-
-
-def _test_stage(tmp_path, monkeypatch, m8: float):
-    """studies.compact_prune.run_test over val records of one decision, with training and evaluation
-    replaced by writers of their records."""
-    import argparse
-    import json
-
-    import studies.compact_prune as c
-    recs = _recs({"s30": lambda e: -0.02, "s30_tw1": lambda e: -0.03, "s50": lambda e: -0.4,
-                  "s50_tw1": lambda e: -0.4, "m8": lambda e: m8})
-    monkeypatch.setattr(c, "load_records", lambda root: recs)
-    trained, evaluated = [], []
-
-    def fake_branch(args, code, exp, scene, name, keys, src, point):
-        trained.append((exp, scene, name, tuple(keys)))
-        (Path(args.records) / exp / scene / name).mkdir(parents=True)
-        (Path(args.records) / exp / scene / name / "metrics.json").write_text("{}")
-        return "recorded"
-
-    def fake_eval(args, code, run, out, meta):
-        evaluated.append((meta["experiment"], meta["scene"], meta["role"], run.name))
-        out.mkdir(parents=True)
-        (out / "metrics.json").write_text(json.dumps({"test": {}}))
-        return "recorded"
-    monkeypatch.setattr(c, "branch_once", fake_branch)
-    monkeypatch.setattr(c, "evaluate_once", fake_eval)
-    monkeypatch.setattr(c, "branch_point", lambda ck: {"from_step": 1500, "train_seconds_at_branch": 1.0})
-    for exp in EXPERIMENTS:
-        for scene in SCENES:
-            d = tmp_path / "h" / exp / scene / "s2" / "checkpoints"
-            d.mkdir(parents=True)
-            (d / "last.previous.pt").write_bytes(b"")
-    args = argparse.Namespace(headline=str(tmp_path / "h"), seed=2, work=str(tmp_path / "work"), code=str(tmp_path),
-                              experiments=None, dnerf=str(tmp_path), records=str(tmp_path / "records"),
-                              test_records=str(tmp_path / "test"))
-    return c, args, trained, evaluated
-
-
-def test_the_test_stage_trains_only_the_missing_preset_branches_and_evaluates_full_and_compact(tmp_path, monkeypatch):
-    c, args, trained, evaluated = _test_stage(tmp_path, monkeypatch, m8=-0.01)
-    assert c.run_test(args) == 0
-    stdr = [e for e in EXPERIMENTS if e.endswith("_stdr")]
-    assert sorted(trained) == sorted((e, s, "preset", (*VARIANTS["s30"], "stdr.mask_bits=8"))
-                                     for e in stdr for s in SCENES)
-    assert len(evaluated) == len(EXPERIMENTS) * len(SCENES) * 2
-    for exp, scene, role, run in evaluated:
-        assert run == ("control" if role == "full" else "preset" if exp in stdr else "s30")
-    trained.clear(), evaluated.clear()
-    assert c.run_test(args) == 0 and trained == [] and evaluated == []  # resumable
-
-
-def test_a_missing_trunk_fails_its_preset_cell_only(tmp_path, monkeypatch):
-    c, args, trained, evaluated = _test_stage(tmp_path, monkeypatch, m8=-0.01)
-    (tmp_path / "h" / "dnerf_scgs_stdr" / SCENES[0] / "s2" / "checkpoints" / "last.previous.pt").unlink()
-    assert c.run_test(args) == 1  # reported, not recorded
-    assert ("dnerf_scgs_stdr", SCENES[0], "preset") not in {t[:3] for t in trained}
-    assert ("dnerf_scgs_stdr", SCENES[0], "compact", "preset") not in evaluated  # never evaluated without its run
-    assert len(trained) == 4 * len(SCENES) - 1
-
-
-def test_the_test_stage_refuses_an_undecided_study(tmp_path, monkeypatch):
-    c, args, trained, evaluated = _test_stage(tmp_path, monkeypatch, m8=-0.01)
-    full = c.load_records(None)
-    monkeypatch.setattr(c, "load_records", lambda root: {k: v for k, v in full.items() if k[2] != "m8"})
-    with pytest.raises(SystemExit, match="incomplete"):
-        c.run_test(args)
-    assert trained == [] and evaluated == []
 
 
 def test_the_test_table_checks_each_target_on_per_scene_ratios(tmp_path, monkeypatch):
@@ -286,20 +114,6 @@ def test_the_test_table_checks_each_target_on_per_scene_ratios(tmp_path, monkeyp
     m = t[("dnerf_deform_stdr", "model bytes, +STDR / plain (both compact)")]  # 2x everywhere
     assert m["value"] == pytest.approx(2.0) and m["met"] is False
     assert "| deform | +STDR compact | 2 |" in (tmp_path / "table_test.md").read_text()
-
-
-def test_follow_with_scratch_goes_on_to_the_scratch_runs_after_the_last_branches(tmp_path, monkeypatch):
-    """The pass that runs the last branches must not end the queue while scratch runs wait."""
-    c, args, calls = _queue(tmp_path, monkeypatch, ("a",), lambda scene: 1500)
-    args.experiments, args.follow, args.scratch = ["dnerf_deform_stdr"], True, True
-    d = tmp_path / "headline" / "dnerf_deform_stdr" / "a" / "s2" / "checkpoints"
-    d.mkdir(parents=True)
-    for f in ("last.pt", "last.previous.pt"):
-        (d / f).write_bytes(b"")
-    (d.parent / "metrics.json").write_text("{}")
-    monkeypatch.setattr(c.time, "sleep", lambda s: pytest.fail("nothing to wait for"))
-    assert c.run_queue(args) == 0
-    assert [n for *_, n, _ in calls] == [*VARIANTS, *STDR_VARIANTS, *SCRATCH_VARIANTS]
 
 
 def test_the_bytes_split_recovers_a_fixed_part_and_per_gaussian_bytes():

@@ -1,5 +1,6 @@
 """Habits: ruff's small rule set (pyproject.toml, [tool.ruff.lint]) is clean, and the markers
 `cuda` and `needs_shared` select what they say."""
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -156,3 +157,12 @@ def test_studies_readme_lists_every_study():
     missing = [p.name for p in sorted((ROOT / "studies").glob("*.py"))
                if p.name not in ("__init__.py", "common.py", "records.py") and f"`{p.name}`" not in text]
     assert not missing, f"studies/README.md does not list {missing}"
+
+
+def test_studies_start_no_training_process_of_their_own():
+    """One run queue: a study's runs go through stdr.tools.runqueue (execute, run_one), never a
+    subprocess of its own. The one process a study may start is headline.py's scripts/results.py."""
+    allowed = {"headline.py": 1}
+    for f in sorted((ROOT / "studies").glob("*.py")):
+        calls = re.findall(r"\b(?:subprocess\.\w+|os\.system|os\.exec\w*|os\.spawn\w*)\(", f.read_text())
+        assert len(calls) <= allowed.get(f.name, 0), f"studies/{f.name} starts processes itself: {calls}"

@@ -4,9 +4,11 @@ import json
 import subprocess
 import sys
 import tarfile
+from pathlib import Path
 
 import pytest
 
+from helpers import load_script
 from stdr.testing import TINY_SCENE
 from stdr.tools import runqueue as qm
 
@@ -39,8 +41,13 @@ def test_a_grid_runs_two_at_a_time_and_comes_back_in_one_archive(tmp_path):
         names = set(tar.getnames())
         m = json.loads(tar.extractfile("embedded_4dgs__default__s1/metrics.json").read())
         tail = tar.extractfile("embedded_4dgs__default__s1/log_tail.txt").read().decode()
-    assert {f"{r.id}/{f}" for r in q.runs for f in qm.FILES} <= names and "queue_log_tail.txt" in names
+    assert {f"{r.id}/{f}" for r in q.runs for f in qm.FILES} <= names
     assert m["test"]["psnr"] > 5 and "[stdr] metrics:" in tail
+    assert "sweep finished" in (tmp_path / "out" / "queue_log_tail.txt").read_text()
+    # the GPU table takes the archive as it comes back: every member <run id>/<file>
+    gpu_table = load_script(Path(__file__).resolve().parents[1] / "scripts" / "gpu_table.py", "gpu_table")
+    assert sorted(gpu_table.add(tmp_path / "out" / "runs.tgz", tmp_path / "table")) != []
+    assert len(list((tmp_path / "table" / "runs").glob("*/metrics.json"))) == 4
     # the next call finds nothing to do and packs the same runs again
     again = qm.Queue.load(tmp_path / "q.json")
     assert qm.execute(again, tmp_path / "work", 2, 60)["started"] == []
@@ -62,11 +69,11 @@ def test_the_deadline_starts_nothing_that_would_not_fit_and_stops_what_runs(tmp_
 
 def test_a_failing_run_is_marked_with_its_log_and_the_others_go_on(tmp_path):
     q = qm.plan(["embedded_deform"], [], [0], _toy(tmp_path), est_s=1)
-    q.runs.insert(0, qm.Run("broken", ["experiment=embedded_deform", "optim.no_such_key=1"], 1))
+    q.runs.insert(0, qm.Run("nested/broken", ["experiment=embedded_deform", "optim.no_such_key=1"], 1))
     q.runs.insert(1, qm.Run("no_data", ["experiment=embedded_deform", "data.format=dnerf",
                                         f"data.path={tmp_path / 'no_such_scene'}"], 1))
     rec = qm.execute(q, tmp_path / "work", 1, budget_s=300, log=lambda m: None)
-    assert [r.state for r in q.runs] == ["failed", "failed", "done"] and rec["failed"] == ["broken", "no_data"]
+    assert [r.state for r in q.runs] == ["failed", "failed", "done"] and rec["failed"] == ["nested/broken", "no_data"]
     assert "no_such_key" in q.runs[0].error  # its config does not compose: never launched
     assert "no_such_scene" in q.runs[1].error and "stdout.log" in q.runs[1].error
     assert "no_such_scene" in (tmp_path / "work" / "no_data" / "stdout.log").read_text()
@@ -154,3 +161,135 @@ def test_a_plan_by_experiment_puts_the_first_experiments_on_every_scene_first(tm
     assert [r.id.split("__")[0] for r in by_scene.runs[:4]] == exps  # the default: a scene's methods together
     with pytest.raises(ValueError, match="--order"):
         qm.plan(exps, scenes, [0], [], est_s=400, order="seed")
+
+
+FAKE_RUN = """
+import json, sys, time
+from pathlib import Path
+run = Path(next(a for a in sys.argv if a.startswith("hydra.run.dir=")).split("=", 1)[1])
+run.mkdir(parents=True, exist_ok=True)
+stamps = Path(sys.argv[1])
+seen = stamps / (run.relative_to(run.parents[2]).as_posix().replace("/", "__"))
+first = not seen.exists()
+seen.write_text(seen.read_text() + "x" if seen.exists() else "x")
+(run / "config.yaml").write_text("{}")
+(run / "metrics.json").write_text(json.dumps({"test": {"psnr": 20.0}}))
+# the first try of a run whose scene is 'b' shared the machine
+(run / "load.json").write_text(json.dumps({"idle": not (first and run.parent.name == "b")}))
+"""
+
+
+def test_one_call_at_a_time_on_a_work_folder(tmp_path):
+    """A second call on the same WORK would train the same runs into the same folders: refused."""
+    import fcntl
+    work = tmp_path / "work"
+    work.mkdir()
+    q = qm.plan(["embedded_deform"], [], [0], [], est_s=1)
+    with open(work / ".queue.lock", "w") as held:  # a call running on WORK holds it
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(qm.QueueBusy, match="another queue call is running"):
+            qm.execute(q, work, 1, 60, log=lambda m: None)
+        q.save(tmp_path / "q.json")
+        with pytest.raises(SystemExit, match="another queue call is running"):
+            qm.main(["run", str(tmp_path / "q.json"), "--work", str(work), "--out", str(tmp_path / "out")])
+    assert q.runs[0].state == "pending" and q.runs[0].tries == 0
+
+
+def test_a_pause_file_holds_the_next_run_and_a_command_replaces_stdr_train(tmp_path):
+    """WORK/pause.<name> holds a job before it starts its run; `--command` runs another program in
+    place of stdr-train (here one that only writes the run's files), with {run_dir} filled in."""
+    import time
+    (tmp_path / "fake_run.py").write_text(FAKE_RUN)
+    stamps = tmp_path / "stamps"
+    stamps.mkdir()
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "pause.study").write_text("")
+    q = qm.plan(["embedded_deform"], [tmp_path / "a"], [0], [], est_s=1)
+    q.save(tmp_path / "q.json")
+    cmd = f"{sys.executable} {tmp_path / 'fake_run.py'} {stamps} --marker {{run_dir}}/m"
+    proc = subprocess.Popen([sys.executable, "-m", "stdr.cli.tool", "queue", "run", str(tmp_path / "q.json"), "--work",
+                             str(work), "--out", str(tmp_path / "out"), "--budget", "300", "--command", cmd],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    log = work / "queue.log"
+    deadline = time.time() + 120
+    while "paused (pause.study)" not in (log.read_text(errors="replace") if log.exists() else ""):
+        assert proc.poll() is None and time.time() < deadline, proc.communicate()[0]
+        time.sleep(0.5)
+    time.sleep(1.0)
+    assert not any(stamps.iterdir())  # held: nothing ran
+    (work / "pause.study").unlink()
+    out = proc.communicate(timeout=120)[0]
+    assert proc.returncode == 0, out
+    state = qm.Queue.load(tmp_path / "q.json")
+    assert [r.state for r in state.runs] == ["done"], out
+    first = (work / q.runs[0].id / "stdout.log").read_text().splitlines()[0]
+    assert f"--marker {work / q.runs[0].id}/m" in first and "experiment=embedded_deform" in first
+
+
+def test_the_headline_study_records_idle_runs_and_runs_a_shared_one_again(tmp_path, monkeypatch):
+    """studies/headline.py on the queue, with a stand-in for the timed stdr-train: every run of the
+    seed is recorded; the one that shared the machine is run again in the next sweep and then recorded."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    import studies.headline as h
+    (tmp_path / "fake_run.py").write_text(FAKE_RUN)
+    stamps = tmp_path / "stamps"
+    stamps.mkdir()
+    root = tmp_path / "dnerf"
+    for s in ("a", "b"):
+        (root / s).mkdir(parents=True)
+        (root / s / "transforms_train.json").write_text("{}")
+    monkeypatch.setattr(h, "SCENES", ("a", "b"))
+    monkeypatch.setattr(h, "EXPERIMENTS", ("dnerf_deform", "dnerf_deform_stdr"))
+    monkeypatch.setattr(h, "command", lambda code: [sys.executable, str(tmp_path / "fake_run.py"), str(stamps)])
+    records = tmp_path / "records"
+    assert h.main([str(root), "--work", str(tmp_path / "work"), "--records", str(records), "--seeds", "7",
+                   "--no-results"]) == 0
+    assert sorted(p.parent.relative_to(records).as_posix() for p in records.rglob("metrics.json")) == sorted(
+        f"{e}/{s}/s7" for s in ("a", "b") for e in ("dnerf_deform", "dnerf_deform_stdr"))
+    tries = {p.name: len(p.read_text()) for p in stamps.iterdir()}
+    assert tries == {f"{e}__{s}__s7": 1 if s == "a" else 2 for s in ("a", "b") for e in ("dnerf_deform", "dnerf_deform_stdr")}
+    assert all(json.loads((p.parent / "load.json").read_text())["idle"] for p in records.rglob("metrics.json"))
+    assert h.plan_seed(root, 7, records).runs == []  # resumable: nothing left to plan
+
+
+def test_run_one_trains_legs_in_one_folder_and_raises_on_failure(tmp_path):
+    """A study's trunk and branch legs: run_one to train.stop_at (pending, with a checkpoint), then
+    on to the end in the same folder (done, resumed there); a run that fails raises with its error."""
+    run = tmp_path / "work" / "trunk"
+    first = qm.run_one([*_toy(tmp_path, iterations=30), "experiment=embedded_deform", "train.stop_at=12"], run,
+                       log=lambda m: None)
+    assert first.state == "pending" and (run / "checkpoints" / "last.pt").is_file() and not (run / "metrics.json").exists()
+    done = qm.run_one([*_toy(tmp_path, iterations=30), "experiment=embedded_deform"], run, log=lambda m: None)
+    out = (run / "stdout.log").read_text()
+    assert done.state == "done" and "resumed from" in out and "at iteration 12" in out
+    with pytest.raises(RuntimeError, match="no_such_key"):
+        qm.run_one(["experiment=embedded_deform", "optim.no_such_key=1"], tmp_path / "work" / "bad", log=lambda m: None)
+
+
+def test_stopping_the_queue_stops_its_runs(tmp_path):
+    """SIGTERM to `stdr-tool queue run` (a job's time limit, Ctrl-C) ends the sweep and the runs it
+    started: none goes on orphaned, writing into WORK after the call has ended."""
+    import signal
+    import time
+    q = qm.plan(["embedded_deform"], [], [0], [], est_s=1)
+    q.save(tmp_path / "q.json")
+    work = tmp_path / "work"
+    started = work / q.runs[0].id / "started"  # the run's own command line names it (the queue's has {run_dir})
+    cmd = (f"{sys.executable} -c 'import pathlib, sys, time; pathlib.Path(sys.argv[1]).touch(); time.sleep(120)' "
+           "{run_dir}/started")
+    proc = subprocess.Popen([sys.executable, "-m", "stdr.cli.tool", "queue", "run", str(tmp_path / "q.json"), "--work",
+                             str(work), "--out", str(tmp_path / "out"), "--budget", "300", "--command", cmd],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+    def alive():
+        return subprocess.run(["pgrep", "-f", str(started)], capture_output=True).returncode == 0
+    deadline = time.time() + 120
+    while not started.exists():
+        assert proc.poll() is None and time.time() < deadline, proc.communicate()[0]
+        time.sleep(0.5)
+    assert alive()
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    time.sleep(1)
+    assert not alive()

@@ -35,6 +35,8 @@ class QueueSweeperConf:
     queue: str = "???"                # the queue file (stdr-tool queue plan)
     deadline: Optional[float] = None  # Unix time: train.deadline and train.start_by of every job
     isolate: bool = True              # each job trains in a child process of its own (stdr.cli.train)
+    # that process's command before the overrides (default: python -m stdr.cli.train); {run_dir}: the job's folder
+    command: Optional[List[str]] = None
 
 
 ConfigStore.instance().store(group="hydra/sweeper", name="stdr_queue", node=QueueSweeperConf, provider="stdr")
@@ -52,7 +54,8 @@ def job_overrides(runs: List[dict], arguments: List[str], deadline: Optional[flo
 
 
 class QueueSweeper(Sweeper):
-    def __init__(self, queue: str, deadline: Optional[float] = None, isolate: bool = True) -> None:
+    def __init__(self, queue: str, deadline: Optional[float] = None, isolate: bool = True,
+                 command: Optional[List[str]] = None) -> None:
         self.queue, self.deadline = Path(queue), deadline
         self.config: Optional[DictConfig] = None
         self.launcher: Optional[Launcher] = None

@@ -5,6 +5,7 @@ import json
 import shlex
 import subprocess
 import sys
+import time
 import traceback
 from pathlib import Path
 
@@ -23,13 +24,30 @@ register()
 
 FAILURES = "failures.jsonl"  # in a sweep folder: one line per failed job
 STDOUT = "stdout.log"  # in a run folder of a sweep whose jobs run in their own process
+POLL_S = 10.0  # seconds between looks at a sweep folder's pause files
+
+
+def _wait_while_paused(sweep_dir: Path) -> None:
+    """Hold the job while <sweep dir>/pause or any pause.<name> exists (yours, or another study's
+    that wants the machine first): the run in progress finishes, the next one waits."""
+    said = False
+    while any(sweep_dir.glob("pause*")):
+        if not said:
+            print(f"[stdr] {time.strftime('%T')} paused ({' '.join(p.name for p in sweep_dir.glob('pause*'))})",
+                  flush=True)
+            said = True
+        time.sleep(POLL_S)
 
 
 def _in_own_process(hc, run_dir: Path, data_base: str) -> None:
     """The job's run as `stdr-train <the job's overrides> hydra.run.dir=<its folder>` in a child
     process (hydra.sweeper.isolate: stdr_queue): a crash or a broken CUDA context ends that run
-    alone, not the launcher's worker and the jobs after it. Its output: <run folder>/stdout.log."""
-    cmd = [sys.executable, "-m", "stdr.cli.train", *hc.overrides.task, f"hydra.run.dir={run_dir}"]
+    alone, not the launcher's worker and the jobs after it. Its output: <run folder>/stdout.log.
+    hydra.sweeper.command replaces `python -m stdr.cli.train` (another checkout's stdr-train, a
+    wrapper such as scripts/idle_run.py); `{run_dir}` in it is the job's folder."""
+    _wait_while_paused(Path(hc.sweep.dir))
+    prefix = [str(a).replace("{run_dir}", str(run_dir)) for a in (hc.sweeper.get("command") or [])]
+    cmd = [*(prefix or [sys.executable, "-m", "stdr.cli.train"]), *hc.overrides.task, f"hydra.run.dir={run_dir}"]
     run_dir.mkdir(parents=True, exist_ok=True)
     with open(run_dir / STDOUT, "a") as log:
         log.write("$ " + shlex.join(cmd) + "\n")

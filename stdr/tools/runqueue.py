@@ -26,6 +26,8 @@ at least 1).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import fcntl
 import io
 import json
 import os
@@ -34,6 +36,7 @@ import signal
 import subprocess
 import sys
 import tarfile
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -116,39 +119,95 @@ APP = [sys.executable, "-m", "stdr.cli.train"]
 FAILURES = "failures.jsonl"  # stdr.cli.train's record of a sweep's failed jobs, in WORK
 
 
-def sweep_command(queue_file: Path, work: Path, concurrent: int, threads: int, deadline: float,
-                  launcher=()) -> list[str]:
+def sweep_command(queue_file: Path, work: Path, concurrent: int, threads: int, deadline: float | None,
+                  launcher=(), command=None) -> list[str]:
     """The call as one Hydra multirun: the queue's pending runs (hydra/sweeper=stdr_queue), each in
     WORK/<id>, on joblib's local launcher with `concurrent` jobs (`launcher`: overrides after it,
-    e.g. hydra/launcher=slurm hydra.launcher.partition=gpu)."""
-    return [*APP, "-m", "hydra/sweeper=stdr_queue", f"hydra.sweeper.queue={queue_file}",
-            f"hydra.sweeper.deadline={deadline:.3f}", f"hydra.sweep.dir={work}", "hydra/launcher=joblib",
-            f"hydra.launcher.n_jobs={concurrent}", f"train.threads={threads}", "train.progress=false", *launcher]
+    e.g. hydra/launcher=slurm hydra.launcher.partition=gpu). `command`: what each job runs instead
+    of `python -m stdr.cli.train` ({run_dir}: its folder)."""
+    extra = [] if deadline is None else [f"hydra.sweeper.deadline={deadline:.3f}"]
+    if command:
+        extra.append("hydra.sweeper.command=[" + ",".join(_quoted(a) for a in command) + "]")
+    return [*APP, "-m", "hydra/sweeper=stdr_queue", f"hydra.sweeper.queue={queue_file}", *extra,
+            f"hydra.sweep.dir={work}", "hydra/launcher=joblib", f"hydra.launcher.n_jobs={concurrent}",
+            f"train.threads={threads}", "train.progress=false", *launcher]
 
 
-def _failures_since(path: Path, offset: int) -> dict[str, dict]:
-    """{run id: its failure record} of the lines written to WORK/failures.jsonl after `offset` bytes."""
+def _quoted(text: str) -> str:
+    """One element of a Hydra override list, as a quoted string (paths, {run_dir}, '--')."""
+    return "'" + str(text).replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+@contextlib.contextmanager
+def work_lock(work: Path):
+    """One call at a time on a work folder: a second would train the same runs into the same
+    folders. Raises QueueBusy when another call holds WORK/.queue.lock."""
+    with open(work / ".queue.lock", "a") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise QueueBusy(f"another queue call is running on {work} (it holds {work / '.queue.lock'})") from None
+        yield
+
+
+class QueueBusy(RuntimeError):
+    pass
+
+
+def _failures_since(work: Path, offset: int) -> dict[str, dict]:
+    """{run id (its folder under WORK): its failure record} of the lines written to
+    WORK/failures.jsonl after `offset` bytes."""
+    path = work / FAILURES
     if not path.is_file():
         return {}
     with open(path, "rb") as f:
         f.seek(offset)
         recs = [json.loads(line) for line in f.read().decode().splitlines() if line.strip()]
-    return {Path(r["run_dir"]).name: r for r in recs}
+    return {Path(r["run_dir"]).resolve().relative_to(work).as_posix(): r for r in recs}
 
 
-def execute(q: Queue, work: Path, concurrent: int, budget_s: float, cores: int | None = None,
-            launcher=(), grace_s: float = 30.0, log=print) -> dict:
+def _stop(proc: subprocess.Popen) -> None:
+    """End the sweep and everything it started (its own process group): SIGTERM, then SIGKILL."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
+def execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, cores: int | None = None,
+            launcher=(), command=None, grace_s: float = 30.0, log=print) -> dict:
     """Run the pending runs as one sweep on Hydra's launcher, at most `concurrent` at a time. Every
     job gets the call's deadline: a run stops there with a checkpoint and stays pending (it resumes
     where its folder is kept), and a run whose estimate does not fit before it is not started. The
-    sweep is killed `grace_s` after the deadline. Books each run (done: metrics.json; failed: a line
-    in WORK/failures.jsonl; else pending) and returns this call's record (also in q.calls)."""
+    sweep is killed `grace_s` after the deadline. budget_s None: no deadline. Books each run (done:
+    metrics.json; failed: a line in WORK/failures.jsonl; else pending) and returns this call's
+    record (also in q.calls). One call at a time per WORK (QueueBusy)."""
     if concurrent < 1:
         raise ValueError(f"--concurrent must be at least 1, got {concurrent}")
     work = Path(work).resolve()
     work.mkdir(parents=True, exist_ok=True)
+    main = threading.current_thread() is threading.main_thread()
+    prev = signal.signal(signal.SIGTERM, _exit_on_term) if main else None  # SIGTERM stops the sweep too
+    try:
+        with work_lock(work):
+            return _execute(q, work, concurrent, budget_s, cores, launcher, command, grace_s, log)
+    finally:
+        if main:
+            signal.signal(signal.SIGTERM, prev)
+
+
+def _exit_on_term(signum, frame):
+    raise SystemExit(128 + signum)
+
+
+def _execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, cores, launcher, command, grace_s,
+             log) -> dict:
     t0 = time.time()
-    deadline = t0 + budget_s
+    deadline = None if budget_s is None else t0 + budget_s
     threads = max(1, (cores or os.cpu_count() or 1) // concurrent)
     for r in q.runs:  # a run a killed call left as running is pending again
         if r.state == "running":
@@ -159,7 +218,7 @@ def execute(q: Queue, work: Path, concurrent: int, budget_s: float, cores: int |
     rc = 0
     if batch:
         q.save(work / "queue_call.json")  # what the sweeper reads
-        cmd = sweep_command(work / "queue_call.json", work, concurrent, threads, deadline, launcher)
+        cmd = sweep_command(work / "queue_call.json", work, concurrent, threads, deadline, launcher, command)
         with open(work / "queue.log", "a") as logf:
             logf.write(f"$ {shlex.join(cmd)}\n")
             logf.flush()
@@ -167,17 +226,15 @@ def execute(q: Queue, work: Path, concurrent: int, budget_s: float, cores: int |
                                     env={**os.environ, "OMP_NUM_THREADS": str(threads)})
             log(f"[queue] {len(batch)} runs, {concurrent} at a time, {threads} threads each; log {work / 'queue.log'}")
             try:
-                rc = proc.wait(timeout=max(1.0, deadline + grace_s - time.time()))
+                rc = proc.wait(timeout=None if deadline is None else max(1.0, deadline + grace_s - time.time()))
             except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGTERM)
-                try:
-                    proc.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                    proc.wait()
+                _stop(proc)
                 rc = "killed"
                 log(f"[queue] the sweep ran {grace_s:.0f} s past the deadline: stopped")
-    failed_now = _failures_since(fails, offset)
+            except BaseException:  # interrupted (Ctrl-C, SIGTERM): the sweep's runs stop too, not run on orphaned
+                _stop(proc)
+                raise
+    failed_now = _failures_since(work, offset)
     started, finished, failed = [], [], []
     now = time.time()
     for r in batch:
@@ -206,20 +263,29 @@ def execute(q: Queue, work: Path, concurrent: int, budget_s: float, cores: int |
     return rec
 
 
+def run_one(overrides: list[str], run_dir: Path, threads: int = 1, log=print) -> Run:
+    """One run in `run_dir` through the queue (a sweep of one job, no deadline), for a study's
+    steps that must follow each other (a trunk, then its branches). A run stopped by
+    `train.stop_at` comes back pending; one that failed raises RuntimeError with its error."""
+    run_dir = Path(run_dir).resolve()
+    q = Queue([Run(run_dir.name, list(overrides), 0.0)])
+    execute(q, run_dir.parent, 1, None, cores=threads, log=log)
+    if q.runs[0].state == "failed":
+        raise RuntimeError(f"{run_dir}: {q.runs[0].error}")
+    return q.runs[0]
+
+
+def _tail(src: Path, lines: int) -> bytes:
+    return "\n".join(src.read_text(errors="replace").splitlines()[-lines:]).encode()
+
+
 def pack(q: Queue, work: Path, out: Path) -> Path:
-    """OUT/runs.tgz: <id>/{metrics.json, config.yaml, train_profile.json} of every done or failed
-    run whose folder is here (the runs of earlier calls are in their own archives), with the tail of
-    its output (log_tail.txt), and the tail of the sweep's log (queue_log_tail.txt)."""
+    """OUT/runs.tgz: <id>/{metrics.json, config.yaml, train_profile.json, log_tail.txt (the end of
+    its output)} of every done or failed run whose folder is here (the runs of earlier calls are in
+    their own archives); nothing else, so that a reader may refuse any other member. The end of the
+    sweep's log goes beside it, OUT/queue_log_tail.txt."""
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / "runs.tgz.tmp"
-
-    def add_tail(tar, src: Path, name: str, lines: int = 40) -> None:
-        if src.is_file():
-            tail = "\n".join(src.read_text(errors="replace").splitlines()[-lines:]).encode()
-            info = tarfile.TarInfo(name)
-            info.size = len(tail)
-            tar.addfile(info, io.BytesIO(tail))
-
     with tarfile.open(tmp, "w:gz") as tar:
         for r in q.runs:
             d = work / r.id
@@ -228,9 +294,14 @@ def pack(q: Queue, work: Path, out: Path) -> Path:
             for name in FILES:
                 if (d / name).is_file():
                     tar.add(d / name, arcname=f"{r.id}/{name}")
-            add_tail(tar, d / "stdout.log", f"{r.id}/log_tail.txt")
-        add_tail(tar, work / "queue.log", "queue_log_tail.txt", 200)
+            if (d / "stdout.log").is_file():
+                tail = _tail(d / "stdout.log", 40)
+                info = tarfile.TarInfo(f"{r.id}/log_tail.txt")
+                info.size = len(tail)
+                tar.addfile(info, io.BytesIO(tail))
     tmp.replace(out / "runs.tgz")
+    if (work / "queue.log").is_file():
+        (out / "queue_log_tail.txt").write_bytes(_tail(work / "queue.log", 200))
     return out / "runs.tgz"
 
 
@@ -255,6 +326,8 @@ def main(argv=None) -> None:
     r.add_argument("--concurrent", type=int, default=1)
     r.add_argument("--budget", type=float, default=540.0, help="seconds for this call")
     r.add_argument("--cores", type=int, default=None, help="CPU cores to split between the runs (default: all)")
+    r.add_argument("--command", default=None, help="what each run executes instead of `python -m stdr.cli.train`, "
+                   "e.g. 'python scripts/idle_run.py --out {run_dir}/load.json -- CHECKOUT/scripts/run.sh stdr-train'")
     r.epilog = "After --: Hydra overrides for the sweep (e.g. -- hydra/launcher=slurm hydra.launcher.partition=gpu)."
     s = sub.add_parser("status", help="the queue's counts and runs")
     s.add_argument("queue", type=Path)
@@ -271,7 +344,11 @@ def main(argv=None) -> None:
         print(f"[queue] {args.queue}: {len(q.runs)} runs planned")
     elif args.cmd == "run":
         q = Queue.load(args.queue)
-        rec = execute(q, args.work, args.concurrent, args.budget, args.cores, launcher=args.overrides)
+        try:
+            rec = execute(q, args.work, args.concurrent, args.budget, args.cores, launcher=args.overrides,
+                          command=shlex.split(args.command) if args.command else None)
+        except QueueBusy as e:
+            raise SystemExit(f"stdr-tool queue: {e}") from None
         q.save(args.queue)
         args.out.mkdir(parents=True, exist_ok=True)
         q.save(args.out / "queue.json")
