@@ -92,22 +92,26 @@ def test_stdr_tool_compact_applies_the_preset_to_a_trained_run_by_default(tmp_pa
 
 def test_the_presets_file_codecs_are_what_the_bytes_study_chose():
     """compact=on's `pack` section is the codecs docs/measurements/compact_bytes/decision.json chose
-    (steps 1-3), one spec for every method: on a model without a 4DGS grid or an STDR mask the
-    entries for them change nothing, so each method's file is what the study measured for it."""
+    (steps 1-3), with the state candidate docs/measurements/compact_state/decision.json chose for
+    every method (amendment 2's preset, when it names one): one spec for every method. On a model
+    without a 4DGS grid or an STDR mask the entries for them change nothing, so each method's file
+    is what the studies measured for it."""
     from stdr.compact.file import encode_model
     from stdr.model import build_model
     from stdr.compact.pack import spec_of_config
     study = load_script(ROOT / "studies" / "compact_bytes.py", "compact_bytes_study")
     dec = json.loads((ROOT / "docs" / "measurements" / "compact_bytes" / "decision.json").read_text())
     assert dec["complete"] and dec["step3_measured"]
+    state = json.loads((ROOT / "docs" / "measurements" / "compact_state" / "decision.json").read_text())
+    extra = load_script(ROOT / "studies" / "compact_state.py", "compact_state_study").CANDIDATES.get(state["preset"], {})
     preset = spec_of_config(ON.pack)
-    assert ON.pack.enabled and preset == study.chosen_spec("dnerf_4dgs_stdr", dec)[1]
+    assert ON.pack.enabled and preset == {**study.chosen_spec("dnerf_4dgs_stdr", dec)[1], **extra}
     for b in ("deform", "scgs", "spgs", "4dgs"):
         cfg = make_cfg([f"experiment=dnerf_{b}", "compact=on"])
         torch.manual_seed(0)
         model = build_model(cfg, np.linspace(0, 1, 8), torch.zeros(3), torch.device("cpu"),
                             torch.rand(300, 3), torch.rand(300, 3))
-        a, c = encode_model(model, preset), encode_model(model, study.chosen_spec(f"dnerf_{b}", dec)[1])
+        a, c = encode_model(model, preset), encode_model(model, {**study.chosen_spec(f"dnerf_{b}", dec)[1], **extra})
         assert _flat(a["model"]) == _flat(c["model"]), b
         assert ("q8" in {v for k, v in _flat(a["model"]).items() if ".grids." in k and k.endswith("codec")}) == (b == "4dgs")
 
