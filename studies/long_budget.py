@@ -88,7 +88,7 @@ def _segment(cells: list[dict], stop: int | None, args) -> None:
         return
     q = Queue([Run(c["id"], c["overrides"] + ([f"train.stop_at={stop}"] if stop is not None else []), 0.0)
                for c in todo])
-    execute(q, args.work, args.concurrent, budget_s=30 * 24 * 3600, cores=args.concurrent * args.threads)
+    execute(q, args.work, args.concurrent, budget_s=None, cores=args.concurrent * args.threads)
     for c, r in zip(todo, q.runs):
         if r.state == "failed":
             raise SystemExit(f"[long_budget] {r.id}: failed ({r.error})")

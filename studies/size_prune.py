@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from studies.common import M, commit, records_in, records_to_write  # noqa: E402
-from stdr.tools.runqueue import run_one  # noqa: E402
+from stdr.tools.runqueue import STDOUT, run_one  # noqa: E402
 
 OUT = M / "size_prune_probe"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
@@ -46,7 +46,7 @@ def command(data: Path, scene: str, value: int) -> list[str]:
 
 def output(rd: Path) -> str:
     """A run's printed output: RUN/stdout.log (the queue's), or RUN.log beside it (before the queue)."""
-    p = rd / "stdout.log" if (rd / "stdout.log").is_file() else rd.with_name(rd.name + ".log")
+    p = rd / STDOUT if (rd / STDOUT).is_file() else rd.with_name(rd.name + ".log")
     return p.read_text(errors="replace")
 
 

@@ -54,6 +54,7 @@ def job_overrides(runs: List[dict], arguments: List[str], deadline: Optional[flo
 
 
 class QueueSweeper(Sweeper):
+    # isolate and command are read by each job from its own config (hydra.sweeper), not here
     def __init__(self, queue: str, deadline: Optional[float] = None, isolate: bool = True,
                  command: Optional[List[str]] = None) -> None:
         self.queue, self.deadline = Path(queue), deadline
@@ -92,7 +93,7 @@ class QueueSweeper(Sweeper):
         except Exception as e:  # noqa: BLE001 - recorded; the other jobs go on
             rec = {"overrides": job, "run_dir": str(sweep_dir / run_id), "log": None,
                    "error": f"{type(e).__name__}: {e}", "traceback": ""}
-            with open(sweep_dir / "failures.jsonl", "a") as f:
+            with open(sweep_dir / "failures.jsonl", "a") as f:  # stdr.tools.runqueue.FAILURES (no stdr import here)
                 f.write(json.dumps(rec) + "\n")
             print(f"[stdr] FAILED {run_id}: its config does not compose: {rec['error']}", flush=True)
             return False

@@ -16,14 +16,13 @@ from omegaconf import DictConfig
 from ..config import CONFIG_DIR
 from ..store import register
 from ..errors import reported
+from ..tools.runqueue import FAILURES, STDOUT
 from ..train.run import run_training
 from .common import check_overrides, reproducible_blas, use_fast_allocator_hint
 
 register()
 
 
-FAILURES = "failures.jsonl"  # in a sweep folder: one line per failed job
-STDOUT = "stdout.log"  # in a run folder of a sweep whose jobs run in their own process
 POLL_S = 10.0  # seconds between looks at a sweep folder's pause files
 
 

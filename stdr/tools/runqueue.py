@@ -116,7 +116,11 @@ def plan(experiments, scenes, seeds, overrides, est_s: float, variants=(), order
 
 #: the Hydra app a queue's runs are jobs of
 APP = [sys.executable, "-m", "stdr.cli.train"]
-FAILURES = "failures.jsonl"  # stdr.cli.train's record of a sweep's failed jobs, in WORK
+#: a sweep folder's record of its failed jobs, one line each (stdr.cli.train writes it; so does the
+#: stdr_queue sweeper, for a job that does not compose)
+FAILURES = "failures.jsonl"
+#: a run folder's output when its sweep job trains in a process of its own (stdr.cli.train)
+STDOUT = "stdout.log"
 
 
 def sweep_command(queue_file: Path, work: Path, concurrent: int, threads: int, deadline: float | None,
@@ -294,8 +298,8 @@ def pack(q: Queue, work: Path, out: Path) -> Path:
             for name in FILES:
                 if (d / name).is_file():
                     tar.add(d / name, arcname=f"{r.id}/{name}")
-            if (d / "stdout.log").is_file():
-                tail = _tail(d / "stdout.log", 40)
+            if (d / STDOUT).is_file():
+                tail = _tail(d / STDOUT, 40)
                 info = tarfile.TarInfo(f"{r.id}/log_tail.txt")
                 info.size = len(tail)
                 tar.addfile(info, io.BytesIO(tail))
