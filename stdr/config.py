@@ -194,8 +194,7 @@ class EvalConfig:
     lpips_download: bool = True
     lpips_input: str = "[-1,1]"  # official convention; "[0,1]" reproduces the peers' usage
     fps_warmup: int = 3
-    # timed passes over the split (the quality pass is the first); fps is the median pass, all
-    # passes are kept in metrics.json -> fps_passes. Single passes on a busy CPU vary by ~35 %
+    # timed passes (the quality pass is the first); fps: their median, all in metrics.json -> fps_passes
     fps_repeats: int = 3
     save_images: bool = True
 
@@ -208,6 +207,7 @@ class PackConfig:
     # per-tensor codecs over stdr.compact.file.DEFAULT_SPEC (e.g. {shN: "vq:1024", state: f16})
     codecs: Dict[str, str] = field(default_factory=dict)
     finetune: int = 0           # steps of the vq codebooks' fine-tune on the training frames (stdr.compact.finetune)
+    finetune_state: Optional[str] = None  # and of the quantized state with these parts, quantization-aware ("grids")
     sh_degree: Optional[int] = None  # keep the SH rest to this degree's bands (null: all)
     evaluate: bool = True       # render the eval split from the file too (pack.json: PSNR / SSIM of both)
 

@@ -33,6 +33,14 @@ BASE = {"means": "q16", "scales": "q8", "quats": "q8", "opacities": "q8", "sh0":
 CANDIDATES = {"s16": {}, "s8": {"state": "q8"}, "s8g4": {"state": "q8", "state:grids": "q4"},
               # amendment 1: the networks' weights and biases alone in 8 bits
               "s8w": {"state:weight": "q8", "state:bias": "q8"}}
+#: amendment 3: 4DGS's grid in 4 bits, fine-tuned (quantization-aware), against the preset with its
+#: codebook fine-tune; on 4dgs and 4dgs+STDR alone
+RULED = tuple(CANDIDATES)  # the candidates of the protocol's rule (amendments 1 and 2)
+S8W = CANDIDATES["s8w"]
+GRID4 = {"s8wft": {**S8W, "finetune": 500}, "s8wg4": {**S8W, "state:grids": "q4"},
+         "s8wg4ft": {**S8W, "state:grids": "q4", "finetune": 500, "finetune_state": "grids"}}
+CANDIDATES.update(GRID4)
+GRID4_METHODS = ("dnerf_4dgs", "dnerf_4dgs_stdr")
 BOUND = -0.05  # dB, val PSNR against s16, mean over a method's runs
 
 
@@ -64,7 +72,10 @@ def train(args) -> None:
 
 
 def applies(name: str, exp: str) -> bool:
-    """s8g4 differs from s8 only where there is a grid (4dgs)."""
+    """s8g4 differs from s8 only where there is a grid (4dgs); amendment 3's candidates are
+    measured on the 4dgs methods alone."""
+    if name in GRID4:
+        return exp in GRID4_METHODS
     return name != "s8g4" or "4dgs" in exp
 
 
@@ -87,16 +98,19 @@ def val(args) -> None:
                 cfg = load_config(rd / "config.yaml")
                 cfg.device = "cpu"
                 full = load_model(rd / CKPT, "cpu", cfg)
-                frames = load_scene(cfg.data, ("val",), base=str(ROOT), seed=cfg.seed).frames("val")
+                scn = load_scene(cfg.data, ("train", "val"), base=str(ROOT), seed=cfg.seed)
+                frames, train_frames = scn.frames("val"), scn.frames("train")
                 rec = rec or {"experiment": exp, "scene": scene, "seed": seed, "split": "val",
                               "num_gaussians": full.num_gaussians, "full_bytes": None, "candidates": {}}
                 for name in todo:
                     extra = CANDIDATES[name]
                     with tempfile.TemporaryDirectory() as tmp:
-                        w = write_compact(full, Path(tmp) / "m.stdrc", {**BASE, **extra})
+                        w = write_compact(full, Path(tmp) / "m.stdrc", {**BASE, **extra}, train_frames)
                         r = evaluate_model(load_model(Path(tmp) / "m.stdrc", "cpu", cfg), frames, fps_warmup=0)
                     rec["full_bytes"] = w["full_bytes"]
-                    rec["candidates"][name] = {"bytes": w["bytes"], "psnr": r["psnr"], "ssim": r["ssim"], "code": commit()}
+                    rec["candidates"][name] = {"bytes": w["bytes"], "psnr": r["psnr"], "ssim": r["ssim"], "code": commit(),
+                                               **({"finetune": w["finetune"]} if "finetune" in w else {})}
+                    _save(rec, rec_path)  # a long candidate (a fine-tune) is not lost to an interruption
                 base = rec["candidates"]["s16"]
                 for c in rec["candidates"].values():
                     c["delta_psnr"] = c["psnr"] - base["psnr"]
@@ -104,8 +118,12 @@ def val(args) -> None:
                     f"{n} {c['bytes'] / 2**20:.3f} MiB {c['delta_psnr']:+.3f} dB" for n, c in rec["candidates"].items()),
                     flush=True)
                 rec.update({"code": commit(), "machine": machine_name(), "date": time.strftime("%Y-%m-%d %H:%M")})
-                rec_path.parent.mkdir(parents=True, exist_ok=True)
-                rec_path.write_text(json.dumps(rec, indent=1) + "\n")
+                _save(rec, rec_path)
+
+
+def _save(rec: dict, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(rec, indent=1) + "\n")
 
 
 def decide(recs: list[dict]) -> dict:
@@ -113,7 +131,7 @@ def decide(recs: list[dict]) -> dict:
     whose runs are not all measured cannot pass (a partial mean is no decision)."""
     need = len(SCENES) * len(SEEDS)
     rows = {}
-    for name in CANDIDATES:
+    for name in RULED:
         per = {}
         for exp in EXPERIMENTS:
             rs = [r for r in recs if r["experiment"] == exp and name in r["candidates"]]
@@ -126,16 +144,36 @@ def decide(recs: list[dict]) -> dict:
                       "passes": bool(first) and all(v["runs"] == need and v["delta_psnr"] >= BOUND for v in first.values())}
     chosen = {}
     for exp in FIRST:  # per method of the protocol, the smallest passing candidate that applies to it
-        ok = [(rows[n]["per_method"][exp]["bytes"], n) for n in CANDIDATES
+        ok = [(rows[n]["per_method"][exp]["bytes"], n) for n in RULED
               if exp in rows[n]["per_method"] and rows[n]["passes"]]
         chosen[exp] = min(ok)[1] if ok else None
     # amendment 2: the preset (one spec for every method) takes a candidate that passes on all of them
-    full = [n for n in CANDIDATES if all(e in rows[n]["per_method"] and rows[n]["per_method"][e]["runs"] == need
+    full = [n for n in RULED if all(e in rows[n]["per_method"] and rows[n]["per_method"][e]["runs"] == need
                                          and rows[n]["per_method"][e]["delta_psnr"] >= BOUND for e in EXPERIMENTS)]
     preset = min(full, key=lambda n: statistics.mean(v["bytes"] for v in rows[n]["per_method"].values())) if full else None
     return {"rule": f"smallest candidate with val dPSNR vs s16 >= {BOUND} dB per method, {need} runs a method",
             "candidates": rows, "chosen": chosen, "preset": preset,
-            "passes_on": f"{', '.join(FIRST)} (the protocol's methods); preset: all of {', '.join(EXPERIMENTS)}"}
+            "passes_on": f"{', '.join(FIRST)} (the protocol's methods); preset: all of {', '.join(EXPERIMENTS)}",
+            "grid4": decide_grid4(recs)}
+
+
+def decide_grid4(recs: list[dict]) -> dict:
+    """Amendment 3's rule: per 4dgs method, the mean over its runs of val PSNR(s8wg4ft) - val
+    PSNR(s8wft) (and of s8wg4, for the record); adopted when every method has all its runs and
+    a mean >= BOUND."""
+    need = len(SCENES) * len(SEEDS)
+    per = {}
+    for exp in GRID4_METHODS:
+        rs = [r["candidates"] for r in recs if r["experiment"] == exp and all(n in r["candidates"] for n in GRID4)]
+        if rs:
+            per[exp] = {"runs": len(rs), **{f"{n}_vs_s8wft": statistics.mean(c[n]["psnr"] - c["s8wft"]["psnr"] for c in rs)
+                                            for n in ("s8wg4", "s8wg4ft")},
+                        "worst_s8wg4ft": min(c["s8wg4ft"]["psnr"] - c["s8wft"]["psnr"] for c in rs),
+                        **{f"{n}_bytes": statistics.mean(c[n]["bytes"] for c in rs) for n in GRID4}}
+    adopted = len(per) == len(GRID4_METHODS) and all(v["runs"] == need and v["s8wg4ft_vs_s8wft"] >= BOUND
+                                                     for v in per.values())
+    return {"rule": f"s8wg4ft - s8wft >= {BOUND} dB, mean over {need} runs, for each of {', '.join(GRID4_METHODS)}",
+            "per_method": per, "adopted": adopted}
 
 
 def table(dec: dict, recs: list[dict]) -> str:
@@ -152,6 +190,16 @@ def table(dec: dict, recs: list[dict]) -> str:
                          f"{v['file_over_model']:.3f} | {'yes' if row['passes'] else 'no'} |")
     lines += ["", "Chosen: " + ", ".join(f"{e}: {c or 'none'}" for e, c in dec["chosen"].items()),
               "", f"For `compact=on` (every method measured and passing, amendment 2): {dec.get('preset') or 'none yet'}"]
+    g = dec.get("grid4") or {}
+    if g.get("per_method"):
+        lines += ["", "## Amendment 3: the grid in 4 bits, fine-tuned (val, against `s8wft`: the preset with its "
+                  "codebook fine-tune)", "", f"Rule: {g['rule']}.", "",
+                  "| method | runs | s8wg4 − s8wft (dB) | s8wg4ft − s8wft (dB) | worst run | file KiB: s8wft, s8wg4ft |",
+                  "|---|---|---|---|---|---|"]
+        for exp, v in g["per_method"].items():
+            lines.append(f"| {exp} | {v['runs']} | {v['s8wg4_vs_s8wft']:+.3f} | {v['s8wg4ft_vs_s8wft']:+.3f} | "
+                         f"{v['worst_s8wg4ft']:+.3f} | {v['s8wft_bytes'] / 1024:.1f}, {v['s8wg4ft_bytes'] / 1024:.1f} |")
+        lines += ["", f"Amendment 3: {'adopted' if g['adopted'] else 'not adopted'}"]
     return "\n".join(lines) + "\n"
 
 

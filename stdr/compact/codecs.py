@@ -25,6 +25,8 @@ from torch import Tensor
 CODECS = ("raw", "f32", "f16", "q8", "q16", "cols", "q4", "vq", "lowrank")
 #: codecs that take a size after a colon ("vq:1024", "lowrank:8")
 SIZED = {"vq": "C codewords", "lowrank": "rank R"}
+#: the uniform quantizers' top level (levels 0..L, a range per column)
+LEVELS = {"q8": 255.0, "q16": 65535.0, "q4": 15.0}
 KMEANS_ITERS = 20
 F16_MAX = 65504.0
 
@@ -85,6 +87,38 @@ def _unpack4(packed: Tensor, numel: int) -> Tensor:
     return out[:numel]
 
 
+def levels_of(flat: Tensor, lo: Tensor, hi: Tensor, levels: float) -> Tensor:
+    """The quantization levels (float, 0..levels) of flat [M, K] in the ranges lo, hi [K]: the
+    nearest level, values outside the range clamped to its ends; a column with lo == hi reads 0."""
+    step = (hi - lo) / levels
+    return torch.where(step > 0, torch.round((flat - lo) / torch.where(step > 0, step, 1.0)), 0.0).clamp(0, levels)
+
+
+def dequantized(x: Tensor, codec: str, lo: Tensor, hi: Tensor) -> Tensor:
+    """What q8 / q16 / q4 in the range lo, hi [K] per column read back for x [..., K], computed on
+    x's device: decode(encode_in_range(x, codec, lo, hi)) without leaving it."""
+    levels = LEVELS[codec]
+    flat = x.reshape(-1, _columns(x.shape))
+    return (lo + levels_of(flat, lo, hi, levels) * ((hi - lo) / levels)).reshape(x.shape)
+
+
+def encode_in_range(x: Tensor, codec: str, lo: Tensor, hi: Tensor) -> dict:
+    """x [...] in q8 / q16 / q4 with the given range per column (lo, hi [K], K = the last dimension;
+    one for a vector) instead of the tensor's own min and max: values outside read back as the
+    range's ends. `encode` is this with the tensor's range; a quantization-aware fine-tune
+    (stdr.compact.finetune) keeps the range fixed while the values move."""
+    levels = LEVELS[codec]
+    flat = x.detach().cpu().float().reshape(-1, _columns(x.shape))
+    lo, hi = lo.detach().cpu().float(), hi.detach().cpu().float()
+    q = levels_of(flat, lo, hi, levels)
+    if codec == "q4":
+        return {"codec": "q4", "data": _pack4(q), "shape": torch.tensor(list(x.shape), dtype=torch.int64),
+                "lo": lo, "hi": hi}
+    # q16 in int16 (offset by 32 768: torch's uint16 lacks arithmetic)
+    data = q.to(torch.uint8) if codec == "q8" else (q.to(torch.int32) - 32768).to(torch.int16)
+    return {"codec": codec, "data": data.reshape(x.shape), "lo": lo, "hi": hi}
+
+
 def encode(x: Tensor, codec: str, cols: Tensor | None = None) -> dict:
     """x [...] -> the codec's dict (`raw`: any dtype; the others: float). `cols` [N, K] int: the
     columns `cols` keeps of x [N, M]. Sized codecs: "vq:C" (x [N, ...]: rows), "lowrank:R" (x [N, K])."""
@@ -105,19 +139,11 @@ def encode(x: Tensor, codec: str, cols: Tensor | None = None) -> dict:
             raise ValueError(f"codec 'f16': values up to {float(x.abs().max()):.4g} exceed float16's range "
                              f"({F16_MAX}); use 'f32' or 'q8' for this tensor")
         return {"codec": "f16", "data": x.half()}
-    if codec in ("q8", "q16", "q4"):
-        levels = {"q8": 255.0, "q16": 65535.0, "q4": 15.0}[codec]
+    if codec in LEVELS:
         flat = x.float().reshape(-1, _columns(x.shape))
         lo = flat.min(0).values if flat.shape[0] else torch.zeros(flat.shape[1])
         hi = flat.max(0).values if flat.shape[0] else torch.zeros(flat.shape[1])
-        step = (hi - lo) / levels
-        q = torch.where(step > 0, torch.round((flat - lo) / torch.where(step > 0, step, 1.0)), 0.0).clamp(0, levels)
-        if codec == "q4":
-            return {"codec": "q4", "data": _pack4(q), "shape": torch.tensor(list(x.shape), dtype=torch.int64),
-                    "lo": lo, "hi": hi}
-        # q16 in int16 (offset by 32 768: torch's uint16 lacks arithmetic)
-        data = q.to(torch.uint8) if codec == "q8" else (q.to(torch.int32) - 32768).to(torch.int16)
-        return {"codec": codec, "data": data.reshape(x.shape), "lo": lo, "hi": hi}
+        return encode_in_range(x, codec, lo, hi)
     if codec == "vq":
         if x.dim() < 1 or x.shape[0] == 0:
             raise ValueError("codec 'vq' needs rows: x [N, ...] with N >= 1")

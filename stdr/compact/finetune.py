@@ -1,22 +1,32 @@
-"""A short fine-tune of the compact file's codebooks (the `vq:C` codec, stdr.compact.codecs) with the
-training loss, after the file's codecs are applied.
+"""A short fine-tune of the compact file's lossy codes with the training loss, after the file's
+codecs are applied: the codebooks (the `vq:C` codec) and, quantization-aware, the deformation
+state the spec names in `finetune_state` (4DGS's HexPlane planes in q4).
 
-k-means places each codeword at the mean of its rows, which minimizes the error in the tensor, not
-in the image. `finetune_codebooks` renders training frames with the model read back from the file
-and moves only the codewords: each step sets the tensor to codebook[index], renders, and gives each
-codeword the sum of its rows' gradients (the exact gradient of the loss through the lookup), then
-an Adam step. Every other tensor stays as the file holds it. The codebooks are stored back in float16.
-A table that the render uses as a constant (STDR's `derived` conditioning is read detached: the
-field's output of a frozen mask) gets no gradient; its codebook stays as k-means placed it, and
-the result lists it under `fixed`.
+k-means places each codeword at the mean of its rows, and a uniform quantizer rounds each value to
+its nearest level; both minimize the error in the tensor, not in the image. `finetune` renders
+training frames with the model read back from the file and, each step:
+
+* a codebook: the tensor is set to codebook[index]; each codeword gets the sum of its rows'
+  gradients (the exact gradient of the loss through the lookup);
+* a quantized state tensor (q4 / q8 / q16): a float copy of the full model's values is kept, the
+  model reads its quantized value in the file's range (`codecs.encode_in_range`, the range fixed
+  at the file's), and the gradient passes straight through the rounding to the float copy where it
+  lies inside the range (the straight-through estimator);
+
+then one Adam step on them all. Every other tensor stays as the file holds it. At the end the
+codebooks are stored back in float16 and the state tensors re-encoded in their range, so the file
+holds exactly what the last step rendered with. A table that the render uses as a constant (STDR's
+`derived` conditioning is read detached) gets no gradient: its codebook stays as k-means placed
+it, and the result lists it under `fixed`.
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Iterable
 
 import torch
 
 from ..metrics import image_loss
+from . import codecs
 from .file import MARK
 
 #: defaults, fixed before any measurement (docs/measurements/compact_bytes/protocol.md, amendment 1)
@@ -31,17 +41,52 @@ def vq_entries(payload: dict[str, Any]) -> dict[str, dict]:
             and e.get("codec") == "vq"}
 
 
-def finetune_codebooks(payload: dict[str, Any], model, frames, steps: int = STEPS, lr: float = LR,
-                       lambda_dssim: float = LAMBDA_DSSIM, seed: int = 0) -> dict[str, Any]:
-    """Fine-tune, in place, the codebooks of `payload` (from stdr.compact.file.encode_model) on
-    `frames` (training frames), rendering with `model` (the payload's model read back, in eval mode).
-    Returns {steps, loss_first, loss_last (means over the first and last 10 % of the steps), keys
-    (the codebooks fine-tuned), fixed (those no gradient reaches, left as they were)}."""
-    entries = vq_entries(payload)
-    if not entries or steps <= 0:
-        return {"steps": 0, "keys": sorted(entries), "fixed": []}
+def state_entries(payload: dict[str, Any], parts: Iterable[str]) -> dict[str, dict]:
+    """The deformation state tensors a compact payload holds in a uniform quantizer (q4, q8, q16)
+    whose dotted key contains one of `parts` ("grids": 4DGS's HexPlane planes): {key: its encoded dict}."""
+    parts = tuple(parts)
+    return {k: e for k, e in payload["model"]["deform"].items() if isinstance(e, dict) and e.get(MARK)
+            and e.get("codec") in codecs.LEVELS and any(p in k for p in parts)}
+
+
+def _quantized(latent: torch.Tensor, e: dict) -> torch.Tensor:
+    """The value the file stores for `latent` in entry e's codec and range (on latent's device)."""
+    x = latent.detach().movedim(0, -1) if e.get("channels_first") else latent.detach()
+    value = codecs.dequantized(x, e["codec"], e["lo"].to(x.device), e["hi"].to(x.device))
+    return value.movedim(-1, 0) if e.get("channels_first") else value
+
+
+def _store(latent: torch.Tensor, e: dict) -> torch.Tensor:
+    """Entry e's data re-encoded from `latent` in its range; returns what the file reads back."""
+    x = latent.detach().movedim(0, -1) if e.get("channels_first") else latent.detach()
+    e["data"] = codecs.encode_in_range(x, e["codec"], e["lo"], e["hi"])["data"]
+    value = codecs.decode({k: v for k, v in e.items() if k not in (MARK, "channels_first")})
+    return (value.movedim(-1, 0) if e.get("channels_first") else value).to(latent.device)
+
+
+def _in_range(latent: torch.Tensor, e: dict) -> torch.Tensor:
+    """Where latent lies inside its columns' ranges (the straight-through estimator's mask)."""
+    x = latent.movedim(0, -1) if e.get("channels_first") else latent
+    lo, hi = e["lo"].to(latent.device), e["hi"].to(latent.device)
+    inside = (x >= lo) & (x <= hi)
+    return inside.movedim(-1, 0) if e.get("channels_first") else inside
+
+
+def finetune(payload: dict[str, Any], model, frames, steps: int = STEPS, lr: float = LR,
+             lambda_dssim: float = LAMBDA_DSSIM, seed: int = 0, full=None, state_parts: Iterable[str] = ()) -> dict[str, Any]:
+    """Fine-tune, in place, the codebooks of `payload` (from stdr.compact.file.encode_model) and its
+    quantized deformation state under `state_parts`, on `frames` (training frames), rendering with
+    `model` (the payload's model read back, in eval mode). A state tensor starts from `full`'s (the
+    model the payload was encoded from) float values. Returns {steps, loss_first, loss_last (means
+    over the first and last 10 % of the steps), keys (the codebooks fine-tuned), fixed (those no
+    gradient reaches, left as they were), state (the state tensors fine-tuned)}."""
+    entries, states = vq_entries(payload), state_entries(payload, state_parts)
+    if (not entries and not states) or steps <= 0:
+        return {"steps": 0, "keys": sorted(entries), "fixed": [], "state": sorted(states)}
     if not frames:
-        raise ValueError("finetune_codebooks: no frames to fine-tune on")
+        raise ValueError("finetune: no frames to fine-tune on")
+    if states and full is None:
+        raise ValueError("finetune: state_parts needs the full model (full=) for the state's float values")
     model.eval()
     for p in model.params.values():
         p.requires_grad_(False)
@@ -54,7 +99,12 @@ def finetune_codebooks(payload: dict[str, Any], model, frames, steps: int = STEP
         idx[k] = e["data"].long().to(model.params[k].device)
         shapes[k] = model.params[k].shape
         model.params[k].requires_grad_(True)
-    opt = torch.optim.Adam(list(books.values()), lr=lr)
+    latents, targets = {}, {}
+    for k in states:
+        targets[k] = model.deform.get_parameter(k)
+        latents[k] = full.deform.get_parameter(k).detach().float().clone().to(targets[k].device).requires_grad_(True)
+        targets[k].requires_grad_(True)
+    opt = torch.optim.Adam([*books.values(), *latents.values()], lr=lr)
     g = torch.Generator().manual_seed(seed)
     order = torch.randint(0, len(frames), (steps,), generator=g).tolist()
     losses, fixed = [], set()
@@ -64,6 +114,9 @@ def finetune_codebooks(payload: dict[str, Any], model, frames, steps: int = STEP
             for k in books:
                 model.params[k].copy_(books[k][idx[k]].reshape(shapes[k]))
                 model.params[k].grad = None
+            for k, z in latents.items():
+                targets[k].copy_(_quantized(z, states[k]))
+                targets[k].grad = None
         out = model.render(f.camera, f.time)
         loss = image_loss(out.image, f.image, lambda_dssim)[0]
         loss.backward()
@@ -74,6 +127,9 @@ def finetune_codebooks(payload: dict[str, Any], model, frames, steps: int = STEP
                 continue
             grad = model.params[k].grad.reshape(shapes[k][0], -1)
             b.grad = torch.zeros_like(b).index_add_(0, idx[k], grad)
+        for k, z in latents.items():
+            if targets[k].grad is not None:
+                z.grad = targets[k].grad * _in_range(z.detach(), states[k])
         opt.step()
         losses.append(float(loss.detach()))
     with torch.no_grad():
@@ -84,6 +140,9 @@ def finetune_codebooks(payload: dict[str, Any], model, frames, steps: int = STEP
             entries[k]["codebook"] = b.detach().cpu().half()
             model.params[k].copy_(entries[k]["codebook"].float().to(b.device)[idx[k]].reshape(shapes[k]))
             model.params[k].grad = None
+        for k, z in latents.items():
+            targets[k].copy_(_store(z, states[k]))
+            targets[k].grad = None
     tenth = max(1, steps // 10)
     return {"steps": steps, "loss_first": sum(losses[:tenth]) / tenth, "loss_last": sum(losses[-tenth:]) / tenth,
-            "keys": sorted(set(books) - fixed), "fixed": sorted(fixed)}
+            "keys": sorted(set(books) - fixed), "fixed": sorted(fixed), "state": sorted(latents)}

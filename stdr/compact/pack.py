@@ -23,7 +23,7 @@ from ..model import load_model, model_bytes, model_from_checkpoint
 from ..plugins import enabled_plugins, plugin_node
 from . import codecs
 from .file import SUFFIX, check_spec, encode_model, pack_streams
-from .finetune import finetune_codebooks, vq_entries
+from .finetune import finetune, state_entries, vq_entries
 
 
 def check_pack_config(cfg) -> Optional[dict]:
@@ -43,24 +43,34 @@ def check_pack_config(cfg) -> Optional[dict]:
 
 def write_compact(model, path: str | Path, spec: Optional[dict] = None, frames=None) -> dict[str, Any]:
     """Write the compact file of `model` to `path` (atomic, checksummed). Returns {bytes (of its
-    tensors), full_bytes (the model's own tensors), spec}. With spec `finetune: STEPS` and `vq:C`
-    codecs, their codebooks are first fine-tuned for STEPS steps on `frames` (training frames;
+    tensors), full_bytes (the model's own tensors), spec}. With spec `finetune: STEPS`, the
+    codebooks of its `vq:C` codecs and the quantized state its `finetune_state` names (e.g.
+    "grids") are first fine-tuned for STEPS steps on `frames` (training frames;
     stdr.compact.finetune), and the result has `finetune` (its losses). With spec `entropy: zstd`
     every stream is entropy coded last (stdr.compact.entropy)."""
     payload = encode_model(model, spec, pack=False)
     steps = int((spec or {}).get("finetune") or 0)
+    parts = finetune_parts(spec)
     extra = {}
     if steps:
-        if not vq_entries(payload):
-            raise ValueError("compact spec finetune: no tensor is stored with a vq:C codec, so there is nothing to fine-tune")
+        if not vq_entries(payload) and not state_entries(payload, parts):
+            raise ValueError("compact spec finetune: no tensor is stored with a vq:C codec and no state tensor named by "
+                             "finetune_state in q4/q8/q16, so there is nothing to fine-tune")
         if not frames:
             raise ValueError("compact spec finetune: pass the training frames (stdr-tool pack loads them from the run's data)")
         small = model_from_checkpoint(payload, next(model.params.values()).device, model.cfg)
-        extra["finetune"] = finetune_codebooks(payload, small, frames, steps)
+        extra["finetune"] = finetune(payload, small, frames, steps, full=model, state_parts=parts)
         payload["spec"]["finetune"] = steps
+        if parts:
+            payload["spec"]["finetune_state"] = ",".join(parts)
     payload = pack_streams(payload)
     save_checkpoint(path, payload)
     return {"bytes": codecs.nbytes(payload["model"]), "full_bytes": model_bytes(model), "spec": payload["spec"], **extra}
+
+
+def finetune_parts(spec: Optional[dict]) -> tuple[str, ...]:
+    """The spec's `finetune_state` ("grids", or parts separated by commas) as a tuple of parts."""
+    return tuple(p.strip() for p in str((spec or {}).get("finetune_state") or "").split(",") if p.strip())
 
 
 def pack(run_dir: Path, out: Optional[Path] = None, spec: Optional[dict] = None, split: Optional[str] = "val",
@@ -95,6 +105,8 @@ def spec_of_config(pcfg) -> dict:
     spec = {str(k): str(v) for k, v in (pcfg.codecs or {}).items()}
     if pcfg.get("finetune"):
         spec["finetune"] = int(pcfg.finetune)
+    if pcfg.get("finetune_state"):
+        spec["finetune_state"] = str(pcfg.finetune_state)
     if pcfg.get("sh_degree") is not None:
         spec["sh_degree"] = int(pcfg.sh_degree)
     return spec
