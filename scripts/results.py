@@ -398,8 +398,9 @@ def compact_file() -> list[str]:
     targets = next(i for i, line in enumerate(text) if line.startswith("Targets"))
     png = M / "compact_bytes" / "charts" / "size_accuracy_bytes.png"
     return ["", "## The compact model file (`compact=on` with its codecs), test split", "",
-            "Source: `docs/measurements/compact_bytes/table.md`; the codecs were chosen on the val split by the rule "
-            "of `docs/measurements/compact_bytes/protocol.md` (`table_val.md`, `decision.json`). " + stamp, "",
+            "Source: `docs/measurements/compact_bytes/table.md`; the codecs were chosen on the val split by the rules "
+            "of `docs/measurements/compact_bytes/protocol.md` and `docs/measurements/compact_state/protocol.md` "
+            "(`decision.json` in each). " + stamp, "",
             *_first_table(md), "", *[line for line in text[targets:] if not line.startswith("![")],
             *(["![PSNR against MiB: full, compact=on and the compact file, with the file's FPS]"
                "(measurements/compact_bytes/charts/size_accuracy_bytes.png)"] if png.is_file() else [])]

@@ -410,3 +410,81 @@ def test_a_file_from_a_newer_version_is_refused_with_a_clear_error(tmp_path):
         encode_model(t.state.model, {"shN": "q3"})
     with pytest.raises(ValueError, match="write vq:<C codewords>"):
         encode_model(t.state.model, {"shN": "vq"})
+
+
+def test_quantizing_in_a_given_range_is_the_codec_and_its_device_twin_reads_what_the_file_reads():
+    """encode_in_range with the tensor's own min and max is `encode` bit for bit; in a narrower
+    range the values outside read back as its ends; `dequantized` (the fine-tune's on-device form)
+    equals decode(encode_in_range(...)) exactly, a constant column included."""
+    g = torch.Generator().manual_seed(7)
+    x = torch.randn(301, 4, generator=g) * torch.tensor([0.1, 1.0, 3.0, 0.0])
+    for codec in ("q4", "q8", "q16"):
+        own = codecs.encode(x, codec)
+        again = codecs.encode_in_range(x, codec, x.amin(0), x.amax(0))
+        assert all(torch.equal(own[k], again[k]) for k in own if isinstance(own[k], torch.Tensor)), codec
+        lo, hi = x.amin(0) / 2, x.amax(0) / 2
+        e = codecs.encode_in_range(x, codec, lo, hi)
+        y = codecs.decode(e)
+        assert torch.equal(codecs.dequantized(x, codec, lo, hi), y), codec
+        assert (y >= lo - 1e-6).all() and (y <= hi + 1e-6).all(), codec
+        below = x < lo
+        assert below.any() and torch.equal(y[below], lo.expand_as(x)[below]), codec
+        assert torch.equal(y[:, 3], x[:, 3]), codec  # lo == hi: the constant itself
+
+
+def test_the_quantization_aware_fine_tune_of_4dgs_grid_lowers_the_loss_and_keeps_the_file_honest(tmp_path):
+    """state:grids=q4 with finetune_state=grids: the planes are still 4 bits in the range of the
+    file without it (each plane reads back as lo + k (hi - lo) / 15), they moved, the networks
+    are as in the codebook-only file, the model read back renders the training frames with a
+    lower loss, and what the fine-tune rendered last is what the file holds."""
+    from stdr.compact.file import decode_model
+    from stdr.io.checkpoint import load_checkpoint
+    from stdr.metrics import image_loss
+    from stdr.model import load_model
+    t = _trained(tmp_path, "embedded_4dgs", ["model.sh_interval=5"])
+    frames = t.scene.frames("train")
+    spec = {"shN": "vq:8", "state": "f32", "state:grids": "q4", "entropy": "none", "finetune": 40}
+    books = write_compact(t.state.model, tmp_path / "books.stdrc", spec, frames)
+    rec = write_compact(t.state.model, tmp_path / "grid.stdrc", {**spec, "finetune_state": "grids"}, frames)
+    assert rec["spec"]["finetune_state"] == "grids" and rec["finetune"]["state"] and rec["bytes"] == books["bytes"]
+    assert all(".grids." in k for k in rec["finetune"]["state"]) and "finetune_state" not in books["spec"]
+    a, b = load_model(tmp_path / "books.stdrc", "cpu"), load_model(tmp_path / "grid.stdrc", "cpu")
+    sa, sb = a.deform.state_dict(), b.deform.state_dict()
+    raw = decode_model(load_checkpoint(tmp_path / "books.stdrc"))["deform"]
+    assert set(rec["finetune"]["state"]) == {k for k in sa if ".grids." in k}
+    for k in sa:
+        if k in rec["finetune"]["state"]:
+            x = sb[k].movedim(0, -1).reshape(-1, sb[k].shape[0])
+            ref = raw[k].movedim(0, -1).reshape(-1, sb[k].shape[0])
+            lo, hi = ref.amin(0), ref.amax(0)  # the codebook-only file's range: lo and hi are levels 0 and 15
+            k15 = (x - lo) / ((hi - lo) / 15)
+            assert (k15 - k15.round()).abs().max() < 1e-3 and k15.min() > -1e-3 and k15.max() < 15 + 1e-3, k
+        else:
+            assert torch.equal(sa[k], sb[k]), k
+    assert any(not torch.equal(sa[k], sb[k]) for k in rec["finetune"]["state"])
+
+    def loss(m):
+        m.eval()
+        with torch.no_grad():
+            return sum(float(image_loss(m.render(f.camera, f.time).image, f.image, 0.2)[0]) for f in frames)
+    assert loss(b) < loss(a)
+
+
+def test_finetune_state_changes_nothing_in_a_model_without_that_state_and_needs_the_fine_tune(tmp_path):
+    """One spec serves every method: on deform (no grid) finetune_state=grids writes the same
+    file, byte for byte; without finetune steps it is refused, naming the key and the fix, as
+    stdr-train refuses it before training."""
+    from stdr.compact.pack import check_pack_config
+    from stdr.errors import ConfigError
+    from stdr.testing import tiny_config
+    t = _trained(tmp_path, "embedded_deform", ["model.sh_interval=5"])
+    frames = t.scene.frames("train")
+    spec = {"shN": "vq:8", "finetune": 10}
+    write_compact(t.state.model, tmp_path / "a.stdrc", spec, frames)
+    write_compact(t.state.model, tmp_path / "b.stdrc", {**spec, "finetune_state": "grids"}, frames)
+    assert (tmp_path / "a.stdrc").read_bytes() == (tmp_path / "b.stdrc").read_bytes()
+    with pytest.raises(ValueError, match=r"finetune_state.*pack\.finetune=500"):
+        write_compact(t.state.model, tmp_path / "c.stdrc", {"state:grids": "q4", "finetune_state": "grids"}, frames)
+    cfg = tiny_config(tmp_path, ["experiment=embedded_4dgs", "pack.enabled=true", "pack.finetune_state=grids"])
+    with pytest.raises(ConfigError, match=r"pack\.finetune_state.*pack\.finetune=500"):
+        check_pack_config(cfg)

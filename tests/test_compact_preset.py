@@ -33,6 +33,7 @@ def test_compact_on_sets_the_presets_keys_for_every_method(exp):
     assert off.prune.share == 0 and off.stdr.mask_bits == 32 and off.stdr.time_bins == 0
     assert on.pack.enabled == ON.pack.enabled and dict(on.pack.codecs) == dict(ON.pack.codecs)
     assert on.pack.finetune == ON.pack.finetune and not off.pack.enabled and not off.pack.codecs
+    assert on.pack.finetune_state == OmegaConf.select(ON, "pack.finetune_state", default=None) and not off.pack.finetune_state
     # everything else is the method's own
     strip = ("compact", "prune", "stdr", "pack")
     assert {k: v for k, v in OmegaConf.to_container(on).items() if k not in strip} == \
@@ -103,7 +104,12 @@ def test_the_presets_file_codecs_are_what_the_bytes_study_chose():
     dec = json.loads((ROOT / "docs" / "measurements" / "compact_bytes" / "decision.json").read_text())
     assert dec["complete"] and dec["step3_measured"]
     state = json.loads((ROOT / "docs" / "measurements" / "compact_state" / "decision.json").read_text())
-    extra = load_script(ROOT / "studies" / "compact_state.py", "compact_state_study").CANDIDATES.get(state["preset"], {})
+    cs = load_script(ROOT / "studies" / "compact_state.py", "compact_state_study")
+    extra = dict(cs.CANDIDATES.get(state["preset"], {}))
+    # amendment 3: 4DGS's grid in 4 bits with its quantization-aware fine-tune, when adopted
+    grid4 = (state.get("grid4") or {}).get("adopted")
+    if grid4:
+        extra.update({k: v for k, v in cs.GRID4["s8wg4ft"].items() if k in ("state:grids", "finetune_state")})
     preset = spec_of_config(ON.pack)
     assert ON.pack.enabled and preset == {**study.chosen_spec("dnerf_4dgs_stdr", dec)[1], **extra}
     for b in ("deform", "scgs", "spgs", "4dgs"):
@@ -113,7 +119,8 @@ def test_the_presets_file_codecs_are_what_the_bytes_study_chose():
                             torch.rand(300, 3), torch.rand(300, 3))
         a, c = encode_model(model, preset), encode_model(model, {**study.chosen_spec(f"dnerf_{b}", dec)[1], **extra})
         assert _flat(a["model"]) == _flat(c["model"]), b
-        assert ("q8" in {v for k, v in _flat(a["model"]).items() if ".grids." in k and k.endswith("codec")}) == (b == "4dgs")
+        grid_codecs = {v for k, v in _flat(a["model"]).items() if ".grids." in k and k.endswith("codec")}
+        assert grid_codecs == ({"q4" if grid4 else "q8"} if b == "4dgs" else set()), b
 
 
 def _flat(x, p=""):

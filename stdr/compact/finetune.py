@@ -80,7 +80,9 @@ def finetune(payload: dict[str, Any], model, frames, steps: int = STEPS, lr: flo
     model the payload was encoded from) float values. Returns {steps, loss_first, loss_last (means
     over the first and last 10 % of the steps), keys (the codebooks fine-tuned), fixed (those no
     gradient reaches, left as they were), state (the state tensors fine-tuned)}."""
-    entries, states = vq_entries(payload), state_entries(payload, state_parts)
+    entries = vq_entries(payload)
+    trainable = {k for k, _ in model.deform.named_parameters()}  # a buffer under a named part is not trained
+    states = {k: e for k, e in state_entries(payload, state_parts).items() if k in trainable}
     if (not entries and not states) or steps <= 0:
         return {"steps": 0, "keys": sorted(entries), "fixed": [], "state": sorted(states)}
     if not frames:

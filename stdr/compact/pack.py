@@ -61,7 +61,7 @@ def write_compact(model, path: str | Path, spec: Optional[dict] = None, frames=N
         small = model_from_checkpoint(payload, next(model.params.values()).device, model.cfg)
         extra["finetune"] = finetune(payload, small, frames, steps, full=model, state_parts=parts)
         payload["spec"]["finetune"] = steps
-        if parts:
+        if extra["finetune"]["state"]:  # recorded where it tuned something: a model without the state writes the same file
             payload["spec"]["finetune_state"] = ",".join(parts)
     payload = pack_streams(payload)
     save_checkpoint(path, payload)
