@@ -22,7 +22,8 @@ disagree) -> train_keys (short trainings with the speed keys through prunes, opa
 evaluations and a guard recovery, against the torch forms; blocking launches) -> memcheck_keys (one
 40-step training with the speed keys through the same events, under memcheck) -> proj_scale
 (CUDA against the CPU extension at 200k and 1M Gaussians, both antialiasing modes) -> train_tests
-(rasterizer at training scale; training + resume on CUDA, all four baselines with STDR) ->
+(rasterizer at training scale; training + resume on CUDA, all four baselines with STDR; the compact
+file's quantization-aware fine-tune on CUDA) ->
 syncs_cuda (an ordinary training step of every baseline +- STDR makes no synchronizing call the
 CUDA runtime reports; the guard's one) -> run_deform (a budget=cpu D-NeRF run, comparable to
 docs/measurements/gpu_check_h100) -> bench_train -> bench_train_fast (the same with the speed keys
@@ -300,8 +301,9 @@ def build_stages(args, py: str, dry: bool) -> tuple[list[Stage], list[Stage]]:
                                             "tests/test_guard.py", "-k",
                                             "cuda and not nvcc and not torch_headers and not training_scale and not benchmark_row and not at_scale"]
         scale = pyt + junit("proj_scale") + ["tests/test_compiled.py", "-k", "cuda_projection_matches_the_cpu_extension_at_scale"]
-        ttests = pyt + junit("train_tests") + ["tests/test_compiled.py", "tests/test_device.py", "-k",
-                                               "training_scale or training_on_cuda or (benchmark_row and not cpu)"]
+        ttests = pyt + junit("train_tests") + ["tests/test_compiled.py", "tests/test_device.py", "tests/test_compact_file.py",
+                                               "-k", "training_scale or training_on_cuda or (benchmark_row and not cpu) "
+                                               "or fine_tune_on_cuda"]
         syncs = pyt + junit("syncs_cuda") + ["tests/test_syncs.py", "-k", "cuda or counter"]
         # the binning with its passes made to disagree, under memcheck (seconds)
         binning = memchecked([*pyt, *junit("binning_memcheck"), "tests/test_binning.py"], py)

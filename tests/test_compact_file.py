@@ -488,3 +488,33 @@ def test_finetune_state_changes_nothing_in_a_model_without_that_state_and_needs_
     cfg = tiny_config(tmp_path, ["experiment=embedded_4dgs", "pack.enabled=true", "pack.finetune_state=grids"])
     with pytest.raises(ConfigError, match=r"pack\.finetune_state.*pack\.finetune=500"):
         check_pack_config(cfg)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine (torch.cuda.is_available() is False)")
+def test_the_quantization_aware_fine_tune_on_cuda_tunes_the_grid(tmp_path):
+    """The fine-tune of a model on the GPU (codebooks and 4DGS's grid through the quantizer's
+    on-device twin): the planes are still 4 bits in the file's range, and the file renders the
+    training frames with a lower loss than the codebook-only file."""
+    from stdr.metrics import image_loss
+    from stdr.model import load_model
+    t = _trained(tmp_path, "embedded_4dgs", ["model.sh_interval=5", "device=cuda", "render.backend=cuda"])
+    model = t.state.model
+    assert next(model.deform.parameters()).device.type == "cuda"
+    frames = t.scene.frames("train")
+    spec = {"shN": "vq:8", "state:grids": "q4", "finetune": 40}
+    write_compact(model, tmp_path / "books.stdrc", spec, frames)
+    rec = write_compact(model, tmp_path / "grid.stdrc", {**spec, "finetune_state": "grids"}, frames)
+    assert rec["finetune"]["state"]
+    a, b = load_model(tmp_path / "books.stdrc", "cuda"), load_model(tmp_path / "grid.stdrc", "cuda")
+    for k in rec["finetune"]["state"]:
+        x = b.deform.get_parameter(k).detach().cpu().movedim(0, -1).reshape(-1, b.deform.get_parameter(k).shape[0])
+        ref = a.deform.get_parameter(k).detach().cpu().movedim(0, -1).reshape(-1, x.shape[1])
+        lo, hi = ref.amin(0), ref.amax(0)
+        k15 = (x - lo) / ((hi - lo) / 15)
+        assert (k15 - k15.round()).abs().max() < 1e-3, k
+
+    def loss(m):
+        m.eval()
+        with torch.no_grad():
+            return sum(float(image_loss(m.render(f.camera, f.time).image, f.image, 0.2)[0]) for f in frames)
+    assert loss(b) < loss(a)
