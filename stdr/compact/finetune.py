@@ -9,8 +9,8 @@ training frames with the model read back from the file and, each step:
 * a codebook: the tensor is set to codebook[index]; each codeword gets the sum of its rows'
   gradients (the exact gradient of the loss through the lookup);
 * a quantized state tensor (q4 / q8 / q16): a float copy of the full model's values is kept, the
-  model reads its quantized value in the file's range (`codecs.encode_in_range`, the range fixed
-  at the file's), and the gradient passes straight through the rounding to the float copy where it
+  model reads its quantized value in the file's range (`codecs.dequantized`, on the model's
+  device; the range fixed at the file's), and the gradient passes straight through the rounding to the float copy where it
   lies inside the range (the straight-through estimator);
 
 then one Adam step on them all. Every other tensor stays as the file holds it. At the end the
