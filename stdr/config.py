@@ -207,7 +207,7 @@ class PackConfig:
     # per-tensor codecs over stdr.compact.file.DEFAULT_SPEC (e.g. {shN: "vq:1024", state: f16})
     codecs: Dict[str, str] = field(default_factory=dict)
     finetune: int = 0           # steps of the vq codebooks' fine-tune on the training frames (stdr.compact.finetune)
-    finetune_state: Optional[str] = None  # and of the quantized state with these parts, quantization-aware ("grids")
+    finetune_state: Optional[str] = None  # and in its steps the quantized state with these parts ("grids")
     sh_degree: Optional[int] = None  # keep the SH rest to this degree's bands (null: all)
     evaluate: bool = True       # render the eval split from the file too (pack.json: PSNR / SSIM of both)
 

@@ -470,24 +470,25 @@ def test_the_quantization_aware_fine_tune_of_4dgs_grid_lowers_the_loss_and_keeps
     assert loss(b) < loss(a)
 
 
-def test_finetune_state_changes_nothing_in_a_model_without_that_state_and_needs_the_fine_tune(tmp_path):
+def test_finetune_state_changes_nothing_in_a_model_without_that_state_or_without_the_fine_tune(tmp_path):
     """One spec serves every method: on deform (no grid) finetune_state=grids writes the same
-    file, byte for byte; without finetune steps it is refused, naming the key and the fix, as
-    stdr-train refuses it before training."""
+    file, byte for byte, and so does a spec without fine-tune steps (`compact=on pack.finetune=0`
+    on 4dgs: nothing is tuned, the planes are the plain 4-bit ones); stdr-train accepts both."""
     from stdr.compact.pack import check_pack_config
-    from stdr.errors import ConfigError
     from stdr.testing import tiny_config
-    t = _trained(tmp_path, "embedded_deform", ["model.sh_interval=5"])
+    t = _trained(tmp_path / "d", "embedded_deform", ["model.sh_interval=5"])
     frames = t.scene.frames("train")
     spec = {"shN": "vq:8", "finetune": 10}
     write_compact(t.state.model, tmp_path / "a.stdrc", spec, frames)
     write_compact(t.state.model, tmp_path / "b.stdrc", {**spec, "finetune_state": "grids"}, frames)
     assert (tmp_path / "a.stdrc").read_bytes() == (tmp_path / "b.stdrc").read_bytes()
-    with pytest.raises(ValueError, match=r"finetune_state.*pack\.finetune=500"):
-        write_compact(t.state.model, tmp_path / "c.stdrc", {"state:grids": "q4", "finetune_state": "grids"}, frames)
-    cfg = tiny_config(tmp_path, ["experiment=embedded_4dgs", "pack.enabled=true", "pack.finetune_state=grids"])
-    with pytest.raises(ConfigError, match=r"pack\.finetune_state.*pack\.finetune=500"):
-        check_pack_config(cfg)
+    g = _trained(tmp_path / "g", "embedded_4dgs")
+    plain = write_compact(g.state.model, tmp_path / "c.stdrc", {"state:grids": "q4"})
+    off = write_compact(g.state.model, tmp_path / "e.stdrc", {"state:grids": "q4", "finetune_state": "grids"}, frames)
+    assert "finetune" not in off and "finetune_state" not in off["spec"]
+    assert (tmp_path / "c.stdrc").read_bytes() == (tmp_path / "e.stdrc").read_bytes() and plain["bytes"] == off["bytes"]
+    cfg = tiny_config(tmp_path, ["experiment=embedded_4dgs", "compact=on", "pack.finetune=0"])
+    assert check_pack_config(cfg)["finetune_state"] == "grids"
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine (torch.cuda.is_available() is False)")

@@ -103,9 +103,6 @@ def check_spec(spec: Optional[dict]) -> dict:
     if spec.get("sh_degree") is not None and not 0 <= int(spec["sh_degree"]) <= 3:
         raise ValueError(f"compact spec sh_degree={spec['sh_degree']}: use 0 to 3 (or leave it out)")
     entropy_level(spec)
-    if spec.get("finetune_state") and not int(spec.get("finetune") or 0):
-        raise ValueError(f"compact spec finetune_state={spec['finetune_state']!r} (pack.finetune_state) names state "
-                         "for the fine-tune, which is off: set its steps (pack.finetune=500), or leave finetune_state out")
     for k, c in spec.items():
         if k in ("sh_degree", "finetune", "finetune_state", "entropy") or c == DERIVED:
             continue
