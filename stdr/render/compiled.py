@@ -147,6 +147,31 @@ def bin_pairs_split(packed: Tensor, emit: Tensor, vradii: Tensor, width: int, he
                                                       int(tile_size)))
 
 
+def forward_bounded(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, depths: Tensor,
+                    radii: Tensor, width: int, height: int, capacity: int, tile_size: int = 16,
+                    kind: str = "cpu") -> dict[str, Tensor]:
+    """The capture-safe form of the extension's forward (no autograd): no host sync on CUDA, so that a
+    CUDA graph can hold it. Every row is packed (the visible ones first, in the forward's depth order;
+    the others after them, radius 0, no tile), and the Gaussian-tile pairs go into a buffer of
+    `capacity` keys instead of one sized by reading their count on the host. kind='cpu' runs the
+    same steps on the CPU (for the tests: the CPU forward itself has no sync to remove).
+
+    Inputs as `rasterize_compiled`; capacity >= 0. Returns {image [H, W, F], T [H, W], last [H, W]
+    int32, pair_ids [capacity] int32, tile_offsets [n_tiles + 1], packed [N, 6 + F], order [N],
+    total [] int64 (the pairs the image needed, on the device)}. With total <= capacity the image,
+    the tile lists and the backward's inputs are the forward's (pair_ids[:tile_offsets[-1]]); above
+    it the deepest rows' pairs are missing and the image is incomplete: read total where the device
+    is read anyway, and render again with a larger capacity."""
+    check_inputs(means2d, conics, opacities, features, depths, radii, int(width), int(height), int(tile_size), kind)
+    if int(capacity) < 0:
+        raise ValueError(f"stdr rasterizer: forward_bounded needs capacity >= 0, got {capacity}")
+    with torch.no_grad():
+        out = load_extension(kind).forward_bounded(
+            means2d.detach(), conics.detach(), opacities.detach(), features.detach(), depths.detach(),
+            radii.to(torch.int32).contiguous(), int(width), int(height), int(tile_size), int(capacity))
+    return dict(zip(("image", "T", "last", "pair_ids", "tile_offsets", "packed", "order", "total"), out))
+
+
 # ---------------------------------------------------------------- projection and SH shading
 
 def camera_values(camera) -> list[float]:

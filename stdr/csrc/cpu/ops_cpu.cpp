@@ -1,7 +1,7 @@
 // The CPU extension: one module, four kernel families, each in its own header beside the math it
 // shares with the CUDA backend, each with a torch twin that the tests pin it to:
 //
-//   rasterizer (raster_cpu.h)   forward, backward, score, bin_pairs_split, project_forward/backward
+//   rasterizer (raster_cpu.h)   forward, backward, score, bin_pairs_split, forward_bounded, project_forward/backward
 //                               twins: stdr/render/reference.py, projection.py, sh.py
 //   HexPlane (hexplane_cpu.h)   hexplane_forward/backward          twin: stdr/deform/hexplane.py
 //   training loss (loss_cpu.h)  image_loss_forward/backward        twin: stdr/metrics.py image_loss
@@ -19,6 +19,7 @@
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // rasterizer
   m.def("forward", &forward, "tile rasterizer forward (CPU)");
+  m.def("forward_bounded", &forward_bounded, "the CUDA backend's capture-safe forward on the CPU (tests)");
   m.def("backward", &backward, "tile rasterizer backward (CPU)");
   m.def("score", &score, "contribution score: blending weight summed per Gaussian (CPU)");
   m.def("bin_pairs_split", &bin_pairs_split, "the CUDA backend's two-pass binning on the CPU (tests)");

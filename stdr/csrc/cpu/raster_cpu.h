@@ -550,10 +550,35 @@ at::Tensor score(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Ten
 }
 
 // The CUDA backend's two-pass binning (../cuda/raster_cuda.h's bin_pairs: count, scan, write, sort), run
-// serially with the same shared function (raster_math.h's gaussian_tile_keys), for the tests: the
-// count pass reads `packed`, the write pass `emit`, so a test can make them disagree. Returns
-// (pair_ids [P] int32, tile_offsets [n_tiles + 1]) as the CUDA binding does. This CPU backend's
-// own binning is single-pass (bin_pairs above).
+// serially with the same shared function (raster_math.h's gaussian_tile_keys): the count pass reads
+// `P`, the write pass `E` (rows of the same shape). capacity < 0: keys sized by the total;
+// capacity >= 0 (the capture-safe form): that many keys, a row's keys past it dropped, the others
+// filled with a key that sorts after every tile's. total: the pairs counted.
+template <typename T>
+void bin_pairs_two_pass(const T* P, const T* E, const int32_t* r, int64_t V, int64_t D, const Grid& gr,
+                        int64_t capacity, at::Tensor& pair_ids, at::Tensor& tile_offsets, int64_t& total) {
+  auto counts = at::zeros({V}, at::kInt);
+  int32_t* c = counts.data_ptr<int32_t>();
+  for (int64_t v = 0; v < V; ++v)
+    c[v] = stdr::gaussian_tile_keys(P + v * D, r[v], gr.width, gr.height, gr.tile, v, (int64_t*)nullptr, 0);
+  auto ends = at::cumsum(counts, 0, at::kLong);
+  total = V > 0 ? ends[-1].item<int64_t>() : 0;
+  const int64_t size = capacity >= 0 ? capacity : total;
+  const int64_t* end = ends.data_ptr<int64_t>();
+  auto keys = at::full({size}, ((int64_t)gr.n_tiles << 32) | 0x7fffffffLL, at::kLong);
+  int64_t* k = keys.data_ptr<int64_t>();
+  for (int64_t v = 0; v < V; ++v) {
+    const int64_t first = end[v] - c[v], cap = std::min<int64_t>(c[v], size - first);
+    if (cap > 0) stdr::gaussian_tile_keys(E + v * D, r[v], gr.width, gr.height, gr.tile, v, k + first, cap);
+  }
+  auto sorted = std::get<0>(at::sort(keys));
+  pair_ids = at::bitwise_and(sorted, 0xffffffffLL).to(at::kInt);
+  auto tiles = at::bitwise_right_shift(sorted, 32);
+  tile_offsets = at::searchsorted(tiles, at::arange((int64_t)gr.n_tiles + 1, tiles.options()));
+}
+
+// bin_pairs_two_pass for the tests, as the CUDA binding's bin_pairs_split: returns (pair_ids [P]
+// int32, tile_offsets [n_tiles + 1]). This CPU backend's own binning is single-pass (bin_pairs above).
 std::vector<at::Tensor> bin_pairs_split(at::Tensor packed, at::Tensor emit, at::Tensor vradii, int64_t width,
                                         int64_t height, int64_t tile) {
   TORCH_CHECK(packed.device().is_cpu() && emit.device().is_cpu() && vradii.device().is_cpu(),
@@ -565,28 +590,73 @@ std::vector<at::Tensor> bin_pairs_split(at::Tensor packed, at::Tensor emit, at::
   TORCH_CHECK(width > 0 && height > 0 && tile >= 1 && tile <= 32, "stdr CPU bin_pairs_split: bad image or tile size");
   packed = packed.contiguous(); emit = emit.contiguous(); vradii = vradii.contiguous();
   const Grid gr(width, height, tile);
-  const int64_t V = packed.size(0), D = packed.size(1);
-  const int32_t* r = vradii.data_ptr<int32_t>();
-  auto counts = at::zeros({V}, at::kInt);
-  at::Tensor keys;
+  at::Tensor pair_ids, tile_offsets;
+  int64_t total = 0;
   AT_DISPATCH_FLOATING_TYPES(packed.scalar_type(), "stdr_bin_pairs_split", [&] {
-    const scalar_t *P = packed.data_ptr<scalar_t>(), *E = emit.data_ptr<scalar_t>();
-    int32_t* c = counts.data_ptr<int32_t>();
-    for (int64_t v = 0; v < V; ++v)
-      c[v] = stdr::gaussian_tile_keys(P + v * D, r[v], gr.width, gr.height, gr.tile, v, (int64_t*)nullptr, 0);
-    auto ends = at::cumsum(counts, 0, at::kLong);
-    const int64_t total = V > 0 ? ends[-1].item<int64_t>() : 0;
-    const int64_t* end = ends.data_ptr<int64_t>();
-    keys = at::empty({total}, at::kLong);
-    int64_t* k = keys.data_ptr<int64_t>();
-    for (int64_t v = 0; v < V; ++v)
-      stdr::gaussian_tile_keys(E + v * D, r[v], gr.width, gr.height, gr.tile, v, k + end[v] - c[v], (int64_t)c[v]);
+    bin_pairs_two_pass<scalar_t>(packed.data_ptr<scalar_t>(), emit.data_ptr<scalar_t>(), vradii.data_ptr<int32_t>(),
+                                 packed.size(0), packed.size(1), gr, -1, pair_ids, tile_offsets, total);
   });
-  auto sorted = std::get<0>(at::sort(keys));
-  auto pair_ids = at::bitwise_and(sorted, 0xffffffffLL).to(at::kInt);
-  auto tiles = at::bitwise_right_shift(sorted, 32);
-  auto tile_offsets = at::searchsorted(tiles, at::arange((int64_t)gr.n_tiles + 1, tiles.options()));
   return {pair_ids, tile_offsets};
+}
+
+// The CUDA backend's capture-safe forward (../cuda/raster_cuda.h's forward_bounded) on the CPU, for
+// the tests: every row packed, the visible ones first in forward()'s order and the others after
+// them by index (radius 0: no tile), binned by bin_pairs_two_pass into `capacity` keys, then
+// composited as forward() does. Returns forward()'s seven tensors (packed [N, 6+F], order [N],
+// pair_ids [capacity]) and total [] int64.
+std::vector<at::Tensor> forward_bounded(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
+                                        at::Tensor feats, at::Tensor depths, at::Tensor radii,
+                                        int64_t width, int64_t height, int64_t tile, int64_t capacity) {
+  check_inputs(means2d, conics, opac, feats, depths, radii, width, height, tile);
+  TORCH_CHECK(capacity >= 0, "stdr CPU rasterizer: the capture-safe forward needs a capacity >= 0");
+  means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
+  feats = feats.contiguous(); depths = depths.contiguous(); radii = radii.contiguous();
+  const Grid gr(width, height, tile);
+  const int64_t N = means2d.size(0), F = feats.size(1), D = PACK_BASE + F;
+  const int slots = std::max(1, at::get_num_threads());
+  auto acc = at::empty({height, width, F}, means2d.options());
+  auto T_img = at::empty({height, width}, means2d.options());
+  auto last = at::empty({height, width}, means2d.options().dtype(at::kInt));
+  auto order = at::empty({N}, at::kLong);
+  auto packed = at::empty({N, D}, means2d.options());
+  at::Tensor pair_ids, tile_offsets;
+  int64_t total = 0;
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "stdr_forward_bounded", [&] {
+    const int32_t* r = radii.data_ptr<int32_t>();
+    std::vector<int64_t> ord = depth_order(depths.data_ptr<scalar_t>(), r, N);
+    for (int64_t i = 0; i < N; ++i)
+      if (r[i] <= 0) ord.push_back(i);
+    std::copy(ord.begin(), ord.end(), order.data_ptr<int64_t>());
+    std::vector<int32_t> vr(N);
+    const scalar_t *m = means2d.data_ptr<scalar_t>(), *c = conics.data_ptr<scalar_t>(),
+                   *o = opac.data_ptr<scalar_t>(), *f = feats.data_ptr<scalar_t>();
+    scalar_t* P = packed.data_ptr<scalar_t>();
+    for (int64_t v = 0; v < N; ++v) {
+      const int64_t g = ord[v];
+      scalar_t* row = P + v * D;
+      row[0] = m[2 * g]; row[1] = m[2 * g + 1];
+      row[2] = c[3 * g]; row[3] = c[3 * g + 1]; row[4] = c[3 * g + 2];
+      row[5] = o[g];
+      for (int64_t j = 0; j < F; ++j) row[PACK_BASE + j] = f[g * F + j];
+      vr[v] = r[g];
+    }
+    bin_pairs_two_pass<scalar_t>(P, P, vr.data(), N, D, gr, capacity, pair_ids, tile_offsets, total);
+    dispatch_channels(F, [&](auto fc) {  // forward()'s compositing, the same paths
+      constexpr int FC = decltype(fc)::value;
+#ifdef STDR_SIMD
+      if constexpr (std::is_same<scalar_t, float>::value) {
+        forward_tiles_simd<FC>(P, D, pair_ids.data_ptr<int32_t>(), tile_offsets.data_ptr<int64_t>(),
+                               gr, slots, acc.data_ptr<float>(), T_img.data_ptr<float>(),
+                               last.data_ptr<int32_t>());
+        return;
+      }
+#endif
+      forward_tiles<scalar_t, FC>(
+          P, D, pair_ids.data_ptr<int32_t>(), tile_offsets.data_ptr<int64_t>(), gr, slots,
+          acc.data_ptr<scalar_t>(), T_img.data_ptr<scalar_t>(), last.data_ptr<int32_t>());
+    });
+  });
+  return {acc, T_img, last, pair_ids, tile_offsets, packed, order, at::scalar_tensor(total, at::kLong)};
 }
 
 // Gradients for (means2d [N, 2], conics [N, 3], opacities [N], features [N, F]); rows of

@@ -59,14 +59,19 @@ __global__ void pack_kernel(const float* __restrict__ means2d, const float* __re
 __global__ void tiles_kernel(const float* __restrict__ packed, const int32_t* __restrict__ vradii,
                              int64_t V, int D, int width, int height, int tile,
                              int32_t* __restrict__ counts_out, const int32_t* __restrict__ counts,
-                             const int64_t* __restrict__ offsets, int64_t* __restrict__ keys) {
+                             const int64_t* __restrict__ offsets, int64_t* __restrict__ keys,
+                             int64_t capacity) {
   const int64_t v = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
   if (v >= V) return;
   const float* g = packed + v * D;
-  if (keys == nullptr)
+  if (keys == nullptr) {
     counts_out[v] = stdr::gaussian_tile_keys(g, vradii[v], width, height, tile, v, nullptr, 0);
-  else
-    stdr::gaussian_tile_keys(g, vradii[v], width, height, tile, v, keys + offsets[v], (int64_t)counts[v]);
+    return;
+  }
+  // the row's slots, cut at the key buffer's capacity (its first tiles are kept)
+  const int64_t room = capacity - offsets[v];
+  const int64_t cap = room < (int64_t)counts[v] ? room : (int64_t)counts[v];
+  if (cap > 0) stdr::gaussian_tile_keys(g, vradii[v], width, height, tile, v, keys + offsets[v], cap);
 }
 
 template <int F>
@@ -435,15 +440,15 @@ void count_tiles(const float* packed, const int32_t* vradii, int64_t V, int D, i
                  int height, int tile, int32_t* counts, cudaStream_t stream) {
   if (V == 0) return;
   tiles_kernel<<<(unsigned)((V + 255) / 256), 256, 0, stream>>>(
-      packed, vradii, V, D, width, height, tile, counts, nullptr, nullptr, nullptr);
+      packed, vradii, V, D, width, height, tile, counts, nullptr, nullptr, nullptr, 0);
 }
 
 void emit_pairs(const float* packed, const int32_t* vradii, int64_t V, int D, int width,
                 int height, int tile, const int32_t* counts, const int64_t* offsets, int64_t* keys,
-                cudaStream_t stream) {
+                int64_t capacity, cudaStream_t stream) {
   if (V == 0) return;
   tiles_kernel<<<(unsigned)((V + 255) / 256), 256, 0, stream>>>(
-      packed, vradii, V, D, width, height, tile, nullptr, counts, offsets, keys);
+      packed, vradii, V, D, width, height, tile, nullptr, counts, offsets, keys, capacity);
 }
 
 void forward(const float* packed, int F, const int32_t* pair_ids, const int64_t* tile_offsets,

@@ -45,10 +45,12 @@ void count_tiles(const float* packed, const int32_t* vradii, int64_t V, int D, i
                  int height, int tile, int32_t* counts, cudaStream_t stream);
 
 // keys[offsets[v] + k] = (tile << 32) | v for the k-th touched tile (offsets: exclusive scan of
-// counts), never beyond counts[v] slots; slots it does not reach get (n_tiles << 32) | v
+// counts), never beyond counts[v] slots nor beyond keys[capacity - 1] (the binning that sizes keys
+// by the total passes it; the capture-safe one a fixed capacity); slots it does not reach get
+// (n_tiles << 32) | v
 void emit_pairs(const float* packed, const int32_t* vradii, int64_t V, int D, int width,
                 int height, int tile, const int32_t* counts, const int64_t* offsets, int64_t* keys,
-                cudaStream_t stream);
+                int64_t capacity, cudaStream_t stream);
 
 // One block per tile (tile x tile threads): front-to-back compositing.
 void forward(const float* packed, int F, const int32_t* pair_ids, const int64_t* tile_offsets,

@@ -13,6 +13,7 @@
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // rasterizer
   m.def("forward", &forward, "tile rasterizer forward (CUDA)");
+  m.def("forward_bounded", &forward_bounded, "tile rasterizer forward without host syncs, pairs up to a capacity (CUDA)");
   m.def("backward", &backward, "tile rasterizer backward (CUDA)");
   m.def("score", &score, "contribution score: blending weight summed per Gaussian (CUDA)");
   m.def("bin_pairs_split", &bin_pairs_split, "Gaussian-tile binning, count and write passes on given rows (tests)");

@@ -24,8 +24,15 @@ namespace {
 // the first's slots). The second pass reads `emit`, which is `packed` except in the test that
 // makes the two passes disagree on purpose (bin_pairs_split). Keys of slots a row did not fill
 // sort after the last tile: pair_ids may hold a few ids past tile_offsets[n_tiles], in no list.
+//
+// capacity < 0: the key buffer is sized by the total, read on the host (one sync). capacity >= 0
+// (the capture-safe form): a buffer of that many keys, filled first with a key that sorts after
+// every tile's; a row's keys past the capacity are dropped (the deepest rows', as rows are in
+// depth order), and `total` [] int64 (on the device) says how many pairs there were: the caller
+// compares it with the capacity when it reads the device anyway. No host sync.
 void bin_pairs(const at::Tensor& packed, const at::Tensor& emit, const at::Tensor& vradii, int64_t width,
-               int64_t height, int64_t tile, cudaStream_t stream, at::Tensor& pair_ids, at::Tensor& tile_offsets) {
+               int64_t height, int64_t tile, cudaStream_t stream, at::Tensor& pair_ids, at::Tensor& tile_offsets,
+               int64_t capacity, at::Tensor& total) {
   const int64_t V = packed.size(0);
   const int D = (int)packed.size(1);
   const int ntx = (int)((width + tile - 1) / tile), nty = (int)((height + tile - 1) / tile);
@@ -35,12 +42,14 @@ void bin_pairs(const at::Tensor& packed, const at::Tensor& emit, const at::Tenso
                          (int)tile, counts.data_ptr<int32_t>(), stream);
   C10_CUDA_CHECK(cudaGetLastError());
   auto ends = at::cumsum(counts, 0, at::kLong);
-  const int64_t P = V > 0 ? ends[-1].item<int64_t>() : 0;
+  total = V > 0 ? ends.select(0, V - 1).clone() : at::zeros({}, ends.options());
+  const int64_t P = capacity >= 0 ? capacity : total.item<int64_t>();
   auto offsets = ends - counts.to(at::kLong);
-  auto keys = at::empty({P}, packed.options().dtype(at::kLong));
+  auto keys = capacity >= 0 ? at::full({P}, (n_tiles << 32) | 0x7fffffffLL, packed.options().dtype(at::kLong))
+                            : at::empty({P}, packed.options().dtype(at::kLong));
   stdr_cuda::emit_pairs(emit.data_ptr<float>(), vradii.data_ptr<int32_t>(), V, D, (int)width, (int)height,
                         (int)tile, counts.data_ptr<int32_t>(), offsets.data_ptr<int64_t>(),
-                        keys.data_ptr<int64_t>(), stream);
+                        keys.data_ptr<int64_t>(), P, stream);
   C10_CUDA_CHECK(cudaGetLastError());
   auto sorted = std::get<0>(at::sort(keys));  // (tile, depth rank): radix sort on the GPU
   pair_ids = at::bitwise_and(sorted, 0xffffffffLL).to(at::kInt);
@@ -68,7 +77,30 @@ void pack_and_bin(const at::Tensor& means2d, const at::Tensor& conics, const at:
                        radii.data_ptr<int32_t>(), order.data_ptr<int64_t>(), V, (int)F,
                        packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), stream);
   C10_CUDA_CHECK(cudaGetLastError());
-  bin_pairs(packed, packed, vradii, width, height, tile, stream, pair_ids, tile_offsets);
+  at::Tensor total;
+  bin_pairs(packed, packed, vradii, width, height, tile, stream, pair_ids, tile_offsets, -1, total);
+}
+
+// The capture-safe form of pack_and_bin: no host sync. All N rows are packed, the visible ones
+// first in the same order as pack_and_bin's (stable by depth; the invisible ones after them, by
+// index, radius 0: no tile), so the visible rows keep their packed indices and every pair is the
+// same; the pairs go into a buffer of `capacity` keys (bin_pairs), `total` [] int64 the count.
+void pack_all_and_bin(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac,
+                      const at::Tensor& feats, const at::Tensor& depths, const at::Tensor& radii, int64_t width,
+                      int64_t height, int64_t tile, int64_t capacity, cudaStream_t stream, at::Tensor& packed,
+                      at::Tensor& order, at::Tensor& pair_ids, at::Tensor& tile_offsets, at::Tensor& total) {
+  const int64_t N = means2d.size(0), F = feats.size(1);
+  const int D = stdr::PACK_BASE + (int)F;
+  auto key = at::where(radii > 0, depths, at::full({}, INFINITY, depths.options()));
+  order = at::argsort(key, /*stable=*/true);
+  packed = at::empty({N, D}, means2d.options());
+  auto vradii = at::empty({N}, radii.options());
+  stdr_cuda::pack_rows(means2d.data_ptr<float>(), conics.data_ptr<float>(),
+                       opac.data_ptr<float>(), feats.data_ptr<float>(),
+                       radii.data_ptr<int32_t>(), order.data_ptr<int64_t>(), N, (int)F,
+                       packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
+  bin_pairs(packed, packed, vradii, width, height, tile, stream, pair_ids, tile_offsets, capacity, total);
 }
 
 // For the tests: bin_pairs with the count pass reading `packed` and the write pass `emit` (rows
@@ -85,17 +117,17 @@ std::vector<at::Tensor> bin_pairs_split(at::Tensor packed, at::Tensor emit, at::
   TORCH_CHECK(tile == 8 || tile == 16, "stdr CUDA rasterizer: render.tile_size must be 8 or 16");
   const at::cuda::CUDAGuard guard(packed.device());
   auto stream = c10::cuda::getCurrentCUDAStream().stream();
-  at::Tensor pair_ids, tile_offsets;
+  at::Tensor pair_ids, tile_offsets, total;
   bin_pairs(packed.contiguous(), emit.contiguous(), vradii.contiguous(), width, height, tile, stream, pair_ids,
-            tile_offsets);
+            tile_offsets, -1, total);
   return {pair_ids, tile_offsets};
 }
 
-std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
-                                at::Tensor feats, at::Tensor depths, at::Tensor radii,
-                                int64_t width, int64_t height, int64_t tile) {
-  // compiled.check_inputs checks the whole contract first, with the values in its messages;
-  // these checks keep literal messages (see there: formatted ones crashed one toolchain)
+// The forward's input contract, checked in both forms (compiled.check_inputs checks the whole
+// contract first, with the values in its messages; these checks keep literal messages: formatted
+// ones crashed one toolchain). Makes the inputs contiguous.
+void check_forward(at::Tensor& means2d, at::Tensor& conics, at::Tensor& opac, at::Tensor& feats,
+                   at::Tensor& depths, at::Tensor& radii, int64_t tile) {
   const int64_t N = means2d.size(0);
   for (auto* p : {&means2d, &conics, &opac, &feats, &depths, &radii})
     TORCH_CHECK(p->is_cuda(), "stdr CUDA rasterizer: every input must be a CUDA tensor");
@@ -107,22 +139,55 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   const int64_t F = feats.size(1);
   TORCH_CHECK(F >= 1 && F <= stdr::MAX_CHANNELS,
               "stdr CUDA rasterizer: 1..stdr::MAX_CHANNELS feature channels only");
-  const at::cuda::CUDAGuard guard(means2d.device());
-  auto stream = c10::cuda::getCurrentCUDAStream().stream();
   means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
   feats = feats.contiguous(); depths = depths.contiguous(); radii = radii.contiguous();
-  at::Tensor packed, order, pair_ids, tile_offsets;
-  pack_and_bin(means2d, conics, opac, feats, depths, radii, width, height, tile, stream, packed, order, pair_ids,
-               tile_offsets);
-  auto acc = at::zeros({height, width, F}, means2d.options());
-  auto T_img = at::ones({height, width}, means2d.options());
+}
+
+// Front-to-back compositing of the binned rows: (acc [H, W, F], T [H, W], last [H, W] int32).
+std::vector<at::Tensor> composite(const at::Tensor& packed, int64_t F, const at::Tensor& pair_ids,
+                                  const at::Tensor& tile_offsets, const at::Tensor& like, const at::Tensor& radii,
+                                  int64_t width, int64_t height, int64_t tile, cudaStream_t stream) {
+  auto acc = at::zeros({height, width, F}, like.options());
+  auto T_img = at::ones({height, width}, like.options());
   auto last = at::zeros({height, width}, radii.options());
   stdr_cuda::forward(packed.data_ptr<float>(), (int)F, pair_ids.data_ptr<int32_t>(),
                      tile_offsets.data_ptr<int64_t>(), (int)width, (int)height, (int)tile,
                      acc.data_ptr<float>(), T_img.data_ptr<float>(), last.data_ptr<int32_t>(),
                      stream);
   C10_CUDA_CHECK(cudaGetLastError());
-  return {acc, T_img, last, pair_ids, tile_offsets, packed, order};
+  return {acc, T_img, last};
+}
+
+std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
+                                at::Tensor feats, at::Tensor depths, at::Tensor radii,
+                                int64_t width, int64_t height, int64_t tile) {
+  check_forward(means2d, conics, opac, feats, depths, radii, tile);
+  const at::cuda::CUDAGuard guard(means2d.device());
+  auto stream = c10::cuda::getCurrentCUDAStream().stream();
+  at::Tensor packed, order, pair_ids, tile_offsets;
+  pack_and_bin(means2d, conics, opac, feats, depths, radii, width, height, tile, stream, packed, order, pair_ids,
+               tile_offsets);
+  auto img = composite(packed, feats.size(1), pair_ids, tile_offsets, means2d, radii, width, height, tile, stream);
+  return {img[0], img[1], img[2], pair_ids, tile_offsets, packed, order};
+}
+
+// The capture-safe forward (pack_all_and_bin): no host sync, so a CUDA graph can hold it.
+// Returns forward()'s seven tensors, with packed [N, 6+F] and order [N] (every row) and pair_ids
+// [capacity], and an eighth, total [] int64 on the device: the pairs the image needed. With total <=
+// capacity the image is forward()'s, bit for bit; above it the deepest rows' pairs are missing, and
+// the caller must render again with a larger capacity.
+std::vector<at::Tensor> forward_bounded(at::Tensor means2d, at::Tensor conics, at::Tensor opac,
+                                        at::Tensor feats, at::Tensor depths, at::Tensor radii,
+                                        int64_t width, int64_t height, int64_t tile, int64_t capacity) {
+  check_forward(means2d, conics, opac, feats, depths, radii, tile);
+  TORCH_CHECK(capacity >= 0, "stdr CUDA rasterizer: the capture-safe forward needs a capacity >= 0");
+  const at::cuda::CUDAGuard guard(means2d.device());
+  auto stream = c10::cuda::getCurrentCUDAStream().stream();
+  at::Tensor packed, order, pair_ids, tile_offsets, total;
+  pack_all_and_bin(means2d, conics, opac, feats, depths, radii, width, height, tile, capacity, stream, packed, order,
+                   pair_ids, tile_offsets, total);
+  auto img = composite(packed, feats.size(1), pair_ids, tile_offsets, means2d, radii, width, height, tile, stream);
+  return {img[0], img[1], img[2], pair_ids, tile_offsets, packed, order, total};
 }
 
 std::vector<at::Tensor> backward(at::Tensor packed, at::Tensor order, int64_t N,
