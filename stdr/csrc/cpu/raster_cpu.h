@@ -403,17 +403,14 @@ template <typename Fn> void dispatch_channels(int64_t F, Fn fn) {
 // order [V] int64: packed row v is Gaussian order[v]) and their Gaussian-tile pairs (pair_ids [P]
 // int32 by tile then depth, tile_offsets [n_tiles + 1]): what forward() and score() composite.
 template <typename scalar_t>
-void pack_and_bin(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac,
-                  const at::Tensor& feats, const at::Tensor& depths, const at::Tensor& radii,
-                  const Grid& gr, int slots, at::Tensor& packed, at::Tensor& order,
-                  at::Tensor& pair_ids, at::Tensor& tile_offsets) {
-  const int64_t N = means2d.size(0), F = feats.size(1), D = PACK_BASE + F;
-  const std::vector<int64_t> ord = depth_order(depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), N);
-  const int64_t V = (int64_t)ord.size();
+void pack_rows(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac,
+               const at::Tensor& feats, const at::Tensor& radii, const std::vector<int64_t>& ord,
+               at::Tensor& packed, at::Tensor& order, at::Tensor& vradii) {
+  const int64_t V = (int64_t)ord.size(), F = feats.size(1), D = PACK_BASE + F;
   order = at::empty({V}, at::kLong);
   std::copy(ord.begin(), ord.end(), order.data_ptr<int64_t>());
   packed = at::empty({V, D}, means2d.options());
-  at::Tensor vradii = at::empty({V}, at::kInt);
+  vradii = at::empty({V}, at::kInt);
   const scalar_t *m = means2d.data_ptr<scalar_t>(), *c = conics.data_ptr<scalar_t>(),
                  *o = opac.data_ptr<scalar_t>(), *f = feats.data_ptr<scalar_t>();
   const int32_t* r = radii.data_ptr<int32_t>();
@@ -430,7 +427,40 @@ void pack_and_bin(const at::Tensor& means2d, const at::Tensor& conics, const at:
       vr[v] = r[g];
     }
   });
-  bin_pairs<scalar_t>(P, vr, V, D, gr, slots, pair_ids, tile_offsets);
+}
+
+template <typename scalar_t>
+void pack_and_bin(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac,
+                  const at::Tensor& feats, const at::Tensor& depths, const at::Tensor& radii,
+                  const Grid& gr, int slots, at::Tensor& packed, at::Tensor& order,
+                  at::Tensor& pair_ids, at::Tensor& tile_offsets) {
+  at::Tensor vradii;
+  pack_rows<scalar_t>(means2d, conics, opac, feats, radii,
+                      depth_order(depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), means2d.size(0)),
+                      packed, order, vradii);
+  bin_pairs<scalar_t>(packed.data_ptr<scalar_t>(), vradii.data_ptr<int32_t>(), packed.size(0), packed.size(1), gr,
+                      slots, pair_ids, tile_offsets);
+}
+
+// Front-to-back compositing of the binned rows into acc [H, W, F], T [H, W], last [H, W] (every
+// pixel written): the SIMD path for float32 where built, the scalar loops otherwise.
+template <typename scalar_t>
+void composite(const scalar_t* P, int64_t D, int64_t F, const at::Tensor& pair_ids, const at::Tensor& tile_offsets,
+               const Grid& gr, int slots, at::Tensor& acc, at::Tensor& T_img, at::Tensor& last) {
+  dispatch_channels(F, [&](auto fc) {
+    constexpr int FC = decltype(fc)::value;
+#ifdef STDR_SIMD
+    if constexpr (std::is_same<scalar_t, float>::value) {
+      forward_tiles_simd<FC>(P, D, pair_ids.data_ptr<int32_t>(), tile_offsets.data_ptr<int64_t>(),
+                             gr, slots, acc.data_ptr<float>(), T_img.data_ptr<float>(),
+                             last.data_ptr<int32_t>());
+      return;
+    }
+#endif
+    forward_tiles<scalar_t, FC>(
+        P, D, pair_ids.data_ptr<int32_t>(), tile_offsets.data_ptr<int64_t>(), gr, slots,
+        acc.data_ptr<scalar_t>(), T_img.data_ptr<scalar_t>(), last.data_ptr<int32_t>());
+  });
 }
 
 // Returns (acc [H, W, F], T [H, W], last [H, W] int32, pair_ids [P] int32, tile_offsets [n+1],
@@ -452,21 +482,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "stdr_forward", [&] {
     pack_and_bin<scalar_t>(means2d, conics, opac, feats, depths, radii, gr, slots, packed, order, pair_ids,
                            tile_offsets);
-    const scalar_t* P = packed.data_ptr<scalar_t>();
-    dispatch_channels(F, [&](auto fc) {
-      constexpr int FC = decltype(fc)::value;
-#ifdef STDR_SIMD
-      if constexpr (std::is_same<scalar_t, float>::value) {
-        forward_tiles_simd<FC>(P, D, pair_ids.data_ptr<int32_t>(), tile_offsets.data_ptr<int64_t>(),
-                               gr, slots, acc.data_ptr<float>(), T_img.data_ptr<float>(),
-                               last.data_ptr<int32_t>());
-        return;
-      }
-#endif
-      forward_tiles<scalar_t, FC>(
-          P, D, pair_ids.data_ptr<int32_t>(), tile_offsets.data_ptr<int64_t>(), gr, slots,
-          acc.data_ptr<scalar_t>(), T_img.data_ptr<scalar_t>(), last.data_ptr<int32_t>());
-    });
+    composite<scalar_t>(packed.data_ptr<scalar_t>(), D, F, pair_ids, tile_offsets, gr, slots, acc, T_img, last);
   });
   return {acc, T_img, last, pair_ids, tile_offsets, packed, order};
 }
@@ -617,44 +633,17 @@ std::vector<at::Tensor> forward_bounded(at::Tensor means2d, at::Tensor conics, a
   auto acc = at::empty({height, width, F}, means2d.options());
   auto T_img = at::empty({height, width}, means2d.options());
   auto last = at::empty({height, width}, means2d.options().dtype(at::kInt));
-  auto order = at::empty({N}, at::kLong);
-  auto packed = at::empty({N, D}, means2d.options());
-  at::Tensor pair_ids, tile_offsets;
+  at::Tensor packed, order, vradii, pair_ids, tile_offsets;
   int64_t total = 0;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "stdr_forward_bounded", [&] {
     const int32_t* r = radii.data_ptr<int32_t>();
     std::vector<int64_t> ord = depth_order(depths.data_ptr<scalar_t>(), r, N);
     for (int64_t i = 0; i < N; ++i)
       if (r[i] <= 0) ord.push_back(i);
-    std::copy(ord.begin(), ord.end(), order.data_ptr<int64_t>());
-    std::vector<int32_t> vr(N);
-    const scalar_t *m = means2d.data_ptr<scalar_t>(), *c = conics.data_ptr<scalar_t>(),
-                   *o = opac.data_ptr<scalar_t>(), *f = feats.data_ptr<scalar_t>();
-    scalar_t* P = packed.data_ptr<scalar_t>();
-    for (int64_t v = 0; v < N; ++v) {
-      const int64_t g = ord[v];
-      scalar_t* row = P + v * D;
-      row[0] = m[2 * g]; row[1] = m[2 * g + 1];
-      row[2] = c[3 * g]; row[3] = c[3 * g + 1]; row[4] = c[3 * g + 2];
-      row[5] = o[g];
-      for (int64_t j = 0; j < F; ++j) row[PACK_BASE + j] = f[g * F + j];
-      vr[v] = r[g];
-    }
-    bin_pairs_two_pass<scalar_t>(P, P, vr.data(), N, D, gr, capacity, pair_ids, tile_offsets, total);
-    dispatch_channels(F, [&](auto fc) {  // forward()'s compositing, the same paths
-      constexpr int FC = decltype(fc)::value;
-#ifdef STDR_SIMD
-      if constexpr (std::is_same<scalar_t, float>::value) {
-        forward_tiles_simd<FC>(P, D, pair_ids.data_ptr<int32_t>(), tile_offsets.data_ptr<int64_t>(),
-                               gr, slots, acc.data_ptr<float>(), T_img.data_ptr<float>(),
-                               last.data_ptr<int32_t>());
-        return;
-      }
-#endif
-      forward_tiles<scalar_t, FC>(
-          P, D, pair_ids.data_ptr<int32_t>(), tile_offsets.data_ptr<int64_t>(), gr, slots,
-          acc.data_ptr<scalar_t>(), T_img.data_ptr<scalar_t>(), last.data_ptr<int32_t>());
-    });
+    pack_rows<scalar_t>(means2d, conics, opac, feats, radii, ord, packed, order, vradii);
+    const scalar_t* P = packed.data_ptr<scalar_t>();
+    bin_pairs_two_pass<scalar_t>(P, P, vradii.data_ptr<int32_t>(), N, D, gr, capacity, pair_ids, tile_offsets, total);
+    composite<scalar_t>(P, D, F, pair_ids, tile_offsets, gr, slots, acc, T_img, last);
   });
   return {acc, T_img, last, pair_ids, tile_offsets, packed, order, at::scalar_tensor(total, at::kLong)};
 }

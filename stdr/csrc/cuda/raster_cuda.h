@@ -58,6 +58,20 @@ void bin_pairs(const at::Tensor& packed, const at::Tensor& emit, const at::Tenso
   tile_offsets = at::searchsorted(tiles, bounds);  // first pair of each tile; the last: end of the lists
 }
 
+// The rows of Gaussians order[v], packed one row each (packed [V, 6+F]); returns their radii [V].
+at::Tensor pack(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac, const at::Tensor& feats,
+                const at::Tensor& radii, const at::Tensor& order, cudaStream_t stream, at::Tensor& packed) {
+  const int64_t V = order.size(0), F = feats.size(1);
+  packed = at::empty({V, stdr::PACK_BASE + F}, means2d.options());
+  auto vradii = at::empty({V}, radii.options());
+  stdr_cuda::pack_rows(means2d.data_ptr<float>(), conics.data_ptr<float>(),
+                       opac.data_ptr<float>(), feats.data_ptr<float>(),
+                       radii.data_ptr<int32_t>(), order.data_ptr<int64_t>(), V, (int)F,
+                       packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), stream);
+  C10_CUDA_CHECK(cudaGetLastError());
+  return vradii;
+}
+
 // The visible Gaussians front to back, packed one row each (packed [V, 6+F], order [V]: packed row
 // v is Gaussian order[v]), and their Gaussian-tile pairs (bin_pairs): what forward() and score()
 // composite.
@@ -65,18 +79,9 @@ void pack_and_bin(const at::Tensor& means2d, const at::Tensor& conics, const at:
                   const at::Tensor& feats, const at::Tensor& depths, const at::Tensor& radii, int64_t width,
                   int64_t height, int64_t tile, cudaStream_t stream, at::Tensor& packed, at::Tensor& order,
                   at::Tensor& pair_ids, at::Tensor& tile_offsets) {
-  const int64_t F = feats.size(1);
-  const int D = stdr::PACK_BASE + (int)F;
   auto vis = at::nonzero(radii > 0).squeeze(1);
   order = vis.index_select(0, at::argsort(depths.index_select(0, vis), /*stable=*/true));
-  const int64_t V = order.size(0);
-  packed = at::empty({V, D}, means2d.options());
-  auto vradii = at::empty({V}, radii.options());
-  stdr_cuda::pack_rows(means2d.data_ptr<float>(), conics.data_ptr<float>(),
-                       opac.data_ptr<float>(), feats.data_ptr<float>(),
-                       radii.data_ptr<int32_t>(), order.data_ptr<int64_t>(), V, (int)F,
-                       packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), stream);
-  C10_CUDA_CHECK(cudaGetLastError());
+  auto vradii = pack(means2d, conics, opac, feats, radii, order, stream, packed);
   at::Tensor total;
   bin_pairs(packed, packed, vradii, width, height, tile, stream, pair_ids, tile_offsets, -1, total);
 }
@@ -89,17 +94,9 @@ void pack_all_and_bin(const at::Tensor& means2d, const at::Tensor& conics, const
                       const at::Tensor& feats, const at::Tensor& depths, const at::Tensor& radii, int64_t width,
                       int64_t height, int64_t tile, int64_t capacity, cudaStream_t stream, at::Tensor& packed,
                       at::Tensor& order, at::Tensor& pair_ids, at::Tensor& tile_offsets, at::Tensor& total) {
-  const int64_t N = means2d.size(0), F = feats.size(1);
-  const int D = stdr::PACK_BASE + (int)F;
   auto key = at::where(radii > 0, depths, at::full({}, INFINITY, depths.options()));
   order = at::argsort(key, /*stable=*/true);
-  packed = at::empty({N, D}, means2d.options());
-  auto vradii = at::empty({N}, radii.options());
-  stdr_cuda::pack_rows(means2d.data_ptr<float>(), conics.data_ptr<float>(),
-                       opac.data_ptr<float>(), feats.data_ptr<float>(),
-                       radii.data_ptr<int32_t>(), order.data_ptr<int64_t>(), N, (int)F,
-                       packed.data_ptr<float>(), vradii.data_ptr<int32_t>(), stream);
-  C10_CUDA_CHECK(cudaGetLastError());
+  auto vradii = pack(means2d, conics, opac, feats, radii, order, stream, packed);
   bin_pairs(packed, packed, vradii, width, height, tile, stream, pair_ids, tile_offsets, capacity, total);
 }
 
