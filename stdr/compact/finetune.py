@@ -10,8 +10,8 @@ training frames with the model read back from the file and, each step:
   gradients (the exact gradient of the loss through the lookup);
 * a quantized state tensor (q4 / q8 / q16): a float copy of the full model's values is kept, the
   model reads its quantized value in the file's range (`codecs.dequantized`, on the model's
-  device; the range fixed at the file's), and the gradient passes straight through the rounding to the float copy where it
-  lies inside the range (the straight-through estimator);
+  device; the range fixed at the file's), and the gradient passes straight through the rounding
+  to the float copy where it lies inside the range (the straight-through estimator);
 
 then one Adam step on them all. Every other tensor stays as the file holds it. At the end the
 codebooks are stored back in float16 and the state tensors re-encoded in their range, so the file
@@ -49,27 +49,35 @@ def state_entries(payload: dict[str, Any], parts: Iterable[str]) -> dict[str, di
             and e.get("codec") in codecs.LEVELS and any(p in k for p in parts)}
 
 
-def _quantized(latent: torch.Tensor, e: dict) -> torch.Tensor:
-    """The value the file stores for `latent` in entry e's codec and range (on latent's device)."""
-    x = latent.detach().movedim(0, -1) if e.get("channels_first") else latent.detach()
-    value = codecs.dequantized(x, e["codec"], e["lo"].to(x.device), e["hi"].to(x.device))
-    return value.movedim(-1, 0) if e.get("channels_first") else value
+class _State:
+    """A quantized state tensor's fine-tune: its payload entry, the float copy it trains, and the
+    entry's range per column on the copy's device (moved there once)."""
 
+    def __init__(self, entry: dict, latent: torch.Tensor):
+        self.entry, self.latent = entry, latent
+        self.lo, self.hi = entry["lo"].to(latent.device), entry["hi"].to(latent.device)
 
-def _store(latent: torch.Tensor, e: dict) -> torch.Tensor:
-    """Entry e's data re-encoded from `latent` in its range; returns what the file reads back."""
-    x = latent.detach().movedim(0, -1) if e.get("channels_first") else latent.detach()
-    e["data"] = codecs.encode_in_range(x, e["codec"], e["lo"], e["hi"])["data"]
-    value = codecs.decode({k: v for k, v in e.items() if k not in (MARK, "channels_first")})
-    return (value.movedim(-1, 0) if e.get("channels_first") else value).to(latent.device)
+    def _cols(self, t: torch.Tensor) -> torch.Tensor:  # a plane [C, H, W] as the codec sees it: [H, W, C]
+        return t.movedim(0, -1) if self.entry.get("channels_first") else t
 
+    def _back(self, t: torch.Tensor) -> torch.Tensor:
+        return t.movedim(-1, 0) if self.entry.get("channels_first") else t
 
-def _in_range(latent: torch.Tensor, e: dict) -> torch.Tensor:
-    """Where latent lies inside its columns' ranges (the straight-through estimator's mask)."""
-    x = latent.movedim(0, -1) if e.get("channels_first") else latent
-    lo, hi = e["lo"].to(latent.device), e["hi"].to(latent.device)
-    inside = (x >= lo) & (x <= hi)
-    return inside.movedim(-1, 0) if e.get("channels_first") else inside
+    def quantized(self) -> torch.Tensor:
+        """What the file stores for the float copy (codecs.dequantized, on its device)."""
+        return self._back(codecs.dequantized(self._cols(self.latent.detach()), self.entry["codec"], self.lo, self.hi))
+
+    def inside(self) -> torch.Tensor:
+        """Where the float copy lies inside its columns' ranges (the straight-through estimator's mask)."""
+        x = self._cols(self.latent.detach())
+        return self._back((x >= self.lo) & (x <= self.hi))
+
+    def store(self) -> torch.Tensor:
+        """The entry's data re-encoded from the float copy in its range; returns what the file reads
+        back (dequantized is decode(encode_in_range) exactly)."""
+        self.entry["data"] = codecs.encode_in_range(self._cols(self.latent.detach()), self.entry["codec"],
+                                                    self.entry["lo"], self.entry["hi"])["data"]
+        return self.quantized()
 
 
 def finetune(payload: dict[str, Any], model, frames, steps: int = STEPS, lr: float = LR,
@@ -101,12 +109,13 @@ def finetune(payload: dict[str, Any], model, frames, steps: int = STEPS, lr: flo
         idx[k] = e["data"].long().to(model.params[k].device)
         shapes[k] = model.params[k].shape
         model.params[k].requires_grad_(True)
-    latents, targets = {}, {}
-    for k in states:
+    tuned, targets = {}, {}
+    for k, e in states.items():
         targets[k] = model.deform.get_parameter(k)
-        latents[k] = full.deform.get_parameter(k).detach().float().clone().to(targets[k].device).requires_grad_(True)
+        z = full.deform.get_parameter(k).detach().float().clone().to(targets[k].device).requires_grad_(True)
+        tuned[k] = _State(e, z)
         targets[k].requires_grad_(True)
-    opt = torch.optim.Adam([*books.values(), *latents.values()], lr=lr)
+    opt = torch.optim.Adam([*books.values(), *(t.latent for t in tuned.values())], lr=lr)
     g = torch.Generator().manual_seed(seed)
     order = torch.randint(0, len(frames), (steps,), generator=g).tolist()
     losses, fixed = [], set()
@@ -116,8 +125,8 @@ def finetune(payload: dict[str, Any], model, frames, steps: int = STEPS, lr: flo
             for k in books:
                 model.params[k].copy_(books[k][idx[k]].reshape(shapes[k]))
                 model.params[k].grad = None
-            for k, z in latents.items():
-                targets[k].copy_(_quantized(z, states[k]))
+            for k, t in tuned.items():
+                targets[k].copy_(t.quantized())
                 targets[k].grad = None
         out = model.render(f.camera, f.time)
         loss = image_loss(out.image, f.image, lambda_dssim)[0]
@@ -129,9 +138,9 @@ def finetune(payload: dict[str, Any], model, frames, steps: int = STEPS, lr: flo
                 continue
             grad = model.params[k].grad.reshape(shapes[k][0], -1)
             b.grad = torch.zeros_like(b).index_add_(0, idx[k], grad)
-        for k, z in latents.items():
+        for k, t in tuned.items():
             if targets[k].grad is not None:
-                z.grad = targets[k].grad * _in_range(z.detach(), states[k])
+                t.latent.grad = targets[k].grad * t.inside()
         opt.step()
         losses.append(float(loss.detach()))
     with torch.no_grad():
@@ -142,9 +151,9 @@ def finetune(payload: dict[str, Any], model, frames, steps: int = STEPS, lr: flo
             entries[k]["codebook"] = b.detach().cpu().half()
             model.params[k].copy_(entries[k]["codebook"].float().to(b.device)[idx[k]].reshape(shapes[k]))
             model.params[k].grad = None
-        for k, z in latents.items():
-            targets[k].copy_(_store(z, states[k]))
+        for k, t in tuned.items():
+            targets[k].copy_(t.store())
             targets[k].grad = None
     tenth = max(1, steps // 10)
     return {"steps": steps, "loss_first": sum(losses[:tenth]) / tenth, "loss_last": sum(losses[-tenth:]) / tenth,
-            "keys": sorted(set(books) - fixed), "fixed": sorted(fixed), "state": sorted(latents)}
+            "keys": sorted(set(books) - fixed), "fixed": sorted(fixed), "state": sorted(tuned)}
