@@ -478,7 +478,7 @@ def test_finetune_state_changes_nothing_in_a_model_without_that_state_or_without
     from stdr.testing import tiny_config
     t = _trained(tmp_path / "d", "embedded_deform", ["model.sh_interval=5"])
     frames = t.scene.frames("train")
-    spec = {"shN": "vq:8", "finetune": 10}
+    spec = {"shN": "vq:8", "finetune": 10, "state:grids": "q4"}
     write_compact(t.state.model, tmp_path / "a.stdrc", spec, frames)
     write_compact(t.state.model, tmp_path / "b.stdrc", {**spec, "finetune_state": "grids"}, frames)
     assert (tmp_path / "a.stdrc").read_bytes() == (tmp_path / "b.stdrc").read_bytes()
@@ -489,6 +489,26 @@ def test_finetune_state_changes_nothing_in_a_model_without_that_state_or_without
     assert (tmp_path / "c.stdrc").read_bytes() == (tmp_path / "e.stdrc").read_bytes() and plain["bytes"] == off["bytes"]
     cfg = tiny_config(tmp_path, ["experiment=embedded_4dgs", "compact=on", "pack.finetune=0"])
     assert check_pack_config(cfg)["finetune_state"] == "grids"
+
+
+def test_a_finetune_state_part_the_spec_gives_no_codec_is_refused_by_name(tmp_path):
+    """A typo in finetune_state (a part no state:<part> entry names) would fine-tune nothing and
+    say nothing: stdr-train refuses it before training, naming the key, the part and the parts
+    the spec has; stdr-tool pack says the same in one line."""
+    from stdr.compact.pack import check_pack_config
+    from stdr.errors import ConfigError
+    from stdr.testing import tiny_config
+    from stdr.tools.pack_file import main as pack_main
+    cfg = tiny_config(tmp_path, ["experiment=embedded_4dgs", "compact=on", "pack.finetune_state=gridz"])
+    with pytest.raises(ConfigError, match=r"pack\.finetune_state.*'gridz' is no state:<part>.*bias, grids, weight"):
+        check_pack_config(cfg)
+    from stdr.train.run import run_training
+    run_training(tiny_config(tmp_path, ["experiment=embedded_4dgs", "model.init_num=300", "optim.iterations=20",
+                                        "baseline.warmup=10", "densify.refine_start=1000"]), tmp_path / "run")
+    with pytest.raises(SystemExit, match=r"^stdr-tool pack: .*'grid' is no state:<part>"):
+        pack_main([str(tmp_path / "run"), "--no-eval", "--codec", "state:grids=q4", "finetune=5", "finetune_state=grid"])
+    with pytest.raises(SystemExit, match=r"^stdr-tool pack: .*not a trained run"):
+        pack_main([str(tmp_path / "nothing"), "--no-eval"])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine (torch.cuda.is_available() is False)")

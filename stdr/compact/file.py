@@ -103,6 +103,12 @@ def check_spec(spec: Optional[dict]) -> dict:
     if spec.get("sh_degree") is not None and not 0 <= int(spec["sh_degree"]) <= 3:
         raise ValueError(f"compact spec sh_degree={spec['sh_degree']}: use 0 to 3 (or leave it out)")
     entropy_level(spec)
+    named = {k[len("state:"):] for k in spec if k.startswith("state:")}
+    for part in str(spec.get("finetune_state") or "").split(","):
+        if part.strip() and part.strip() not in named:
+            raise ValueError(f"compact spec finetune_state={spec['finetune_state']!r} (pack.finetune_state): "
+                             f"{part.strip()!r} is no state:<part> of the spec ({', '.join(sorted(named)) or 'none'}); "
+                             "name a part the spec gives a codec, e.g. state:grids=q4 with finetune_state=grids")
     for k, c in spec.items():
         if k in ("sh_degree", "finetune", "finetune_state", "entropy") or c == DERIVED:
             continue

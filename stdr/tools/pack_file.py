@@ -44,7 +44,7 @@ def main(argv=None) -> None:
     a = ap.parse_args(argv)
     try:
         rec = pack(a.run, a.out, _spec(a.codec), None if a.no_eval else a.split)
-    except ValueError as e:
+    except (ValueError, FileNotFoundError) as e:  # a bad spec, or a folder that is not a trained run
         raise SystemExit(f"stdr-tool pack: {e}") from None
     print(summary(rec))
 
