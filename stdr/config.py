@@ -19,8 +19,12 @@ from .baselines.registry import get_baseline
 from .plugins import PLUGINS, enabled_plugins, plugin_node, registered_plugins, set_reserved_keys
 from .densify.prune import PruneConfig, prune_steps
 from .errors import ConfigError
+from .io.files import read_yaml
 from .densify.strategy import DensifyStrategy, get_strategy
 from .schedule import Event, Schedule
+
+#: the top-level entry of a run's config.yaml that records resumes with changed keys (stdr.train.resume)
+CHANGES_KEY = "config_changes"
 
 #: the YAML config groups; they ship inside the package, so an installed wheel has them too
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
@@ -170,7 +174,9 @@ class TrainConfig:
     checkpoint_every: int = 5000
     log_every: int = 50
     image_every: int = 1000
-    resume: bool = True         # resume from run_dir/checkpoints/last.pt when present
+    # resume from run_dir/checkpoints/last.pt when present (true | false: start over | override: resume
+    # even though keys that change training differ from the run's config.yaml, which records it)
+    resume: Any = True
     # stop after this iteration as an interrupted run would (checkpoint, no final evaluation; the
     # schedules follow optim.iterations; the same run without it resumes). deadline, start_by: Unix
     # times: stop there as at stop_at; not started after start_by (a Slurm slot, a rented GPU's hour)
@@ -245,7 +251,7 @@ class Config:
 #: the config's own sections and the groups of stdr-train: names a plug-in may not take
 RESERVED_KEYS = frozenset({f for f in Config.__dataclass_fields__} | {
     "experiment", "experiment_data", "budget_baseline", "stress", "sweep", "hydra", "defaults", "runs",
-    "split", "out", "reevaluate", "remeasure", "base_config", "base_eval"})
+    "split", "out", "reevaluate", "remeasure", "unfinished", "allow_mixed", "base_config", "base_eval"})
 set_reserved_keys(RESERVED_KEYS)  # the plug-in registry checks names against them (without importing this module)
 
 
@@ -282,6 +288,12 @@ class EvalAppConfig:
     # run's metrics.json, keeping the earlier values under `fps_history`; quality is not touched.
     # size: add model_mb to runs evaluated before it was recorded. fps+size: both
     remeasure: Optional[str] = None
+    # a run that has not finished (checkpoint before optim.iterations) is refused; true: evaluate its
+    # last checkpoint into <out>/unfinished/<run folder name>/, never into the run
+    unfinished: bool = False
+    # a row whose runs differ in iterations, budget or code version is refused; true: tabulate it,
+    # the row's label naming what differs
+    allow_mixed: bool = False
 
 
 _ROOTS: dict[tuple, tuple[type, type]] = {}
@@ -364,8 +376,11 @@ def load_config(raw: Any, where: str = "config"):
     merged onto the typed defaults of its baseline. Unknown keys are an error naming `where`."""
     if isinstance(raw, (str, Path)):
         where = str(raw)
-        raw = OmegaConf.load(raw)
+        raw = read_yaml(raw)
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{where}: holds a {type(raw).__name__}, not a run's config (a mapping of keys)")
     raw = OmegaConf.to_container(raw) if OmegaConf.is_config(raw) else dict(raw)
+    raw.pop(CHANGES_KEY, None)  # the record of resumes with changed keys (stdr.train.resume), not a key
     schema = typed_schema(raw, where)
     try:
         return OmegaConf.merge(schema, raw)

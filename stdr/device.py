@@ -57,3 +57,20 @@ def process_memory_mb(device: torch.device) -> Optional[float]:
 
 MEMORY_CONVENTION = {"cuda": "torch.cuda.max_memory_allocated since the run began",
                      "cpu": "resident set of the process (/proc/self/statm), sampled every train.log_every steps"}
+
+
+def available_bytes(device: torch.device) -> Optional[int]:
+    """Memory a run on `device` can still take: a CUDA device's free memory, else the host's
+    MemAvailable (/proc/meminfo); None where it cannot be read."""
+    if device.type == "cuda":
+        try:
+            return int(torch.cuda.mem_get_info(device)[0])
+        except (RuntimeError, AssertionError):
+            return None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None

@@ -18,7 +18,7 @@ from typing import Any, Callable, Iterator, Optional
 from omegaconf import DictConfig, OmegaConf
 
 from .errors import ConfigError
-from .config import root_schema, typed_schema, check_guard_config, load_config
+from .config import root_schema, typed_schema, check_guard_config, load_config, resolve_schedule
 from .data.stress import check_stress
 from .densify.prune import check_prune_config
 from .data.load import resolve_data_path
@@ -124,6 +124,8 @@ KINDS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "opt_positive": (lambda v: v is None or (_num(v) and math.isfinite(v) and v > 0), "null (off) or a finite number > 0"),
     "sh_degree": (lambda v: _int(v) and 0 <= v <= 3, "0, 1, 2 or 3"),
     "opt_sh_degree": (lambda v: v is None or (_int(v) and 0 <= v <= 3), "null (all bands) or 0, 1, 2 or 3"),
+    "resume": (lambda v: isinstance(v, bool) or v == "override",
+               "true (resume from the checkpoint), false (start over) or override (resume with changed keys)"),
 }
 
 #: key -> kind, for the keys every run has (a key absent from a run's config is skipped)
@@ -146,7 +148,7 @@ RULES: dict[str, str] = {
     "render.tile_size": "steps", "render.eps2d": "nonneg", "render.near": "positive",
     "train.eval_every": "steps", "train.eval_frames": "steps", "train.checkpoint_every": "steps",
     "train.log_every": "count", "train.image_every": "steps", "train.stop_at": "opt_count", "train.threads": "steps",
-    "train.deadline": "opt_positive", "train.start_by": "opt_positive",
+    "train.deadline": "opt_positive", "train.start_by": "opt_positive", "train.resume": "resume",
     "eval.fps_warmup": "steps", "eval.fps_repeats": "count",
     "pack.finetune": "steps", "pack.sh_degree": "opt_sh_degree",
 }
@@ -260,4 +262,5 @@ def check_run_config(cfg, base: str | Path | None = None) -> None:
     check_keys(cfg)
     check_values(cfg)
     check_data_path(cfg.data, base)
+    _as_config_error(resolve_schedule, cfg)  # a phase that never trains (NeverTrains) is named here
     _as_config_error(load_config, cfg)

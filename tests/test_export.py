@@ -45,5 +45,5 @@ def test_an_exported_time_renders_like_the_model(tmp_path, name):
 
 def test_a_time_outside_the_run_is_an_error(tmp_path):
     from stdr.io.export import export_times
-    with pytest.raises(ValueError, match=r"time 1.5: the model's times run over \[0, 1\]"):
+    with pytest.raises(ValueError, match=r"--times 1.5: the model.s times run over \[0, 1\]"):
         export_times(object(), [1.5], tmp_path)

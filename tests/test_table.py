@@ -126,8 +126,9 @@ def test_runs_tool_groups_seeds_and_applies_the_screening_rule(tmp_path, capsys)
     assert "mask+Adam" in out  # an STDR run brings the STDR columns
     with pytest.raises(SystemExit):
         tool(["runs", str(ref[0]), "--rule", "ref"])  # the rule needs --label
-    with pytest.raises(KeyError, match="has no 'val' entry"):
+    with pytest.raises(SystemExit) as e:  # a missing split: one line naming the file, exit 2
         tool(["runs", str(ref[0]), "--split", "val"])
+    assert e.value.code == 2 and "has no 'val' entry" in capsys.readouterr().err
 
 
 def test_tool_dispatcher_lists_every_tool_and_rejects_unknown_names(capsys):

@@ -178,9 +178,12 @@ def test_a_run_stdr_train_writes_is_read_by_every_tool(tmp_path):
     export_main([str(rd), "--times", "0.5", "--out", str(tmp_path / "ply")])
     assert len(list((tmp_path / "ply").glob("*.ply"))) == 1
     assert open_run(rd, device="cpu").model.num_gaussians > 0
-    longer = tiny_config(tmp_path, [s.replace("optim.iterations=30", "optim.iterations=35") for s in sched])
+    longer = tiny_config(tmp_path, [s.replace("optim.iterations=30", "optim.iterations=35") for s in sched]
+                         + ["train.resume=override"])  # a changed key: the resume says so (stdr.train.resume)
     res = run(longer, rd)  # resumes from checkpoints/last.pt at 30
     assert res is not None and res["iterations"] == 35
+    assert res["config_changes"][0]["keys"] == {"optim.iterations": [30, 35]}
+    load_config(rd / "config.yaml")  # the record of the change is read back too
     shutil.rmtree(rd)
     assert np.isfinite(res["psnr"])
 

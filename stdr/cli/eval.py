@@ -14,11 +14,13 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from ..config import CONFIG_DIR, load_config
+from ..config import CHANGES_KEY, CONFIG_DIR, load_config
+from ..io.files import read_json, read_yaml
+from ..io.runlock import run_lock
 from ..store import register
 from ..errors import BadInput, MissingInput, reported
 from .common import check_overrides, reproducible_blas
-from ..eval.table import collect, find_run_dirs, markdown, table_row, write_tables
+from ..eval.table import check_mixed_rows, collect, find_run_dirs, markdown, read_metrics, table_row, write_tables
 from ..eval.evaluate import evaluate_run, measure_fps, save_metrics, machine_name
 from ..train.state import RunState
 from ..data.load import load_scene
@@ -32,9 +34,12 @@ register()
 
 def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reevaluate: bool,
                   out_dir: Path, base: str, device: str | None = None, remeasure: str | None = None,
-                  plugin_overrides: dict | None = None) -> dict:
-    """plugin_overrides: {plug-in name: its keys to change in each run's config (null: keep)}."""
-    import json
+                  plugin_overrides: dict | None = None, unfinished: bool = False, allow_mixed: bool = False) -> dict:
+    """plugin_overrides: {plug-in name: its keys to change in each run's config (null: keep)}.
+    A run that has not finished is refused (nothing is written into it); unfinished=True
+    evaluates its last checkpoint into out_dir/unfinished/<its folder's name>/. Re-evaluating a
+    run writes into it, under its lock (stdr.io.runlock). A row whose runs differ in iterations,
+    budget or code is refused unless allow_mixed (stdr.eval.table.check_mixed_rows)."""
 
 
     if remeasure not in (None, "fps", "size", "fps+size"):
@@ -54,32 +59,61 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
                 apply_overrides(cfg, name, ov)
             if device is not None:  # e.g. a run trained on a GPU, re-evaluated on a CPU machine
                 cfg.device = device
-        if reevaluate:
-            res = reevaluate_run(rd, cfg, sp, eval_cfg, base)
+        left = unfinished_at(rd, cfg)
+        if left is not None and not unfinished:
+            raise BadInput(f"{rd} has not finished: its checkpoint is at iteration {left} of {cfg.optim.iterations} "
+                           "and it has no final evaluation, so stdr-eval writes nothing into it. Resume it with "
+                           "the stdr-train command that started it, or add unfinished=true to evaluate its last "
+                           f"checkpoint into {out_dir / 'unfinished' / rd.name}")
+        if left is not None:  # its last checkpoint, evaluated outside the run
+            res = reevaluate_run(rd, cfg, sp, eval_cfg, base, into=out_dir / "unfinished" / rd.name)
+        elif reevaluate:
+            with run_lock(rd, "stdr-eval"):  # it writes metrics.json, history.json and renders into the run
+                res = reevaluate_run(rd, cfg, sp, eval_cfg, base)
         elif remeasure:
-            res = remeasure_run(rd, cfg, sp, eval_cfg, base, remeasure.split("+"))
+            with run_lock(rd, "stdr-eval"):
+                res = remeasure_run(rd, cfg, sp, eval_cfg, base, remeasure.split("+"))
         else:
-            mp = rd / "metrics.json"
-            if not mp.is_file():
-                raise MissingInput(f"{mp} not found: run stdr-eval without reevaluate=false")
-            res = json.loads(mp.read_text()).get(sp)
-            if res is None:
-                raise KeyError(f"{mp} has no split {sp!r}")
+            res = read_metrics(rd, sp)
         rows.append(table_row(OmegaConf.to_container(cfg, resolve=True), sp, res, str(rd)))
-    table = collect(rows)
+    table = collect(check_mixed_rows(rows, allow_mixed))
     paths = write_tables(table, out_dir)
     print(markdown(table))
     print(f"[stdr] tables: {', '.join(str(p) for p in paths.values())}")
     return table
 
 
-def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str) -> dict:
+def unfinished_at(rd: Path, cfg) -> int | None:
+    """The iteration of the run's last checkpoint when it is before optim.iterations (the run has
+    not finished: stopped by train.stop_at or a deadline, killed, or still training), else None."""
+    done = rd / "metrics.json"
+    if done.is_file():  # finished and evaluated at optim.iterations: no need to read the checkpoint
+        entries = read_json(done, "metrics")
+        its = [e.get("iterations") for e in entries.values() if isinstance(e, dict)] if isinstance(entries, dict) else []
+        if its and all(isinstance(i, int) and i >= int(cfg.optim.iterations) for i in its):
+            return None
+    ck = rd / CKPT
+    if not ck.is_file():
+        if (rd / "metrics.json").is_file():
+            return None  # evaluated, its checkpoint moved away: tabulated from metrics.json as it is
+        raise MissingInput(f"{rd} has neither {CKPT} nor metrics.json: it has not trained a step (or its files "
+                           "were moved); train it with stdr-train first")
+    step = int(load_checkpoint(ck).get("model", {}).get("step", 0))
+    return step if step < int(cfg.optim.iterations) else None
+
+
+def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str, into: Path | None = None) -> dict:
     """Load the run's state from its checkpoint (its model through the public API, stdr.model),
     and evaluate it as stdr-train does (stdr.eval.evaluate.evaluate_run: render `split`, merge the
-    numbers into its metrics.json)."""
+    numbers into its metrics.json). into: write metrics.json, history.json and the renders
+    there instead of into the run."""
 
     ck, model, scene = _load_for_eval(rd, cfg, split, base)
     state = RunState.from_checkpoint(ck, model, rd)
+    state.config_changes = list((read_yaml(rd / "config.yaml") or {}).get(CHANGES_KEY) or [])
+    if into is not None:
+        into.mkdir(parents=True, exist_ok=True)
+        state.run_dir = into
     return evaluate_run(state, scene, split, eval_cfg, max_gaussians=cfg.densify.max_gaussians)
 
 
@@ -113,13 +147,12 @@ def remeasure_run(rd: Path, cfg, split: str, eval_cfg, base: str, what: list[str
     fps: re-time the renders; `fps` becomes the new value and the entry it replaces is appended
     to `fps_history` with where it was measured. size: `model_mb` from the checkpoint's model
     (the tensors a saved model holds), for runs evaluated before it was recorded."""
-    import json
 
 
     mp = rd / "metrics.json"
     if not mp.is_file():
         raise MissingInput(f"{mp} not found: remeasure updates an evaluated run; evaluate it first")
-    metrics = json.loads(mp.read_text())
+    metrics = read_json(mp, "metrics")
     if split not in metrics:
         raise KeyError(f"{mp} has no split {split!r} (it has {sorted(metrics)}): evaluate that split first")
     _, model, scene = _load_for_eval(rd, cfg, split, base)
@@ -163,7 +196,7 @@ def _main(cfg: DictConfig) -> None:
     with reported("stdr-eval"):  # bad input: one line, exit code 2
         evaluate_dirs(list(cfg.runs), cfg.split, cfg.eval, cfg.render, cfg.reevaluate, out,
                       hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure,
-                      {s.name: cfg.get(s.name) for s in registered_plugins()})
+                      {s.name: cfg.get(s.name) for s in registered_plugins()}, cfg.unfinished, cfg.allow_mixed)
 
 
 def main() -> None:

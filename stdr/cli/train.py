@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import shlex
+import shutil
 import subprocess
 import sys
 import time
@@ -15,10 +16,12 @@ from omegaconf import DictConfig
 
 from ..config import CONFIG_DIR
 from ..store import register
-from ..errors import reported
+from ..errors import UserError, reported
+from ..io.runlock import LOCK_NAME
 from ..tools.runqueue import FAILURES, STDOUT
 from ..train.run import run_training
 from .common import check_overrides, reproducible_blas, use_fast_allocator_hint
+from .sweep import LAST_SWEEP
 
 register()
 
@@ -92,17 +95,48 @@ def _main(cfg: DictConfig) -> None:
         sweep_job(cfg, run_dir, hydra.utils.get_original_cwd())
     else:
         with reported("stdr-train"):  # bad input: one line, exit code 2
-            run_training(cfg, run_dir, data_base=hydra.utils.get_original_cwd())
+            try:
+                run_training(cfg, run_dir, data_base=hydra.utils.get_original_cwd())
+            except UserError:
+                _remove_if_untouched(run_dir, Path(hydra.utils.get_original_cwd()))
+                raise
+
+
+#: what Hydra writes into a run folder before stdr-train's checks (and the lock file)
+_HYDRA_ONLY = (".hydra", ".stdr.lock")
+
+
+def _remove_if_untouched(run_dir: Path, cwd: Path) -> None:
+    """A refused command leaves no folder: the run folder is removed when it holds nothing but
+    what Hydra made before the config was checked (.hydra/, an empty <job>.log, the empty lock),
+    then each parent it made that is now empty, up to the working folder."""
+    if not run_dir.is_dir():
+        return
+    log = f"{HydraConfig.get().job.name}.log"
+    for p in run_dir.iterdir():
+        if p.name not in _HYDRA_ONLY and not (p.name == log and p.stat().st_size == 0):
+            return  # a run's files: not this command's to remove
+        if p.name == LOCK_NAME and p.stat().st_size:
+            return
+    shutil.rmtree(run_dir, ignore_errors=True)
+    parent = run_dir.parent
+    while parent != cwd and cwd in parent.parents and not any(parent.iterdir()):
+        parent.rmdir()
+        parent = parent.parent
 
 
 def main() -> None:
     """stdr-train. `--cfg job` prints the config with its derived `schedule` resolved (Hydra's
-    --resolve is added), so the printed config shows every phase boundary of the run."""
+    --resolve is added), so the printed config shows every phase boundary of the run. A sweep
+    (-m) with failed jobs exits 1 after listing them (stdr.cli.sweep.SweepReport)."""
     if "--cfg" in sys.argv or "-c" in sys.argv:
         if "--resolve" not in sys.argv:
             sys.argv.append("--resolve")
     check_overrides("stdr-train", sys.argv[1:])  # a bad override: one line, exit code 2
+    LAST_SWEEP["failed"] = 0
     _main()
+    if LAST_SWEEP["failed"]:
+        raise SystemExit(1)
 
 
 if __name__ == "__main__":

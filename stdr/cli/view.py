@@ -3,18 +3,21 @@ STDR's mask and static/dynamic split), served on localhost; stdr-render RUN_DIR:
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 import time
 from pathlib import Path
 
-from ..errors import reported
+from ..errors import UserError, reported
+from ..io.runlock import run_lock
 from ..view.core import VIEWS, open_run
 from ..view.server import Viewer, check_port
 from ..view.browser import screenshot
 from ..view.video import KINDS, path_frames, render_videos, write_video
 from ..view.camera_path import read_camera_path
 from ..model import load_model
-from ..io.export import export_times
+from ..io.export import check_times, export_times
 
 
 def _positive(kind):
@@ -51,6 +54,8 @@ def view_main(argv=None) -> None:
         check_port(a.host, a.port)  # before loading the model: fail fast
         run = open_run(a.run, device=a.device, model_file=a.model)
         viewer = Viewer(run, host=a.host, port=a.port, max_width=a.max_width, allow_origins=tuple(a.allow_origin))
+    except UserError:
+        raise  # bad input: one line and exit 2 (reported)
     except (FileNotFoundError, RuntimeError, ValueError) as e:
         raise SystemExit(f"stdr-view: {e}") from None
     if a.view not in viewer.views:
@@ -116,6 +121,8 @@ def render_main(argv=None) -> None:
         else:
             paths = render_videos(run, a.out or a.run / "videos", [k for k in a.kinds.split(",") if k], a.width,
                                   a.frames, a.fps, a.view, a.split, a.format)
+    except UserError:
+        raise  # bad input: one line and exit 2 (reported)
     except (FileNotFoundError, RuntimeError, ValueError) as e:
         raise SystemExit(f"stdr-render: {e}") from None
     how = "MP4 (imageio-ffmpeg)" if any(p.suffix == ".mp4" for p in paths.values()) else \
@@ -137,8 +144,12 @@ def export_main(argv=None) -> None:
     ck = args.run if args.run.is_file() else args.run / "checkpoints" / "last.pt"
     if not ck.is_file():
         raise SystemExit(f"stdr-export: {ck} not found: pass a run directory with checkpoints/last.pt or a checkpoint")
+    check_times(args.times)  # before the model is loaded: fail fast
     model = load_model(ck, device=args.device)
     model.eval()
+    run_dir = args.run if args.run.is_dir() else None
     out = args.out or (args.run if args.run.is_dir() else args.run.parent) / "export"
-    for p in export_times(model, args.times, out):
-        print(f"[stdr] {p}")
+    inside = run_dir is not None and Path(os.path.realpath(out)).is_relative_to(os.path.realpath(run_dir))
+    with run_lock(run_dir, "stdr-export") if inside else contextlib.nullcontext():  # writing into the run
+        for p in export_times(model, args.times, out):
+            print(f"[stdr] {p}")

@@ -28,6 +28,7 @@ from ..render import use_compiled_projection
 from .lpips import LPIPS, fetch_weights
 from ..data.fetch import DataError
 from ..densify.prune import seen_per_frame, significance
+from ..io.files import read_json, write_atomic
 from .. import __version__, source_checkout
 
 
@@ -238,13 +239,16 @@ def training_facts(state) -> dict[str, Any]:
       None: unknown (a checkpoint from before it was recorded);
     * train_loss: the form of the training loss that ran (optim.fused_loss), `compiled` or `torch`
       (None: not recorded);
-    * prune: the contribution-pruning events (stdr.densify.prune), when there were any."""
+    * prune: the contribution-pruning events (stdr.densify.prune), when there were any;
+    * config_changes: the keys a resume changed (train.resume=override; stdr.train.resume), when any."""
     cpu, secs, threads = state.train_cpu_seconds, float(state.train_seconds or 0.0), state.train_threads
     out = {"train_cpu_seconds": cpu,
            "train_cpu_utilization": cpu / (secs * threads) if cpu is not None and threads and secs > 0 else None,
            "train_loss": state.train_loss}
     if state.prune_log:
         out["prune"] = list(state.prune_log)
+    if getattr(state, "config_changes", None):  # resumed with changed keys: what changed at which step
+        out["config_changes"] = list(state.config_changes)
     return out
 
 
@@ -349,13 +353,11 @@ def write_metrics(run_dir: Path, split: str, res: dict[str, Any], model, eval_cf
     for p in model.plugins:
         res[p.name] = p.stats(model.params)
     path = run_dir / "metrics.json"
-    metrics = json.loads(path.read_text()) if path.is_file() else {}
+    metrics = read_json(path, "metrics") if path.is_file() else {}
     metrics[split] = res
     save_metrics(path, metrics)
 
 
 def save_metrics(path: Path, metrics: dict[str, Any]) -> None:
     """Write a run's metrics.json atomically (a reader never sees half a file)."""
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(metrics, indent=1))
-    tmp.replace(path)
+    write_atomic(path, json.dumps(metrics, indent=1))

@@ -13,7 +13,8 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ..errors import BadInput, MissingInput
+from ..errors import BadInput, MissingInput, MissingKey
+from ..io.files import read_json, read_yaml
 from ..plugins import method_suffix
 
 METRICS = ("psnr", "ssim", "lpips", "fps", "num_gaussians", "train_seconds")
@@ -49,9 +50,12 @@ def read_metrics(run: str | Path, split: str) -> dict[str, Any]:
     mp = Path(run) / "metrics.json"
     if not mp.is_file():
         raise MissingInput(f"{mp} not found: the run has not finished, or {run} is not a stdr run directory")
-    allm = json.loads(mp.read_text())
+    allm = read_json(mp, "metrics")
+    if not isinstance(allm, dict):
+        raise BadInput(f"{mp} is damaged: it holds a {type(allm).__name__}, not the splits' metrics; re-evaluate "
+                       "the run (stdr-eval RUN)")
     if split not in allm:
-        raise KeyError(f"{mp} has no {split!r} entry; it has "
+        raise MissingKey(f"{mp} has no {split!r} entry; it has "
                        f"{sorted(k for k, v in allm.items() if isinstance(v, dict) and 'psnr' in v)}")
     return allm[split]
 
@@ -89,13 +93,14 @@ def load_run(run: str | Path, split: str) -> dict[str, Any]:
     """One run folder's numbers for a split: {run_dir, config (config.yaml as a dict), metrics
     (metrics.json[split]), method, scene, seed, backend (resolved; '<configured>*' for runs
     that predate recording it), profile (train_profile.json or None)}. Errors name the file."""
-    import yaml
     run = Path(run)
     cp = run / "config.yaml"
     if not cp.is_file():
         raise MissingInput(f"{cp} not found: {run} is not a stdr run directory")
     m = read_metrics(run, split)
-    cfg = yaml.safe_load(cp.read_text())
+    cfg = read_yaml(cp)
+    if not isinstance(cfg, dict) or not isinstance(cfg.get("data"), dict) or not isinstance(cfg.get("render"), dict):
+        raise BadInput(f"{cp} is not a run's config (no data and render sections): restore the file the run wrote")
     prof = run / "train_profile.json"
     return {"run_dir": str(run), "config": cfg, "metrics": m, "method": method_name(cfg),
             "scene": cfg["data"]["name"], "seed": cfg.get("seed"),
@@ -125,6 +130,49 @@ def table_row(cfg: dict[str, Any], split: str, metrics: dict[str, Any], run_dir:
     """One run's row for `collect`, from its resolved config (a plain dict)."""
     return {"method": method_name(cfg), "scene": cfg["data"]["name"], "split": split, "metrics": metrics,
             "run_dir": run_dir, "config": {k: v for k, v in cfg.items() if k not in ("eval", "train")}}
+
+
+def _code_stamp(metrics: dict[str, Any]) -> str:
+    code = metrics.get("code") or {}
+    commit = code.get("commit")
+    if not commit:
+        return f"stdr {code.get('version', '?')} (no commit)"
+    return str(commit)[:10] + ("-dirty" if code.get("dirty") else "")
+
+
+#: what the runs of one table row must share (beside the method): name -> the run's value
+ROW_FACTS = {
+    "iterations": lambda r: r["metrics"].get("iterations", (r.get("config", {}).get("optim") or {}).get("iterations")),
+    "budget": lambda r: r.get("config", {}).get("budget"),
+    "code": lambda r: _code_stamp(r["metrics"]),
+}
+
+
+def check_mixed_rows(rows: list[dict[str, Any]], allow: bool = False) -> list[dict[str, Any]]:
+    """A row (one method over scenes and seeds) stands for one training setting: its runs must
+    share the iteration count, the budget and the code version. A row that mixes them is refused
+    naming the runs and the values (BadInput); with allow=True it is kept and its label says what
+    differs, e.g. 'deform [mixed iterations 100/1500]'. Returns the rows (relabelled)."""
+    by_method: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        by_method.setdefault(r["method"], []).append(r)
+    labels: dict[str, str] = {}
+    for m, rs in by_method.items():
+        mixed = []
+        for fact, get in ROW_FACTS.items():
+            vals = {}
+            for r in rs:
+                vals.setdefault(str(get(r)), r["run_dir"])
+            if len(vals) > 1:
+                mixed.append((fact, vals))
+        if not mixed:
+            continue
+        if not allow:
+            said = "; ".join(f"{fact} " + ", ".join(f"{v} ({d})" for v, d in vals.items()) for fact, vals in mixed)
+            raise BadInput(f"the {m!r} row mixes runs of different training: {said}. Tabulate them apart, or add "
+                           "allow_mixed=true to keep the row (its label then names what differs)")
+        labels[m] = m + " [mixed " + "; ".join(f"{fact} {'/'.join(sorted(vals))}" for fact, vals in mixed) + "]"
+    return [{**r, "method": labels.get(r["method"], r["method"])} for r in rows]
 
 
 def flatten(d: dict, prefix: str = "") -> dict:

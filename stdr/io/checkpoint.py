@@ -1,6 +1,7 @@
 """Atomic checkpoints that resume exactly."""
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import os
@@ -74,10 +75,15 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any], keep_previous: bo
     envelope = {"envelope": ENVELOPE, "sha256": hashlib.sha256(raw).hexdigest(),
                 "data": torch.frombuffer(bytearray(raw), dtype=torch.uint8)}
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        torch.save(envelope, f)
-        f.flush()
-        os.fsync(f.fileno())
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(envelope, f)
+            f.flush()
+            os.fsync(f.fileno())
+    except BaseException:  # a full disk, a file-size limit, a signal: no half file left beside the checkpoint
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
     if keep_previous and path.is_file():
         os.replace(path, previous_path(path))
     os.replace(tmp, path)

@@ -13,6 +13,7 @@ from typing import Optional
 
 import torch
 
+from ..errors import BadInput
 from .ply import save_ply
 
 OPACITY_EPS = 1e-7  # opacities are clamped into [eps, 1 - eps] before the logit
@@ -34,14 +35,21 @@ def gaussians_at(model, t: float, step: Optional[int] = None) -> dict[str, torch
             "opacities": torch.log(op) - torch.log1p(-op), "sh0": sh[:, :1], "shN": sh[:, 1:]}
 
 
+def check_times(times: list[float]) -> None:
+    """Every time in [0, 1] (NaN is not): else one BadInput naming the bad ones."""
+    bad = [t for t in times if not 0.0 <= float(t) <= 1.0]
+    if bad:
+        raise BadInput(f"--times {' '.join(str(t) for t in bad)}: the model's times run over [0, 1] (0: the "
+                       "first training frame's time, 1: the last); give times in that range")
+
+
 def export_times(model, times: list[float], out: str | Path) -> list[Path]:
     """One PLY per time, out/t_<time>.ply; returns the paths."""
+    check_times(times)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for t in times:
-        if not 0.0 <= float(t) <= 1.0:
-            raise ValueError(f"time {t}: the model's times run over [0, 1]")
         p = out / f"t_{float(t):.4f}.ply"
         save_ply(gaussians_at(model, float(t)), p)
         paths.append(p)

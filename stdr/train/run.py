@@ -7,9 +7,16 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from ..compact.pack import check_pack_config, pack, summary
+from ..config import CHANGES_KEY
+from ..io.checkpoint import CKPT, load_checkpoint
+from ..io.files import write_atomic
+from ..io.runlock import run_lock
+from ..device import resolve_device
+from ..model import check_init_fits
 from ..data.load import scene_folder
 from ..eval.table import collect, markdown, table_row
 from ..validate import check_run_config
+from .resume import resume_changes
 from .trainer import Trainer
 
 
@@ -19,17 +26,31 @@ def run_training(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -
     compact file written when pack.enabled, and the result row printed. Returns the evaluation
     (None for a run stopped early by train.stop_at or train.deadline, or not started: train.start_by)."""
     check_run_config(cfg, data_base)  # keys, values and paths, before anything is written or trained
+    check_init_fits(cfg.model, resolve_device(cfg.device))
     start_by = cfg.train.get("start_by")
     if start_by is not None and time.time() > start_by:
         print(f"[stdr] {run_dir}: not started, train.start_by passed {time.time() - start_by:.0f} s ago")
         return None
-    run_dir.mkdir(parents=True, exist_ok=True)
+    with run_lock(run_dir, "stdr-train"):  # one writer per run folder (stdr.io.runlock)
+        return _train_locked(cfg, run_dir, data_base)
+
+
+def _train_locked(cfg: DictConfig, run_dir: Path, data_base: str | None) -> dict | None:
     if not cfg.data.name:  # label for tables: the scene folder's name
         cfg.data.name = scene_folder(cfg.data, data_base).name
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    ckpt = run_dir / CKPT
+    if cfg.train.resume and ckpt.is_file():  # a resume keeps its run's record (stdr.train.resume)
+        step = int(load_checkpoint(ckpt).get("model", {}).get("step", 0))
+        record, changes = resume_changes(cfg, run_dir, step)
+    else:
+        record, changes = OmegaConf.to_container(cfg, resolve=True), []
+    if changes:
+        record[CHANGES_KEY] = changes
+    write_atomic(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(record)))
     split = cfg.data.eval_split
     spec = check_pack_config(cfg)  # the compact file's codecs are checked before training, not after it
     trainer = Trainer(cfg, run_dir, splits=("train", split), data_base=data_base)
+    trainer.state.config_changes = changes
     print(f"[stdr] {cfg.name}: {len(trainer.scene.frames('train'))} train / "
           f"{len(trainer.scene.frames(split))} {split} frames at "
           f"{trainer.scene.frames('train')[0].camera.width}x{trainer.scene.frames('train')[0].camera.height}, "

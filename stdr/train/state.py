@@ -129,6 +129,8 @@ class RunState:
     train_loss: Optional[str] = None     # the photometric loss's form: "compiled" | "torch"
     history: list[dict[str, Any]] = field(default_factory=list)    # evaluations: the learning curve
     prune_log: list[dict[str, Any]] = field(default_factory=list)  # stdr.densify.prune.prune_event's records
+    # resumes with changed keys (train.resume=override): config.yaml's config_changes (stdr.train.resume)
+    config_changes: list[dict[str, Any]] = field(default_factory=list)
     make_optimizers: Optional[Callable[[], dict[str, torch.optim.Optimizer]]] = None
 
     @property

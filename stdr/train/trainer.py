@@ -16,7 +16,7 @@ from torch import Tensor
 from ..data.load import load_scene
 from ..device import resolve_device
 from ..metrics import fused_loss, image_loss, image_loss_compiled
-from ..model import build_model, initial_points
+from ..model import build_model, check_init_fits, initial_points
 from ..render.compiled import camera_values
 from ..gaussians import scene_extent
 from ..io.ply import save_ply
@@ -65,6 +65,7 @@ class Trainer:
             camera_values(f.camera)
         has_train = "train" in self.scene.splits
         train_times = self.scene.train_times() if has_train else None
+        check_init_fits(cfg.model, self.device)  # model.init_num that cannot fit: named, not an allocator's traceback
         pts, colors = initial_points(cfg.model, self.scene.init_points, self.scene.init_colors, cfg.seed,
                                      where=str(self.scene.root))
         background = torch.tensor(self.scene.background, dtype=torch.float32)

@@ -1,0 +1,262 @@
+"""A run survives what research use does to it: one writer per run folder (stdr.io.runlock), a
+resume that keeps its run's record (stdr.train.resume), an evaluation that never changes an
+unfinished run, and a table row that never silently mixes trainings. Real processes on real
+files: the commands are run as a user runs them."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from stdr.io.runlock import LOCK_NAME, RunLocked, read_holder, run_lock
+from stdr.testing import TINY_SCENE
+
+TINY = [*TINY_SCENE, "device=cpu", "model.init_num=300", "eval.lpips=false", "train.progress=false",
+        "eval.save_images=false", "train.image_every=0", "eval.fps_repeats=1", "eval.fps_warmup=0",
+        "baseline.warmup=10", "train.eval_at_warmup_end=false", "densify.refine_start=5",
+        "densify.refine_every=10", "train.threads=1"]
+
+
+def train_cmd(tmp_path: Path, run: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "stdr.cli.train", *TINY, f"data.cache_dir={tmp_path / 'cache'}",
+            f"hydra.run.dir={run}", *extra]
+
+
+def sh(cmd, timeout=600, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, **kw)
+
+
+def one_line_error(r: subprocess.CompletedProcess, prog: str) -> str:
+    """The command ended with exit 2 and one `<prog>: error: ...` line, no traceback."""
+    assert r.returncode == 2, (r.returncode, r.stderr[-3000:])
+    assert "Traceback" not in r.stderr, r.stderr[-3000:]
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith(f"{prog}: error:")]
+    assert len(lines) == 1, r.stderr[-3000:]
+    return lines[0]
+
+
+# ---------------------------------------------------------------- one writer per run folder
+def test_the_lock_is_exclusive_between_processes_reentrant_within_one_and_free_after_a_kill(tmp_path):
+    run = tmp_path / "run"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from stdr.io.runlock import run_lock\n"
+        "with run_lock(sys.argv[1], 'stdr-train'):\n"
+        "    print('held', flush=True); time.sleep(600)"), str(run)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(RunLocked, match=rf"{run} is in use: stdr-train, pid {holder.pid} on host "
+                                            r"\S+ since \d{4}-\d\d-\d\d"):
+            with run_lock(run, "stdr-eval"):
+                pass
+        holder.send_signal(signal.SIGKILL)
+        holder.wait(timeout=30)
+    finally:
+        holder.kill()
+    assert read_holder(run)["pid"] == holder.pid  # the killed holder's record is still there ...
+    with run_lock(run, "stdr-eval"):  # ... but its lock went with it
+        assert read_holder(run)["pid"] == os.getpid() and read_holder(run)["prog"] == "stdr-eval"
+        with run_lock(run, "stdr-tool pack"):  # the same process again (training's packing step)
+            pass
+        assert read_holder(run)["pid"] == os.getpid()  # the inner release kept the outer hold
+        other = sh([sys.executable, "-c", "import sys; from stdr.io.runlock import run_lock\n"
+                    "with run_lock(sys.argv[1], 'x'): pass", str(run)])
+        assert other.returncode != 0 and "is in use: stdr-eval" in other.stderr
+    assert (run / LOCK_NAME).read_text() == ""  # released: nobody holds it
+
+
+def test_a_second_stdr_train_in_one_folder_is_refused_and_a_killed_ones_resume_proceeds(tmp_path):
+    run = tmp_path / "run"
+    first = subprocess.Popen(train_cmd(tmp_path, run, "optim.iterations=100000", "train.checkpoint_every=20"),
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        t0 = time.time()
+        while not (run / "checkpoints" / "last.pt").is_file():  # training, past its first checkpoint
+            assert first.poll() is None, first.stdout.read()[-3000:]
+            assert time.time() - t0 < 300
+            time.sleep(0.2)
+        second = sh(train_cmd(tmp_path, run, "optim.iterations=100000", "train.checkpoint_every=20"))
+        line = one_line_error(second, "stdr-train")
+        assert f"{run} is in use: stdr-train, pid {first.pid} on host" in line and "hydra.run.dir" in line
+        assert first.poll() is None  # the first run goes on
+        first.send_signal(signal.SIGKILL)
+        first.wait(timeout=30)
+    finally:
+        first.kill()
+    third = sh(train_cmd(tmp_path, run, "optim.iterations=100000", "train.checkpoint_every=20",
+                         "train.stop_at=45"))
+    assert third.returncode == 0, third.stderr[-3000:]
+    assert f"the lock was left by stdr-train, pid {first.pid}" in third.stdout and "which is gone" in third.stdout
+    assert "resumed from" in third.stdout
+
+
+# ---------------------------------------------------------------- a resume keeps its record
+def test_a_resume_with_a_changed_training_key_is_refused_and_override_records_the_change(tmp_path):
+    run = tmp_path / "run"
+    r = sh(train_cmd(tmp_path, run, "optim.iterations=40", "train.stop_at=20"))
+    assert r.returncode == 0, r.stderr[-3000:]
+    before = (run / "config.yaml").read_text()
+    changed = sh(train_cmd(tmp_path, run, "optim.iterations=30", "optim.lambda_dssim=0.5"))
+    line = one_line_error(changed, "stdr-train")
+    assert "resume the run at iteration 20" in line and "2 key(s)" in line
+    assert "optim.iterations: 40 (the run's) -> 30 (this command's)" in line
+    assert "optim.lambda_dssim: 0.2 (the run's) -> 0.5 (this command's)" in line and "train.resume=override" in line
+    assert (run / "config.yaml").read_text() == before  # nothing rewritten
+    # keys that only steer the process may differ: threads, logging, checkpoints, the stop
+    ok = sh(train_cmd(tmp_path, run, "optim.iterations=40", "train.stop_at=25", "train.log_every=7",
+                      "train.checkpoint_every=3"))
+    assert ok.returncode == 0 and "resumed from" in ok.stdout, ok.stderr[-3000:]
+    assert "config_changes" not in (run / "config.yaml").read_text()
+    over = sh(train_cmd(tmp_path, run, "optim.iterations=30", "train.resume=override"))
+    assert over.returncode == 0, over.stderr[-3000:]
+    assert "resuming at iteration 25 with changed keys (train.resume=override): optim.iterations: 40" in over.stdout
+    rec = yaml.safe_load((run / "config.yaml").read_text())
+    assert rec["optim"]["iterations"] == 30  # the values it now trains with ...
+    assert [(c["step"], c["keys"]) for c in rec["config_changes"]] == [(25, {"optim.iterations": [40, 30]})]
+    entry = json.loads((run / "metrics.json").read_text())["test"]
+    assert entry["iterations"] == 30 and entry["config_changes"][0]["keys"] == {"optim.iterations": [40, 30]}
+
+
+def test_train_resume_takes_true_false_or_override_only(tmp_path):
+    r = sh(train_cmd(tmp_path, tmp_path / "run", "train.resume=sometimes"))
+    assert "train.resume='sometimes': use true (resume from the checkpoint), false (start over) or override" \
+        in one_line_error(r, "stdr-train")
+
+
+# ---------------------------------------------------------------- evaluations and tables
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """A finished 30-step run, an unfinished one (stopped at 5 of 30) and a finished 20-step run
+    on another scene size (another 'scene' in a table)."""
+    tmp = tmp_path_factory.mktemp("runs")
+    out = {}
+    for name, extra in (("done", ["optim.iterations=30"]), ("stopped", ["optim.iterations=30", "train.stop_at=5"]),
+                        ("short", ["optim.iterations=20", "data.name=other"])):
+        r = sh(train_cmd(tmp, tmp / name, *extra))
+        assert r.returncode == 0, r.stderr[-3000:]
+        out[name] = tmp / name
+    return out
+
+
+def _eval(*args, cwd=None) -> subprocess.CompletedProcess:
+    return sh([sys.executable, "-m", "stdr.cli.eval", *map(str, args)], cwd=cwd)
+
+
+def _tree(d: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(d)): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+def test_stdr_eval_writes_nothing_into_an_unfinished_run_and_evaluates_it_apart_on_request(runs, tmp_path):
+    stopped = runs["stopped"]
+    before = _tree(stopped)
+    r = _eval(stopped, f"out={tmp_path / 't'}")
+    line = one_line_error(r, "stdr-eval")
+    assert f"{stopped} has not finished: its checkpoint is at iteration 5 of 30" in line and "unfinished=true" in line
+    assert _tree(stopped) == before and not (stopped / "metrics.json").exists()
+    r = _eval(stopped, f"out={tmp_path / 't'}", "unfinished=true")
+    assert r.returncode == 0, r.stderr[-3000:]
+    apart = json.loads((tmp_path / "t" / "unfinished" / "stopped" / "metrics.json").read_text())["test"]
+    assert apart["iterations"] == 5 and apart["psnr"] > 0
+    assert _tree(stopped) == before  # still untouched
+
+
+def test_a_table_row_mixing_iteration_counts_is_refused_or_labelled(runs, tmp_path):
+    r = _eval(runs["done"], runs["short"], "reevaluate=false", f"out={tmp_path / 't'}")
+    line = one_line_error(r, "stdr-eval")
+    assert "the 'deform' row mixes runs of different training: iterations 30" in line and "20" in line
+    assert "allow_mixed=true" in line
+    r = _eval(runs["done"], runs["short"], "reevaluate=false", f"out={tmp_path / 't'}", "allow_mixed=true")
+    assert r.returncode == 0, r.stderr[-3000:]
+    table = json.loads((tmp_path / "t" / "table.json").read_text())
+    assert table["methods"] == ["deform [mixed iterations 20/30]"]
+
+
+def test_stdr_eval_refuses_a_second_writer_while_training_holds_the_run(runs, tmp_path):
+    import shutil
+    run = tmp_path / "run"
+    shutil.copytree(runs["done"], run)
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from stdr.io.runlock import run_lock\n"
+        "with run_lock(sys.argv[1], 'stdr-train'):\n"
+        "    print('held', flush=True); time.sleep(600)"), str(run)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = (run / "metrics.json").read_bytes()
+        line = one_line_error(_eval(run, f"out={tmp_path / 't'}"), "stdr-eval")
+        assert f"{run} is in use: stdr-train, pid {holder.pid}" in line
+        assert (run / "metrics.json").read_bytes() == before
+        # a reader needs no lock: tabulating the metrics as they are
+        assert _eval(run, "reevaluate=false", f"out={tmp_path / 't2'}").returncode == 0
+    finally:
+        holder.kill()
+
+
+@pytest.mark.parametrize("content", ["", "{\"test\": {\"psnr\": 3", "\x00\x01garbage"])
+def test_a_damaged_metrics_json_is_one_line_naming_it(runs, tmp_path, content):
+    import shutil
+    run = tmp_path / "run"
+    shutil.copytree(runs["done"], run)
+    (run / "metrics.json").write_text(content)
+    line = one_line_error(_eval(run, "reevaluate=false", f"out={tmp_path / 't'}"), "stdr-eval")
+    assert f"{run / 'metrics.json'} is damaged" in line
+
+
+def test_a_python_tag_in_config_yaml_runs_nothing_and_is_one_line_in_eval_and_view(runs, tmp_path):
+    import shutil
+    run = tmp_path / "run"
+    shutil.copytree(runs["done"], run)
+    marker = tmp_path / "pwned"
+    cfg = (run / "config.yaml").read_text()
+    (run / "config.yaml").write_text(cfg + f"evil: !!python/object/apply:os.system ['touch {marker}']\n")
+    line = one_line_error(_eval(run, "reevaluate=false", f"out={tmp_path / 't'}"), "stdr-eval")
+    assert f"{run / 'config.yaml'} is not a config stdr can read" in line and "!!python" in line
+    r = sh([sys.executable, "-c", "from stdr.cli.view import view_main; import sys; view_main(sys.argv[1:])",
+            str(run), "--port", "18765"], timeout=120)
+    assert "is not a config stdr can read" in one_line_error(r, "stdr-view")
+    assert not marker.exists()
+
+
+# ---------------------------------------------------------------- one line, nothing left behind
+@pytest.mark.parametrize("extra,said", [
+    (["+optim.iteratons=5"], "unknown config key optim.iteratons: did you mean optim.iterations?"),
+    (["data.max_width=-5"], "data.max_width=-5: use null (no limit) or a whole number >= 1"),
+    (["budget=demo", "optim.iterations=400", "baseline.warmup=400"], "the deformation never trains in this run"),
+    (["model.init_num=1000000000000"], "model.init_num=1000000000000: 1,000,000,000,000 Gaussians need at least"),
+])
+def test_a_refused_config_is_one_line_and_leaves_no_folder(tmp_path, extra, said):
+    run = tmp_path / "outputs" / "mine" / "run"
+    r = sh(train_cmd(tmp_path, run, *extra), cwd=tmp_path)
+    assert said in one_line_error(r, "stdr-train")
+    assert not (tmp_path / "outputs").exists()  # neither the run folder nor the parents Hydra made
+
+
+def test_the_demo_budget_shorter_than_its_warm_up_is_named():
+    r = sh([sys.executable, "-m", "stdr.cli.train", "budget=demo", "optim.iterations=400", "hydra.run.dir=/nonexistent/x"])
+    assert "baseline.warmup" in one_line_error(r, "stdr-train") and "train.stop_at" in r.stderr
+
+
+def test_a_sweep_with_a_failed_job_lists_it_and_exits_1(tmp_path):
+    sweep = tmp_path / "sweep"
+    cmd = [sys.executable, "-m", "stdr.cli.train", "-m", *TINY, f"data.cache_dir={tmp_path / 'cache'}",
+           "optim.iterations=12", "model.init_num=300,1000000000000", f"hydra.sweep.dir={sweep}"]
+    r = sh(cmd)
+    assert r.returncode == 1, (r.stdout[-2000:], r.stderr[-2000:])
+    assert "sweep finished with 1 failed job(s)" in r.stdout and "model.init_num=1000000000000" in r.stdout
+    assert (sweep / "0" / "metrics.json").is_file()  # the other job finished
+    # the same command again: the finished job is skipped, the failed one fails again
+    again = sh(cmd)
+    assert again.returncode == 1 and "skipping finished run" in again.stdout
+
+
+@pytest.mark.parametrize("times", [["2"], ["nan"], ["0.5", "-1"]])
+def test_stdr_export_refuses_times_outside_the_run_in_one_line(runs, tmp_path, times):
+    r = sh([sys.executable, "-c", "from stdr.cli.view import export_main; import sys; export_main(sys.argv[1:])",
+            str(runs["done"]), "--times", *times, "--out", str(tmp_path / "ply")], timeout=120)
+    assert "the model's times run over [0, 1]" in one_line_error(r, "stdr-export")
+    assert not (tmp_path / "ply").exists()
