@@ -304,3 +304,22 @@ def test_a_camera_off_the_videos_track_is_dropped_and_named():
     fast = np.linspace(0, 4 * np.pi, n)  # a fast, steady turn: 30 degrees a frame
     fc = np.stack([4 * np.cos(fast), 4 * np.sin(fast), np.zeros(n)], 1)
     assert cap.track_outliers(ids, fc, -fc / 4) == {}
+
+
+def test_a_failed_capture_leaves_neither_its_folder_nor_a_partial_one(tmp_path):
+    """A text file named .mp4, an empty file and a 1-frame video: each one line (exit 2), and no
+    OUT or OUT.partial afterwards."""
+    import subprocess
+    import sys
+    (tmp_path / "notes.mp4").write_text("these are my notes, not a video\n")
+    (tmp_path / "empty.mp4").write_bytes(b"")
+    _encode(_frames(1), tmp_path / "one.mp4", fps=10)
+    for src, said in (("notes.mp4", "not a readable video"), ("empty.mp4", "not a readable video"),
+                      ("one.mp4", "only 1 frame(s) decoded; a capture needs at least 3")):
+        out = tmp_path / f"out_{src[:-4]}"
+        r = subprocess.run([sys.executable, "-m", "stdr.cli.data", "capture", str(tmp_path / src), "--out", str(out)],
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
+        errors = [ln for ln in r.stderr.splitlines() if ln.startswith("stdr-data: error:")]
+        assert len(errors) == 1 and said in errors[0], r.stderr
+        assert not out.exists() and not out.with_name(out.name + ".partial").exists(), src

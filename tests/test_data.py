@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from stdr.errors import BadInput
 from stdr.data.dnerf import load_dnerf, load_dnerf_split
 from stdr.data.procedural import SceneOptions, generate_scene, look_at_c2w, render_frame
 
@@ -132,3 +133,52 @@ def test_shared_dnerf_scenes_load(shared_dir):
         # the test views differ from the training views in camera, not in time)
         js = json.loads((root / "transforms_test.json").read_text())["frames"]
         assert [f.time for f in d.frames("test")] == [float(x["time"]) for x in js]
+
+
+def _scene_copy(small_scene, tmp_path):
+    import shutil
+    dst = tmp_path / "scene"
+    shutil.copytree(small_scene, dst)
+    return dst, json.loads((dst / "transforms_train.json").read_text())
+
+
+def _verify_line(folder):
+    """stdr-data verify FOLDER as a user runs it: (exit code, its stdout + stderr)."""
+    import subprocess
+    import sys
+    r = subprocess.run([sys.executable, "-m", "stdr.cli.data", "verify", str(folder)], capture_output=True,
+                       text=True, timeout=300)
+    assert "Traceback" not in r.stderr, r.stderr
+    return r.returncode, r.stdout + r.stderr
+
+
+def test_verify_decodes_every_image_and_names_an_undecodable_one(small_scene, tmp_path):
+    scene, meta = _scene_copy(small_scene, tmp_path)
+    rc, out = _verify_line(scene)
+    assert rc == 0 and "ok" in out
+    bad = scene / (meta["frames"][2]["file_path"] + ("" if meta["frames"][2]["file_path"].endswith(".png") else ".png"))
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(92)))  # 100 bytes: a PNG signature and no image
+    rc, out = _verify_line(scene)
+    assert rc != 0 and f"could not decode image {bad.resolve()}" in out
+    with pytest.raises(BadInput, match="could not decode image"):
+        load_dnerf(scene, ["train"])
+
+
+def test_a_split_mixing_rgb_and_rgba_frames_or_repeating_an_image_is_named_at_load(small_scene, tmp_path):
+    import cv2
+    scene, meta = _scene_copy(small_scene, tmp_path)
+    fp = meta["frames"][3]["file_path"]
+    img = scene / (fp if fp.endswith(".png") else fp + ".png")
+    cv2.imwrite(str(img), cv2.imread(str(img), cv2.IMREAD_UNCHANGED)[..., :3])  # the alpha channel dropped
+    with pytest.raises(BadInput, match=rf"frames\[3\] \({img.name}\) has none but frames\[0\] \(\S+\) has an alpha "
+                                       "channel: a D-NeRF split's images are all RGBA"):
+        load_dnerf(scene, ["train"])
+    rc, out = _verify_line(scene)
+    assert rc != 0 and "has an alpha channel" in out
+    scene, meta = _scene_copy(small_scene, tmp_path / "b")
+    meta["frames"][4]["file_path"] = meta["frames"][1]["file_path"]
+    (scene / "transforms_train.json").write_text(json.dumps(meta))
+    with pytest.raises(BadInput, match=r"frames\[4\] and frames\[1\] both use the image"):
+        load_dnerf(scene, ["train"])
+    rc, out = _verify_line(scene)
+    assert rc != 0 and "both use the image" in out

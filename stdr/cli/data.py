@@ -149,18 +149,22 @@ def prepare_dnerf(src: Path, dest: Path, size: int = 400) -> list[Path]:
             raise SystemExit(f"stdr-data prepare: {t} exists already; remove it or choose another destination")
         tmp = dest / f".{s.name}.partial"
         shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        for split in ("train", "val", "test"):
-            jp = s / f"transforms_{split}.json"
-            shutil.copy2(jp, tmp / jp.name)
-            for i, fr in enumerate(json.loads(jp.read_text())["frames"]):
-                img = _resolve_image(s, fr["file_path"], jp, i)
-                rel = img.relative_to(s)
-                (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
-                with Image.open(img) as im:
-                    im = im.convert("RGBA").convert("RGBa").resize((size, size), Image.Resampling.LANCZOS)
-                    im.convert("RGBA").save(tmp / rel)
-        tmp.replace(t)
+        try:  # a failure (a full disk, a read-only destination) leaves no .partial folder
+            tmp.mkdir(parents=True)
+            for split in ("train", "val", "test"):
+                jp = s / f"transforms_{split}.json"
+                shutil.copy2(jp, tmp / jp.name)
+                for i, fr in enumerate(json.loads(jp.read_text())["frames"]):
+                    img = _resolve_image(s, fr["file_path"], jp, i)
+                    rel = img.relative_to(s)
+                    (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+                    with Image.open(img) as im:
+                        im = im.convert("RGBA").convert("RGBa").resize((size, size), Image.Resampling.LANCZOS)
+                        im.convert("RGBA").save(tmp / rel)
+            tmp.replace(t)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
         print(f"[stdr-data] {t}: {size}x{size}")
         out.append(t)
     return out

@@ -304,6 +304,18 @@ def capture(source: str | Path, out: str | Path, cfg: Optional[CaptureConfig] = 
     _pycolmap()  # fail before the slow decoding
     part = out.with_name(out.name + ".partial")
     shutil.rmtree(part, ignore_errors=True)
+    try:
+        return _capture_into(part, source, out, kind, cfg, keep_work, log)
+    except BaseException:
+        if keep_work:  # kept for a look at what the stages left
+            log(f"[capture] failed; the stages' files are kept in {part} (--keep-work)")
+        else:  # a failed capture leaves nothing behind: neither OUT nor OUT.partial
+            shutil.rmtree(part, ignore_errors=True)
+        raise
+
+
+def _capture_into(part: Path, source: Path, out: Path, kind: str, cfg: CaptureConfig, keep_work: bool, log) -> dict:
+    """capture's stages, written under `part` and renamed to `out` at the end."""
     work = part / "work"
     (work / "images").mkdir(parents=True)
     timings: dict = {}

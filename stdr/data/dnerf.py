@@ -52,6 +52,33 @@ def _resolve_image(root: Path, file_path: str, json_path: Path, i: int) -> Path:
     return p
 
 
+class SplitImages:
+    """The images of one D-NeRF split as they are read: none listed twice (a broken conversion
+    or a copy-paste in the JSON), and all with an alpha channel or none (RGBA frames are
+    composited over data.background, RGB ones are not: a mix trains on two backgrounds). Either
+    is an error naming both frames (the loader and `stdr-data verify`)."""
+
+    def __init__(self, json_path: Path):
+        self.jp = json_path
+        self.seen: dict[Path, int] = {}
+        self.first: Optional[tuple[bool, int, str]] = None
+
+    def add(self, i: int, path: Path, channels: int) -> None:
+        if path in self.seen:
+            raise BadInput(f"{self.jp}: frames[{i}] and frames[{self.seen[path]}] both use the image {path.name}: "
+                           "each frame of a split has its own image; fix the file_path of one of them")
+        self.seen[path] = i
+        alpha = channels == 4
+        if self.first is None:
+            self.first = (alpha, i, path.name)
+        elif self.first[0] != alpha:
+            def has(a: bool) -> str:
+                return "has an alpha channel" if a else "has none"
+            raise BadInput(f"{self.jp}: frames[{i}] ({path.name}) {has(alpha)} but frames[{self.first[1]}] "
+                           f"({self.first[2]}) {has(self.first[0])}: a D-NeRF split's images are all RGBA (composited "
+                           "over data.background) or all RGB; convert the odd ones")
+
+
 def output_size(width: int, height: int, resolution_scale: float, max_width: Optional[int]) -> tuple[int, int]:
     """Image size after `resolution_scale`, then capped at `max_width` (aspect kept)."""
     if resolution_scale <= 0:
@@ -75,7 +102,7 @@ def load_dnerf_split(root: str | Path, split: str, background=(1.0, 1.0, 1.0),
     if not isinstance(meta["frames"], list) or not meta["frames"]:
         raise BadInput(f"{jp}: 'frames' must be a non-empty list")
     fov_x = check_fov(meta["camera_angle_x"], jp, "camera_angle_x")
-    frames, size0, name0 = [], None, None
+    frames, size0, name0, images = [], None, None, SplitImages(jp)
     for i, fr in enumerate(meta["frames"]):
         if not isinstance(fr, dict):
             raise BadInput(f"{jp}: frames[{i}] must be an object with file_path, time and transform_matrix, "
@@ -98,6 +125,7 @@ def load_dnerf_split(root: str | Path, split: str, background=(1.0, 1.0, 1.0),
         check_pose(c2w[:3, :3], c2w[:3, 3], where, "transform_matrix")
         ip = _resolve_image(root, fr["file_path"], jp, i)
         img = read_image(ip)
+        images.add(i, ip, img.shape[2])
         H0, W0 = img.shape[:2]
         if size0 is None:
             size0, name0 = (W0, H0), ip.name

@@ -33,7 +33,8 @@ from pathlib import Path, PurePosixPath
 from typing import Callable, Optional
 
 from ..errors import UserError
-from .dnerf import _read_json, _resolve_image
+from .dnerf import SplitImages, _read_json, _resolve_image
+from .images import image_channels
 
 CHUNK = 1 << 20
 LOCK_NAME = "stdr-data.lock.json"
@@ -359,8 +360,10 @@ def verify_scene(folder: Path, fmt: str) -> int:
                 frames = _read_json(jp).get("frames")
                 if not frames:
                     raise DataError(f"{jp}: no frames")
+                images = SplitImages(jp)
                 for i, fr in enumerate(frames):
-                    _resolve_image(folder, fr["file_path"], jp, i)
+                    ip = _resolve_image(folder, fr["file_path"], jp, i)
+                    images.add(i, ip, image_channels(ip))  # every image decoded, as the loader will
                     n += 1
             except (FileNotFoundError, ValueError, KeyError) as e:
                 raise DataError(f"{folder} is not a complete D-NeRF scene: {e}") from None
@@ -381,8 +384,14 @@ def verify_scene(folder: Path, fmt: str) -> int:
         for i in ids:
             if not (folder / "camera" / f"{i}.json").is_file():
                 raise DataError(f"{folder}: camera/{i}.json missing (id listed in dataset.json)")
-            if not any((s / f"{i}.png").is_file() or (s / f"{i}.jpg").is_file() for s in scales):
+            found = [p for s in scales for p in (s / f"{i}.png", s / f"{i}.jpg") if p.is_file()]
+            if not found:
                 raise DataError(f"{folder}: no image of id {i} under rgb/*x/")
+            for p in found:  # decoded, as the loader will
+                try:
+                    image_channels(p)
+                except ValueError as e:
+                    raise DataError(f"{folder} is not a complete Nerfies-format scene: {e}") from None
             n += 1
         return n
     raise ValueError(f"unknown format {fmt!r}: dnerf or nerfies")

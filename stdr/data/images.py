@@ -29,6 +29,12 @@ def read_image(path: Path) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
+def image_channels(path: Path) -> int:
+    """Decode the image at `path` as the loaders do (read_image) and return its channel count
+    (3 or 4); a file that does not decode is a BadInput naming it."""
+    return read_image(Path(path)).shape[2]
+
+
 def composite(rgba: np.ndarray, background) -> tuple[np.ndarray, np.ndarray | None]:
     """Straight-alpha RGBA [H, W, 4] over a background colour -> (RGB, alpha); RGB passes through."""
     if rgba.shape[2] == 3:
