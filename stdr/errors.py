@@ -4,9 +4,11 @@ what to change derives from it; anything else reaching a command's top is a bug 
 traceback."""
 from __future__ import annotations
 
+import errno
+import os
 import sys
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Iterator, Optional
 
 #: the exit code of a command stopped by bad input (argparse's, for the same reason)
 USAGE_EXIT = 2
@@ -35,13 +37,63 @@ class MissingKey(UserError, KeyError):
         return str(self.args[0]) if self.args else ""
 
 
+class IOFault(UserError, OSError):
+    """The machine refused a write (a read-only or full disk, a file-size limit, a permission, a
+    path through a file): the message names the path, the cause and what to do."""
+
+    def __str__(self) -> str:  # the sentence, without OSError's "[Errno N]"
+        return str(self.strerror)
+
+
+#: the causes of an I/O fault a user can do something about, and what
+IO_FIXES = {
+    errno.EROFS: "the file system is mounted read-only: write somewhere else",
+    errno.ENOSPC: "the disk is full: free space, or write somewhere else",
+    errno.EDQUOT: "the disk quota is used up: free space, or write somewhere else",
+    errno.EFBIG: "the file would exceed the file-size limit (ulimit -f) or the file system's largest file",
+    errno.EACCES: "no permission to write there: write somewhere else, or change its permissions",
+    errno.EPERM: "the operation is not permitted there: write somewhere else, or change its permissions",
+    errno.ENOTDIR: "a part of the path is a file, not a folder",
+    errno.EISDIR: "it is a folder, where a file is needed",
+    errno.EEXIST: "a file is in the way of a folder of that name",
+}
+
+
+def io_fault(e: OSError, path=None) -> IOFault:
+    """The IOFault of OSError `e` at `path` (default: the path the error names)."""
+    where = path if path is not None else (e.filename if e.filename is not None else "a file")
+    return IOFault(e.errno, f"cannot write {where}: {os.strerror(e.errno)} ({IO_FIXES.get(e.errno, 'an I/O error')})")
+
+
+def io_cause(e: BaseException) -> Optional[OSError]:
+    """The OSError of a user-fixable cause (IO_FIXES) behind `e` (itself, or its cause or context:
+    e.g. logging's 'Unable to configure handler' over a read-only folder), else None."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno in IO_FIXES:
+            return e
+        e = e.__cause__ or e.__context__
+    return None
+
+
 @contextmanager
 def reported(prog: str) -> Iterator[None]:
     """Run a command's body; a UserError ends it with `<prog>: error: <message>` on stderr, one
-    line (the message's own line breaks folded), and exit code 2."""
+    line (the message's own line breaks folded), and exit code 2. So does an I/O fault the user
+    can fix (a read-only or full disk, a permission, ...: IO_FIXES), named by its path."""
     try:
         yield
     except UserError as e:
-        msg = " ".join(str(e).split())
-        print(f"{prog}: error: {msg}", file=sys.stderr, flush=True)
-        raise SystemExit(USAGE_EXIT) from None
+        _one_line(prog, str(e))
+    except Exception as e:  # noqa: BLE001 - an I/O fault is reported, anything else is a bug
+        cause = io_cause(e)
+        if cause is None:
+            raise
+        _one_line(prog, str(io_fault(cause)) if not isinstance(cause, IOFault) else str(cause))
+
+
+def _one_line(prog: str, message: str) -> None:
+    msg = " ".join(message.split())
+    print(f"{prog}: error: {msg}", file=sys.stderr, flush=True)
+    raise SystemExit(USAGE_EXIT) from None

@@ -323,3 +323,20 @@ def test_a_failed_capture_leaves_neither_its_folder_nor_a_partial_one(tmp_path):
         errors = [ln for ln in r.stderr.splitlines() if ln.startswith("stdr-data: error:")]
         assert len(errors) == 1 and said in errors[0], r.stderr
         assert not out.exists() and not out.with_name(out.name + ".partial").exists(), src
+
+
+@pytest.mark.slow
+def test_a_disk_fault_at_the_end_of_a_capture_keeps_the_previous_one(toy_capture, tmp_path, monkeypatch, capsys):
+    """--overwrite of a finished capture with the disk failing as the new one is complete
+    (STDR_FAILPOINT=capture): one line naming the file, the previous capture intact, no .partial."""
+    import hashlib
+    from stdr.cli.data import main
+    toy, out, _ = toy_capture
+    before = {str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest() for p in out.rglob("*") if p.is_file()}
+    monkeypatch.setenv("STDR_FAILPOINT", "capture:ENOSPC")
+    with pytest.raises(SystemExit) as e:
+        main(["capture", str(toy / "rgb" / "2x"), "--out", str(out), "--frames", "40", "--threads", "2", "--overwrite"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "stdr-data: error: cannot write" in err and "capture.json: No space left" in err
+    after = {str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest() for p in out.rglob("*") if p.is_file()}
+    assert after == before and not out.with_name(out.name + ".partial").exists()

@@ -90,3 +90,14 @@ def check_overrides(prog: str, argv: list[str], config_name: str = "train") -> N
             compose_config(list(argv), config_name)
         except (HydraException, OmegaConfBaseException) as e:
             raise ConfigError(_override_problem(e, list(argv), config_name)) from None
+
+
+def run_hydra_app(prog: str, app) -> None:
+    """Run a Hydra app (`app()`, a @hydra.main function) so that an I/O fault of Hydra's own
+    writes (the run folder, .hydra/, the job's log file on a read-only or full disk) is one line
+    naming the path, as the app's own are (stdr.errors.reported): Hydra prints every exception as
+    a traceback unless HYDRA_FULL_ERROR lets it through to here. Other errors keep their
+    traceback (a bug)."""
+    os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+    with reported(prog):
+        app()

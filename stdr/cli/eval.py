@@ -19,7 +19,7 @@ from ..io.files import read_json, read_yaml
 from ..io.runlock import run_lock
 from ..store import register
 from ..errors import BadInput, MissingInput, reported
-from .common import check_overrides, reproducible_blas
+from .common import check_overrides, reproducible_blas, run_hydra_app
 from ..eval.table import check_mixed_rows, collect, find_run_dirs, markdown, read_metrics, table_row, write_tables
 from ..eval.evaluate import evaluate_run, measure_fps, save_metrics, machine_name
 from ..train.state import RunState
@@ -212,7 +212,7 @@ def main() -> None:
         args.append(f"runs=[{quoted}]")
     sys.argv = args
     check_overrides("stdr-eval", args[1:], "eval")  # a bad override: one line, exit code 2
-    _main()
+    run_hydra_app("stdr-eval", _main)
 
 
 if __name__ == "__main__":

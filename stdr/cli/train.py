@@ -20,7 +20,7 @@ from ..errors import UserError, reported
 from ..io.runlock import LOCK_NAME
 from ..tools.runqueue import FAILURES, STDOUT
 from ..train.run import run_training
-from .common import check_overrides, reproducible_blas, use_fast_allocator_hint
+from .common import check_overrides, reproducible_blas, run_hydra_app, use_fast_allocator_hint
 from .sweep import LAST_SWEEP
 
 register()
@@ -134,7 +134,7 @@ def main() -> None:
             sys.argv.append("--resolve")
     check_overrides("stdr-train", sys.argv[1:])  # a bad override: one line, exit code 2
     LAST_SWEEP["failed"] = 0
-    _main()
+    run_hydra_app("stdr-train", _main)
     if LAST_SWEEP["failed"]:
         raise SystemExit(1)
 

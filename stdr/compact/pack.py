@@ -19,6 +19,7 @@ from ..data.load import load_scene
 from ..errors import ConfigError
 from ..eval.evaluate import evaluate_model
 from ..io.checkpoint import CKPT, save_checkpoint
+from ..io.files import write_atomic
 from ..model import load_model, model_bytes, model_from_checkpoint
 from ..plugins import enabled_plugins, plugin_node
 from . import codecs
@@ -64,7 +65,7 @@ def write_compact(model, path: str | Path, spec: Optional[dict] = None, frames=N
         if extra["finetune"]["state"]:  # recorded where it tuned something: a model without the state writes the same file
             payload["spec"]["finetune_state"] = ",".join(parts)
     payload = pack_streams(payload)
-    save_checkpoint(path, payload)
+    save_checkpoint(path, payload, site="compact")
     return {"bytes": codecs.nbytes(payload["model"]), "full_bytes": model_bytes(model), "spec": payload["spec"], **extra}
 
 
@@ -96,7 +97,7 @@ def pack(run_dir: Path, out: Optional[Path] = None, spec: Optional[dict] = None,
         b = evaluate_model(small, scene.frames(split), fps_warmup=0)
         rec.update({"split": split, "full": {k: a[k] for k in ("psnr", "ssim")},
                     "compact": {k: b[k] for k in ("psnr", "ssim")}, "delta_psnr": b["psnr"] - a["psnr"]})
-    (run_dir / "pack.json").write_text(json.dumps(rec, indent=1) + "\n")
+    write_atomic(run_dir / "pack.json", json.dumps(rec, indent=1) + "\n", site="pack")
     return rec
 
 

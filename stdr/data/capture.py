@@ -38,6 +38,8 @@ import numpy as np
 from .capture_input import (VIDEO_SUFFIXES, CaptureConfig, CaptureError, FrameRecord, progress_bar, folder_frames,
                             video_frames)
 from .checks import check_intrinsics, check_pose
+from ..errors import IO_FIXES, IOFault, io_fault
+from ..io.files import failpoint
 
 PYCOLMAP_VERSION = "4.2.1"  # the version this module is written and tested against (pyproject: extra `capture`)
 def _pycolmap():
@@ -306,11 +308,13 @@ def capture(source: str | Path, out: str | Path, cfg: Optional[CaptureConfig] = 
     shutil.rmtree(part, ignore_errors=True)
     try:
         return _capture_into(part, source, out, kind, cfg, keep_work, log)
-    except BaseException:
+    except BaseException as e:
         if keep_work:  # kept for a look at what the stages left
             log(f"[capture] failed; the stages' files are kept in {part} (--keep-work)")
         else:  # a failed capture leaves nothing behind: neither OUT nor OUT.partial
             shutil.rmtree(part, ignore_errors=True)
+        if isinstance(e, OSError) and not isinstance(e, IOFault) and e.errno in IO_FIXES:
+            raise io_fault(e, e.filename if e.filename is not None else out) from None  # one line naming the path
         raise
 
 
@@ -354,6 +358,7 @@ def _capture_into(part: Path, source: Path, out: Path, kind: str, cfg: CaptureCo
         work.rename(part / "colmap" / "work")
     else:
         shutil.rmtree(work)
+    failpoint("capture", part / "capture.json")
     if out.exists():
         shutil.rmtree(out)
     part.replace(out)

@@ -32,7 +32,8 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Callable, Optional
 
-from ..errors import UserError
+from ..errors import IOFault, UserError
+from ..io.files import make_folder, writing
 from .dnerf import SplitImages, _read_json, _resolve_image
 from .images import image_channels
 
@@ -142,13 +143,19 @@ def _fetch_one(url: str, dest: Path, timeout: float, verify: Optional[Callable[[
             have = 0
         length = r.headers.get("Content-Length")
         total = (int(length) + have) if length is not None else None
-        with open(part, "ab" if have else "wb") as f, _progress(total, have, dest.name) as bar:
-            while True:
-                chunk = r.read(CHUNK)
-                if not chunk:
-                    break
-                f.write(chunk)
-                bar.update(len(chunk))
+        try:
+            with writing(part, "download"), open(part, "ab" if have else "wb") as f, \
+                    _progress(total, have, dest.name) as bar:
+                while True:
+                    chunk = r.read(CHUNK)
+                    if not chunk:
+                        break
+                    f.write(chunk)
+                    bar.update(len(chunk))
+        except IOFault as e:  # this machine's disk, not the source: no other source is tried
+            kept = part.stat().st_size if part.is_file() else 0
+            raise IOFault(e.errno, f"{e} The {kept:,} bytes fetched so far stay in {part}: the same command "
+                          "resumes from them once the fault is fixed") from None
     got = part.stat().st_size
     if total is not None and got != total:
         raise DataError(f"{url}: the transfer stopped at {got} of {total} bytes; run the command again to resume "
@@ -179,12 +186,14 @@ def download(urls: tuple[str, ...] | list[str], dest: Path, timeout: float = 60.
     """Fetch the first of `urls` that works into `dest` (resuming `dest.part`); returns the URL.
     `verify(path)` (e.g. check_archive) checks a file whose completeness the transfer cannot
     show (no Content-Length, or a .part the server calls complete) before it is kept."""
-    dest.parent.mkdir(parents=True, exist_ok=True)
+    make_folder(dest.parent)
     errors = []
     for url in urls:
         try:
             _fetch_one(url, dest, timeout, verify)
             return url
+        except IOFault:
+            raise  # a fault of this machine's disk: the next source would meet it too
         except (urllib.error.URLError, OSError, DataError) as e:
             errors.append(f"{url}: {e}")
             log(f"[stdr-data] {url} failed ({e}); trying the next source" if url != urls[-1] else

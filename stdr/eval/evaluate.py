@@ -11,6 +11,7 @@ Conventions, recorded in the output:
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
 import subprocess
@@ -28,7 +29,7 @@ from ..render import use_compiled_projection
 from .lpips import LPIPS, fetch_weights
 from ..data.fetch import DataError
 from ..densify.prune import seen_per_frame, significance
-from ..io.files import read_json, write_atomic
+from ..io.files import atomic_path, read_json, write_atomic
 from .. import __version__, source_checkout
 
 
@@ -143,7 +144,11 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
         if save_dir is not None:
             import cv2
             both = torch.cat([img, f.image], 1).cpu().numpy()
-            cv2.imwrite(str(save_dir / f"{i:03d}.png"), (both[..., ::-1] * 255 + 0.5).astype(np.uint8))
+            png = save_dir / f"{i:03d}.png"
+            with atomic_path(png, "renders") as tmp:  # cv2 says False instead of raising: named here
+                if not cv2.imwrite(str(tmp), (both[..., ::-1] * 255 + 0.5).astype(np.uint8)):
+                    raise OSError(errno.ENOSPC if tmp.parent.is_dir() else errno.ENOTDIR,
+                                  "the image could not be written", str(png))
     passes = [float(len(times) / sum(times))]
     passes += [timed_pass(model, frames, step)["fps"] for _ in range(int(fps_repeats) - 1)]
     seen_frac = None
@@ -281,7 +286,7 @@ def evaluate_run(state, scene, split: str, eval_cfg, max_gaussians: Optional[int
                          fps_warmup=eval_cfg.fps_warmup, fps_repeats=eval_cfg.fps_repeats, seen=True)
     metrics_entry(res, split, state, int(max_gaussians or 0) or None)
     write_metrics(run_dir, split, res, state.model, eval_cfg, lp, scene.meta)
-    (run_dir / "history.json").write_text(json.dumps(state.history, indent=1))
+    write_atomic(run_dir / "history.json", json.dumps(state.history, indent=1), site="history")
     return res
 
 

@@ -9,12 +9,13 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 from pathlib import Path
 from typing import Any
 
 from ..errors import BadInput, MissingInput, MissingKey
-from ..io.files import read_json, read_yaml
+from ..io.files import make_folder, read_json, read_yaml, write_atomic
 from ..plugins import method_suffix
 
 METRICS = ("psnr", "ssim", "lpips", "fps", "num_gaussians", "train_seconds")
@@ -40,9 +41,9 @@ def write_outputs(out: Path | None, md: str, data: Any) -> None:
     if out is None:
         return
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".md").write_text(md)
-    out.with_suffix(".json").write_text(json.dumps(data, indent=1) + "\n")
+    make_folder(out.parent)
+    write_atomic(out.with_suffix(".md"), md, site="table")
+    write_atomic(out.with_suffix(".json"), json.dumps(data, indent=1) + "\n", site="table")
 
 
 def read_metrics(run: str | Path, split: str) -> dict[str, Any]:
@@ -299,15 +300,15 @@ def latex(t, metrics=("psnr", "ssim", "lpips")) -> str:
 
 
 def write_tables(t: dict[str, Any], out_dir: Path) -> dict[str, Path]:
-    out_dir.mkdir(parents=True, exist_ok=True)
+    """table.md, .csv, .tex and .json in out_dir, each written atomically (stdr.io.files)."""
+    make_folder(out_dir)
     paths = {"md": out_dir / "table.md", "csv": out_dir / "table.csv", "tex": out_dir / "table.tex",
              "json": out_dir / "table.json"}
-    paths["md"].write_text(markdown(t))
     cols, body = to_rows(t)
-    with open(paths["csv"], "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(cols)
-        w.writerows(body)
-    paths["tex"].write_text(latex(t))
-    paths["json"].write_text(json.dumps(t, indent=1))
+    buf = io.StringIO(newline="")
+    w = csv.writer(buf)
+    w.writerow(cols)
+    w.writerows(body)
+    for k, text in (("md", markdown(t)), ("csv", buf.getvalue()), ("tex", latex(t)), ("json", json.dumps(t, indent=1))):
+        write_atomic(paths[k], text, site="table")
     return paths

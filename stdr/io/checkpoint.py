@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import shutil
 import io
 import os
 import pickle
@@ -16,6 +17,7 @@ import numpy as np
 import torch
 
 from ..errors import MissingInput, UserError
+from .files import atomic_path
 
 #: a run's last checkpoint, under its run folder
 CKPT = "checkpoints/last.pt"
@@ -62,11 +64,28 @@ def previous_path(path: str | Path) -> Path:
     return path.with_name(f"{path.stem}.previous{path.suffix}")
 
 
-def save_checkpoint(path: str | Path, payload: dict[str, Any], keep_previous: bool = False) -> None:
+def _keep_as_previous(path: Path) -> None:
+    """previous_path(path) becomes a copy of `path` while `path` stays where it is (a hard link,
+    or a copy where the file system has none), so that last.pt exists at every moment."""
+    prev = previous_path(path)
+    side = prev.with_name(f".{prev.name}.link")
+    with contextlib.suppress(FileNotFoundError):
+        side.unlink()
+    try:
+        os.link(path, side)
+    except OSError:
+        shutil.copyfile(path, side)
+    os.replace(side, prev)
+
+
+def save_checkpoint(path: str | Path, payload: dict[str, Any], keep_previous: bool = False,
+                    site: str = "checkpoint") -> None:
     """Write `payload` with a SHA-256 of its bytes (torch's own format does not notice a flipped
     byte: it loads wrong values) to a temporary file in the same folder, fsync, then rename over
-    `path`. keep_previous: the file being replaced is kept as `previous_path(path)` first, so at
-    every moment one complete checkpoint exists and a damaged last one leaves the one before."""
+    `path` (stdr.io.files.atomic_path: a failed write leaves the previous file and no temporary
+    one, and names the path). keep_previous: the file being replaced is kept as
+    `previous_path(path)` first, and `path` exists at every moment, so a damaged last one leaves
+    the one before. site: the failpoint's name (stdr.io.files.failpoint)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.BytesIO()
@@ -74,19 +93,14 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any], keep_previous: bo
     raw = buf.getbuffer()
     envelope = {"envelope": ENVELOPE, "sha256": hashlib.sha256(raw).hexdigest(),
                 "data": torch.frombuffer(bytearray(raw), dtype=torch.uint8)}
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
+    # a full disk, a file-size limit, a kill: no half file is left, and the previous checkpoint stays
+    with atomic_path(path, site) as tmp:
         with open(tmp, "wb") as f:
             torch.save(envelope, f)
             f.flush()
             os.fsync(f.fileno())
-    except BaseException:  # a full disk, a file-size limit, a signal: no half file left beside the checkpoint
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-    if keep_previous and path.is_file():
-        os.replace(path, previous_path(path))
-    os.replace(tmp, path)
+        if keep_previous and path.is_file():
+            _keep_as_previous(path)
 
 
 def _damaged(path: Path, why: str) -> CheckpointError:

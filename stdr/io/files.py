@@ -4,15 +4,17 @@ failed write leaves the previous file and no temporary one)."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
+import contextlib
+import errno
 import json
 import os
 
 import yaml
 from omegaconf import OmegaConf
 
-from ..errors import BadInput, MissingInput
+from ..errors import IO_FIXES, BadInput, IOFault, MissingInput, io_fault
 
 
 def read_yaml(path: str | Path) -> Any:
@@ -53,22 +55,84 @@ def read_json(path: str | Path, what: str = "file") -> Any:
                        f"the {what} again") from None
 
 
-def write_atomic(path: str | Path, data: str | bytes) -> None:
-    """Write `data` to a temporary file beside `path`, flush it to the disk, then rename it over
-    `path`. On any failure (a full disk, a read-only folder) the temporary file is removed and
-    the previous `path` is untouched; the OSError goes on to the caller."""
+#: the environment variable that makes one write site fail (tests of the fault paths): SITE or
+#: SITE:ERRNO_NAME, e.g. STDR_FAILPOINT=checkpoint:ENOSPC (default ENOSPC)
+FAILPOINT_ENV = "STDR_FAILPOINT"
+
+#: the write sites a failpoint can name, each a kind of file the commands write
+SITES = ("config", "checkpoint", "metrics", "history", "profile", "ply", "compact", "pack", "tensorboard", "renders",
+         "table", "video", "download", "capture", "lock")
+
+
+def failpoint(site: str, path: str | Path) -> None:
+    """Raise the OSError the environment asks for at `site` (STDR_FAILPOINT), as the disk would;
+    nothing otherwise. Called by every write site after its bytes are written to the temporary
+    file and before it replaces the previous one, where a full disk strikes."""
+    spec = os.environ.get(FAILPOINT_ENV)
+    if not spec:
+        return
+    name, _, code = spec.partition(":")
+    if name == site:
+        num = getattr(errno, code or "ENOSPC")
+        raise OSError(num, os.strerror(num), str(path))
+
+
+def temporary_beside(path: Path) -> Path:
+    """`.<stem>.tmp<suffix>` beside `path` (the suffix kept: writers that pick a format by it)."""
+    return path.with_name(f".{path.stem}.tmp{path.suffix}")
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path, site: str) -> Iterator[Path]:
+    """Yield a temporary path beside `path` for the body to write; then rename it over `path`.
+    On any failure the temporary file is removed and the previous `path` is untouched, and an
+    OSError a user can fix (a full or read-only disk, ...) becomes an IOFault naming `path`."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    raw = data.encode() if isinstance(data, str) else data
+    tmp = temporary_beside(path)
     try:
+        yield tmp
+        failpoint(site, path)
+        os.replace(tmp, path)
+    except BaseException as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        if isinstance(e, OSError) and not isinstance(e, IOFault) and e.errno in IO_FIXES:
+            raise io_fault(e, path) from None
+        raise
+
+
+@contextlib.contextmanager
+def writing(path: str | Path, site: str) -> Iterator[None]:
+    """A write that cannot be atomic (a log appended to, a folder of renders): an OSError a user
+    can fix becomes an IOFault naming `path`; STDR_FAILPOINT can make it fail."""
+    try:
+        failpoint(site, path)
+        yield
+    except OSError as e:
+        if isinstance(e, IOFault) or e.errno not in IO_FIXES:
+            raise
+        raise io_fault(e, path) from None
+
+
+def make_folder(path: str | Path) -> Path:
+    """mkdir -p `path`; a read-only disk, a permission or a file in the way is one IOFault naming it."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        if e.errno not in IO_FIXES:
+            raise
+        raise io_fault(e, path) from None
+    return path
+
+
+def write_atomic(path: str | Path, data: str | bytes, site: str = "metrics") -> None:
+    """Write `data` to a temporary file beside `path`, flush it to the disk, then rename it over
+    `path` (atomic_path): a reader never sees half a file, and a failed write leaves the previous
+    file and no temporary one."""
+    raw = data.encode() if isinstance(data, str) else data
+    with atomic_path(path, site) as tmp:
         with open(tmp, "wb") as f:
             f.write(raw)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            tmp.unlink()
-        except OSError:
-            pass
-        raise

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from .files import atomic_path
 from plyfile import PlyData, PlyElement
 from torch import nn
 
@@ -36,10 +37,8 @@ def save_ply(params, path: str | Path) -> None:
     arr = np.empty(N, dtype=[(name, "f4") for name, _ in cols])
     for name, v in cols:
         arr[name] = v
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    PlyData([PlyElement.describe(arr, "vertex")]).write(str(tmp))
-    tmp.replace(path)
+    with atomic_path(path, "ply") as tmp:  # the previous PLY stays until the new one is complete
+        PlyData([PlyElement.describe(arr, "vertex")]).write(str(tmp))
 
 
 def load_ply(path: str | Path, extra_keys: dict[str, tuple] | None = None) -> nn.ParameterDict:

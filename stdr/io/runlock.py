@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Iterator
 
 from ..errors import UserError
+from .files import failpoint
 
 LOCK_NAME = ".stdr.lock"
 ENV_SWITCH = "STDR_RUN_LOCK"  # "off": no lock (a file system without lock support)
@@ -122,7 +123,13 @@ def run_lock(run_dir: str | Path, prog: str) -> Iterator[None]:
         fh.truncate()
         fh.write(json.dumps(holder_record(prog)))
         fh.flush()
+        failpoint("lock", path)
     except BaseException:
+        try:  # the record is not left behind as if a holder had been killed
+            fh.seek(0)
+            fh.truncate()
+        except OSError:
+            pass
         fh.close()  # closing its only descriptor releases the lock
         raise
     _HELD[key] = [fh, 1]

@@ -46,7 +46,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path, data_base: str | None) -> dict
         record, changes = OmegaConf.to_container(cfg, resolve=True), []
     if changes:
         record[CHANGES_KEY] = changes
-    write_atomic(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(record)))
+    write_atomic(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(record)), site="config")
     split = cfg.data.eval_split
     spec = check_pack_config(cfg)  # the compact file's codecs are checked before training, not after it
     trainer = Trainer(cfg, run_dir, splits=("train", split), data_base=data_base)

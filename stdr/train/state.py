@@ -26,6 +26,7 @@ from torch import Tensor
 
 from .optim import clear_grads
 from ..io.checkpoint import CKPT, rng_state, save_checkpoint, set_rng_state
+from ..io.files import writing
 from .guard import Guard
 from ..syncs import host_only
 from ..model import model_entry
@@ -65,23 +66,39 @@ class RunLog:
         self.writer = None
 
     def open(self):
+        """The SummaryWriter, opened at the first use. Its writes go to the disk from a thread of
+        its own, whose errors surface at a later call: every call here is under `writing`, so a
+        full or read-only disk is one error naming run_dir/tb."""
         if self.writer is None:
             from torch.utils.tensorboard import SummaryWriter
-            self.writer = SummaryWriter(str(self.dir))
+            with writing(self.dir, "tensorboard"):
+                self.writer = SummaryWriter(str(self.dir))
         return self.writer
 
     def scalar(self, tag: str, value, step: int) -> None:
-        self.open().add_scalar(tag, value, step)
+        with writing(self.dir, "tensorboard"):
+            self.open().add_scalar(tag, value, step)
 
     def scalar_if_open(self, tag: str, value, step: int) -> None:
         """Only into a log that is already open (an evaluation outside training opens none)."""
         if self.writer is not None:
-            self.writer.add_scalar(tag, value, step)
+            with writing(self.dir, "tensorboard"):
+                self.writer.add_scalar(tag, value, step)
+
+    def flush(self) -> None:
+        """Everything written so far on the disk (the end of training): a fault says so here."""
+        if self.writer is not None:
+            with writing(self.dir, "tensorboard"):
+                self.writer.flush()
 
     def step_scalars(self, it: int, logs: dict[str, Any], dt: float, state: "RunState", device) -> None:
         """A training step's scalars: losses, PSNR, Gaussian counts, seconds, memory, learning
         rates and the densification's counts (`logs`: Trainer.train_step's result)."""
-        tb = self.open()
+        with writing(self.dir, "tensorboard"):
+            self._step_scalars(self.open(), it, logs, dt, state, device)
+
+    @staticmethod
+    def _step_scalars(tb, it: int, logs: dict[str, Any], dt: float, state: "RunState", device) -> None:
         for k in ("loss", "l1", "dssim"):
             tb.add_scalar(f"loss/{k}", logs[k], it)
         tb.add_scalar("train/psnr", logs["psnr"], it)
@@ -104,7 +121,8 @@ class RunLog:
         """The render, the ground truth and 4x their error side by side ([H, 3W, 3])."""
         err = (img - gt).abs().mean(-1, keepdim=True).expand(-1, -1, 3)
         grid = torch.cat([img.clamp(0, 1), gt, (err * 4).clamp(0, 1)], 1)
-        self.open().add_image(tag, grid, it, dataformats="HWC")
+        with writing(self.dir, "tensorboard"):
+            self.open().add_image(tag, grid, it, dataformats="HWC")
 
 
 @dataclass

@@ -24,6 +24,7 @@ from ..densify.prune import prune_event
 from ..densify.strategy import build_strategy
 from .optim import adam_step, make_optimizers, net_groups, update_lrs, uses_fused_adam
 from ..io.checkpoint import load_checkpoint
+from ..io.files import write_atomic, writing
 from ..config import check_guard_config
 from .guard import Guard, monitor_split, resolve_compiled_check, resolve_sync_free
 from .timing import Profiler
@@ -298,7 +299,8 @@ class Trainer:
         self.state.guard.note_memory(self.device)
         self.save()
         save_ply(self.state.model.params, self.run_dir / "point_cloud.ply")
-        (self.run_dir / "train_profile.json").write_text(json.dumps(self.profile_summary(), indent=1))
+        self.log.flush()  # TensorBoard's events on the disk: a fault there is named now, not lost
+        write_atomic(self.run_dir / "train_profile.json", json.dumps(self.profile_summary(), indent=1), site="profile")
 
     def _log_step(self, tb, bar, it: int, total: int, logs: dict[str, Any], dt: float) -> None:
         """TensorBoard scalars and the plug-ins' entries every train.log_every steps, the render
@@ -308,8 +310,9 @@ class Trainer:
         img_due = bool(t.image_every) and (it % t.image_every == 0 or it == total)
         if due:
             self.log.step_scalars(it, logs, dt, self.state, self.device)
-            for p in self.state.model.plugins:
-                p.log(tb, self.state.model.params, it - 1, images=img_due, x=it)
+            with writing(self.log.dir, "tensorboard"):
+                for p in self.state.model.plugins:
+                    p.log(tb, self.state.model.params, it - 1, images=img_due, x=it)
         if img_due:
             self.log.render_and_truth(it, logs["out"].image.detach(), logs["frame"].image)
         if bar is not None:

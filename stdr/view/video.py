@@ -22,6 +22,7 @@ import torch
 
 from .core import ViewRun, look_at_point, render_view, scale_to_width, to_uint8
 from ..geometry import so3_exp
+from ..io.files import atomic_path, make_folder
 
 KINDS = ("time", "orbit", "compare")
 
@@ -51,16 +52,16 @@ def write_video(frames: list[np.ndarray], stem: Path, fps: float, fmt: str = "au
     if fmt == "mp4" and not mp4_available():
         raise RuntimeError("--format mp4 needs an ffmpeg writer: pip install imageio-ffmpeg (or --format gif)")
     use_mp4 = fmt == "mp4" or (fmt == "auto" and mp4_available())
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    if use_mp4:
-        path = stem.with_suffix(".mp4")
-        with imageio.get_writer(path, fps=fps, codec="libx264", quality=8, macro_block_size=1,
-                                ffmpeg_params=["-pix_fmt", "yuv420p"]) as w:
-            for f in frames:
-                w.append_data(_even(f))
-    else:
-        path = stem.with_suffix(".gif")
-        imageio.mimsave(path, frames, duration=1000.0 / fps, loop=0)
+    make_folder(stem.parent)
+    path = stem.with_suffix(".mp4" if use_mp4 else ".gif")
+    with atomic_path(path, "video") as tmp:  # the previous video stays until the new one is complete
+        if use_mp4:
+            with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1,
+                                    ffmpeg_params=["-pix_fmt", "yuv420p"]) as w:
+                for f in frames:
+                    w.append_data(_even(f))
+        else:
+            imageio.mimsave(tmp, frames, duration=1000.0 / fps, loop=0)
     return path
 
 
