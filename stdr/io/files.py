@@ -77,6 +77,14 @@ def failpoint(site: str, path: str | Path) -> None:
         raise OSError(num, os.strerror(num), str(path))
 
 
+def leftover_temporaries(folder: str | Path) -> list[Path]:
+    """The temporary files (temporary_beside, a checkpoint's previous-copy link) a process killed
+    mid-write left in `folder` and its checkpoints/ (SIGKILL runs no clean-up)."""
+    folder = Path(folder)
+    return [p for d in (folder, folder / "checkpoints") if d.is_dir() for p in d.iterdir()
+            if p.is_file() and p.name.startswith(".") and (".tmp." in p.name or p.name.endswith((".tmp", ".link")))]
+
+
 def temporary_beside(path: Path) -> Path:
     """`.<stem>.tmp<suffix>` beside `path` (the suffix kept: writers that pick a format by it)."""
     return path.with_name(f".{path.stem}.tmp{path.suffix}")

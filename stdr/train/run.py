@@ -9,7 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 from ..compact.pack import check_pack_config, pack, summary
 from ..config import CHANGES_KEY
 from ..io.checkpoint import CKPT, load_checkpoint
-from ..io.files import write_atomic
+from ..io.files import leftover_temporaries, write_atomic
 from ..io.runlock import run_lock
 from ..device import resolve_device
 from ..model import check_init_fits
@@ -36,6 +36,8 @@ def run_training(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -
 
 
 def _train_locked(cfg: DictConfig, run_dir: Path, data_base: str | None) -> dict | None:
+    for stale in leftover_temporaries(run_dir):  # a writer killed mid-write (we hold the lock: none is writing)
+        stale.unlink(missing_ok=True)
     if not cfg.data.name:  # label for tables: the scene folder's name
         cfg.data.name = scene_folder(cfg.data, data_base).name
     ckpt = run_dir / CKPT

@@ -27,9 +27,10 @@ from ..io.checkpoint import load_checkpoint
 from ..io.files import write_atomic, writing
 from ..config import check_guard_config
 from .guard import Guard, monitor_split, resolve_compiled_check, resolve_sync_free
+from .evaluations import Evaluations
+from .preempt import preemption
 from .timing import Profiler
 from .state import PAYLOAD_KEYS, CameraSampler, RunLog, RunState
-from ..eval.evaluate import make_lpips, evaluate_state, evaluate_run
 
 def _rewind(bar, step: int) -> None:
     """The progress bar back to `step` after a recovery restored an earlier state."""
@@ -38,7 +39,7 @@ def _rewind(bar, step: int) -> None:
         bar.refresh()
 
 
-class Trainer:
+class Trainer(Evaluations):
     """Optimization of a `DynamicGaussians` model on a scene: optimizers and learning-rate
     schedules, the densification strategy, the camera sampler and the loop. The model is
     `trainer.state.model`; nothing here is needed to render it."""
@@ -258,7 +259,31 @@ class Trainer:
         if end < 1:
             raise ValueError(f"train.stop_at={cfg.train.stop_at}: must be a step >= 1 (null: train to optim.iterations)")
         deadline = cfg.train.get("deadline")
-        while self.step < end and (deadline is None or time.time() < deadline):
+        with preemption() as pre:  # a cluster's warning signal: checkpoint this step, then requeue
+            self._loop(end, total, deadline, tb, bar, pre)
+            if bar is not None:
+                bar.close()
+            if self.step < total:
+                if pre is not None and pre.requested:
+                    print(f"[stdr] stopped at iteration {self.step} of {total} (a cluster's warning signal); the "
+                          "requeued job resumes from the checkpoint")
+                else:
+                    why = "train.stop_at" if self.step >= end else "train.deadline"
+                    print(f"[stdr] stopped at iteration {self.step} of {total} ({why}); the same command without "
+                          f"{why} resumes from the checkpoint")
+            self.state.guard.note_memory(self.device)
+            self.save()
+            save_ply(self.state.model.params, self.run_dir / "point_cloud.ply")
+            self.log.flush()  # TensorBoard's events on the disk: a fault there is named now, not lost
+            write_atomic(self.run_dir / "train_profile.json", json.dumps(self.profile_summary(), indent=1),
+                         site="profile")
+            if pre is not None and pre.requested:
+                pre.hand_over()  # submitit requeues the job; the checkpoint above is where it resumes
+
+    def _loop(self, end: int, total: int, deadline, tb, bar, pre) -> None:
+        """The steps up to `end` (train.stop_at or optim.iterations), a deadline or a warning signal."""
+        cfg, guard = self.cfg, self.cfg.train.guard
+        while self.step < end and (deadline is None or time.time() < deadline) and not (pre and pre.requested):
             t0, c0 = time.perf_counter(), time.process_time()
             logs = self.train_step()
             dt = time.perf_counter() - t0
@@ -270,7 +295,7 @@ class Trainer:
                 _rewind(bar, self.step)
                 continue
             it = self.step
-            if self.state.guard.sync_free and self._waits_for_the_device(it, end):
+            if self.state.guard.sync_free and (self._waits_for_the_device(it, end) or (pre is not None and pre.requested)):
                 hit = self.state.guard.poll()  # the sync-free check, read where the loop waits anyway
                 if hit is not None:
                     self.state.guard.recover(self.state, self.log, hit[1], step=hit[0])
@@ -290,17 +315,6 @@ class Trainer:
                 self.save()
             if guard.enabled and it % guard.snapshot_every == 0 and it < total:
                 self.state.guard.take_snapshot(self.state, self.log)
-        if bar is not None:
-            bar.close()
-        if self.step < total:
-            why = "train.stop_at" if self.step >= end else "train.deadline"
-            print(f"[stdr] stopped at iteration {self.step} of {total} ({why}); the same command without "
-                  f"{why} resumes from the checkpoint")
-        self.state.guard.note_memory(self.device)
-        self.save()
-        save_ply(self.state.model.params, self.run_dir / "point_cloud.ply")
-        self.log.flush()  # TensorBoard's events on the disk: a fault there is named now, not lost
-        write_atomic(self.run_dir / "train_profile.json", json.dumps(self.profile_summary(), indent=1), site="profile")
 
     def _log_step(self, tb, bar, it: int, total: int, logs: dict[str, Any], dt: float) -> None:
         """TensorBoard scalars and the plug-ins' entries every train.log_every steps, the render
@@ -321,18 +335,6 @@ class Trainer:
                 bar.set_postfix(loss=f"{float(logs['loss']):.4f}", psnr=f"{float(logs['psnr']):.2f}",
                                 N=self.state.model.num_gaussians)
 
-    def _evaluation_due(self, it: int, total: int) -> Optional[dict[str, Any]]:
-        """The evaluation after step `it`, if one is due: at the static warm-up's end
-        (train.eval_at_warmup_end) or every train.eval_every steps; else None."""
-        cfg = self.cfg
-        split, warmup = cfg.data.eval_split, cfg.baseline.warmup
-        if cfg.train.eval_at_warmup_end and it == warmup and warmup < total:
-            return self.evaluate(split, tag="static_warmup", step=warmup - 1, frames=self.curve_frames(split),
-                                 lpips_fn=self._curve_lpips())
-        if cfg.train.eval_every and it % cfg.train.eval_every == 0 and it < total:
-            return self.evaluate(split, tag="periodic", frames=self.curve_frames(split), lpips_fn=self._curve_lpips())
-        return None
-
     def _waits_for_the_device(self, it: int, end: int) -> bool:
         """Whether the loop reads the device after step `it` anyway (logging, an evaluation, a
         checkpoint, a snapshot, the end): where the sync-free guard's flag is read, so that no
@@ -344,53 +346,3 @@ class Trainer:
 
     def profile_summary(self) -> dict[str, Any]:
         return self.profile.summary(self.step)
-
-    def curve_frames(self, split: str, n: Optional[int] = None) -> Optional[list[int]]:
-        """Indices of the frames a periodic (learning-curve) evaluation renders: all (None) with
-        train.eval_frames=0, else a fixed subset of that many (or of `n`), drawn once from a
-        generator seeded with the run's seed (the training RNG is not touched)."""
-        n = int(self.cfg.train.eval_frames if n is None else n)
-        total = len(self.scene.frames(split))
-        if n <= 0 or n >= total:
-            return None
-        g = torch.Generator().manual_seed(int(self.cfg.seed))
-        return sorted(torch.randperm(total, generator=g)[:n].tolist())
-
-    def _monitor_psnr(self, res: dict[str, Any]) -> float:
-        """The divergence detector's PSNR at a periodic evaluation `res` (of data.eval_split):
-        its own when data.eval_split is the monitor split, else an evaluation of the monitor
-        split's fixed subset of train.guard.monitor_frames frames (history tag 'guard')."""
-        if self.monitor == self.cfg.data.eval_split:
-            return float(res["psnr"])
-        frames = self.curve_frames(self.monitor, n=self.cfg.train.guard.monitor_frames)
-        return float(self.evaluate(self.monitor, tag="guard", frames=frames)["psnr"])
-
-    def _curve_lpips(self):
-        """The LPIPS network for periodic evaluations (train.eval_lpips), built once."""
-        if not self.cfg.train.eval_lpips:
-            return None
-        if getattr(self, "_lpips", None) is None:
-            lp = make_lpips(self.cfg.eval)
-            if lp is None:
-                raise ValueError("train.eval_lpips=true but no LPIPS weights were found (eval.lpips, "
-                                 "eval.lpips_weights or STDR_LPIPS_WEIGHTS)")
-            self._lpips = lp.to(self.device)
-        return self._lpips
-
-    @torch.no_grad()
-    def evaluate(self, split: str, tag: str = "final", step: Optional[int] = None,
-                 lpips_fn=None, save_dir: Optional[Path] = None, fps_warmup: int = 3,
-                 frames: Optional[list[int]] = None, fps_repeats: int = 1, seen: bool = False) -> dict[str, Any]:
-        """Render `split` (or the frames at indices `frames` of it) at the model's state and
-        compute metrics (stdr.eval.evaluate.evaluate_state): a point of the run's learning curve
-        (`history`), with the training seconds so far (evaluation excluded)."""
-        fr = self.scene.frames(split)
-        if frames is not None:
-            fr = [fr[i] for i in frames]
-        return evaluate_state(self.state, fr, split, tag=tag, step=step, log=self.log, lpips_fn=lpips_fn,
-                              save_dir=save_dir, fps_warmup=fps_warmup, fps_repeats=fps_repeats, seen=seen)
-
-    def evaluate_final(self, split: str, eval_cfg=None) -> dict[str, Any]:
-        """The run's final evaluation of `split` into metrics.json (stdr.eval.evaluate.evaluate_run)."""
-        return evaluate_run(self.state, self.scene, split, self.cfg.eval if eval_cfg is None else eval_cfg,
-                            max_gaussians=getattr(self.strategy, "max_gaussians", 0), log=self.log)
