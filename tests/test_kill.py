@@ -19,7 +19,7 @@ from stdr.testing import TINY_SCENE
 
 CFG = [*TINY_SCENE, "device=cpu", "model.init_num=300", "eval.lpips=false", "train.progress=false",
        "eval.save_images=false", "train.image_every=0", "eval.fps_repeats=1", "eval.fps_warmup=0",
-       "baseline.warmup=50", "train.eval_at_warmup_end=false", "train.threads=1", "optim.iterations=400",
+       "baseline.warmup=50", "train.eval_at_warmup_end=false", "train.threads=1", "optim.iterations=700",
        "train.checkpoint_every=7", "densify.refine_start=20", "densify.refine_every=30"]
 
 #: stdr-train, whose checkpoint writer pauses inside the write (the file written and flushed,
@@ -82,8 +82,16 @@ def test_sigkill_at_random_moments_resumes_bit_identical_with_no_file_damaged(tm
                     assert time.time() - t0 < 300, "no checkpoint write reached"
                     time.sleep(0.02)
                 in_write += 1
-            else:
-                time.sleep(rng.uniform(2.0, 9.0))  # start-up, a step, an evaluation, a write: wherever it is
+            else:  # once this process trains (it has written a checkpoint of its own), at a random moment:
+                # a step, the densification, a checkpoint write, wherever it is then
+                ck = run / "checkpoints" / "last.pt"
+                seen = ck.stat().st_mtime_ns if ck.exists() else None
+                t0 = time.time()
+                while not ck.exists() or ck.stat().st_mtime_ns == seen:
+                    assert p.poll() is None, p.stderr.read().decode()[-2000:]
+                    assert time.time() - t0 < 300, "the run wrote no checkpoint"
+                    time.sleep(0.01)
+                time.sleep(rng.uniform(0.0, 0.8))
             if p.poll() is not None:
                 pytest.fail(f"the run ended before kill {k}: {p.stderr.read().decode()[-2000:]}")
             os.kill(p.pid, signal.SIGKILL)
@@ -110,5 +118,5 @@ def test_sigkill_at_random_moments_resumes_bit_identical_with_no_file_damaged(tm
           f"steps after each kill {steps}; final step {_params(run)['step']}")
     assert tried == KILLS and in_write == len(IN_WRITE) and damaged == 0
     assert not [p.name for p in (run / "checkpoints").iterdir() if p.name.startswith(".")]
-    assert _params(run)["step"] == _params(ref)["step"] == 400
+    assert _params(run)["step"] == _params(ref)["step"] == 700
     _equal(_params(run), _params(ref))

@@ -177,7 +177,7 @@ def test_a_table_row_mixing_iteration_counts_is_refused_or_labelled(runs, tmp_pa
     assert table["methods"] == ["deform [mixed iterations 20/30]"]
 
 
-def test_stdr_eval_refuses_a_second_writer_while_training_holds_the_run(runs, tmp_path):
+def test_stdr_eval_and_pack_refuse_a_second_writer_while_training_holds_the_run(runs, tmp_path):
     import shutil
     run = tmp_path / "run"
     shutil.copytree(runs["done"], run)
@@ -191,6 +191,8 @@ def test_stdr_eval_refuses_a_second_writer_while_training_holds_the_run(runs, tm
         line = one_line_error(_eval(run, f"out={tmp_path / 't'}"), "stdr-eval")
         assert f"{run} is in use: stdr-train, pid {holder.pid}" in line
         assert (run / "metrics.json").read_bytes() == before
+        line = one_line_error(sh([sys.executable, "-m", "stdr.cli.tool", "pack", str(run), "--no-eval"]), "stdr-tool")
+        assert f"{run} is in use: stdr-train, pid {holder.pid}" in line and not (run / "model.stdrc").exists()
         # a reader needs no lock: tabulating the metrics as they are
         assert _eval(run, "reevaluate=false", f"out={tmp_path / 't2'}").returncode == 0
     finally:
