@@ -1,4 +1,4 @@
-"""A run survives what research use does to it: one writer per run folder (stdr.io.runlock), a
+"""A run survives what research use does to it: one writer per run folder (stdr.io.files), a
 resume that keeps its run's record (stdr.train.resume), an evaluation that never changes an
 unfinished run, and a table row that never silently mixes trainings. Real processes on real
 files: the commands are run as a user runs them."""
@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from stdr.io.runlock import LOCK_NAME, RunLocked, read_holder, run_lock
+from stdr.io.files import LOCK_NAME, RunLocked, read_holder, run_lock
 from stdr.testing import TINY_SCENE
 
 TINY = [*TINY_SCENE, "device=cpu", "model.init_num=300", "eval.lpips=false", "train.progress=false",
@@ -43,14 +43,20 @@ def one_line_error(r: subprocess.CompletedProcess, prog: str) -> str:
 
 
 # ---------------------------------------------------------------- one writer per run folder
-def test_the_lock_is_exclusive_between_processes_reentrant_within_one_and_free_after_a_kill(tmp_path):
-    run = tmp_path / "run"
+def hold_lock(run: Path) -> subprocess.Popen:
+    """Another process that holds the run's lock as stdr-train does, until killed."""
     holder = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time; from stdr.io.runlock import run_lock\n"
+        "import sys, time; from stdr.io.files import run_lock\n"
         "with run_lock(sys.argv[1], 'stdr-train'):\n"
         "    print('held', flush=True); time.sleep(600)"), str(run)], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    return holder
+
+
+def test_the_lock_is_exclusive_between_processes_reentrant_within_one_and_free_after_a_kill(tmp_path):
+    run = tmp_path / "run"
+    holder = hold_lock(run)
     try:
-        assert holder.stdout.readline().strip() == "held"
         with pytest.raises(RunLocked, match=rf"{run} is in use: stdr-train, pid {holder.pid} on host "
                                             r"\S+ since \d{4}-\d\d-\d\d"):
             with run_lock(run, "stdr-eval"):
@@ -65,7 +71,7 @@ def test_the_lock_is_exclusive_between_processes_reentrant_within_one_and_free_a
         with run_lock(run, "stdr-tool pack"):  # the same process again (training's packing step)
             pass
         assert read_holder(run)["pid"] == os.getpid()  # the inner release kept the outer hold
-        other = sh([sys.executable, "-c", "import sys; from stdr.io.runlock import run_lock\n"
+        other = sh([sys.executable, "-c", "import sys; from stdr.io.files import run_lock\n"
                     "with run_lock(sys.argv[1], 'x'): pass", str(run)])
         assert other.returncode != 0 and "is in use: stdr-eval" in other.stderr
     assert (run / LOCK_NAME).read_text() == ""  # released: nobody holds it
@@ -181,12 +187,8 @@ def test_stdr_eval_and_pack_refuse_a_second_writer_while_training_holds_the_run(
     import shutil
     run = tmp_path / "run"
     shutil.copytree(runs["done"], run)
-    holder = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time; from stdr.io.runlock import run_lock\n"
-        "with run_lock(sys.argv[1], 'stdr-train'):\n"
-        "    print('held', flush=True); time.sleep(600)"), str(run)], stdout=subprocess.PIPE, text=True)
+    holder = hold_lock(run)
     try:
-        assert holder.stdout.readline().strip() == "held"
         before = (run / "metrics.json").read_bytes()
         line = one_line_error(_eval(run, f"out={tmp_path / 't'}"), "stdr-eval")
         assert f"{run} is in use: stdr-train, pid {holder.pid}" in line

@@ -1,5 +1,5 @@
-"""Sweeps on Hydra's multirun with real launchers (joblib, submitit_local), failure reporting,
-skipping finished runs, and the SLURM config (composes only: no cluster here)."""
+"""Sweeps on Hydra's multirun with real launchers (joblib, submitit_local, and slurm on a real
+one-node cluster), failure reporting, skipping finished runs."""
 import json
 import os
 import subprocess
@@ -10,6 +10,13 @@ from omegaconf import OmegaConf
 
 from stdr.baselines import BASELINES
 from stdr.testing import make_cfg
+import shutil
+import threading
+import time
+from pathlib import Path
+import torch
+from stdr.io.checkpoint import load_checkpoint
+from stdr.testing import TINY_SCENE
 
 
 def _sweep(tmp_path, *overrides, timeout=900):
@@ -79,3 +86,252 @@ def test_parallel_jobs_generate_the_embedded_scene_once_without_clobbering(tmp_p
     assert len(set(paths)) == 1 and (paths[0] / "generator.json").is_file()
     assert len(list((paths[0] / "train").glob("*.png"))) == 6
     assert [p.name for p in tmp_path.iterdir()] == [paths[0].name]  # no temporary folders left
+
+
+# ---------------------------------------------------------------- a real Slurm cluster
+# The slurm launcher on a real one-node Slurm cluster (scripts/slurm_cluster.py starts munged,
+# slurmctld and slurmd in a temporary folder; with SLURM_CONF set, that cluster is used instead;
+# STDR_SLURM_PARTITION names its partition). Through the project's own commands: a sweep and its
+# table, a job requeued mid-run, a run longer than its job's time limit, and scancel of a sweep.
+# Without slurm-wlm and munge (or root for the test cluster) the tests skip with the reason.
+#
+# Slurm holds a requeued job back for two minutes (its BeginTime); the tests move that to now
+# with `scontrol update`, as an operator could, instead of waiting it out.
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+import slurm_cluster  # noqa: E402
+
+
+BASE = [*TINY_SCENE, "device=cpu", "model.init_num=300", "eval.lpips=false", "train.progress=false",
+        "eval.save_images=false", "train.image_every=0", "eval.fps_repeats=1", "eval.fps_warmup=0",
+        "baseline.warmup=10", "train.eval_at_warmup_end=false", "train.threads=1", "train.log_every=100"]
+#: a run of about half a minute of training on one core: longer than what a 1-minute job has
+#: left after its start-up and before Slurm's warning signal
+LONG = ["optim.iterations=2500", "train.checkpoint_every=100"]
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """(environment with SLURM_CONF, partition)."""
+    if os.environ.get("SLURM_CONF"):
+        yield dict(os.environ), os.environ.get("STDR_SLURM_PARTITION", "debug")
+        return
+    why = slurm_cluster.missing()
+    if why and os.environ.get("CI") == "true":
+        pytest.fail(f"CI runs the Slurm tests, but: {why} (.ci/run installs slurm-wlm and munge)")
+    if why:
+        pytest.skip(f"no Slurm cluster: {why}")
+    d = tmp_path_factory.mktemp("slurm")
+    conf = slurm_cluster.start(d)
+    try:
+        yield {**os.environ, "SLURM_CONF": str(conf)}, "debug"
+    finally:
+        slurm_cluster.stop(d)
+
+
+def launcher(partition: str, *extra: str) -> list[str]:
+    return ["hydra/launcher=slurm", f"hydra.launcher.partition={partition}", "hydra.launcher.gpus_per_task=null",
+            "hydra.launcher.cpus_per_task=1", "hydra.launcher.mem_gb=1", *extra]
+
+
+def sweep_cmd(tmp: Path, sweep: Path, *overrides: str) -> list[str]:
+    return [sys.executable, "-m", "stdr.cli.train", "-m", *BASE, f"data.cache_dir={tmp / 'cache'}",
+            f"hydra.sweep.dir={sweep}", *overrides]
+
+
+def job_ids(sweep: Path) -> list[str]:
+    """The Slurm job ids of a sweep: <id> for a single job, <array id>_<task> for an array."""
+    return sorted(p.name for p in (sweep / ".submitit").iterdir() if p.is_dir() and p.name.replace("_", "").isdigit())
+
+
+def _squeue(env) -> list[list[str]]:
+    r = subprocess.run(["squeue", "-h", "-o", "%i %T %r"], capture_output=True, text=True, env=env)
+    return [ln.split() for ln in r.stdout.splitlines() if ln.strip()]
+
+
+class Nudger(threading.Thread):
+    """Moves every requeued job's two-minute BeginTime to now while it runs."""
+
+    def __init__(self, env):
+        super().__init__(daemon=True)
+        self.env, self.stop, self.nudged = env, threading.Event(), []
+
+    def run(self):
+        while not self.stop.is_set():
+            for row in _squeue(self.env):
+                jid, state, reason = (row + ["", "", ""])[:3]
+                if state == "PENDING" and reason == "BeginTime":
+                    subprocess.run(["scontrol", "update", f"JobId={jid}", "StartTime=now"], env=self.env,
+                                   capture_output=True)
+                    self.nudged.append(jid)
+            time.sleep(1)
+
+
+def _tensors(ck: dict) -> dict[str, torch.Tensor]:
+    out = {}
+
+    def walk(node, prefix):
+        if torch.is_tensor(node):
+            out[prefix] = node
+        elif isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{prefix}.{k}")
+    walk(ck["model"], "model")
+    return out
+
+
+def assert_bit_identical(run: Path, reference: Path) -> None:
+    a, b = load_checkpoint(run / "checkpoints" / "last.pt"), load_checkpoint(reference / "checkpoints" / "last.pt")
+    assert a["model"]["step"] == b["model"]["step"]
+    ta, tb = _tensors(a), _tensors(b)
+    assert ta.keys() == tb.keys() and ta
+    for k in ta:
+        assert torch.equal(ta[k], tb[k]), k
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The LONG run trained without interruption, in this process's machine, one thread."""
+    tmp = tmp_path_factory.mktemp("ref")
+    r = subprocess.run([sys.executable, "-m", "stdr.cli.train", *BASE, *LONG, f"data.cache_dir={tmp / 'cache'}",
+                        f"hydra.run.dir={tmp / 'run'}"], capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return tmp / "run"
+
+
+@pytest.mark.slurm
+def test_a_sweep_through_the_slurm_launcher_and_its_table(cluster, tmp_path):
+    env, part = cluster
+    sweep = tmp_path / "sweep"
+    t0 = time.time()
+    r = subprocess.run(sweep_cmd(tmp_path, sweep, "optim.iterations=20", "seed=0,1", *launcher(part)),
+                       capture_output=True, text=True, timeout=600, env=env)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "sweep finished, no failed jobs" in r.stdout
+    print(f"[slurm] sweep jobs {job_ids(sweep)}: {time.time() - t0:.0f} s")
+    for i in (0, 1):
+        assert json.loads((sweep / str(i) / "metrics.json").read_text())["test"]["iterations"] == 20
+    e = subprocess.run([sys.executable, "-m", "stdr.cli.eval", str(sweep), "reevaluate=false", f"out={tmp_path / 't'}"],
+                       capture_output=True, text=True, timeout=300, env=env)
+    assert e.returncode == 0, e.stderr[-3000:]
+    table = json.loads((tmp_path / "t" / "table.json").read_text())
+    assert table["cells"]["deform"]["embedded"]["n_runs"] == 2
+
+
+def _wait_for(cond, timeout: float, what: str, proc=None) -> None:
+    t0 = time.time()
+    while not cond():
+        if proc is not None and proc.poll() is not None:
+            out, err = proc.communicate()
+            pytest.fail(f"the sweep ended before {what}: {out[-2000:]} {err[-2000:]}")
+        if time.time() - t0 > timeout:
+            pytest.fail(f"no {what} in {timeout:.0f} s")
+        time.sleep(0.5)
+
+
+def _step(run: Path) -> int:
+    try:
+        return int(load_checkpoint(run / "checkpoints" / "last.pt")["model"]["step"])
+    except Exception:  # noqa: BLE001 - not there yet
+        return -1
+
+
+@pytest.mark.slurm
+def test_a_job_requeued_mid_run_resumes_and_ends_bit_identical(cluster, reference, tmp_path):
+    env, part = cluster
+    sweep = tmp_path / "sweep"
+    proc = subprocess.Popen(sweep_cmd(tmp_path, sweep, *LONG, "seed=0", *launcher(part, "hydra.launcher.timeout_min=30")),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    nudger = Nudger(env)
+    nudger.start()
+    t0 = time.time()
+    try:
+        _wait_for(lambda: _step(sweep / "0") >= 300, 600, "checkpoint at step 300", proc)
+        jid = job_ids(sweep)[0].split("_")[0]
+        at = _step(sweep / "0")
+        subprocess.run(["scontrol", "requeue", jid], check=True, env=env)
+        out, err = proc.communicate(timeout=900)
+    finally:
+        nudger.stop.set()
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out[-3000:] + err[-3000:]
+    print(f"[slurm] requeue: job {jid} requeued at checkpoint {at}, nudged {nudger.nudged}, {time.time() - t0:.0f} s")
+    assert nudger.nudged, "the job was not requeued"
+    assert json.loads((sweep / "0" / "metrics.json").read_text())["test"]["iterations"] == 2500
+    assert_bit_identical(sweep / "0", reference)
+
+
+@pytest.mark.slurm
+def test_a_run_longer_than_its_time_limit_checkpoints_at_the_signal_and_finishes_bit_identical(
+        cluster, reference, tmp_path):
+    env, part = cluster
+    sweep = tmp_path / "sweep"
+    t0 = time.time()
+    proc = subprocess.Popen(sweep_cmd(tmp_path, sweep, *LONG, "seed=0", *launcher(
+        part, "hydra.launcher.timeout_min=1", "hydra.launcher.signal_delay_s=20", "hydra.launcher.max_num_timeout=8")),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    nudger = Nudger(env)
+    nudger.start()
+    try:
+        out, err = proc.communicate(timeout=1500)
+    finally:
+        nudger.stop.set()
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out[-3000:] + err[-3000:]
+    logs = "".join(p.read_text(errors="replace") for p in (sweep / ".submitit").rglob("*_log.out"))
+    stops = [ln for ln in logs.splitlines() if "stopped at iteration" in ln and "warning signal" in ln]
+    resumes = [ln for ln in logs.splitlines() if "resumed from" in ln]
+    print(f"[slurm] time limit: jobs {job_ids(sweep)}, {len(stops)} stop(s) at the signal ({stops}), "
+          f"{len(resumes)} resume(s), nudged {nudger.nudged}, {time.time() - t0:.0f} s")
+    assert stops and len(resumes) >= len(stops)
+    # each stop at the signal is resumed from the step it checkpointed: nothing is trained twice (a
+    # signal that comes before the loop or after it is submitit's alone: it requeues from the last checkpoint)
+    at_stop = [int(s.split("stopped at iteration ")[1].split()[0]) for s in stops]
+    at_resume = [int(s.split("at iteration ")[1].split()[0]) for s in resumes]
+    assert all(step in at_resume for step in at_stop), (at_stop, at_resume)
+    assert json.loads((sweep / "0" / "metrics.json").read_text())["test"]["iterations"] == 2500
+    assert_bit_identical(sweep / "0", reference)
+
+
+@pytest.mark.slurm
+def test_scancel_of_a_sweep_leaves_finished_runs_intact_and_the_others_resumable(cluster, tmp_path):
+    env, part = cluster
+    sweep = tmp_path / "sweep"
+    proc = subprocess.Popen(sweep_cmd(tmp_path, sweep, "train.checkpoint_every=50", "optim.iterations=20,3000",
+                                      *launcher(part, "hydra.launcher.array_parallelism=1")),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        _wait_for(lambda: (sweep / "0" / "metrics.json").is_file() and _step(sweep / "1") >= 100, 600,
+                  "a finished first run and a checkpoint of the second", proc)
+        finished = {p.name: p.read_bytes() for p in (sweep / "0").iterdir() if p.is_file()}
+        array = job_ids(sweep)[0].split("_")[0]
+        subprocess.run(["scancel", array], check=True, env=env)
+        _wait_for(lambda: not _squeue(env), 120, "the cancelled jobs gone")
+        # the test cluster keeps no accounting (sacct), so submitit cannot see the jobs' end and the
+        # launching command waits on: stopped here as its user would (Ctrl-C)
+        proc.terminate()
+        proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    print(f"[slurm] scancel: array {array}, second run stopped at checkpoint {_step(sweep / '1')}")
+    assert {p.name: p.read_bytes() for p in (sweep / "0").iterdir() if p.is_file()} == finished
+    assert json.loads((sweep / "0" / "metrics.json").read_text())["test"]["iterations"] == 20
+    step = _step(sweep / "1")
+    assert 100 <= step < 3000 and not (sweep / "1" / "metrics.json").exists()
+    assert not [p for p in (sweep / "1").rglob("*") if ".tmp" in p.name]
+    # the unfinished run resumes where it was cancelled (the same command on this machine)
+    r = subprocess.run([sys.executable, "-m", "stdr.cli.train", *BASE, "train.checkpoint_every=50",
+                        "optim.iterations=3000", f"data.cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={sweep / '1'}",
+                        f"train.stop_at={step + 10}"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert f"resumed from {sweep / '1' / 'checkpoints' / 'last.pt'} at iteration {step}" in r.stdout
+
+
+@pytest.mark.slurm
+def test_the_test_cluster_script_needs_its_tools_and_says_so(monkeypatch):
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    monkeypatch.setattr(slurm_cluster, "TOOLS", ("no-such-slurm-tool",))
+    assert "no-such-slurm-tool not installed (apt-get install slurm-wlm munge)" in slurm_cluster.missing()

@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from ..config import CHANGES_KEY, CONFIG_DIR, load_config
 from ..io.files import read_json, read_yaml
-from ..io.runlock import run_lock
+from ..io.files import run_lock
 from ..store import register
 from ..errors import BadInput, MissingInput, reported
 from .common import check_overrides, reproducible_blas, run_hydra_app
@@ -38,7 +38,7 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
     """plugin_overrides: {plug-in name: its keys to change in each run's config (null: keep)}.
     A run that has not finished is refused (nothing is written into it); unfinished=True
     evaluates its last checkpoint into out_dir/unfinished/<its folder's name>/. Re-evaluating a
-    run writes into it, under its lock (stdr.io.runlock). A row whose runs differ in iterations,
+    run writes into it, under its lock (stdr.io.files). A row whose runs differ in iterations,
     budget or code is refused unless allow_mixed (stdr.eval.table.check_mixed_rows)."""
 
 

@@ -17,7 +17,7 @@ from omegaconf import DictConfig
 from ..config import CONFIG_DIR
 from ..store import register
 from ..errors import UserError, reported
-from ..io.runlock import LOCK_NAME
+from ..io.files import LOCK_NAME
 from ..tools.runqueue import FAILURES, STDOUT
 from ..train.run import run_training
 from .common import check_overrides, reproducible_blas, run_hydra_app, use_fast_allocator_hint

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from ..errors import UserError, reported
-from ..io.runlock import run_lock
+from ..io.files import run_lock
 from ..view.core import VIEWS, open_run
 from ..view.server import Viewer, check_port
 from ..view.browser import screenshot

@@ -20,7 +20,7 @@ from ..errors import ConfigError
 from ..eval.evaluate import evaluate_model
 from ..io.checkpoint import CKPT, save_checkpoint
 from ..io.files import write_atomic
-from ..io.runlock import run_lock
+from ..io.files import run_lock
 from ..model import load_model, model_bytes, model_from_checkpoint
 from ..plugins import enabled_plugins, plugin_node
 from . import codecs
@@ -78,7 +78,7 @@ def finetune_parts(spec: Optional[dict]) -> tuple[str, ...]:
 def pack(run_dir: Path, out: Optional[Path] = None, spec: Optional[dict] = None, split: Optional[str] = "val",
          data_base: Optional[str] = None) -> dict:
     """The compact file of run_dir's model, and (split not None) its renders against the full model's.
-    Under the run's lock (stdr.io.runlock): it writes model.stdrc and pack.json into the run."""
+    Under the run's lock (stdr.io.files): it writes model.stdrc and pack.json into the run."""
     run_dir = Path(run_dir)
     src = run_dir / CKPT
     if not (run_dir / "config.yaml").is_file() or not src.is_file():

@@ -10,7 +10,7 @@ from ..compact.pack import check_pack_config, pack, summary
 from ..config import CHANGES_KEY
 from ..io.checkpoint import CKPT, load_checkpoint
 from ..io.files import leftover_temporaries, write_atomic
-from ..io.runlock import run_lock
+from ..io.files import run_lock
 from ..device import resolve_device
 from ..model import check_init_fits
 from ..data.load import scene_folder
@@ -31,7 +31,7 @@ def run_training(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -
     if start_by is not None and time.time() > start_by:
         print(f"[stdr] {run_dir}: not started, train.start_by passed {time.time() - start_by:.0f} s ago")
         return None
-    with run_lock(run_dir, "stdr-train"):  # one writer per run folder (stdr.io.runlock)
+    with run_lock(run_dir, "stdr-train"):  # one writer per run folder (stdr.io.files)
         return _train_locked(cfg, run_dir, data_base)
 
 

@@ -28,7 +28,7 @@ from ..io.files import write_atomic, writing
 from ..config import check_guard_config
 from .guard import Guard, monitor_split, resolve_compiled_check, resolve_sync_free
 from .evaluations import Evaluations
-from .preempt import preemption
+from .resume import preemption
 from .timing import Profiler
 from .state import PAYLOAD_KEYS, CameraSampler, RunLog, RunState
 
