@@ -148,23 +148,6 @@ class GuardConfig:
     inject_nan_grad_at: List[int] = field(default_factory=list)
 
 
-def check_guard_config(g) -> None:
-    """Errors that name the key, for values that cannot work."""
-    if g.snapshot_every < 1:
-        raise ValueError(f"train.guard.snapshot_every={g.snapshot_every}: must be at least 1")
-    if not 0.0 < g.lr_factor <= 1.0:
-        raise ValueError(f"train.guard.lr_factor={g.lr_factor}: must be in (0, 1] (each recovery multiplies "
-                         "every learning rate by it)")
-    if g.max_recoveries < 0:
-        raise ValueError(f"train.guard.max_recoveries={g.max_recoveries}: must be 0 or more")
-    if g.divergence_db < 0:
-        raise ValueError(f"train.guard.divergence_db={g.divergence_db}: must be 0 (off) or positive")
-    if g.after_reset < 0:
-        raise ValueError(f"train.guard.after_reset={g.after_reset}: must be 0 or more (steps after an opacity reset)")
-    if g.monitor_frames < 0:
-        raise ValueError(f"train.guard.monitor_frames={g.monitor_frames}: must be 0 (all frames) or positive")
-
-
 @dataclass
 class TrainConfig:
     eval_every: int = 0         # periodic evaluation (0 = only at the end and end of warm-up) -> metrics.json curve

@@ -18,7 +18,7 @@ from typing import Any, Callable, Iterator, Optional
 from omegaconf import DictConfig, OmegaConf
 
 from .errors import ConfigError
-from .config import root_schema, typed_schema, check_guard_config, load_config, resolve_schedule
+from .config import root_schema, typed_schema, load_config, resolve_schedule
 from .data.stress import check_stress
 from .densify.prune import check_prune_config
 from .data.load import resolve_data_path
@@ -221,6 +221,23 @@ def check_values(cfg) -> None:
         sub = _get(cfg, node)
         if sub is not _MISSING:
             _as_config_error(fn, sub)
+
+
+def check_guard_config(g) -> None:
+    """train.guard's values that cannot work (stdr.config.GuardConfig), as errors naming the key."""
+    if g.snapshot_every < 1:
+        raise ValueError(f"train.guard.snapshot_every={g.snapshot_every}: must be at least 1")
+    if not 0.0 < g.lr_factor <= 1.0:
+        raise ValueError(f"train.guard.lr_factor={g.lr_factor}: must be in (0, 1] (each recovery multiplies "
+                         "every learning rate by it)")
+    if g.max_recoveries < 0:
+        raise ValueError(f"train.guard.max_recoveries={g.max_recoveries}: must be 0 or more")
+    if g.divergence_db < 0:
+        raise ValueError(f"train.guard.divergence_db={g.divergence_db}: must be 0 (off) or positive")
+    if g.after_reset < 0:
+        raise ValueError(f"train.guard.after_reset={g.after_reset}: must be 0 or more (steps after an opacity reset)")
+    if g.monitor_frames < 0:
+        raise ValueError(f"train.guard.monitor_frames={g.monitor_frames}: must be 0 (all frames) or positive")
 
 
 def _as_config_error(fn, *args) -> None:

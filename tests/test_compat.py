@@ -50,13 +50,17 @@ def test_a_run_folder_from_before_the_renames_loads_and_re_evaluates_to_its_numb
 @pytest.mark.slow
 def test_a_run_folder_from_before_the_renames_resumes_training(tmp_path, monkeypatch, capsys):
     """The old checkpoint's optimizer, strategy and sampler state load into today's trainer: the
-    run goes on from step 30 to 36 and is evaluated."""
+    run goes on from step 30 to 36 and is evaluated. Training longer, and today's defaults where
+    the run had others (stdr.mask_after_freeze), are changes a resume names: train.resume=override
+    records them; keys renamed since the run was trained are not changes."""
     from stdr.cli import train as train_cli
     run = _old_run(tmp_path)
     monkeypatch.setattr(sys, "argv", ["stdr-train", *RUN_OVERRIDES, f"data.cache_dir={tmp_path / 'cache'}",
-                                      "optim.iterations=36", f"hydra.run.dir={run}"])
+                                      "optim.iterations=36", f"hydra.run.dir={run}", "train.resume=override"])
     train_cli.main()
     out = capsys.readouterr().out
     assert "resumed from" in out and "at iteration 30" in out
     m = json.loads((run / "metrics.json").read_text())["test"]
+    assert m["config_changes"][0]["step"] == 30
+    assert set(m["config_changes"][0]["keys"]) == {"optim.iterations", "stdr.mask_after_freeze"}
     assert m["iterations"] == 36 and torch.isfinite(torch.tensor(m["psnr"]))

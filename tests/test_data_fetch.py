@@ -13,6 +13,7 @@ from PIL import Image
 
 from stdr.cli.data import main as stdr_data, prepare_dnerf
 from stdr.data import fetch
+from stdr.data.load import verify_scene
 
 
 def _png(size=8, color=(255, 0, 0, 255)) -> bytes:
@@ -164,7 +165,7 @@ def test_a_wrong_layout_is_reported_by_name_and_nothing_is_unpacked(tmp_path, ca
     assert [p.name for p in (tmp_path / "d").iterdir()] == []
     (tmp_path / "n.zip").write_bytes(_zip(lambda z: z.writestr("scene/dataset.json", "{}")))
     with pytest.raises(fetch.DataError, match="missing metadata.json, scene.json"):
-        fetch.safe_extract(tmp_path / "n.zip", tmp_path / "e", check=lambda f: fetch.verify_scene(f, "nerfies"))
+        fetch.safe_extract(tmp_path / "n.zip", tmp_path / "e", check=lambda f: verify_scene(f, "nerfies"))
 
 
 @pytest.mark.parametrize("member", ["../evil.txt", "/tmp/evil.txt", "data/../../evil.txt", "link"])
@@ -210,7 +211,7 @@ def test_prepare_makes_400_copies_with_premultiplied_alpha(tmp_path):
     assert seen.any() and (got[seen][:, 1] <= 2).all()  # no green bleeds into visible pixels
     assert json.loads((out / "transforms_train.json").read_text()) == json.loads(
         (tmp_path / "src" / "standup" / "transforms_train.json").read_text())
-    assert fetch.verify_scene(out, "dnerf") == 9
+    assert verify_scene(out, "dnerf") == 9
 
 
 def test_list_names_every_dataset(capsys):

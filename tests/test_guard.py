@@ -483,7 +483,7 @@ main()
 """
 
 KILLS = 10             # random moments
-IN_WRITE = (2, 6, 10)  # of them, those inside a checkpoint write
+IN_WRITE = (2, 5, 8)  # of them, those inside a checkpoint write
 
 
 def _cmd(tmp: Path, run: Path) -> list[str]:

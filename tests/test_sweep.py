@@ -19,19 +19,20 @@ from stdr.io.checkpoint import load_checkpoint
 from stdr.testing import TINY_SCENE
 
 
-def _sweep(tmp_path, *overrides, timeout=900):
+def _sweep(tmp_path, *overrides, timeout=900, rc=0):
+    """The sweep's output; `rc`: its exit code (1 when a job failed)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     cmd = [sys.executable, "-m", "stdr.cli.train", "-m", "+sweep=embedded_smoke", f"hydra.sweep.dir={tmp_path / 'sw'}",
            f"data.cache_dir={tmp_path / 'cache'}", "experiment=embedded_deform", *overrides]
     p = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=timeout, env=env)
-    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    assert p.returncode == rc, p.stdout[-3000:] + p.stderr[-3000:]
     return p.stdout + p.stderr
 
 
 @pytest.mark.slow
 def test_joblib_sweep_runs_every_job_reports_failures_and_skips_finished_runs(tmp_path):
     sub = "hydra.sweep.subdir=${name}/${data.eval_split}/s${seed}"  # a run folder per job
-    out = _sweep(tmp_path, "hydra/launcher=local", "seed=0,1", "data.eval_split=test,bogus", sub)
+    out = _sweep(tmp_path, "hydra/launcher=local", "seed=0,1", "data.eval_split=test,bogus", sub, rc=1)
     runs = {s: tmp_path / "sw" / "embedded_deform" / "test" / f"s{s}" for s in (0, 1)}
     # the two good jobs finished; the two with a bad split failed without stopping them
     assert all((d / "metrics.json").is_file() for d in runs.values())

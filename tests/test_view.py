@@ -118,14 +118,16 @@ def test_viewer_serves_renders_and_stops(runs):
     check_port("127.0.0.1", port)  # free again after stop
 
 
-def test_bad_run_directories_are_named(tmp_path):
+def test_bad_run_directories_are_named(tmp_path, capsys):
     from stdr.cli.view import render_main, view_main
     from stdr.view.server import free_port
-    with pytest.raises(SystemExit, match="no such folder"):
+    with pytest.raises(SystemExit) as e:  # bad input: one line, exit code 2 (stdr.errors.reported)
         view_main([str(tmp_path / "nope"), "--port", str(free_port())])
+    assert e.value.code == 2 and "stdr-view: error:" in (err := capsys.readouterr().err) and "no such folder" in err
     (tmp_path / "empty").mkdir()
-    with pytest.raises(SystemExit, match="not a trained run: config.yaml, checkpoints/last.pt missing"):
+    with pytest.raises(SystemExit) as e:
         render_main([str(tmp_path / "empty")])
+    assert e.value.code == 2 and "not a trained run: config.yaml, checkpoints/last.pt missing" in capsys.readouterr().err
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         s.listen()

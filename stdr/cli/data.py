@@ -17,7 +17,7 @@ from pathlib import Path
 
 from ..data.capture import capture
 from ..data.capture_input import MATCHERS, SELECT_MODES, CaptureConfig
-from ..data import fetch
+from ..data import fetch, load
 from ..errors import reported
 from ..eval.lpips import fetch_dir, fetch_weights
 from ..data.dnerf import _resolve_image
@@ -86,7 +86,7 @@ def _download(args) -> list[Path]:
         counts: dict[str, int] = {}
 
         def check(sc: Path, counts=counts) -> None:
-            counts[sc.name] = fetch.verify_scene(sc, d.format)
+            counts[sc.name] = load.verify_scene(sc, d.format)
         got = fetch.safe_extract(path, dest, keep=keep, check=check)
         for s in got:
             print(f"[stdr-data] {s}: {d.format} layout ok ({counts.get(s.name, '?')} images)")
@@ -109,15 +109,15 @@ def _download(args) -> list[Path]:
 
 def _verify(folder: Path, fmt: str | None) -> int:
     folder = Path(folder)
-    scenes = [folder] if fetch.detect_format(folder) else sorted(p for p in folder.iterdir()
-                                                                  if p.is_dir() and fetch.detect_format(p))
+    scenes = [folder] if load.detect_format(folder) else sorted(p for p in folder.iterdir()
+                                                                  if p.is_dir() and load.detect_format(p))
     if not scenes:
         raise SystemExit(f"stdr-data verify: {folder} is neither a scene folder (transforms_train.json or "
                          "dataset.json) nor a folder of scenes")
     bad = 0
     for s in scenes:
         try:
-            n = fetch.verify_scene(s, fmt or fetch.detect_format(s))
+            n = load.verify_scene(s, fmt or load.detect_format(s))
             print(f"ok   {s} ({n} images)")
         except fetch.DataError as e:
             print(f"FAIL {s}: {e}")
@@ -137,13 +137,13 @@ def prepare_dnerf(src: Path, dest: Path, size: int = 400) -> list[Path]:
     from PIL import Image
 
     src, dest = Path(src), Path(dest)
-    scenes = [src] if fetch.detect_format(src) == "dnerf" else sorted(
-        p for p in src.iterdir() if p.is_dir() and fetch.detect_format(p) == "dnerf")
+    scenes = [src] if load.detect_format(src) == "dnerf" else sorted(
+        p for p in src.iterdir() if p.is_dir() and load.detect_format(p) == "dnerf")
     if not scenes:
         raise SystemExit(f"stdr-data prepare: no D-NeRF scene (transforms_train.json) in {src}")
     out = []
     for s in scenes:
-        fetch.verify_scene(s, "dnerf")
+        load.verify_scene(s, "dnerf")
         t = dest / s.name
         if t.exists():
             raise SystemExit(f"stdr-data prepare: {t} exists already; remove it or choose another destination")

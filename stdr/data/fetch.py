@@ -10,7 +10,7 @@ Small stateless functions:
 * `safe_extract(archive, dest)`: unpacks into a temporary folder beside `dest`, refuses members
   that would leave it (absolute paths, `..`, symbolic links), detects the top-level folder
   instead of assuming it, and renames into place, so a failure leaves no half-written dataset.
-* `verify_scene(folder, fmt)`: the layout the loaders need (D-NeRF: transforms and images;
+* `stdr.data.load.verify_scene(folder, fmt)`: the layout the loaders need (D-NeRF: transforms and images;
   Nerfies format: dataset, metadata, scene, cameras and images of every listed id).
 
 Sources and their mirrors: ../shared/reference/data-sources.md (kept in the catalog below).
@@ -34,8 +34,6 @@ from typing import Callable, Optional
 
 from ..errors import IOFault, UserError
 from ..io.files import make_folder, writing
-from .dnerf import SplitImages, _read_json, _resolve_image
-from .images import image_channels
 
 CHUNK = 1 << 20
 LOCK_NAME = "stdr-data.lock.json"
@@ -270,7 +268,7 @@ def safe_extract(archive: Path, dest: Path, keep: Optional[Callable[[str], bool]
 
     The archive's top level is detected: its one top-level folder is descended into when the
     scenes lie under it (D-NeRF's `data/`), else the top-level folders are the scenes. `keep(name)`
-    picks scene folders by name; `check(folder)` (e.g. verify_scene) runs on every scene before
+    picks scene folders by name; `check(folder)` (e.g. stdr.data.load.verify_scene) runs on every scene before
     any is moved. Members that would leave the destination are refused before anything is
     written; the unpacking goes to a temporary folder inside `dest` and the scenes are renamed
     into place only when all passed, so a failure leaves no partial dataset. An existing scene
@@ -356,59 +354,3 @@ def _looks_like_scene(folder: Path) -> bool:
     return (folder / "transforms_train.json").is_file() or (folder / "dataset.json").is_file()
 
 
-# ------------------------------------------------------------------ layout
-def verify_scene(folder: Path, fmt: str) -> int:
-    """Check a scene folder against its loader's needs; returns the number of images checked.
-    Raises DataError naming the first missing piece."""
-    folder = Path(folder)
-    if fmt == "dnerf":
-        n = 0
-        for split in ("train", "val", "test"):
-            jp = folder / f"transforms_{split}.json"
-            try:
-                frames = _read_json(jp).get("frames")
-                if not frames:
-                    raise DataError(f"{jp}: no frames")
-                images = SplitImages(jp)
-                for i, fr in enumerate(frames):
-                    ip = _resolve_image(folder, fr["file_path"], jp, i)
-                    images.add(i, ip, image_channels(ip))  # every image decoded, as the loader will
-                    n += 1
-            except (FileNotFoundError, ValueError, KeyError) as e:
-                raise DataError(f"{folder} is not a complete D-NeRF scene: {e}") from None
-        return n
-    if fmt == "nerfies":
-        need = ["dataset.json", "metadata.json", "scene.json"]
-        missing = [f for f in need if not (folder / f).is_file()]
-        if missing:
-            raise DataError(f"{folder} is not a Nerfies-format scene: missing {', '.join(missing)}")
-        try:
-            ids = json.loads((folder / "dataset.json").read_text())["ids"]
-        except (json.JSONDecodeError, KeyError) as e:
-            raise DataError(f"{folder / 'dataset.json'}: no readable 'ids' list ({e})") from None
-        scales = sorted(p for p in (folder / "rgb").glob("*x") if p.is_dir())
-        if not scales:
-            raise DataError(f"{folder}: no rgb/<N>x image folder")
-        n = 0
-        for i in ids:
-            if not (folder / "camera" / f"{i}.json").is_file():
-                raise DataError(f"{folder}: camera/{i}.json missing (id listed in dataset.json)")
-            found = [p for s in scales for p in (s / f"{i}.png", s / f"{i}.jpg") if p.is_file()]
-            if not found:
-                raise DataError(f"{folder}: no image of id {i} under rgb/*x/")
-            for p in found:  # decoded, as the loader will
-                try:
-                    image_channels(p)
-                except ValueError as e:
-                    raise DataError(f"{folder} is not a complete Nerfies-format scene: {e}") from None
-            n += 1
-        return n
-    raise ValueError(f"unknown format {fmt!r}: dnerf or nerfies")
-
-
-def detect_format(folder: Path) -> Optional[str]:
-    if (Path(folder) / "transforms_train.json").is_file():
-        return "dnerf"
-    if (Path(folder) / "dataset.json").is_file():
-        return "nerfies"
-    return None

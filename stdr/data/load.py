@@ -1,11 +1,14 @@
 """Build a SceneData from the `data` config."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Optional
 
 from ..errors import BadInput
-from .dnerf import load_dnerf, parse_background
+from .dnerf import SplitImages, _read_json, _resolve_image, load_dnerf, parse_background
+from .fetch import DataError
+from .images import image_channels
 from .nerfies import load_nerfies
 from .procedural import SceneOptions, embedded_scene
 from .stress import apply_stress, check_stress
@@ -68,3 +71,61 @@ def load_scene(cfg, splits: Iterable[str], base: str | Path | None = None, seed:
     scene.meta["name"] = cfg.name
     apply_stress(scene, cfg.stress, seed)
     return scene
+
+
+# ------------------------------------------------------------------ a scene folder's layout
+def verify_scene(folder: Path, fmt: str) -> int:
+    """Check a scene folder against its loader's needs; returns the number of images checked.
+    Raises DataError naming the first missing piece."""
+    folder = Path(folder)
+    if fmt == "dnerf":
+        n = 0
+        for split in ("train", "val", "test"):
+            jp = folder / f"transforms_{split}.json"
+            try:
+                frames = _read_json(jp).get("frames")
+                if not frames:
+                    raise DataError(f"{jp}: no frames")
+                images = SplitImages(jp)
+                for i, fr in enumerate(frames):
+                    ip = _resolve_image(folder, fr["file_path"], jp, i)
+                    images.add(i, ip, image_channels(ip))  # every image decoded, as the loader will
+                    n += 1
+            except (FileNotFoundError, ValueError, KeyError) as e:
+                raise DataError(f"{folder} is not a complete D-NeRF scene: {e}") from None
+        return n
+    if fmt == "nerfies":
+        need = ["dataset.json", "metadata.json", "scene.json"]
+        missing = [f for f in need if not (folder / f).is_file()]
+        if missing:
+            raise DataError(f"{folder} is not a Nerfies-format scene: missing {', '.join(missing)}")
+        try:
+            ids = json.loads((folder / "dataset.json").read_text())["ids"]
+        except (json.JSONDecodeError, KeyError) as e:
+            raise DataError(f"{folder / 'dataset.json'}: no readable 'ids' list ({e})") from None
+        scales = sorted(p for p in (folder / "rgb").glob("*x") if p.is_dir())
+        if not scales:
+            raise DataError(f"{folder}: no rgb/<N>x image folder")
+        n = 0
+        for i in ids:
+            if not (folder / "camera" / f"{i}.json").is_file():
+                raise DataError(f"{folder}: camera/{i}.json missing (id listed in dataset.json)")
+            found = [p for s in scales for p in (s / f"{i}.png", s / f"{i}.jpg") if p.is_file()]
+            if not found:
+                raise DataError(f"{folder}: no image of id {i} under rgb/*x/")
+            for p in found:  # decoded, as the loader will
+                try:
+                    image_channels(p)
+                except ValueError as e:
+                    raise DataError(f"{folder} is not a complete Nerfies-format scene: {e}") from None
+            n += 1
+        return n
+    raise ValueError(f"unknown format {fmt!r}: dnerf or nerfies")
+
+
+def detect_format(folder: Path) -> Optional[str]:
+    if (Path(folder) / "transforms_train.json").is_file():
+        return "dnerf"
+    if (Path(folder) / "dataset.json").is_file():
+        return "nerfies"
+    return None

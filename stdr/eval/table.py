@@ -137,7 +137,7 @@ def _code_stamp(metrics: dict[str, Any]) -> str:
     code = metrics.get("code") or {}
     commit = code.get("commit")
     if not commit:
-        return f"stdr {code.get('version', '?')} (no commit)"
+        return f"version {code.get('version', '?')} (no commit)"
     return str(commit)[:10] + ("-dirty" if code.get("dirty") else "")
 
 

@@ -32,7 +32,7 @@ from typing import Any, Iterator, Optional
 
 from omegaconf import OmegaConf
 
-from ..config import CHANGES_KEY
+from ..config import CHANGES_KEY, load_config
 from ..errors import ConfigError
 from ..io.files import read_yaml
 
@@ -85,10 +85,13 @@ def resume_changes(cfg, run_dir: Path, step: int) -> tuple[dict, list]:
     changes recorded so far, this resume's included). Raises ConfigError naming every changed
     key with both values unless cfg.train.resume == "override"."""
     new = OmegaConf.to_container(cfg, resolve=True)
-    old = saved_config(run_dir)
-    history = list((old or {}).get(CHANGES_KEY) or [])
-    if old is None:
+    raw = saved_config(run_dir)
+    history = list((raw or {}).get(CHANGES_KEY) or [])
+    if raw is None:
         return new, history
+    # the run's config as today's code reads it (stdr-eval rebuilds the run the same way): a key
+    # renamed or added since the run was trained is not a change this command makes
+    old = OmegaConf.to_container(load_config(Path(run_dir) / "config.yaml"), resolve=False)
     diff = config_diff(old, new)
     if diff:
         listed = "; ".join(f"{k}: {_show(a)} (the run's) -> {_show(b)} (this command's)" for k, (a, b) in diff.items())

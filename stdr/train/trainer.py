@@ -25,7 +25,7 @@ from ..densify.strategy import build_strategy
 from .optim import adam_step, make_optimizers, net_groups, update_lrs, uses_fused_adam
 from ..io.checkpoint import load_checkpoint
 from ..io.files import write_atomic, writing
-from ..config import check_guard_config
+from ..validate import check_guard_config
 from .guard import Guard, monitor_split, resolve_compiled_check, resolve_sync_free
 from .evaluations import Evaluations
 from .resume import preemption
