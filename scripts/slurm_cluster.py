@@ -119,8 +119,17 @@ def start(d: Path, timeout: float = 60.0) -> Path:
 
 
 def stop(d: Path) -> None:
-    """Stop the daemons started in `d` (each by its pid file), waiting for them to go."""
+    """Cancel every job of the cluster (their processes go with them), then stop the daemons
+    started in `d` (each by its pid file), waiting for them to go."""
     d = d.resolve()
+    env = {**os.environ, "SLURM_CONF": str(d / "slurm.conf")}
+    if (d / "slurm.conf").is_file():
+        subprocess.run([_tool("scancel"), "--full", "--user", str(os.getuid())], env=env, capture_output=True)
+        for _ in range(60):
+            r = subprocess.run([_tool("squeue"), "-h"], env=env, capture_output=True, text=True)
+            if r.returncode != 0 or not r.stdout.strip():
+                break
+            time.sleep(0.5)
     for name, pid_file in (("slurmd", d / "slurmd.pid"), ("slurmctld", d / "slurmctld.pid"),
                            ("munged", d / "munge" / "munged.pid")):
         try:
