@@ -9,7 +9,8 @@ Needs Debian's `slurm-wlm` and `munge` (`apt-get install slurm-wlm munge`) and r
 run as root with their state, spool, logs and munge socket under DIR, so nothing outside DIR
 is changed. One node named after this host with all its cores, one partition `debug`,
 ProctrackType=proctrack/linuxproc and TaskPlugin=task/none (no cgroups needed), ports chosen
-free. `start` waits until the node is idle and a job can run.
+free, and job credentials that expire after 15 s (cred_expire: a requeued job waits that long
+before it starts again, 120 s by default). `start` waits until the node is idle and a job can run.
 """
 from __future__ import annotations
 
@@ -56,7 +57,7 @@ SlurmdUser=root
 SlurmctldPort={ctld_port}
 SlurmdPort={d_port}
 AuthType=auth/munge
-AuthInfo=socket={d / 'munge' / 'munge.socket'}
+AuthInfo=socket={d / 'munge' / 'munge.socket'},cred_expire=15
 CredType=cred/munge
 StateSaveLocation={d / 'state'}
 SlurmdSpoolDir={d / 'spool'}
