@@ -230,6 +230,12 @@ def _finish(proc, env, timeout: float = 900) -> tuple[str, str]:
     return proc.communicate()
 
 
+def _job_logs(proc, out: str, err: str, sweep: Path) -> str:
+    """The sweep ended with exit 0: its jobs' stdout logs, requeues appended, as one text."""
+    assert proc.returncode == 0, out[-3000:] + err[-3000:]
+    return "".join(p.read_text(errors="replace") for p in (sweep / ".submitit").rglob("*_log.out"))
+
+
 def _step(run: Path) -> int:
     try:
         return int(load_checkpoint(run / "checkpoints" / "last.pt")["model"]["step"])
@@ -253,8 +259,7 @@ def test_a_job_requeued_mid_run_resumes_and_ends_bit_identical(cluster, referenc
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 0, out[-3000:] + err[-3000:]
-    logs = "".join(p.read_text(errors="replace") for p in (sweep / ".submitit").rglob("*_log.out"))
+    logs = _job_logs(proc, out, err, sweep)
     resumed = [int(ln.split("at iteration ")[1].split()[0]) for ln in logs.splitlines() if "resumed from" in ln]
     print(f"[slurm] requeue: job {jid} requeued at checkpoint {at}, resumed at {resumed}, {time.time() - t0:.0f} s")
     assert resumed and resumed[0] >= at, "the job was not requeued, or resumed before its checkpoint"
@@ -271,13 +276,8 @@ def test_a_run_longer_than_its_time_limit_checkpoints_at_the_signal_and_finishes
     proc = subprocess.Popen(sweep_cmd(tmp_path, sweep, *LONG, "seed=0", *launcher(
         part, "hydra.launcher.timeout_min=1", "hydra.launcher.signal_delay_s=20", "hydra.launcher.max_num_timeout=8")),
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    try:
-        out, err = _finish(proc, env)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0, out[-3000:] + err[-3000:]
-    logs = "".join(p.read_text(errors="replace") for p in (sweep / ".submitit").rglob("*_log.out"))
+    out, err = _finish(proc, env)  # kills the sweep itself when it fails
+    logs = _job_logs(proc, out, err, sweep)
     stops = [ln for ln in logs.splitlines() if "stopped at iteration" in ln and "warning signal" in ln]
     resumes = [ln for ln in logs.splitlines() if "resumed from" in ln]
     print(f"[slurm] time limit: jobs {job_ids(sweep)}, {len(stops)} stop(s) at the signal ({stops}), "
