@@ -26,7 +26,7 @@ evaluations and a guard recovery, against the torch forms; blocking launches) ->
 file's quantization-aware fine-tune on CUDA) ->
 syncs_cuda (an ordinary training step of every baseline +- STDR makes no synchronizing call the
 CUDA runtime reports; the guard's one) -> run_deform (a budget=cpu D-NeRF run, comparable to
-docs/measurements/gpu_check_h100) -> bench_train -> bench_train_fast (the same with the speed keys
+research/measurements/gpu_check_h100) -> bench_train -> bench_train_fast (the same with the speed keys
 whose CUDA kernels wait for this check: FAST) -> run_gpu_deform (deform at budget=gpu: a row
 of a D-NeRF table in minutes) -> run_gpu_deform_fast (the same with FAST: the full-run half of
 the rule in stdr/verified.py) -> run_gpu_deform_stdr -> run_deform_twin (the budget=cpu run with the torch projection +

@@ -1,9 +1,9 @@
 """The D-NeRF table at budget=gpu, generated from the runs a GPU queue returned.
 
     # after each GPU call: unpack its runs.tgz into the table's folder
-    python scripts/gpu_table.py add OUT/runs.tgz [--folder docs/measurements/dnerf_gpu]
+    python scripts/gpu_table.py add OUT/runs.tgz [--folder research/measurements/dnerf_gpu]
     # the table (table.md, table.json), stamped with GPU, code commit and command
-    python scripts/gpu_table.py table [--folder docs/measurements/dnerf_gpu]
+    python scripts/gpu_table.py table [--folder research/measurements/dnerf_gpu]
     # the full-run rule of stdr.verified for runs with variant labels (run ids ending __LABEL)
     python scripts/gpu_table.py rule --folder FOLDER --compiled fast --twin torch
 
@@ -24,7 +24,7 @@ from pathlib import Path, PurePosixPath
 from stdr.data.fetch import DataError, extract_tar
 
 ROOT = Path(__file__).resolve().parents[1]
-FOLDER = ROOT / "docs" / "measurements" / "dnerf_gpu"
+FOLDER = ROOT / "research" / "measurements" / "dnerf_gpu"
 METHODS = [f"{b}{s}" for b in ("deform", "scgs", "spgs", "4dgs") for s in ("", "_stdr")]
 # The STDR paper's D-NeRF test PSNR (800², 40k iterations, its Table "Quantitative comparisons on
 # the D-NeRF dataset", transcribed from its LaTeX source) for the four scenes this table runs; the

@@ -3,12 +3,12 @@
     scripts/run.sh python scripts/results.py            # write both
     scripts/run.sh python scripts/results.py --check    # exit 1 if either is stale (tests/test_docs.py)
 
-Every number on the results page comes from a file under docs/measurements/ (read here, never
+Every number on the results page comes from a file under research/measurements/ (read here, never
 typed here); each section states where its runs came from: code commit, machine, date, the
 command that made them. The page's own stamp (the commit and date of this generation) is the
 one line --check ignores.
 
-The D-NeRF headline table: when docs/measurements/dnerf_headline_cpu's runs/ (in its records.tar.xz,
+The D-NeRF headline table: when research/measurements/dnerf_headline_cpu's runs/ (in its records.tar.xz,
 read through scripts/measurements.py) holds run records
 (the rerun at one commit, studies/headline.py), the table is built from them with stdr-eval's
 reader; until then the previous table (dnerf_default_cpu_table) is shown, marked as such.
@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import statistics
 import subprocess
 import sys
@@ -28,7 +29,7 @@ if str(ROOT) not in sys.path:  # run by its path, a script sees scripts/ only; t
     sys.path.insert(0, str(ROOT))
 from studies.records import record_file, records_dir  # noqa: E402
 
-M = ROOT / "docs" / "measurements"
+M = ROOT / "research" / "measurements"
 RESULTS = ROOT / "docs" / "results.md"
 README = ROOT / "README.md"
 def _markers(name: str) -> tuple[str, str]:
@@ -122,10 +123,10 @@ def headline_from_records(runs_dir: Path | None = None, baselines=BASELINES, sce
                     f"{HEADLINE_PLANNED} planned recorded so far)",
             "code": ", ".join(f"{k} ({v} runs)" for k, v in sorted(commits.items())),
             "machine": ", ".join(f"{k} ({v} runs)" for k, v in sorted(machines.items())),
-            "command": "bash scripts/headline_table.sh ../shared/data/dnerf, in the tree of the records' commit; today "
-                       "python studies/headline.py ../shared/data/dnerf (docs/measurements/dnerf_headline_cpu/README.md)",
-            "source": "runs/ in docs/measurements/dnerf_headline_cpu/records.tar.xz",
-            "chart": "measurements/dnerf_headline_cpu/charts/speed_accuracy_psnr.png",
+            "command": "bash scripts/headline_table.sh DNERF (a folder of the four scenes), in the tree of the records' commit; today "
+                       "python studies/headline.py DNERF (research/measurements/dnerf_headline_cpu/README.md)",
+            "source": "runs/ in research/measurements/dnerf_headline_cpu/records.tar.xz",
+            "chart": "research/measurements/dnerf_headline_cpu/charts/speed_accuracy_psnr.png",
             "seeds": ("seed " if len(seeds) == 1 else "seeds ") + ", ".join(map(str, seeds)),
             **({"caveat": GATED_NOTE + "."} if gated else {}),
             "ratios": paired_time_ratios(use, baselines),
@@ -178,11 +179,11 @@ def headline_from_previous_table(recorded: int = 0):
         means[method] = {**r, "n_seeds": r.get("n_seeds", 1), "n_scenes": len(t["scenes"])}
     prov = {"runs": f"48, the previous table's; the rerun at one commit has {recorded} of its {HEADLINE_PLANNED} "
                     "runs so far and is shown once every method has every scene at one seed",
-            "code": "51ec540 (training bit-identical to 1e63c0f, docs/measurements/identity_checks/)",
+            "code": "51ec540 (training bit-identical to 1e63c0f, research/measurements/identity_checks/)",
             "machine": "one 2-core VM, not recorded (FPS re-timed idle on an AMD EPYC, 2 logical CPUs)",
-            "command": "stdr-eval <48 run folders> reevaluate=false (docs/measurements/dnerf_default_cpu_table/README.md)",
-            "source": "docs/measurements/dnerf_default_cpu_table/table.json",
-            "chart": "measurements/dnerf_default_cpu_table/charts/speed_accuracy_psnr.png",
+            "command": "stdr-eval <48 run folders> reevaluate=false (research/measurements/dnerf_default_cpu_table/README.md)",
+            "source": "research/measurements/dnerf_default_cpu_table/table.json",
+            "chart": "research/measurements/dnerf_default_cpu_table/charts/speed_accuracy_psnr.png",
             "seeds": "seed 0 (deform: seeds 0-2)",
             "caveat": ("the previous table: deform with seeds 0-2, the other baselines seed 0; +STDR rows trained "
                        "with render.cull=train densify.count_invisible=false and plain rows with the other rule "
@@ -262,15 +263,21 @@ def stdr_effect(means) -> dict:
 
 # ----------------------------------------------------------------- unseen scenes
 def unseen():
+    """The check on the D-NeRF scenes the tests do not use: a row per baseline (pairs, mean Δ PSNR,
+    Δ per pair by scene), from pairs.json as reported."""
     d = _read_json(M / "unseen_scenes_check" / "pairs.json")
-    rows = ["| scene | baseline | plain PSNR | +STDR PSNR | Δ | train s ratio | FPS ratio |", "|---|---|---|---|---|---|---|"]
-    deltas = []
-    for r in d["pairs"]:
-        dl = r.get("delta_psnr", r["stdr_psnr"] - r["plain_psnr"])  # as reported: from unrounded PSNRs
-        deltas.append(dl)
-        rows.append(f"| {r['scene']} | {r['baseline']} | {r['plain_psnr']:.2f} | {r['stdr_psnr']:.2f} | {dl:+.2f} "
-                    f"| {_f(r.get('train_ratio'))} | {_f(r.get('fps_ratio'))} |")
-    return rows, {"n": len(deltas), "mean": statistics.fmean(deltas), "min": min(deltas), "max": max(deltas)}, d
+    rows = ["| baseline | pairs | seeds | mean Δ PSNR | Δ per pair |", "|---|---|---|---|---|"]
+    n, below = 0, 0
+    for b in d["by_baseline"]:
+        deltas = [x for xs in b["pairs"].values() for x in xs]
+        n += len(deltas)
+        below += sum(math.copysign(1, x) < 0 for x in deltas)
+        per = ", ".join(f"{sc} " + "/".join(f"{x:+.2f}" for x in xs) for sc, xs in b["pairs"].items())
+        rows.append(f"| {b['baseline']} | {len(deltas)} | {', '.join(map(str, b['seeds']))} | **{b['mean_delta_psnr']:+.2f}**"
+                    + (f" (95 % interval {b['interval_95'][0]:+.2f} to {b['interval_95'][1]:+.2f})" if b.get("interval_95") else "")
+                    + f" | {per} |")
+    means = ", ".join(f"{b['mean_delta_psnr']:+.2f} ({b['baseline']})" for b in d["by_baseline"])
+    return rows, {"n": n, "below": below, "means": means}, d
 
 
 # ----------------------------------------------------------------- stability
@@ -326,11 +333,11 @@ def compact_preset() -> list[str]:
     targets = next(i for i, line in enumerate(text) if line.startswith("Compactness targets"))
     where = next(i for i, line in enumerate(text) if line.startswith("Where the bytes are"))
     return ["", "## The compact preset (`compact=on`), test split", "",
-            "Source: `docs/measurements/compact_prune/table_test.md`; the preset was chosen on the val split by the "
-            "rule of `docs/measurements/compact_prune/protocol.md` (`table_val.md`). " + stamp, "",
+            "Source: `research/measurements/compact_prune/table_test.md`; the preset was chosen on the val split by the "
+            "rule of `research/measurements/compact_prune/protocol.md` (`table_val.md`). " + stamp, "",
             *_first_table(md), "", text[targets], "", *_first_table(md, targets), "", text[where], "",
             *_first_table(md, where),
-            *(["", "![PSNR against Gaussians and model size, full and compact](measurements/compact_prune/charts/"
+            *(["", "![PSNR against Gaussians and model size, full and compact](../research/measurements/compact_prune/charts/"
                "size_accuracy_psnr.png)"] if (M / "compact_prune" / "charts" / "size_accuracy_psnr.png").is_file()
               else [])]
 
@@ -366,7 +373,7 @@ def long_budget_sentence() -> str:
     if former is not None:
         out += (f"; with the former default `stdr.mask_after_freeze=true` it was {former['val']:+.2f} on val and "
                 f"{former['test']:+.2f} on test ({former['n']} pairs), the reason the default changed: "
-                "docs/measurements/stdr_long/README.md")
+                "research/measurements/stdr_long/README.md")
     return out + ". "
 
 
@@ -376,13 +383,13 @@ def long_budget_section() -> list[str]:
         return []
     stamp = next((line for line in md.read_text().split("\n") if line.startswith("Records:")), "")
     out = ["", "## STDR at the longer CPU budget (`budget=cpu_long`, deform, val and test)", "",
-           "Source: `docs/measurements/stdr_long/table.md` (generated by `python studies/long_budget.py table`; "
+           "Source: `research/measurements/stdr_long/table.md` (generated by `python studies/long_budget.py table`; "
            "the protocol in its README). " + stamp]
     out += _section_tables(md, whole=True)
     mb = M / "stdr_unseen_times" / "mask_between.md"
     if mb.is_file():
         out += ["", "### Between training times: the procedural scene (val, `cpu_long`)", "",
-                "Source: `docs/measurements/stdr_unseen_times/mask_between.md` (generated by "
+                "Source: `research/measurements/stdr_unseen_times/mask_between.md` (generated by "
                 "`python studies/mask_between.py table`; the rules and the ablations in its README).", "",
                 *_first_table(mb)]
     return out
@@ -398,12 +405,12 @@ def compact_file() -> list[str]:
     targets = next(i for i, line in enumerate(text) if line.startswith("Targets"))
     png = M / "compact_bytes" / "charts" / "size_accuracy_bytes.png"
     return ["", "## The compact model file (`compact=on` with its codecs), test split", "",
-            "Source: `docs/measurements/compact_bytes/table.md`; the codecs were chosen on the val split by the rules "
-            "of `docs/measurements/compact_bytes/protocol.md` and `docs/measurements/compact_state/protocol.md` "
+            "Source: `research/measurements/compact_bytes/table.md`; the codecs were chosen on the val split by the rules "
+            "of `research/measurements/compact_bytes/protocol.md` and `research/measurements/compact_state/protocol.md` "
             "(`decision.json` in each). " + stamp, "",
             *_first_table(md), "", *[line for line in text[targets:] if not line.startswith("![")],
             *(["![PSNR against MiB: full, compact=on and the compact file, with the file's FPS]"
-               "(measurements/compact_bytes/charts/size_accuracy_bytes.png)"] if png.is_file() else [])]
+               "(../research/measurements/compact_bytes/charts/size_accuracy_bytes.png)"] if png.is_file() else [])]
 
 
 # ----------------------------------------------------------------- the page
@@ -416,7 +423,7 @@ def build() -> tuple[str, str]:
             f"{' with uncommitted changes' if _git('status', '--porcelain') else ''} on {datetime.date.today().isoformat()}.",
             "Each section names the runs' code, machine and the command that made them; nothing here is typed by hand.",
             "",
-            "## D-NeRF, four shared scenes, budget=cpu, test split", "",
+            "## D-NeRF, the four scenes the tests use, budget=cpu, test split", "",
             f"Runs: {prov['runs']} (the rerun: 4 baselines × plain/+STDR × bouncingballs, hellwarrior, "
             "jumpingjacks, standup × seeds 0-2, one commit). "
             f"Code: {prov['code']}. Machine: {prov['machine']}. Command: `{prov['command']}`. "
@@ -427,23 +434,23 @@ def build() -> tuple[str, str]:
     page += ["", f"PSNR, LPIPS and Gaussians are means over the scenes (± the std over seeds of each seed's "
              f"scene mean, where there are several seeds). {RATIO_NOTE} Mean Δ over the {eff['n']} baselines: "
              f"{eff['mean']:+.2f} dB (from {eff['min']:+.2f} to {eff['max']:+.2f}{_by_seed(prov)}).", "",
-             *([f"![PSNR against render FPS, the table's runs]({prov['chart']})", ""]
-               if (ROOT / "docs" / prov["chart"]).is_file() else []),
-             "## D-NeRF scenes not in ../shared (a check of generalization)", "",
-             f"{udata['scope']} Source: `docs/measurements/unseen_scenes_check/pairs.json` ({udata['provenance']}).", ""]
+             *([f"![PSNR against render FPS, the table's runs](../{prov['chart']})", ""]
+               if (ROOT / prov["chart"]).is_file() else []),
+             "## Four other D-NeRF scenes (a check of generalization)", "",
+             f"{udata['scope']} Source: `research/measurements/unseen_scenes_check/pairs.json` ({udata['provenance']}).", ""]
     page += urows
-    page += ["", f"Mean Δ over the {ueff['n']} pairs: {ueff['mean']:+.2f} dB (from {ueff['min']:+.2f} to "
-             f"{ueff['max']:+.2f}); one seed, so within seed noise (0.2-0.4 dB, next section).", "",
+    page += ["", f"{ueff['below']} of the {ueff['n']} pairs are below 0. Seed-to-seed spread at budget=cpu is "
+             "0.2-0.4 dB (next section).", "",
              "## Stability (degradation study)", "",
-             "Source: `table.json` in `docs/measurements/stability/records.tar.xz` (code 444c090 and earlier, 2-core AMD EPYC and "
+             "Source: `table.json` in `research/measurements/stability/records.tar.xz` (code 444c090 and earlier, 2-core AMD EPYC and "
              "unrecorded VMs; docs/stability.md says how to run it).", ""]
     page += stability()
     page += ["", "## Budget ladder (deform, val split)", "",
-             "Source: `docs/measurements/budget_ladder/deform_ladder.md` (generated by `stdr-tool variants`).", ""]
+             "Source: `research/measurements/budget_ladder/deform_ladder.md` (generated by `stdr-tool variants`).", ""]
     page += _first_table(M / "budget_ladder" / "deform_ladder.md")
     page += ["", "## Compactness (test split, +STDR against plain)", "",
-             "Source: `docs/measurements/compactness/tables_test.md` (generated by `stdr-tool variants`; "
-             "docs/measurements/compactness/README.md).", ""]
+             "Source: `research/measurements/compactness/tables_test.md` (generated by `stdr-tool variants`; "
+             "research/measurements/compactness/README.md).", ""]
     page += _section_tables(M / "compactness" / "tables_test.md")
     page += long_budget_section()
     page += compact_preset()
@@ -463,26 +470,26 @@ def build() -> tuple[str, str]:
     same = (f"the same bits on {', '.join(map(str, threads[:-1]))} and {threads[-1]} threads"
             if len(threads) > 1 else "bit-identical from run to run")
     line = (f"Expected: test PSNR {span(demo, 'psnr', '.2f')} dB and {span(demo, 'num_gaussians', ',')} Gaussians "
-            f"({machines}, `docs/measurements/embedded_demo/records.json`); {same} on one machine, other CPUs give "
+            f"({machines}, `research/measurements/embedded_demo/records.json`); {same} on one machine, other CPUs give "
             "other bits")
     if old:
         line += (f" (older code, whose arithmetic has since changed: {span(old, 'psnr', '.2f')} dB on {len(old)} "
                  "records)")
     demo_block = [_markers("demo")[0], line + ".", _markers("demo")[1]]
     block = [_markers("results")[0],
-             f"D-NeRF, four shared scenes (400² copies at 200 px), budget=cpu, test split, {seeds}; "
+             f"D-NeRF, the four scenes the tests use (400² copies at 200 px), budget=cpu, test split, {seeds}; "
              f"runs: {prov['runs']}; code {prov['code'].split(' ')[0]}. "
              "From [docs/results.md](docs/results.md) (generated):", ""]
     if prov.get("caveat"):
         block[-2] += f" **Caveat:** {prov['caveat']}"
     block += headline_table(means, prov.get("ratios"))
     block += ["", f"**What STDR does here, and its scope.** On these four scenes ({seeds}) the mean Δ PSNR over the four "
-              f"baselines is {eff['mean']:+.2f} dB (from {eff['min']:+.2f} to {eff['max']:+.2f}{_by_seed(prov)}); on {ueff['n']} "
-              f"baseline/scene pairs of D-NeRF scenes that are not in ../shared (one seed) it is "
-              f"{ueff['mean']:+.2f} dB (from {ueff['min']:+.2f} to {ueff['max']:+.2f}), within one seed's noise. "
+              f"baselines is {eff['mean']:+.2f} dB (from {eff['min']:+.2f} to {eff['max']:+.2f}{_by_seed(prov)}); on the four "
+              f"D-NeRF scenes the tests do not use (hook, lego, mutant, trex; budget=cpu, 1 thread, test split; {ueff['n']} "
+              f"scene/seed pairs, {ueff['below']} below 0; measured outside this repository) it is {ueff['means']}. "
               + long_budget_sentence() + stdr_cost(prov.get("ratios")), ""]
-    if (ROOT / "docs" / prov["chart"]).is_file():
-        block += [f"![PSNR against render FPS, the table's runs](docs/{prov['chart']})"]
+    if (ROOT / prov["chart"]).is_file():
+        block += [f"![PSNR against render FPS, the table's runs]({prov['chart']})"]
     block += [_markers("results")[1]]
     return page, {"results": "\n".join(block), "demo": "\n".join(demo_block)}
 

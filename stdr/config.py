@@ -103,7 +103,7 @@ class RenderConfig:
     # with a compiled backend, projection and SH shading run in the extension too (forward and
     # backward; csrc/project_math.h); false runs their torch twin (stdr/render/projection.py, sh.py).
     # null (auto): compiled on the backends whose kernels passed their checks on real hardware
-    # (stdr.verified.VERIFIED: the CPU, and CUDA since the H100 check of 2026-11-26)
+    # (stdr.verified.VERIFIED: the CPU, and CUDA after its check on an H100)
     compiled_projection: Optional[bool] = None
 
 

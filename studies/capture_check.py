@@ -1,8 +1,8 @@
 """The capture check: `stdr-data capture` on the real phone capture in ../shared against that
-capture's own cameras (protocol: docs/measurements/capture_toy/README.md).
+capture's own cameras (protocol: research/measurements/capture_toy/README.md).
 
     python studies/capture_check.py run  --toy ../shared/data/nerfies/toy-capture --work /tmp/capture_check
-    python studies/capture_check.py table --work /tmp/capture_check --out docs/measurements/capture_toy
+    python studies/capture_check.py table --work /tmp/capture_check --out research/measurements/capture_toy
 
 `run` (resumable: each finished step leaves its record in WORK/records.json and is skipped next time):
 1. capture the toy capture's 2x images (`stdr-data capture FOLDER --frames 0`), timed per stage;
@@ -155,7 +155,7 @@ def main(argv=None) -> None:
     r.add_argument("--seeds", type=int, nargs="+", default=[0])
     t = sub.add_parser("table")
     t.add_argument("--work", type=Path, required=True)
-    t.add_argument("--out", type=Path, default=ROOT / "docs" / "measurements" / "capture_toy")
+    t.add_argument("--out", type=Path, default=ROOT / "research" / "measurements" / "capture_toy")
     a = ap.parse_args(argv)
     if a.cmd == "run":
         run(a.toy, a.work, a.seeds)

@@ -8,7 +8,7 @@ from typing import Callable
 from studies.records import ARCHIVE, records_dir
 
 ROOT = Path(__file__).resolve().parents[1]
-M = ROOT / "docs" / "measurements"
+M = ROOT / "research" / "measurements"
 
 
 def gmean(xs):
@@ -21,7 +21,7 @@ def gmean(xs):
 
 def records_in(out: Path, sub: str) -> Path:
     """A study's records folder to read: out/sub where it exists, else (a study folder under
-    docs/measurements whose records are packed) the archive's copy (scripts/measurements.py)."""
+    research/measurements whose records are packed) the archive's copy (scripts/measurements.py)."""
     out = Path(out)
     if (out / sub).is_dir() or out.resolve().parent != M.resolve():
         return out / sub
@@ -42,10 +42,10 @@ def records_to_write(out: Path, sub: str) -> Path:
 
 def commit() -> str:
     """The checkout's short commit, `+dirty` when tracked files differ from it (a record's stamp:
-    stdr.eval.evaluate.code_version, the one stamp). Files under docs/measurements do not count: a
+    stdr.eval.evaluate.code_version, the one stamp). Files under research/measurements do not count: a
     study rewrites its own tables as it runs."""
     from stdr.eval.evaluate import code_version
-    v = code_version(exclude=("docs/measurements",), root=ROOT)
+    v = code_version(exclude=("research/measurements",), root=ROOT)
     if v["commit"] is None:
         return "unknown"
     return v["commit"][:7] + ("+dirty" if v["dirty"] else "")

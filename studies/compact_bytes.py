@@ -1,4 +1,4 @@
-"""Compact bytes (docs/measurements/compact_bytes/protocol.md): the `compact=on` preset's
+"""Compact bytes (research/measurements/compact_bytes/protocol.md): the `compact=on` preset's
 runs of the eight methods at `budget=cpu`, seed 2, and the compact model file's codecs chosen on val
 by the protocol's rule, then read once on test.
 
@@ -12,8 +12,8 @@ by the protocol's rule, then read once on test.
     python studies/compact_bytes.py where --work WORK # the chosen file's bytes by part (no render)
     python studies/compact_bytes.py table             # table.md (generated)
 
-Records (with the code commit and machine) go to docs/measurements/compact_bytes/records/{val,test,where}/.
-The full models are the compactness study's test records (docs/measurements/compact_prune,
+Records (with the code commit and machine) go to research/measurements/compact_bytes/records/{val,test,where}/.
+The full models are the compactness study's test records (research/measurements/compact_prune,
 records.tar.xz, seed 2), not retrained.
 """
 from __future__ import annotations
@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 from studies.common import commit, gmean, records_in, records_to_write  # noqa: E402
 from stdr.tools.runqueue import run_one  # noqa: E402
 
-OUT = ROOT / "docs" / "measurements" / "compact_bytes"
+OUT = ROOT / "research" / "measurements" / "compact_bytes"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
 BASELINES = ("deform", "scgs", "spgs", "4dgs")
 EXPERIMENTS = tuple(f"dnerf_{b}{s}" for b in BASELINES for s in ("", "_stdr"))
@@ -48,7 +48,7 @@ GRID = {"g16": {}, "g8": {"state:grids": "q8"}, "g4": {"state:grids": "q4"}}
 MASK = {"m8": {"stdr_mask": "q8"}, "derived8": {"stdr_mask": "derived", "stdr_cond": "q8"},
         "derived4": {"stdr_mask": "derived", "stdr_cond": "q4"},
         "derivedvq": {"stdr_mask": "derived", "stdr_cond": "vq:1024"}}
-FULL_RECORDS = ROOT / "docs" / "measurements" / "compact_prune" / "records.tar.xz"
+FULL_RECORDS = ROOT / "research" / "measurements" / "compact_prune" / "records.tar.xz"
 
 
 def run_dir(work: Path, exp: str, scene: str) -> Path:

@@ -1,5 +1,5 @@
 """What Zstandard entropy coding gains on the compact file, stream by stream, and what loading costs
-(docs/measurements/compact_entropy; protocol.md there, written before the runs).
+(research/measurements/compact_entropy; protocol.md there, written before the runs).
 
     python studies/compact_entropy.py measure RUN_DIR [RUN_DIR ...]   # one record per run into records/
     python studies/compact_entropy.py table                             # table.md from the records
@@ -23,8 +23,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from studies.common import commit, records_in, records_to_write  # noqa: E402
 
-OUT = ROOT / "docs" / "measurements" / "compact_entropy"
-#: the compact_bytes decision (docs/measurements/compact_bytes/decision.json) as codecs; the
+OUT = ROOT / "research" / "measurements" / "compact_entropy"
+#: the compact_bytes decision (research/measurements/compact_bytes/decision.json) as codecs; the
 #: fine-tune moves codewords and changes no byte, so it is left out
 PRESET = {"means": "q16", "scales": "q8", "quats": "q8", "opacities": "q8", "sh0": "q8", "shN": "vq:256",
           "state": "f16", "state:grids": "q8", "stdr_mask": "derived", "stdr_cond": "vq:1024"}

@@ -1,5 +1,5 @@
 """The compact model file's bytes and what its codecs cost, measured on trained runs
-(docs/measurements/compact_file).
+(research/measurements/compact_file).
 
     python studies/compact_file.py run RUN_DIR [RUN_DIR ...] [--variants default state16]
     python studies/compact_file.py table
@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from studies.common import commit, records_in, records_to_write, run_table_main  # noqa: E402
 
-OUT = ROOT / "docs" / "measurements" / "compact_file"
+OUT = ROOT / "research" / "measurements" / "compact_file"
 VARIANTS = {"default": {}, "state16": {"state": "f16"}, "all16": {"shN": "f16", "state": "f16"},
             "q8": {"scales": "q8", "quats": "q8", "opacities": "q8", "sh0": "q8", "*": "q8", "state": "f16"},
             "q8m16": {"means": "q16", "scales": "q8", "quats": "q8", "opacities": "q8", "sh0": "q8", "*": "q8",

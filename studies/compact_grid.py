@@ -1,4 +1,4 @@
-"""Compact grid (docs/measurements/compact_grid/protocol.md): 4DGS's compact file with a HexPlane
+"""Compact grid (research/measurements/compact_grid/protocol.md): 4DGS's compact file with a HexPlane
 of 16 channels in `compact=on`, against the compact_bytes runs (32 channels, the same seed).
 
     python studies/compact_grid.py train DNERF_ROOT --work WORK [--scenes ...] [--experiments ...]
@@ -7,7 +7,7 @@ of 16 channels in `compact=on`, against the compact_bytes runs (32 channels, the
     python studies/compact_grid.py test DNERF_ROOT --work WORK    # only if the rule adopted it
     python studies/compact_grid.py table                         # table.md
 
-Records (with the code commit and machine) go to docs/measurements/compact_grid/records/{val,test}/.
+Records (with the code commit and machine) go to research/measurements/compact_grid/records/{val,test}/.
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT))
 from studies import compact_bytes as cb  # noqa: E402
 from studies.common import commit, records_in, records_to_write  # noqa: E402
 
-OUT = ROOT / "docs" / "measurements" / "compact_grid"
+OUT = ROOT / "research" / "measurements" / "compact_grid"
 EXPERIMENTS = ("dnerf_4dgs", "dnerf_4dgs_stdr")
 SCENES = cb.SCENES
 SEED = cb.SEED

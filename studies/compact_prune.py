@@ -1,4 +1,4 @@
-"""Contribution pruning study (docs/measurements/compact_prune/protocol.md): the decision and
+"""Contribution pruning study (research/measurements/compact_prune/protocol.md): the decision and
 tables from its committed records. The study is complete (its README): every val branch, the
 time_bins runs that settle rule 6, and the test stage are recorded.
 
@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from studies.common import gmean  # noqa: E402
 
-RECORDS = ROOT / "docs" / "measurements" / "compact_prune" / "runs"
+RECORDS = ROOT / "research" / "measurements" / "compact_prune" / "runs"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
 EXPERIMENTS = tuple(f"dnerf_{b}{s}" for b in ("deform", "scgs", "spgs", "4dgs") for s in ("", "_stdr"))
 VARIANTS = {  # name: prune.* overrides (the protocol's table)

@@ -1,5 +1,5 @@
 """The compact file's fixed part in fewer bits: the networks in 8 bits, 4DGS's grid in 4
-(docs/measurements/compact_state; protocol.md there, written before the runs).
+(research/measurements/compact_state; protocol.md there, written before the runs).
 
     python studies/compact_state.py train DNERF --work WORK [--experiments ...] [--scenes ...] [--seeds 2 3]
     python studies/compact_state.py val DNERF --work WORK [...]    # records/val/<exp>__<scene>__s<seed>.json
@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from studies.common import commit, records_in, records_to_write  # noqa: E402
 
-OUT = ROOT / "docs" / "measurements" / "compact_state"
+OUT = ROOT / "research" / "measurements" / "compact_state"
 #: the protocol's methods (its rule and amendment 1 decide on them); amendment 2 adds the rest
 FIRST = ("dnerf_deform", "dnerf_4dgs", "dnerf_scgs")
 EXPERIMENTS = ("dnerf_deform", "dnerf_4dgs", "dnerf_scgs",

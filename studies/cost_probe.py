@@ -12,7 +12,7 @@ It assumes that count is known (pass it). Densification, evaluation and checkpoi
 included.
 
     python -m studies.cost_probe outputs/toy/deform_2x --gaussians 50000 150000 \\
-        --iters 10 --out docs/measurements/x.json -- experiment=nerfds_deform budget=paper data.path=...
+        --iters 10 --out research/measurements/x.json -- experiment=nerfds_deform budget=paper data.path=...
 """
 from __future__ import annotations
 

@@ -8,7 +8,7 @@ only one folder is listed as missing, never averaged.
 
     python -m studies.gap --split val \
         --point 2k outputs/fid/P_plain outputs/fid/A_default \
-        --point 10k outputs/fid/B10000_plain outputs/fid/B10000_stdr --out docs/measurements/x
+        --point 10k outputs/fid/B10000_plain outputs/fid/B10000_stdr --out research/measurements/x
 """
 from __future__ import annotations
 

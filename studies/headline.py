@@ -1,6 +1,6 @@
 """The D-NeRF headline table, rerun at one commit: 4 baselines x {plain, +STDR} x the four shared
 scenes x seeds 0-2 (96 runs, budget=cpu, test split), breadth first (every method and scene at
-seed 0, then seed 1, then 2), resumable (docs/measurements/dnerf_headline_cpu).
+seed 0, then seed 1, then 2), resumable (research/measurements/dnerf_headline_cpu).
 
     python studies/headline.py DNERF_ROOT [--work WORK] [--code CHECKOUT] [--seeds 0 1 2] [--dry-run]
 
@@ -8,7 +8,7 @@ The runs go through the project's run queue (`stdr-tool queue`, one at a time), 
 scripts/idle_run.py around the --code checkout's stdr-train (a worktree frozen at the table's
 commit; default: this checkout). A finished run's records (config.yaml, metrics.json,
 history.json, train_profile.json, load.json; no checkpoint) are copied to
-docs/measurements/dnerf_headline_cpu/runs/<experiment>/<scene>/s<seed>/, and a run whose records
+research/measurements/dnerf_headline_cpu/runs/<experiment>/<scene>/s<seed>/, and a run whose records
 are there already is not planned, so the study goes on from the committed records on any machine.
 A run that shared the machine (other jobs took more than 5 % of it) is not recorded and is run
 again, up to three sweeps over its seed, before the next seed starts. Then scripts/results.py
@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from stdr.tools.runqueue import Queue, Run, execute  # noqa: E402
 
-RECORDS = ROOT / "docs" / "measurements" / "dnerf_headline_cpu" / "runs"
+RECORDS = ROOT / "research" / "measurements" / "dnerf_headline_cpu" / "runs"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
 EXPERIMENTS = tuple(f"dnerf_{b}{s}" for b in ("deform", "scgs", "spgs", "4dgs") for s in ("", "_stdr"))
 KEEP = ("config.yaml", "metrics.json", "history.json", "train_profile.json", "load.json")

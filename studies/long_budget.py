@@ -1,5 +1,5 @@
 """STDR at the longer CPU budget: deform ± STDR at `budget=cpu_long` on the shared D-NeRF scenes,
-with train, val and test PSNR along the learning curve (docs/measurements/stdr_long).
+with train, val and test PSNR along the learning curve (research/measurements/stdr_long).
 
     # resumable (a run with a record is skipped; a run stopped midway resumes from its last
     # checkpoint), on the project's run queue: --concurrent runs at a time, --threads each
@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from studies.common import commit, records_in, records_to_write  # noqa: E402
 
-RECORDS = ROOT / "docs" / "measurements" / "stdr_long"
+RECORDS = ROOT / "research" / "measurements" / "stdr_long"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
 METHODS = ("deform", "deform_stdr")
 POINTS = (2500, 5000, 7500)

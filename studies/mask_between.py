@@ -1,4 +1,4 @@
-"""STDR's mask between training times, an evaluation-time ablation (docs/measurements/stdr_unseen_times).
+"""STDR's mask between training times, an evaluation-time ablation (research/measurements/stdr_unseen_times).
 
     python studies/mask_between.py run RUN_DIR [RUN_DIR ...] [--out FOLDER]   # records, one per run
     python studies/mask_between.py table [--out FOLDER]                       # FOLDER/mask_between.md
@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from studies.common import commit, records_in, records_to_write, run_table_main  # noqa: E402
 
-OUT = ROOT / "docs" / "measurements" / "stdr_unseen_times"
+OUT = ROOT / "research" / "measurements" / "stdr_unseen_times"
 RULES = ("linear", "nearest", "logit")
 
 

@@ -11,10 +11,10 @@ launch work (views such as t, view, slice or detach launch no kernel on a GPU, n
 allocations or profiler records). Counts are deterministic: they do not depend on the machine.
 
     python studies/ops_per_step.py --scene ../shared/data/dnerf/jumpingjacks --label after \\
-        --out docs/measurements/ops_per_step
-    python studies/ops_per_step.py --compare docs/measurements/ops_per_step/before.json \\
-        docs/measurements/ops_per_step/after.json docs/measurements/ops_per_step/fused.json \\
-        --out docs/measurements/ops_per_step
+        --out research/measurements/ops_per_step
+    python studies/ops_per_step.py --compare research/measurements/ops_per_step/before.json \\
+        research/measurements/ops_per_step/after.json research/measurements/ops_per_step/fused.json \\
+        --out research/measurements/ops_per_step
 """
 from __future__ import annotations
 

@@ -7,7 +7,7 @@
 (scripts/measurements.py runs this module's `main`; the studies read records through
 `records_dir` and `record_file`.)
 
-A study folder under docs/measurements/ keeps what a reader opens — its README, protocol, tables
+A study folder under research/measurements/ keeps what a reader opens — its README, protocol, tables
 (*.md, and *.json under 100 kB, at its top level), `charts/` (PNG) and `table/` — in the repository
 as files, and the rest in `records.tar.xz`: its per-run records (every other subfolder: runs/,
 test/, first_attempt/, ...), the SVG copies of its charts and its bulk tables (top-level files of
@@ -30,7 +30,7 @@ from pathlib import Path
 from stdr.data.fetch import DataError, extract_tar
 
 ROOT = Path(__file__).resolve().parents[1]  # the checkout
-M = ROOT / "docs" / "measurements"
+M = ROOT / "research" / "measurements"
 ARCHIVE = "records.tar.xz"
 KEEP = frozenset({"charts", "table"})  # subfolders a reader opens (images and tables the docs link)
 BULK = 100_000  # bytes: a top-level file this large (not .md or .png) goes into the archive
@@ -110,7 +110,7 @@ def _cache_root() -> Path:
 
 
 def records_dir(study: str, sub: str) -> Path:
-    """docs/measurements/<study>/<sub> as a folder: itself where it exists, else the study
+    """research/measurements/<study>/<sub> as a folder: itself where it exists, else the study
     archive's copy unpacked (once per archive content) into the user cache. A study without either
     gives the folder's path (which does not exist: the reader says so)."""
     folder = M / study / sub
@@ -135,7 +135,7 @@ def records_dir(study: str, sub: str) -> Path:
 
 
 def record_file(study: str, rel: str) -> Path:
-    """docs/measurements/<study>/<rel>: the file itself where it exists, else the archive's copy
+    """research/measurements/<study>/<rel>: the file itself where it exists, else the archive's copy
     (unpacked into the cache as records_dir does)."""
     path = M / study / rel
     if path.is_file() or not (M / study / ARCHIVE).is_file():

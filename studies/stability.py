@@ -25,10 +25,10 @@ an error. Writes OUT/table.md and table.json, and OUT/degradation_<metric>.{png,
   conventions.machine, code.commit; kept in each run's record). The same seed gives other
   numbers on another machine, so runs from two machines compare as two seeds do.
 
-    python -m studies.stability multirun/stability_cpu --split val --out docs/measurements/stability
-    python -m studies.stability docs/measurements/stability/table.json multirun/stability_cpu \
-        --split val --out docs/measurements/stability        # add new runs to the committed ones
-    python -m studies.stability --todo fraction_1:0 --todo sparse_1:0 docs/measurements/stability/table.json
+    python -m studies.stability multirun/stability_cpu --split val --out research/measurements/stability
+    python -m studies.stability research/measurements/stability/table.json multirun/stability_cpu \
+        --split val --out research/measurements/stability        # add new runs to the committed ones
+    python -m studies.stability --todo fraction_1:0 --todo sparse_1:0 research/measurements/stability/table.json
         # the sweep overrides that run what the table lacks of each preset and seed
 
 `--todo PRESET:SEED` (repeatable) plans, it writes nothing: for the study sweep

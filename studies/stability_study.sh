@@ -9,7 +9,7 @@
 # Then the table and chart, with the runs already committed in OUT_DIR/table.json kept
 # (studies/stability.py reads its own table), so a study spread over machines adds up:
 #
-#   bash studies/stability_study.sh DNERF_ROOT [OUT_DIR]       # OUT_DIR: docs/measurements/stability
+#   bash studies/stability_study.sh DNERF_ROOT [OUT_DIR]       # OUT_DIR: research/measurements/stability
 #
 # Runs land in multirun/stability_cpu/ under the current folder. STDR_STUDY_PRESETS picks the
 # presets, as preset:seed words (default: the whole grid below); STDR_STUDY_DRY=1 prints the
@@ -20,7 +20,7 @@
 set -uo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 ROOT=${1:?usage: stability_study.sh DNERF_ROOT [OUT_DIR] [stdr-train overrides...]}
-OUT=${2:-$here/docs/measurements/stability}
+OUT=${2:-$here/research/measurements/stability}
 shift $(( $# < 2 ? $# : 2 ))
 GRID="none:0"
 for s in window fraction sparse pose jitter; do GRID+=" ${s}_3:0"; done

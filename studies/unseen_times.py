@@ -1,4 +1,4 @@
-"""deform ± STDR where every held-out frame lies between training times (docs/measurements/stdr_unseen_times).
+"""deform ± STDR where every held-out frame lies between training times (research/measurements/stdr_unseen_times).
 
     python studies/unseen_times.py RUNS_DIR --train-times SCENE/transforms_train.json [--out FOLDER]
 

@@ -6,7 +6,7 @@ sized by those counts, in a second. Both evaluate one float test (raster_math.h'
 two passes (an FMA in one, a multiply and an add in the other). Before the fix, a write pass that
 found one tile more wrote into the next Gaussian's slot (or past the buffer), and one that found
 one fewer left a slot holding whatever the allocator had there: after the sort, a garbage pair id
-indexed the packed rows, an illegal memory access in long GPU runs (docs/notes/2026-11-27-gpu-crash.md).
+indexed the packed rows, an illegal memory access in long GPU runs (research/notes/2026-11-27-gpu-crash.md).
 
 `bin_pairs_split` runs the count pass on one set of rows and the write pass on another, so these
 tests force the disagreement: on the CUDA kernels where a GPU exists, and on the CPU through the

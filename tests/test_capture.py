@@ -191,7 +191,7 @@ def test_capture_json_fills_the_loader_settings(tmp_path):
 # stated before the first run; the orientation bounds were revised after it, when the
 # orientations themselves (first bounds: 1 and 3 degrees) turned out to differ by the
 # principal-point trade-off (5.4 degrees median) while the rays agree to 1.0 degree median,
-# 4.0 worst (docs/measurements/capture_toy). A wrong axis convention, a mirrored world or a
+# 4.0 worst (research/measurements/capture_toy). A wrong axis convention, a mirrored world or a
 # mismatched frame order gives tens of percent or degrees.
 POS_MEDIAN, POS_MAX, RAY_MEDIAN, RAY_MAX = 0.02, 0.05, 2.0, 6.0
 

@@ -1,4 +1,4 @@
-"""The compact-bytes study's rule (studies/compact_bytes.py, docs/measurements/compact_bytes/
+"""The compact-bytes study's rule (studies/compact_bytes.py, research/measurements/compact_bytes/
 protocol.md) on synthetic val records: each step as written, case by case."""
 import sys
 from pathlib import Path

@@ -1,4 +1,4 @@
-"""The compact-grid study's rule (studies/compact_grid.py, docs/measurements/compact_grid/
+"""The compact-grid study's rule (studies/compact_grid.py, research/measurements/compact_grid/
 protocol.md) on synthetic records: adopt only when every run is measured and each 4DGS method's
 mean file PSNR stays within the bound of the 32-channel file's."""
 import sys

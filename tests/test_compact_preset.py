@@ -92,8 +92,8 @@ def test_stdr_tool_compact_applies_the_preset_to_a_trained_run_by_default(tmp_pa
 
 
 def test_the_presets_file_codecs_are_what_the_bytes_study_chose():
-    """compact=on's `pack` section is the codecs docs/measurements/compact_bytes/decision.json chose
-    (steps 1-3), with the state candidate docs/measurements/compact_state/decision.json chose for
+    """compact=on's `pack` section is the codecs research/measurements/compact_bytes/decision.json chose
+    (steps 1-3), with the state candidate research/measurements/compact_state/decision.json chose for
     every method (amendment 2's preset, when it names one): one spec for every method. On a model
     without a 4DGS grid or an STDR mask the entries for them change nothing, so each method's file
     is what the studies measured for it."""
@@ -101,9 +101,9 @@ def test_the_presets_file_codecs_are_what_the_bytes_study_chose():
     from stdr.model import build_model
     from stdr.compact.pack import spec_of_config
     study = load_script(ROOT / "studies" / "compact_bytes.py", "compact_bytes_study")
-    dec = json.loads((ROOT / "docs" / "measurements" / "compact_bytes" / "decision.json").read_text())
+    dec = json.loads((ROOT / "research" / "measurements" / "compact_bytes" / "decision.json").read_text())
     assert dec["complete"] and dec["step3_measured"]
-    state = json.loads((ROOT / "docs" / "measurements" / "compact_state" / "decision.json").read_text())
+    state = json.loads((ROOT / "research" / "measurements" / "compact_state" / "decision.json").read_text())
     cs = load_script(ROOT / "studies" / "compact_state.py", "compact_state_study")
     extra = dict(cs.CANDIDATES.get(state["preset"], {}))
     # amendment 3: 4DGS's grid in 4 bits with its quantization-aware fine-tune, when adopted

@@ -1,4 +1,4 @@
-"""What the renames of 2026-11-28 (CHANGELOG.md) keep working: a run folder
+"""What the renames listed in CHANGELOG.md keep working: a run folder
 written by the code before them (tests/data/run_7c77121.tar.xz: main at 7c77121, `stdr-train
 experiment=embedded_deform_stdr budget=demo` with the small sizes of RUN_OVERRIDES below, 30 steps;
 config.yaml, metrics.json, history.json and the checkpoint as that code wrote them)."""

@@ -15,7 +15,7 @@ SCHEDULE = [s for s in _ic.SCHEDULE if not s.startswith("optim.iterations=")] + 
 
 def _trained(tmp_path, name, steps, extra=()):
     """A +STDR run whose mask still gates opacity after the freeze (stdr.mask_after_freeze=true, the
-    default before 2026-11-28), so that there is something to cull by the mask in every phase."""
+    former default), so that there is something to cull by the mask in every phase."""
     from stdr.train.trainer import Trainer
     cfg = _tiny(tmp_path, SCHEDULE + [f"experiment=embedded_{name}_stdr", "optim.iterations=60", "render.cull=off",
                                       "train.eval_at_warmup_end=false", "stdr.mask_after_freeze=true", *extra])

@@ -9,8 +9,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 MANUAL = [ROOT / "README.md", ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").glob("*.md"))]
-DATED = [*sorted((ROOT / "docs" / "notes").glob("*.md")), *sorted((ROOT / "docs" / "measurements").glob("*/README.md"))]
-TOP = ("stdr/", "docs/", "scripts/", "tests/", ".ci/")
+DATED = [ROOT / "research" / "README.md", *sorted((ROOT / "research" / "notes").glob("*.md")), *sorted((ROOT / "research" / "measurements").glob("*/README.md"))]
+TOP = ("stdr/", "docs/", "research/", "scripts/", "tests/", ".ci/")
 LINK = re.compile(r"\]\(([^)\s]+)\)")
 CODE = re.compile(r"`([^`\s]+)`")
 
@@ -44,6 +44,29 @@ def test_every_link_and_repository_path_exists(md):
 def test_notes_and_study_readmes_link_to_what_exists(md):
     missing = [t for t in _relative_links(md) if not (md.parent / t).exists()]
     assert missing == [], f"{md.relative_to(ROOT)} links to paths that do not exist: {missing}"
+
+
+def test_docs_holds_the_manual_and_research_the_records():
+    """docs/ is the manual: its pages, their images and the generated results page. Measurement
+    records and dated notes live under research/, outside the package."""
+    files = subprocess.run(["git", "ls-files", "docs", "research"], cwd=ROOT, capture_output=True, text=True).stdout.split()
+    if not files:
+        pytest.skip("not a git checkout")
+    docs = [f for f in files if f.startswith("docs/")]
+    stray = [f for f in docs if not re.fullmatch(r"docs/[a-z_]+\.md|docs/images/[\w.-]+\.(png|jpg|svg|gif)", f)]
+    assert stray == [] and len(docs) <= 40, stray or len(docs)
+    assert any(f.startswith("research/measurements/") for f in files) and "research/README.md" in files
+
+
+#: words about how the work on the software was organized, not about the software
+PROCESS = re.compile(r"\b(the|this|a|each|next|last|that) session\b|\bthe issue\b|\blent\b|device time|"
+                     r"peers\.md|review\.md|\.\./shared/(reference|data)", re.IGNORECASE)
+
+
+@pytest.mark.parametrize("md", [m for m in MANUAL if m.name != "CHANGELOG.md"], ids=lambda p: str(p.relative_to(ROOT)))
+def test_the_manual_speaks_of_the_software_and_its_users(md):
+    hits = [m.group(0) for m in PROCESS.finditer(md.read_text())]
+    assert hits == [], f"{md.relative_to(ROOT)}: {hits}"
 
 
 def test_no_issue_tracker_numbers_in_the_docs():

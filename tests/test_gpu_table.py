@@ -85,7 +85,7 @@ def test_the_rule_pairs_variant_runs_by_seed_and_reads_the_mean_gap(tmp_path):
 
 
 def test_the_committed_table_queue_composes_for_every_run(tmp_path):
-    """docs/measurements/dnerf_gpu/queue.json (what the next GPU machine runs, 16 at a time): 32
+    """research/measurements/dnerf_gpu/queue.json (what the next GPU machine runs, 16 at a time): 32
     runs, deform +- STDR first on all four scenes, and every run's command passes stdr-train's
     checks (a scene folder stands in for build/gpucarry), so no typo costs a GPU window."""
     from stdr.store import compose_config

@@ -60,7 +60,7 @@ def test_the_repository_is_code_with_its_records_archived():
         pytest.skip("not a git checkout")
     assert len(files) <= 600, len(files)
     assert sum((ROOT / f).stat().st_size for f in files) <= 6 * 2 ** 20
-    assert not [f for f in files if f.startswith("docs/measurements/") and f.endswith(".svg")]
+    assert not [f for f in files if f.startswith("research/measurements/") and f.endswith(".svg")]
 
 
 def test_a_study_refuses_to_write_records_beside_its_packed_archive(tmp_path):
@@ -80,14 +80,14 @@ def test_a_study_refuses_to_write_records_beside_its_packed_archive(tmp_path):
 
 
 def test_a_records_stamp_ignores_the_tables_a_study_rewrites_but_not_code(tmp_path, monkeypatch):
-    """studies.common.commit: `+dirty` for a changed tracked file outside docs/measurements, none for
+    """studies.common.commit: `+dirty` for a changed tracked file outside research/measurements, none for
     a study's own generated table there (a `val` pass rewrites it while the records are written)."""
     import studies.common as common
 
     def git(*a):
         subprocess.run(["git", "-C", str(tmp_path), *a], check=True, capture_output=True)
-    (tmp_path / "docs" / "measurements" / "s").mkdir(parents=True)
-    (tmp_path / "docs" / "measurements" / "s" / "table.md").write_text("a\n")
+    (tmp_path / "research" / "measurements" / "s").mkdir(parents=True)
+    (tmp_path / "research" / "measurements" / "s" / "table.md").write_text("a\n")
     (tmp_path / "code.py").write_text("x = 1\n")
     git("init", "-q")
     git("add", ".")
@@ -95,7 +95,7 @@ def test_a_records_stamp_ignores_the_tables_a_study_rewrites_but_not_code(tmp_pa
     monkeypatch.setattr(common, "ROOT", tmp_path)
     head = common.commit()
     assert head and "+" not in head
-    (tmp_path / "docs" / "measurements" / "s" / "table.md").write_text("b\n")
+    (tmp_path / "research" / "measurements" / "s" / "table.md").write_text("b\n")
     (tmp_path / "new_untracked.py").write_text("")
     assert common.commit() == head
     (tmp_path / "code.py").write_text("x = 2\n")

@@ -220,7 +220,7 @@ MILESTONES = {"optim.iterations", "optim.means_lr_max_steps", "model.sh_interval
 def test_gpu_preset_is_the_paper_preset_with_its_schedule_scaled_to_20k(name, stdr):
     """budget=gpu (docs/budgets.md): every schedule milestone of the baseline's paper run
     scaled by 20k / its paper iterations (to within rounding to 100 steps), 400 px wide, no
-    screen-size prune (docs/measurements/size_prune_val decided it on val), nothing else changed
+    screen-size prune (research/measurements/size_prune_val decided it on val), nothing else changed
     (networks, thresholds, the densification interval, STDR's own settings; its phases follow the
     warm-up)."""
     from stdr.eval.table import flatten

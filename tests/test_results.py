@@ -122,7 +122,7 @@ def test_time_ratios_are_geometric_means_of_per_pair_ratios(tmp_path):
 
 
 def test_headline_runs_of_the_former_stdr_default_are_its_stdr_rows():
-    """Runs trained with stdr.mask_after_freeze=true (the default until 2026-11-28) carry its row tag
+    """Runs trained with stdr.mask_after_freeze=true (the former default) carry its row tag
     now; the headline reads them as its +STDR rows (and says so), and leaves every other label."""
     results = _results()
     assert results._headline_label("deform+STDR" + results.GATED_TAG) == "deform+STDR"

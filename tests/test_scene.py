@@ -227,7 +227,7 @@ def test_budget_gpu_has_no_screen_size_prune_and_the_other_budgets_keep_theirs()
     budgets keep 20 px (their tables used it; budget=paper's is not measured)."""
     from stdr.store import compose_config
     from pathlib import Path
-    dec = (Path(__file__).resolve().parents[1] / "docs" / "measurements" / "size_prune_val" / "table.md").read_text()
+    dec = (Path(__file__).resolve().parents[1] / "research" / "measurements" / "size_prune_val" / "table.md").read_text()
     assert "Decision: **ws_1500**" in dec  # the preset follows the generated decision
     for budget, expected in (("gpu", None), ("paper", 20.0), ("cpu", 20.0), ("cpu_long", 20.0), ("demo", 20.0)):
         for exp in ("dnerf_deform", "dnerf_scgs", "dnerf_spgs", "dnerf_4dgs"):

@@ -308,7 +308,7 @@ def test_configs_and_table_labels():
     assert not make_cfg(["experiment=dnerf_deform", "data.path=/x"]).stdr.enabled
     assert make_cfg(["stdr=on"]).stdr.enabled
     c = OmegaConf.to_container(make_cfg(["stdr=on", "stdr.spatial_reg=false", "stdr.mask_after_freeze=true"]))
-    assert method_name(c) == "deform+STDR w/o spatial_reg, mask after freeze"  # the default until 2026-11-28
+    assert method_name(c) == "deform+STDR w/o spatial_reg, mask after freeze"  # the former default
     assert method_name(OmegaConf.to_container(make_cfg(["stdr=on", "stdr.mask_after_freeze=false"]))) == "deform+STDR"
     assert method_name(OmegaConf.to_container(make_cfg(["stdr=on"]))) == "deform+STDR"
     assert method_name(OmegaConf.to_container(make_cfg([]))) == "deform"
@@ -429,7 +429,7 @@ def test_freeze_opacity_false_trains_opacity_in_the_warmup_as_an_empty_warmup_do
     """stdr.freeze_opacity=false: opacity trains from step 0 and the opacity reset is the usual
     one; the phases themselves (regularized until the freeze) do not move."""
     held, free = _plugin(freeze_opacity=True), _plugin()
-    assert not OmegaConf.structured(StdrConfig).freeze_opacity  # the measured default (docs/notes/2026-11-24-stdr-measurements.md, fidelity study)
+    assert not OmegaConf.structured(StdrConfig).freeze_opacity  # the measured default (research/notes/2026-11-24-stdr-measurements.md, fidelity study)
     assert (held.warmup_end, held.freeze_at) == (free.warmup_end, free.freeze_at) == (10, 20)
     p = init_params(torch.rand(6, 3), sh_degree=1, init_opacity=0.1)
     held.init_gaussians(p)

@@ -24,12 +24,12 @@ def test_a_cuda_entry_names_its_evidence_and_the_evidence_exists():
     for key, devices in VERIFIED.items():
         if "cuda" in devices:
             assert key in EVIDENCE, f"{key} lists cuda without evidence (docs/install.md: the rule)"
-            assert (ROOT / "docs" / "measurements" / EVIDENCE[key] / "README.md").is_file(), EVIDENCE[key]
+            assert (ROOT / "research" / "measurements" / EVIDENCE[key] / "README.md").is_file(), EVIDENCE[key]
     assert set(EVIDENCE) <= set(VERIFIED)
 
 
 def test_the_speed_keys_wait_for_their_full_gpu_runs():
-    """The three speed keys crashed a 20k-step GPU run after passing parity (2026-11-27): CUDA
+    """The three speed keys crashed a 20k-step GPU run after passing parity (research/notes): CUDA
     stays off them until the full-run pair of the rule is recorded."""
     for key in ("optim.fused_loss", "train.guard.compiled", "train.guard.sync_free", "baseline.hexplane.compiled"):
         assert "cuda" not in verified_on(key), key

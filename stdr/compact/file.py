@@ -46,7 +46,7 @@ MARK = "__codec__"  # an encoded tensor's dict carries it (a state dict's own ke
 #: 59 floats a Gaussian at degree 3) in 8 bits per coefficient with a per-coefficient range, an
 #: integer mask as it is, every other per-Gaussian tensor in half precision; networks and grids float32
 #: (integer and float64 tensors are always stored as they are: flags, an 8-bit mask, time knots);
-#: every stream then entropy coded (lossless; chosen by docs/measurements/compact_entropy's rule)
+#: every stream then entropy coded (lossless; chosen by research/measurements/compact_entropy's rule)
 DEFAULT_SPEC = {"means": "f32", "scales": "f16", "quats": "f16", "opacities": "f16", "sh0": "f16", "shN": "q8",
                 "*": "f16", "state": "f32", "entropy": "zstd"}
 #: the spec's `entropy` values: none, or Zstandard over every stream (stdr.compact.entropy), at its

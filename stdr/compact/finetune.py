@@ -29,7 +29,7 @@ from ..metrics import image_loss
 from . import codecs
 from .file import MARK
 
-#: defaults, fixed before any measurement (docs/measurements/compact_bytes/protocol.md, amendment 1)
+#: defaults, fixed before any measurement (research/measurements/compact_bytes/protocol.md, amendment 1)
 STEPS = 500
 LR = 5e-4
 LAMBDA_DSSIM = 0.2

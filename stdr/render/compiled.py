@@ -61,7 +61,7 @@ def check_inputs(means2d: Tensor, conics: Tensor, opacities: Tensor, features: T
 
     The extensions check again, with literal messages only: on one CUDA image (torch
     2.11.0+cu130, g++ 13.3) any torch extension that throws a TORCH_CHECK with formatted
-    arguments crashed the process instead of raising (docs/notes/2026-11-24-rasterizer-measurements.md, "GPU check"). The CUDA
+    arguments crashed the process instead of raising (research/notes/2026-11-24-rasterizer-measurements.md, "GPU check"). The CUDA
     kernels also read every row by index, so a short tensor here would be an out-of-bounds read
     on the GPU rather than an error.
     """

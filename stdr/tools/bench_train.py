@@ -19,9 +19,9 @@ A fixed `torch.mm` workload (2048², fp32) is timed before and after, so results
 under other load can be compared as ratios (`ms / mm_ms`).
 
     stdr-tool bench-train --run RUN --gaussians 10000 20000 50000 --res 200 400 \\
-        --experiments dnerf_deform dnerf_deform_stdr --out docs/measurements/bench_train_cpu \\
+        --experiments dnerf_deform dnerf_deform_stdr --out research/measurements/bench_train_cpu \\
         -- data.path=../shared/data/dnerf/standup budget=cpu
-    stdr-tool bench-train --compare BEFORE.json AFTER.json --out docs/measurements/train_speed_cpu/bench_train/bench_train_cpu_compare
+    stdr-tool bench-train --compare BEFORE.json AFTER.json --out research/measurements/train_speed_cpu/bench_train/bench_train_cpu_compare
 """
 from __future__ import annotations
 

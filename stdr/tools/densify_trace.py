@@ -7,7 +7,7 @@ then, from its final checkpoint, quantiles of the peak opacity a Gaussian reache
 of Gaussians whose peak opacity stays below 0.02, and how many never reach 1/255 (the
 rasterizer's cut-off: they change no render at any training time).
 
-    stdr-tool densify-trace RUN_DIR... --windows 0,500,1000,1500 --out docs/measurements/x
+    stdr-tool densify-trace RUN_DIR... --windows 0,500,1000,1500 --out research/measurements/x
 """
 from __future__ import annotations
 

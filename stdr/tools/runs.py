@@ -1,6 +1,6 @@
 """Per-run table, generated from each run's metrics.json, config.yaml and train_profile.json.
 
-    stdr-tool runs RUN_DIR... [--split test] [--out docs/measurements/x]
+    stdr-tool runs RUN_DIR... [--split test] [--out research/measurements/x]
 
 One row per run directory: scene, method, the quality and cost metrics, and for STDR runs
 * the N x K mask's memory with its Adam state, KNN time and the regularizers' time;
@@ -15,7 +15,7 @@ laid out as <candidate>/<scene>), `--group-by KEY...` a mean ± sample-std row p
 scene, method, backend, seed, label or a config key), e.g. seeds of one scene and backend; the
 paper-style table that averages seeds per method is `stdr-eval RUNS reevaluate=false`.
 `--rule REF` (with --label) adds the screening rule's verdict per candidate
-(docs/measurements/fidelity/stdr_fidelity_protocol.md).
+(research/measurements/fidelity/stdr_fidelity_protocol.md).
 """
 from __future__ import annotations
 

@@ -7,7 +7,7 @@ render settings it was timed under), Gaussians in the model, Gaussians rendered 
 temporal culling (mean and max over the frames), the model's megabytes and training seconds, and for FPS, Gaussians and training
 seconds the ratio to the table's first variant (and the PSNR difference to it). A per-scene table follows.
 
-    stdr-tool variants --split test --out docs/measurements/compactness/tables \\
+    stdr-tool variants --split test --out research/measurements/compactness/tables \\
         --table deform plain=outputs/tab/deform_s0 +STDR=outputs/tab_fps/off/deform_stdr_s0 \\
                        "+STDR cull=outputs/tab_fps/eval/deform_stdr_s0"
 """

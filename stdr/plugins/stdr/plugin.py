@@ -40,7 +40,7 @@ class STDR(Plugin):
     """State and rules of the plug-in. `cfg` is the `stdr` config node (StdrConfig)."""
 
     name = "stdr"
-    removed_keys = ("static_skip",)  # a render-time key removed on 2026-11-26 (docs/stdr.md)
+    removed_keys = ("static_skip",)  # a render-time key that no longer exists (docs/stdr.md)
 
     # ----------------------------------------------------------------- registration
     @classmethod

@@ -39,7 +39,7 @@ class StdrConfig:
     warmup_end: Optional[int] = None
     freeze_at: Optional[int] = None
     # true: the paper's text, opacity frozen in the warm-up. false (default): opacity trains with
-    # the mask; on the val split it gained +0.83 dB over true (docs/notes/2026-11-24-stdr-measurements.md, fidelity study, candidate 5)
+    # the mask; on the val split it gained +0.83 dB over true (research/notes/2026-11-24-stdr-measurements.md, fidelity study, candidate 5)
     freeze_opacity: bool = False
     # regularizers
     lambda_temp: float = 0.1      # x L_temp = sum (or mean) over i, t of (mask_t - mask_{t+1})^2
