@@ -190,10 +190,10 @@ class EvalConfig:
 
 @dataclass
 class PackConfig:
-    """The compact model file written at the end of training (stdr.compact.file; `stdr-tool
+    """The compact model file written at the end of training (stdr.compression.file; `stdr-tool
     pack` writes one for any trained run). `compact=on` turns it on with the codecs its study chose."""
     enabled: bool = False       # true: RUN/model.stdrc and RUN/pack.json after the final evaluation
-    # per-tensor codecs over stdr.compact.file.DEFAULT_SPEC (e.g. {shN: "vq:1024", state: f16})
+    # per-tensor codecs over stdr.compression.file.DEFAULT_SPEC (e.g. {shN: "vq:1024", state: f16})
     codecs: Dict[str, str] = field(default_factory=dict)
     finetune: int = 0           # steps of the vq codebooks' fine-tune on the training frames (stdr.compact.finetune)
     finetune_state: Optional[str] = None  # and in its steps the quantized state with these parts ("grids")

@@ -31,10 +31,10 @@ from .render import RenderOutput, render, resolve_backend
 from .render.reference import ALPHA_MIN
 from .schedule import Schedule
 from .config import load_config, resolve_schedule
-from .compact.codecs import nbytes
+from .compression.codecs import nbytes
 from .gaussians import Gaussians, activate, init_params, num_gaussians, random_cube_points
 from .io.checkpoint import save_checkpoint, load_checkpoint
-from .compact.file import decode_model, is_compact
+from .compression.file import decode_model, is_compact
 from .data.dnerf import parse_background
 
 CHECKPOINT_FORMAT = 2
@@ -340,7 +340,7 @@ def model_entry(ck: dict[str, Any], where: str) -> dict[str, Any]:
 def load_model(path: str | Path, device: str | torch.device = "auto", cfg=None,
                train_times: Optional[np.ndarray] = None) -> DynamicGaussians:
     """Rebuild a model from a checkpoint file, or a compact model file (`model.stdrc`,
-    stdr.compact.file), on `device` ("auto", "cpu", "cuda", ...).
+    stdr.compression.file), on `device` ("auto", "cpu", "cuda", ...).
 
     cfg: the config to build with (default: the one saved in the checkpoint; a run's own
     config.yaml may override render settings). A checkpoint written before format 2 has no
@@ -352,7 +352,7 @@ def model_from_checkpoint(ck: dict[str, Any], device: str | torch.device = "auto
                           train_times: Optional[np.ndarray] = None, path: str = "checkpoint") -> DynamicGaussians:
     """`load_model` of an already loaded checkpoint dict."""
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
-    if is_compact(ck):  # a compact model file (stdr.compact.file): its entry, decoded
+    if is_compact(ck):  # a compact model file (stdr.compression.file): its entry, decoded
         ck = {"model": decode_model(ck, path)}
     if has_model_entry(ck):
         s = ck["model"]

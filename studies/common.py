@@ -44,11 +44,9 @@ def commit() -> str:
     """The checkout's short commit, `+dirty` when tracked files differ from it (a record's stamp:
     stdr.eval.evaluate.code_version, the one stamp). Files under research/measurements do not count: a
     study rewrites its own tables as it runs."""
-    from stdr.eval.evaluate import code_version
+    from stdr.eval.evaluate import code_version, commit_stamp
     v = code_version(exclude=("research/measurements",), root=ROOT)
-    if v["commit"] is None:
-        return "unknown"
-    return v["commit"][:7] + ("+dirty" if v["dirty"] else "")
+    return commit_stamp(v) if v["commit"] else "unknown"
 
 
 def run_table_main(doc: str, out: Path, table_name: str, run: Callable, table: Callable[[Path], str],

@@ -336,8 +336,8 @@ def where_bytes(model, spec: dict) -> dict:
     """The bytes of `model`'s compact file with `spec`, by part: each per-Gaussian table (its
     codebook included), the deformation module's state, each plug-in's, and the rest (`other`). The fine-tune moves
     codewords and quantized values and changes no byte, so the spec's `finetune` is left out."""
-    from stdr.compact.codecs import nbytes
-    from stdr.compact.file import encode_model
+    from stdr.compression.codecs import nbytes
+    from stdr.compression.file import encode_model
     m = encode_model(model, {k: v for k, v in spec.items() if k not in ("finetune", "finetune_state")})["model"]
     out = {"num_gaussians": model.num_gaussians, "params": {k: nbytes(v) for k, v in m["params"].items()},
            "deform": nbytes(m["deform"]), "plugins": {k: nbytes(v) for k, v in m["plugins"].items()}}

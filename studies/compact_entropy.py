@@ -39,8 +39,8 @@ def spec_for(model, entropy: str) -> dict:
 def parts(model, spec: dict) -> dict:
     """Bytes of the file's tensors by stream: each per-Gaussian table, the deformation module's
     state, each plug-in's state and the rest."""
-    from stdr.compact.codecs import nbytes
-    from stdr.compact.file import encode_model
+    from stdr.compression.codecs import nbytes
+    from stdr.compression.file import encode_model
     m = encode_model(model, spec)["model"]
     out = {"params": {k: nbytes(v) for k, v in m["params"].items()}, "deform": nbytes(m["deform"]),
            "plugins": {k: nbytes(v) for k, v in m["plugins"].items()}}
@@ -55,7 +55,7 @@ def _decoded(path: Path) -> dict:
     model draws them afresh (unused by its renders)."""
     import torch
 
-    from stdr.compact.file import decode_model
+    from stdr.compression.file import decode_model
     from stdr.io.checkpoint import load_checkpoint
 
     def flat(x, p=""):

@@ -6,7 +6,7 @@
 
 For each run and variant, `stdr-tool pack`'s measurement (stdr/compact/pack.py) into a temporary
 file: the bytes of the full model and of the compact file, and val PSNR / SSIM of both renders.
-Variants: `default` (stdr.compact.file.DEFAULT_SPEC), `state16` (networks and grids in half
+Variants: `default` (stdr.compression.file.DEFAULT_SPEC), `state16` (networks and grids in half
 precision too), `all16` (the SH rest in half precision instead of 8 bits), `q8` (every per-Gaussian
 tensor but the means in 8 bits with a range per column, STDR's float mask included; networks in
 half precision), `q8m16` (as `q8`, the means in 16 bits with a range per axis), `q8m16_sh<d>` (as
@@ -46,7 +46,7 @@ for _c in (256, 1024, 4096):  # q8m16 with the SH rest as a codebook of C codewo
 for _c in (256, 1024):  # the same, the codebook fine-tuned (stdr.compact.finetune's default steps)
     VARIANTS[f"q8m16_vq{_c}_ft"] = {**VARIANTS[f"q8m16_vq{_c}"], "finetune": 500}
 # STDR's mask on top of q8m16_vq1024 (runs with a mask only): its 8-bit form, 4 bits, rank R of the
-# activated mask; each read back as the 8-bit mask (stdr.compact.file, Plugin.compact_form)
+# activated mask; each read back as the 8-bit mask (stdr.compression.file, compact_form)
 MASK_VARIANTS = {"m8": "q8", "m4": "q4", "lr4": "lowrank:4", "lr8": "lowrank:8", "lr16": "lowrank:16"}
 for _n, _c in MASK_VARIANTS.items():
     VARIANTS[f"vq1024_{_n}"] = {**VARIANTS["q8m16_vq1024"], "stdr_mask": _c}

@@ -100,10 +100,9 @@ def count(exp: str, scene: Path, overrides: list[str]) -> dict:
 
 
 def _code(c) -> str:
-    """A code_version() record as `<commit 10>[-dirty]`."""
-    if isinstance(c, dict):
-        return f"{str(c.get('commit'))[:10]}{'-dirty' if c.get('dirty') else ''}"
-    return str(c)
+    """A code_version() record as its commit stamp (stdr.eval.evaluate.commit_stamp)."""
+    from stdr.eval.evaluate import commit_stamp
+    return commit_stamp(c) if isinstance(c, dict) else str(c)
 
 
 def markdown(res: dict) -> str:

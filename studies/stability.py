@@ -52,6 +52,7 @@ from typing import Any
 import yaml
 
 from stdr.data.stress import thinned_window
+from stdr.eval.evaluate import commit_stamp
 from stdr.eval.table import fmt_value as fmt
 from stdr.eval.table import markdown_table, method_name, write_outputs
 
@@ -195,7 +196,7 @@ def collect_runs(paths: list[str | Path], split: str) -> tuple[list[dict[str, An
                        best_step=best.get("step"))
             code = m.get("code") or {}
             row.update(machine=(m.get("conventions") or {}).get("machine"),
-                       commit=(code.get("commit") or "")[:7] + ("+dirty" if code.get("dirty") else "") or None)
+                       commit=commit_stamp(code) if code.get("commit") else None)
             row.update(recoveries=g.get("n_recoveries", 0), peak=g.get("peak_gaussians"), cap=cap,
                        peak_memory_mb=g.get("peak_memory_mb"),
                        nonfinite=not all(_finite(m.get(k)) for k in ("psnr", "ssim")),

@@ -32,9 +32,10 @@ def table(runs: Path, train_times: list[float]) -> str:
              "studies/unseen_times.py)", ""]
     if not recs:
         return "\n".join(lines + ["No runs recorded yet."]) + "\n"
+    from stdr.eval.evaluate import commit_stamp  # torch's import only where a table is made
     any_rec = next(iter(recs.values()))
     lines += [f"Runs: {len(recs)} ({', '.join(f'{e} s{s}' for e, s in sorted(recs))}); code "
-              f"{', '.join(sorted({r['code']['commit'][:7] for r in recs.values()}))}; machine "
+              f"{', '.join(sorted({commit_stamp(r['code']) for r in recs.values()}))}; machine "
               f"{any_rec['conventions']['machine']}; split {any_rec['split']}.", "",
               "| seed | plain PSNR | +STDR PSNR | Δ | Δ per frame: min / max | frames | distance to the nearest training time: min / max |",
               "|---|---|---|---|---|---|---|"]

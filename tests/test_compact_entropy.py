@@ -1,10 +1,10 @@
-"""Entropy coding of the compact file's streams (stdr.compact.entropy): lossless, smaller where a
+"""Entropy coding of the compact file's streams (stdr.compression.entropy): lossless, smaller where a
 stream has redundancy, and a file with it loads to the same model as one without."""
 import pytest
 import torch
 from hypothesis import given, settings, strategies as st
 
-from stdr.compact import entropy
+from stdr.compression import entropy
 
 pytest.importorskip("zstandard")
 

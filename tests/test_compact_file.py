@@ -1,12 +1,12 @@
-"""The compact model file (stdr.compact.file) and its codecs (stdr.compact.codecs): each codec's
+"""The compact model file (stdr.compression.file) and its codecs (stdr.compression.codecs): each codec's
 promise (exact where it says exact, within its bound where not), the file's round trip through
 load_model for a model with every kind of tensor (SP-GS's association table, STDR's mask and
 field), and the refusal of a file from a newer version."""
 import pytest
 import torch
 
-from stdr.compact import codecs
-from stdr.compact.file import FORMAT, VERSION, decode_model, encode_model
+from stdr.compression import codecs
+from stdr.compression.file import FORMAT, VERSION, decode_model, encode_model
 from stdr.compact.pack import write_compact
 
 
@@ -259,7 +259,7 @@ def test_the_derived_mask_stores_the_fields_output_and_renders_the_same(tmp_path
     assert MASK_KEY not in with_mask_key["spec"] and MASK_KEY not in with_mask_key["model"]["params"]
     assert with_mask_key["spec"] == without["spec"]
     assert with_mask_key["model"]["params"].keys() == without["model"]["params"].keys()
-    from stdr.compact.entropy import unpack_tree  # the streams as the codecs made them
+    from stdr.compression.entropy import unpack_tree  # the streams as the codecs made them
     ours, theirs = unpack_tree(with_mask_key["model"]["params"]), unpack_tree(without["model"]["params"])
     for k, e in theirs.items():
         got = ours[k]
@@ -437,7 +437,7 @@ def test_the_quantization_aware_fine_tune_of_4dgs_grid_lowers_the_loss_and_keeps
     file without it (each plane reads back as lo + k (hi - lo) / 15), they moved, the networks
     are as in the codebook-only file, the model read back renders the training frames with a
     lower loss, and what the fine-tune rendered last is what the file holds."""
-    from stdr.compact.file import decode_model
+    from stdr.compression.file import decode_model
     from stdr.io.checkpoint import load_checkpoint
     from stdr.metrics import image_loss
     from stdr.model import load_model

@@ -97,7 +97,7 @@ def test_the_presets_file_codecs_are_what_the_bytes_study_chose():
     every method (amendment 2's preset, when it names one): one spec for every method. On a model
     without a 4DGS grid or an STDR mask the entries for them change nothing, so each method's file
     is what the studies measured for it."""
-    from stdr.compact.file import encode_model
+    from stdr.compression.file import encode_model
     from stdr.model import build_model
     from stdr.compact.pack import spec_of_config
     study = load_script(ROOT / "studies" / "compact_bytes.py", "compact_bytes_study")

@@ -29,10 +29,6 @@ class Tagger(Plugin):
         cls.made.append(p)
         return p
 
-    @classmethod
-    def row_tags(cls, pcfg):
-        return [f"lr {pcfg['lr']}"] if pcfg["lr"] != 0.01 else []
-
     def __init__(self, warmup: int, iterations: int, lr: float = 0.01):
         self.net = torch.nn.Linear(1, 2)
         self.warmup, self.iterations, self.lr = warmup, iterations, lr
@@ -95,7 +91,8 @@ class TaggerConfig:
 def tagger():
     """Tagger registered for the test (`tagger=on`, experiments `<data>_<baseline>_tagger`)."""
     Tagger.made.clear()
-    spec = register_plugin("tagger", Tagger, TaggerConfig, label="+tag")
+    spec = register_plugin("tagger", Tagger, TaggerConfig, label="+tag",
+                           row_tags=lambda pcfg: [f"lr {pcfg['lr']}"] if pcfg["lr"] != 0.01 else [])
     yield spec
     unregister_plugin("tagger")
     from stdr.store import experiment_names

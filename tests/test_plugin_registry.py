@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from stdr.plugins import PLUGINS, Plugin, enabled_plugins, method_suffix, register_plugin, unregister_plugin
+from stdr.eval.table import method_suffix
+from stdr.plugins import PLUGINS, Plugin, enabled_plugins, register_plugin, unregister_plugin
 from stdr.schedule import Event
 from stdr.config import resolve_schedule
 from stdr.testing import make_cfg
@@ -38,14 +39,14 @@ class Pulse(Plugin):
             schedule.never_trains(f"pulse.start={pcfg.start} is at or after the run's end")
         return {"start": int(pcfg.start)}
 
-    @classmethod
-    def row_tags(cls, pcfg):
-        return ["strong"] if pcfg["strength"] > 1 else []
+
+def pulse_tags(pcfg):
+    return ["strong"] if pcfg["strength"] > 1 else []
 
 
 @pytest.fixture
 def pulse():
-    spec = register_plugin("pulse", Pulse, PulseConfig, label="+P")
+    spec = register_plugin("pulse", Pulse, PulseConfig, label="+P", row_tags=pulse_tags)
     yield spec
     unregister_plugin("pulse")
 
@@ -127,7 +128,7 @@ def test_unregistering_removes_the_group_and_experiments(pulse):
     assert "dnerf_deform_pulse" not in experiment_names()
     with pytest.raises(Exception, match="pulse"):
         make_cfg(["pulse=on"])
-    register_plugin("pulse", Pulse, PulseConfig, label="+P")  # for the fixture's teardown
+    register_plugin("pulse", Pulse, PulseConfig, label="+P", row_tags=pulse_tags)  # for the fixture's teardown
 
 
 def test_stdr_eval_takes_plugin_keys_but_not_the_switch():

@@ -203,12 +203,6 @@ class Deformation(nn.Module):
     def gaussian_lr(self, key: str) -> Optional[float]:
         return None
 
-    def compact_columns(self, params) -> dict[str, Tensor]:
-        """For the compact file (stdr.compact.file): per-Gaussian tables of this baseline that a
-        trained model's renders read only at some columns of each row, {key: column indices [N, K]}.
-        None by default."""
-        return {}
-
     def setup(self, params, train_times: Optional[Tensor]) -> None:
         pass
 

@@ -1,11 +1,11 @@
-"""The compact model file (`model.stdrc`), in one package (docs/compactness.md):
+"""Packing a trained model into its compact file (`model.stdrc`, docs/compactness.md), above the
+model and the evaluation:
 
-* `codecs`: each tensor's codec (f16, q8, q4, vq:C, lowrank:R, cols), stateless;
-* `file`: a model's state dict to and from the file's payload (format, version, spec), read by
-  `stdr.model.load_model`;
+* `pack`: the one writer, `write_compact` for a model and `pack` for a trained run (it measures
+  what it wrote);
 * `finetune`: the vq codebooks and, quantization-aware, the quantized state the spec names
-  (4DGS's grid), fine-tuned on the training frames;
-* `pack`: the one writer, `write_compact` for a model and `pack` for a trained run.
+  (4DGS's grid), fine-tuned on the training frames.
 
-`codecs` and `file` sit below the model (loading reads them); `finetune` and `pack` above it.
+The file's format (codecs, entropy coding, the payload, the methods' optional hooks) is
+`stdr.compression`, below the model, which reads compact files through it.
 """

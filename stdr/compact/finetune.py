@@ -26,8 +26,8 @@ from typing import Any, Iterable
 import torch
 
 from ..metrics import image_loss
-from . import codecs
-from .file import MARK
+from ..compression import codecs
+from ..compression.file import MARK
 
 #: defaults, fixed before any measurement (research/measurements/compact_bytes/protocol.md, amendment 1)
 STEPS = 500
@@ -82,7 +82,7 @@ class _State:
 
 def finetune(payload: dict[str, Any], model, frames, steps: int = STEPS, lr: float = LR,
              lambda_dssim: float = LAMBDA_DSSIM, seed: int = 0, full=None, state_parts: Iterable[str] = ()) -> dict[str, Any]:
-    """Fine-tune, in place, the codebooks of `payload` (from stdr.compact.file.encode_model) and its
+    """Fine-tune, in place, the codebooks of `payload` (from stdr.compression.file.encode_model) and its
     quantized deformation state under `state_parts`, on `frames` (training frames), rendering with
     `model` (the payload's model read back, in eval mode). A state tensor starts from `full`'s (the
     model the payload was encoded from) float values. Returns {steps, loss_first, loss_last (means

@@ -3,7 +3,7 @@
 
 * `check_pack_config(cfg)`: the run's `pack` section (codecs, and what the enabled plug-ins
   accept), checked before training so that a bad codec never costs a run;
-* `write_compact(model, path, spec, frames)`: encode (stdr.compact.file), fine-tune the
+* `write_compact(model, path, spec, frames)`: encode (stdr.compression.file), fine-tune the
   codebooks when the spec asks (stdr.compact.finetune), write atomically;
 * `pack(run_dir, ...)`: a trained run's file, and its renders against the full model's
   (RUN/model.stdrc, RUN/pack.json).
@@ -23,8 +23,9 @@ from ..io.files import write_atomic
 from ..io.files import run_lock
 from ..model import load_model, model_bytes, model_from_checkpoint
 from ..plugins import enabled_plugins, plugin_node
-from . import codecs
-from .file import SUFFIX, check_spec, encode_model, pack_streams
+from ..compression import codecs
+from ..compression.file import SUFFIX, check_spec, encode_model, pack_streams
+from ..compression.hooks import check_plugin_spec
 from .finetune import finetune, state_entries, vq_entries
 
 
@@ -37,7 +38,7 @@ def check_pack_config(cfg) -> Optional[dict]:
     try:
         spec = check_spec(spec_of_config(cfg.pack))
         for p in enabled_plugins(cfg):
-            p.plugin.check_compact_spec(plugin_node(cfg, p.name), spec)
+            check_plugin_spec(p.plugin, plugin_node(cfg, p.name), spec)
     except ValueError as e:
         raise ConfigError(f"pack.codecs: {e}") from None
     return spec
@@ -49,7 +50,7 @@ def write_compact(model, path: str | Path, spec: Optional[dict] = None, frames=N
     codebooks of its `vq:C` codecs and the quantized state its `finetune_state` names (e.g.
     "grids") are first fine-tuned for STEPS steps on `frames` (training frames;
     stdr.compact.finetune), and the result has `finetune` (its losses). With spec `entropy: zstd`
-    every stream is entropy coded last (stdr.compact.entropy)."""
+    every stream is entropy coded last (stdr.compression.entropy)."""
     payload = encode_model(model, spec, pack=False)
     steps = int((spec or {}).get("finetune") or 0)
     parts = finetune_parts(spec)

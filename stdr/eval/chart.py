@@ -20,8 +20,8 @@ import math
 from pathlib import Path
 from typing import Any
 
-from ..plugins import method_suffix, registered_plugins
-from .table import collect, find_run_dirs as find_runs, load_run, table_row
+from ..plugins import registered_plugins
+from .table import collect, find_run_dirs as find_runs, load_run, method_suffix, table_row
 from ..baselines import BASELINES
 
 METRIC_LABELS = {"psnr": "PSNR (dB) ↑", "ssim": "SSIM ↑", "lpips": "LPIPS ↓"}

@@ -343,6 +343,15 @@ def code_version(exclude: tuple[str, ...] = (), root=None) -> dict[str, Any]:
     return out
 
 
+def commit_stamp(code: Optional[dict[str, Any]]) -> str:
+    """The one printed form of a code_version() record: the short commit ('3407bc9'), '+dirty' when
+    tracked files differed from it, or 'version V (no commit)' outside a checkout."""
+    code = code or {}
+    if not code.get("commit"):
+        return f"version {code.get('version', '?')} (no commit)"
+    return str(code["commit"])[:7] + ("+dirty" if code.get("dirty") else "")
+
+
 def write_metrics(run_dir: Path, split: str, res: dict[str, Any], model, eval_cfg, lpips_fn,
                   data_meta: dict[str, Any]) -> None:
     """Add the conventions, the data's description and each plug-in's statistics (under its

@@ -16,7 +16,9 @@ from typing import Any
 
 from ..errors import BadInput, MissingInput, MissingKey
 from ..io.files import make_folder, read_json, read_yaml, write_atomic
-from ..plugins import method_suffix
+from ..config import RESERVED_KEYS
+from ..plugins import registered_plugins
+from .evaluate import commit_stamp
 
 METRICS = ("psnr", "ssim", "lpips", "fps", "num_gaussians", "train_seconds")
 HEADERS = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓", "fps": "FPS↑",
@@ -109,9 +111,27 @@ def load_run(run: str | Path, split: str) -> dict[str, Any]:
             "profile": json.loads(prof.read_text()) if prof.is_file() else None}
 
 
+def method_suffix(cfg: dict) -> str:
+    """What follows the baseline's name in a row label: each enabled plug-in's label and its
+    row tags (PluginSpec.row_tags; e.g. '+<label> w/o <switch>'). `cfg` is a run's config as a
+    plain dict; a plug-in node of a plug-in not registered in this process is labelled '+<name>'."""
+    out = ""
+    known = {s.name: s for s in registered_plugins()}
+    for key, node in cfg.items():
+        if not (isinstance(node, dict) and node.get("enabled") is True) or key in RESERVED_KEYS:
+            continue
+        spec = known.get(key)
+        if spec is None:
+            out += f"+{key}"
+            continue
+        tags = spec.row_tags(node)
+        out += spec.label + (" " + ", ".join(tags) if tags else "")
+    return out
+
+
 def method_name(cfg) -> str:
     """Row label: the baseline, then each enabled plug-in's label and the tags it gives its
-    non-default switches (stdr.plugins.method_suffix; e.g. 'deform+<label> w/o <switch>'), then
+    non-default switches (method_suffix; e.g. 'deform+<label> w/o <switch>'), then
     the contribution pruning when on ('pruned 0.3x2': share x events; ' tw1': its time weight),
     so ablation rows, and a compact run beside its full one, never merge."""
     return cfg["baseline"]["name"] + method_suffix(cfg) + prune_tag(cfg)
@@ -134,11 +154,7 @@ def table_row(cfg: dict[str, Any], split: str, metrics: dict[str, Any], run_dir:
 
 
 def _code_stamp(metrics: dict[str, Any]) -> str:
-    code = metrics.get("code") or {}
-    commit = code.get("commit")
-    if not commit:
-        return f"version {code.get('version', '?')} (no commit)"
-    return str(commit)[:10] + ("-dirty" if code.get("dirty") else "")
+    return commit_stamp(metrics.get("code"))
 
 
 #: what the runs of one table row must share (beside the method): name -> the run's value

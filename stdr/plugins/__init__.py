@@ -25,29 +25,12 @@ from __future__ import annotations
 import dataclasses
 import re
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 from ..registries import Registry
-
-
-@dataclass
-class CompactForm:
-    """A plug-in's part of a compact file (Plugin.compact_form)."""
-
-    #: per-Gaussian tables a trained model reads only through an activation to [0, 1] and also
-    #: accepts in 8 bits (uint8 q for q / 255): {key: the activated values, float [N, ...]}. A lossy
-    #: codec named for such a key encodes these values, and the file reads them back as uint8
-    units: dict[str, Tensor] = field(default_factory=dict)
-    #: the tables asked for in their `derived` form: {key: (the stored key, the values [N, D] of
-    #: the fixed function through which a finished model reads the table)}; the plug-in reads them
-    #: back from the stored key
-    derived: dict[str, tuple[str, Tensor]] = field(default_factory=dict)
-    #: the plug-in's state_dict for the file, without what a render of the finished model does not
-    #: read (training-only state, and what only the derivation needed)
-    state: dict[str, Any] = field(default_factory=dict)
 
 
 class Plugin:
@@ -57,10 +40,6 @@ class Plugin:
     #: keys that earlier versions wrote under the plug-in's config node; a saved config that
     #: carries them still loads (they are dropped)
     removed_keys: tuple[str, ...] = ()
-    #: the codec a compact file stores each of this plug-in's derivable tables in when the run's
-    #: config does not allow the `derived` form (check_compact_spec refuses it): stdr-tool compact
-    #: applies the compact preset to older runs that way
-    compact_fallback: dict[str, str] = {}
 
     # ---------------------------------------------------------------- registration
     @classmethod
@@ -76,18 +55,6 @@ class Plugin:
         notes, call schedule.never_trains(msg) for a phase at or after the end, and return the
         resolved values (kept in schedule.plugins[name], shown in the derived `schedule` node)."""
         return {}
-
-    @classmethod
-    def row_tags(cls, pcfg: dict) -> list[str]:
-        """Tags after the plug-in's label in table rows, for switches that differ from the
-        default (e.g. 'w/o spatial_reg'), so ablation rows never merge. `pcfg` is a plain dict."""
-        return []
-
-    @classmethod
-    def check_compact_spec(cls, pcfg, spec: dict) -> None:
-        """Before training: raise a ValueError when the compact file's `spec` (pack.codecs) asks
-        this plug-in for a form its config cannot give (e.g. a `derived` table), so the run fails
-        at its start and not after training. Default: nothing to check."""
 
     # ---------------------------------------------------------------- construction
     @property
@@ -123,12 +90,6 @@ class Plugin:
         The trainer drops their optimizers. A key frozen for a phase only is configure_step's
         (requires_grad) instead. Default: none."""
         return set()
-
-    def compact_form(self, params, state: dict[str, Any], step: int, derive: set[str]) -> "CompactForm":
-        """What the compact file (stdr.compact.file) stores of this plug-in, for a model at `step`:
-        `state` is its state_dict, `derive` the per-Gaussian keys the file's spec asks in their
-        `derived` form (a ValueError says why one cannot be derived). Default: its state as it is."""
-        return CompactForm(state=state)
 
     def conditioning(self, params, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
         """(cond [N, cond_dim] or None, delta scale [N, 1] or None) at `step`."""
@@ -177,6 +138,10 @@ class PluginSpec:
     plugin: type   # a Plugin subclass whose `name` is `name`
     config: type   # a dataclass with `enabled: bool = False`
     label: str     # after the baseline's name in tables and charts (e.g. "+STDR")
+    #: tags after the label in table rows (stdr.eval.table.method_suffix) for the plug-in's
+    #: switches that differ from their defaults (e.g. ['w/o spatial_reg']), so ablation rows never
+    #: merge: a function of the plug-in's config node as a plain dict
+    row_tags: Callable[[dict], list[str]] = field(default=lambda pcfg: [], compare=False)
 
 
 #: the config's own sections and stdr-train's groups (names a plug-in may not take); stdr.config
@@ -198,11 +163,13 @@ def set_reserved_keys(keys) -> None:
         raise ValueError(f"plug-in(s) {clash} registered under a config section's name; choose another name")
 
 
-def register_plugin(name: str, plugin: type, config: type, label: Optional[str] = None) -> PluginSpec:
+def register_plugin(name: str, plugin: type, config: type, label: Optional[str] = None,
+                    row_tags: Optional[Callable[[dict], list[str]]] = None) -> PluginSpec:
     """Add a plug-in: `plugin` a Plugin subclass with `name = name` that implements
     `from_config`; `config` a dataclass whose `enabled` defaults to False (its other fields are
     the plug-in's typed keys, `<name>.<key>`); `label` (default '+<name>') follows the baseline's
-    name in table rows and chart legends."""
+    name in table rows and chart legends, and `row_tags(node)` (default: none) gives the tags after
+    it for a run's plug-in node (a plain dict)."""
     PLUGINS.discover()  # the built-in and installed ones first, so a clash is seen either way
     if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
         raise ValueError(f"register_plugin({name!r}): the name must be lower-case letters, digits and '_' "
@@ -219,7 +186,10 @@ def register_plugin(name: str, plugin: type, config: type, label: Optional[str] 
             or config().enabled is not False:
         raise TypeError(f"register_plugin({name!r}): config must be a dataclass with `enabled: bool = False`, "
                         f"got {config!r}")
-    return PLUGINS.add(name, PluginSpec(name, plugin, config, label if label is not None else f"+{name}"))
+    if row_tags is not None and not callable(row_tags):
+        raise TypeError(f"register_plugin({name!r}): row_tags must be a function of the plug-in's config node, got {row_tags!r}")
+    return PLUGINS.add(name, PluginSpec(name, plugin, config, label if label is not None else f"+{name}",
+                                        **({"row_tags": row_tags} if row_tags is not None else {})))
 
 
 def unregister_plugin(name: str) -> None:
@@ -248,26 +218,4 @@ def enabled_plugins(cfg) -> list[PluginSpec]:
         node = plugin_node(cfg, spec.name)
         if node is not None and bool(node.get("enabled") if isinstance(node, dict) else node.enabled):
             out.append(spec)
-    return out
-
-
-def method_suffix(cfg: dict) -> str:
-    """What follows the baseline's name in a row label: each enabled plug-in's label and its
-    row tags (e.g. '+STDR w/o spatial_reg'). `cfg` is a run's config as a plain dict; a plug-in
-    node of a plug-in not registered in this process is labelled '+<name>'."""
-    out = ""
-    known = {s.name: s for s in registered_plugins()}
-    for key, node in cfg.items():
-        if not (isinstance(node, dict) and node.get("enabled") is True):
-            continue
-        spec = known.get(key)
-        if spec is None:
-            if key in _RESERVED:
-                continue
-            out += f"+{key}"
-            continue
-        out += spec.label
-        tags = spec.plugin.row_tags(node)
-        if tags:
-            out += " " + ", ".join(tags)
     return out

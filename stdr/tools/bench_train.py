@@ -38,7 +38,7 @@ import torch
 
 from ..store import compose_config
 from ..device import synchronize
-from ..eval.evaluate import code_version, machine_name
+from ..eval.evaluate import code_version, commit_stamp, machine_name
 from ..eval.table import fmt_value as fmt
 from ..eval.table import markdown_table, write_outputs
 from ..gaussians import GAUSSIAN_KEYS
@@ -216,7 +216,7 @@ def compare(before: dict, after: dict, labels=("before", "after")) -> tuple[str,
                        for p in PARTS)])
         rows.append({"experiment": k[0], "width": k[1], "height": k[2], "gaussians": k[3], "ms_before": rb["ms"],
                      "ms_after": ra["ms"], "speedup": rb["ms"] / ra["ms"]})
-    code = lambda r: (r.get("code") or {}).get("commit", "?")[:7]  # noqa: E731
+    code = lambda r: commit_stamp(r.get("code"))  # noqa: E731
     md = "\n".join([
         f"Training step, {labels[0]} and {labels[1]} (stdr-tool bench-train --compare): median ms per step; "
         "sections are the mean ms per step of the trainer's profiler.", "",

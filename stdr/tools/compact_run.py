@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Optional
 from ..config import CONFIG_DIR, resolve_schedule, load_config
 from ..compact.pack import spec_of_config, pack
+from ..compression.hooks import check_plugin_spec, fallback_of
 from ..plugins import enabled_plugins, plugin_node
 from ..train.run import run_training as run
 from ..io.checkpoint import load_checkpoint, CKPT
@@ -53,9 +54,9 @@ def spec_for_run(cfg, spec: dict) -> tuple[dict, Optional[str]]:
     out, notes = dict(spec), []
     for p in enabled_plugins(cfg):
         try:
-            p.plugin.check_compact_spec(plugin_node(cfg, p.name), out)
+            check_plugin_spec(p.plugin, plugin_node(cfg, p.name), out)
         except ValueError as err:
-            moved = {k: c for k, c in p.plugin.compact_fallback.items() if out.get(k) == "derived"}
+            moved = {k: c for k, c in fallback_of(p.plugin).items() if out.get(k) == "derived"}
             if not moved:
                 raise
             out.update(moved)
@@ -108,7 +109,7 @@ def compact(run_dir: Path, share: float, steps: int = 300, time_weight: float = 
             split: Optional[str] = None, data_base: Optional[str] = None, mask_bits: int = 0,
             pack_spec: Optional[dict] = None) -> dict:
     """Prune run_dir's model by contribution, fine-tune `steps` iterations into `out`, evaluate, and
-    write the compact file of the result with `pack_spec` (stdr.compact.file; None: its defaults)."""
+    write the compact file of the result with `pack_spec` (stdr.compression.file; None: its defaults)."""
     run_dir = Path(run_dir)
     out = Path(out) if out is not None else run_dir.with_name(run_dir.name + "_compact")
     src = run_dir / CKPT

@@ -1,10 +1,10 @@
-"""Write a trained run's compact model file (stdr.compact.file) and measure what it costs.
+"""Write a trained run's compact model file (stdr.compression.file) and measure what it costs.
 
     stdr-tool pack RUN [--out FILE] [--codec KEY=CODEC ... sh_degree=D finetune=STEPS finetune_state=PARTS]
                    [--split val] [--no-eval]
 
 Writes RUN/model.stdrc (default) from RUN/checkpoints/last.pt with the default codecs
-(stdr.compact.file.DEFAULT_SPEC; `--codec shN=f16 state=f16` changes one; `--codec shN=vq:1024
+(stdr.compression.file.DEFAULT_SPEC; `--codec shN=f16 state=f16` changes one; `--codec shN=vq:1024
 finetune=500` stores the SH rest as a codebook fine-tuned for 500 steps on the training frames,
 stdr.compact.finetune; `state:grids=q4 finetune_state=grids` adds 4DGS's grid in 4 bits to that
 fine-tune, quantization-aware), then renders `--split`

@@ -2,13 +2,13 @@
 from __future__ import annotations
 
 from .. import register_plugin
-from .settings import StdrConfig
+from .settings import StdrConfig, row_tags
 from .field import SeparatedField
 from .mask import MASK_KEY, interp_weights, knot_times, mask_at, sample_neighbours, spatial_kl, temporal_entropy, temporal_loss
 from .phases import Phase, phase_at, resolve_phases
 from .plugin import STDR
 
-register_plugin("stdr", STDR, StdrConfig, label="+STDR")
+register_plugin("stdr", STDR, StdrConfig, label="+STDR", row_tags=row_tags)
 
 __all__ = ["MASK_KEY", "STDR", "StdrConfig", "Phase", "SeparatedField", "interp_weights", "knot_times", "mask_at",
            "phase_at", "resolve_phases", "sample_neighbours", "spatial_kl", "temporal_entropy",

@@ -23,7 +23,8 @@ from torch import Tensor
 
 from ...ops import sigmoid
 from ...encoding import positional_encoding, positional_encoding_dim
-from .. import CompactForm, Plugin
+from ...compression.hooks import CompactForm
+from .. import Plugin
 from .field import SeparatedField
 from .mask import BETWEEN, COND_KEY, MASK_KEY, activated, knot_times, logits_of, mask_at, quantize
 from .monitor import log_to, stats_of
@@ -54,19 +55,6 @@ class STDR(Plugin):
     def stages(cls, pcfg, cfg, schedule) -> dict:
         """Mask warm-up, regularized phase and freeze (stdr.plugins.stdr.phases.add_stages)."""
         return add_stages(pcfg, schedule)
-
-    #: ablation switches and options whose non-default value tags the table row
-    ABLATION_SWITCHES = ("mask", "temporal_reg", "spatial_reg", "separated_field")
-    NON_DEFAULT_OPTIONS = {"mask_after_freeze": (True, "mask after freeze"),
-                           "scale_deltas_by_dynamic": (True, "deltas x dynamic"),
-                           "mask_bits": (8, "8-bit mask")}
-
-    @classmethod
-    def row_tags(cls, pcfg: dict) -> list[str]:
-        """'w/o <switch>' for each ablation switch that is off, and the label of each option at
-        its non-default value (e.g. 'deform+STDR w/o spatial_reg')."""
-        tags = [f"w/o {k}" for k in cls.ABLATION_SWITCHES if pcfg.get(k) is False]
-        return tags + [label for k, (val, label) in cls.NON_DEFAULT_OPTIONS.items() if pcfg.get(k) == val]
 
     compact_fallback = {MASK_KEY: "q8"}  # the 8-bit mask: exact for a run with stdr.mask_bits=8
 

@@ -60,3 +60,17 @@ class StdrConfig:
     field_lr_init: Optional[float] = None
     field_lr_final: Optional[float] = None
     scale_deltas_by_dynamic: bool = False  # multiply the deformation deltas by the dynamic probability
+
+
+#: ablation switches and options whose non-default value tags a +STDR table row
+ABLATION_SWITCHES = ("mask", "temporal_reg", "spatial_reg", "separated_field")
+NON_DEFAULT_OPTIONS = {"mask_after_freeze": (True, "mask after freeze"),
+                       "scale_deltas_by_dynamic": (True, "deltas x dynamic"),
+                       "mask_bits": (8, "8-bit mask")}
+
+
+def row_tags(pcfg: dict) -> list[str]:
+    """'w/o <switch>' for each ablation switch that is off, and the label of each option at its
+    non-default value (e.g. 'deform+STDR w/o spatial_reg'); `pcfg` is a run's stdr node as a dict."""
+    tags = [f"w/o {k}" for k in ABLATION_SWITCHES if pcfg.get(k) is False]
+    return tags + [label for k, (val, label) in NON_DEFAULT_OPTIONS.items() if pcfg.get(k) == val]

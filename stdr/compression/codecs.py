@@ -1,4 +1,4 @@
-"""Codecs for a model's tensors in the compact file (stdr.compact.file): stateless functions
+"""Codecs for a model's tensors in the compact file (stdr.compression.file): stateless functions
 with shape contracts, each an `encode` to a dict of tensors (loadable with weights_only=True) and a
 `decode` back to a float32 tensor of the original shape.
 

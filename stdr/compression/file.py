@@ -7,7 +7,7 @@ weights_only) whose payload is
 
     {"format": "stdr-compact", "version": 1, "spec": {...},
      "model": the model's entry (stdr.model.DynamicGaussians.state_dict) with every tensor
-              replaced by its codec's dict (stdr.compact.codecs)}
+              replaced by its codec's dict (stdr.compression.codecs)}
 
 `spec` says which codec holds what: per-Gaussian parameter keys, and `state` for the deformation
 module's and the plug-ins' tensors (networks, HexPlane grids, STDR's field), `state:<part>` for
@@ -15,16 +15,16 @@ those whose dotted key contains <part> (`state:grids`: 4DGS's HexPlane planes; a
 more dimensions is quantized with a range per channel, its first dimension); `sh_degree` (optional)
 keeps the SH rest to that degree's bands, the higher ones reading back as zeros (the model renders
 as one of that degree). A baseline may name,
-per parameter, the columns its renders read (`Deformation.compact_columns`: SP-GS's association
+per parameter, the columns its renders read (`compact_columns`, stdr.compression.hooks: SP-GS's association
 logits at each Gaussian's K nearest superpoints); those are stored with the `cols` codec. A
 plug-in may name tables it reads only through an activation to [0, 1] and accepts in 8 bits
-(`Plugin.compact_form`'s units: STDR's mask); a codec the spec names for such a key encodes the activated
+(`compact_form`'s units: STDR's mask); a codec the spec names for such a key encodes the activated
 values and the file reads them back as uint8 q (for q / 255), the form `stdr.mask_bits=8` stores.
 The spec value `derived` for such a table stores instead what a finished model computes from it
-(`Plugin.compact_form`'s derived tables: STDR's mask as the separated field's output [N, 17], with the field's
+(`compact_form`'s derived tables: STDR's mask as the separated field's output [N, 17], with the field's
 weights left out; only for a model whose mask no longer multiplies opacity), under the plug-in's
 key for it, in the codec the spec names for that key (`stdr_cond: q8`; default `*`).
-Sized codecs are written "vq:1024", "lowrank:8" (stdr.compact.codecs). A file with a higher version
+Sized codecs are written "vq:1024", "lowrank:8" (stdr.compression.codecs). A file with a higher version
 than this code reads is refused with an error that says so.
 """
 from __future__ import annotations
@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from . import codecs, entropy
+from .hooks import columns_of, form_of
 
 FORMAT = "stdr-compact"
 VERSION = 2  # 2: streams may be entropy coded (spec `entropy`); version 1 files read as before
@@ -49,7 +50,7 @@ MARK = "__codec__"  # an encoded tensor's dict carries it (a state dict's own ke
 #: every stream then entropy coded (lossless; chosen by research/measurements/compact_entropy's rule)
 DEFAULT_SPEC = {"means": "f32", "scales": "f16", "quats": "f16", "opacities": "f16", "sh0": "f16", "shN": "q8",
                 "*": "f16", "state": "f32", "entropy": "zstd"}
-#: the spec's `entropy` values: none, or Zstandard over every stream (stdr.compact.entropy), at its
+#: the spec's `entropy` values: none, or Zstandard over every stream (stdr.compression.entropy), at its
 #: default level or `zstd:<level>` (1 to 22)
 ENTROPY_CODERS = ("none", "zstd")
 
@@ -134,13 +135,13 @@ def encode_model(model, spec: Optional[dict] = None, pack: bool = True) -> dict[
     `entropy` says so (pack=False leaves that to the caller: `pack_streams`, after a fine-tune)."""
     spec = check_spec(spec)
     entry = model.state_dict()
-    cols = model.deform.compact_columns(model.params)
+    cols = columns_of(model.deform, model.params)
     asked = {k for k, c in spec.items() if c == DERIVED}
     units, derived, plugins = {}, {}, dict(entry["plugins"])
     for p in model.plugins:
         # its state without what a render does not read (STDR: its training caches, and the
         # field's weights when the file stores the field's output)
-        form = p.compact_form(model.params, plugins[p.name], model.step, asked & set(model.params))
+        form = form_of(p, model.params, plugins[p.name], model.step, asked & set(model.params))
         units.update(form.units)
         derived.update({k: v for k, v in form.derived.items() if k in asked})
         plugins[p.name] = form.state

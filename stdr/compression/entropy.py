@@ -1,6 +1,6 @@
 """Entropy coding of the compact file's streams with Zstandard (the `zstandard` package), lossless.
 
-After the codecs (stdr.compact.codecs) have turned every tensor into its streams (8-bit codes,
+After the codecs (stdr.compression.codecs) have turned every tensor into its streams (8-bit codes,
 codebook indices, float16 values, grids), `pack_tree` replaces each stream by its Zstandard frame
 when that is smaller, and `unpack_tree` restores the exact tensors. Two reversible filters run
 before the coder, each kept only where it makes the frame smaller:
