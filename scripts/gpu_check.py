@@ -384,7 +384,7 @@ def sanitize_probe(kind: str) -> None:
                      compiled_projection=True)
         (out.image.square().sum() + out.depth.sum() + out.alpha.sum()).backward()
     # 4dgs's HexPlane sampling (forward and the planes' backward), points inside and outside
-    from stdr.baselines.hexplane import hexplane_compiled
+    from stdr.baselines.fourdgs import hexplane_compiled
     g = torch.Generator().manual_seed(3)
     planes = [torch.rand(8, h, w, generator=g).to(kind).requires_grad_(True)
               for h, w in ((32, 32), (32, 32), (25, 32), (32, 32), (25, 32), (25, 32)) * 2]

@@ -1,3 +1,4 @@
+# shellcheck shell=bash
 # Sourced at the start of a job on a GPU machine without network access (bash):
 #   source scripts/gpu_env.sh && <the commands of docs/install.md, "A GPU machine without network access">
 # installs build/gpucarry/wheels into /tmp/site (the image lacks hydra, its joblib launcher, omegaconf, antlr4, plyfile),

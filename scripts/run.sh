@@ -8,7 +8,7 @@ export PATH="$here/.venv/bin:$PATH"
 # LPIPS weights of this checkout (data/weights/lpips) or of the project's shared folder, unless set
 if [ -z "${STDR_LPIPS_WEIGHTS:-}" ]; then
   for d in "$here/data/weights/lpips" "$here/../shared/weights/lpips"; do
-    if [ -d "$d" ]; then export STDR_LPIPS_WEIGHTS=$(cd "$d" && pwd); break; fi
+    if [ -d "$d" ]; then STDR_LPIPS_WEIGHTS=$(cd "$d" && pwd); export STDR_LPIPS_WEIGHTS; break; fi
   done
 fi
 exec "$@"

@@ -9,22 +9,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-from omegaconf import OmegaConf
 
 from .data.procedural import SceneOptions
 from .data.stress import StressConfig
 # every baseline's config dataclass lives beside its module (stdr.baselines.registry)
 from .baselines import BASELINES, BaselineConfig, DeformConfig, HexPlaneConfig, ScgsConfig, SpgsConfig  # noqa: F401
-from .baselines.registry import get_baseline
-from .plugins import PLUGINS, enabled_plugins, plugin_node, registered_plugins, set_reserved_keys
-from .densify.prune import PruneConfig, prune_steps
-from .errors import ConfigError
-from .io.files import read_yaml
-from .densify.strategy import DensifyStrategy, get_strategy
-from .schedule import Event, Schedule
-
-#: the top-level entry of a run's config.yaml that records resumes with changed keys (stdr.train.resume)
-CHANGES_KEY = "config_changes"
+from .plugins import registered_plugins
+from .densify.prune import PruneConfig
+from .densify.strategy import DensifyStrategy
 
 #: the YAML config groups; they ship inside the package, so an installed wheel has them too
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
@@ -231,13 +223,6 @@ class Config:
     # + one node per registered plug-in, `<name>: <its config dataclass>` (root_schema)
 
 
-#: the config's own sections and the groups of stdr-train: names a plug-in may not take
-RESERVED_KEYS = frozenset({f for f in Config.__dataclass_fields__} | {
-    "experiment", "experiment_data", "budget_baseline", "stress", "sweep", "hydra", "defaults", "runs",
-    "split", "out", "reevaluate", "remeasure", "unfinished", "allow_mixed", "base_config", "base_eval"})
-set_reserved_keys(RESERVED_KEYS)  # the plug-in registry checks names against them (without importing this module)
-
-
 def _overrides_of(cls, name: str, doc: str, skip=()):
     """A dataclass with the fields of `cls` (but `skip`), each Optional and None by default: the
     keys a command changes in a saved config, the others keeping the config's own values."""
@@ -313,86 +298,3 @@ def root_schema() -> type:
 def eval_schema() -> type:
     """stdr-eval's schema: EvalAppConfig plus each plug-in's evaluation-time overrides."""
     return _schemas()[1]
-
-
-# keys of other baselines that configs written before per-baseline config classes carried under
-# `baseline` (every run had baseline.scgs, .spgs and .hexplane); dropped when such a config is read
-_LEGACY_BASELINE_KEYS = ("scgs", "spgs", "hexplane")
-
-
-def typed_schema(raw: dict, where: str = "config"):
-    """The typed schema a saved config `raw` (a plain dict) is read with: the root schema with its
-    baseline's and densification strategy's dataclasses. Drops from `raw`, in place, the keys of
-    earlier versions (other baselines' nodes, plug-ins' removed keys). Unknown sections, baselines
-    and strategies are a ConfigError naming `where`."""
-    b = dict(raw.get("baseline") or {})
-    name = b.get("name", "deform")
-    try:
-        spec = get_baseline(name)
-    except ValueError as e:
-        raise ConfigError(f"{where}: {e}") from None
-    fields = set(spec.config.__dataclass_fields__)
-    for k in _LEGACY_BASELINE_KEYS:
-        if k in b and k not in fields:
-            del b[k]
-    raw["baseline"] = b
-    root = root_schema()
-    for p in registered_plugins():  # keys a plug-in's earlier versions wrote
-        if isinstance(raw.get(p.name), dict) and p.plugin.removed_keys:
-            raw[p.name] = {k: v for k, v in raw[p.name].items() if k not in p.plugin.removed_keys}
-    unknown = sorted(set(raw) - set(root.__dataclass_fields__))
-    if unknown:
-        raise ConfigError(f"{where}: unknown config section(s) {unknown}: a plug-in's keys need the plug-in registered "
-                          f"(registered: {sorted(PLUGINS)}; stdr.plugins.register_plugin, or an installed package "
-                          "with a 'stdr.plugins' entry point)")
-    d = dict(raw.get("densify") or {})
-    try:
-        strategy = get_strategy(d.get("name"))
-    except ValueError as e:
-        raise ConfigError(f"{where}: {e}") from None
-    return OmegaConf.merge(OmegaConf.structured(root), {"baseline": OmegaConf.structured(spec.config),
-                                                         "densify": OmegaConf.structured(strategy)})
-
-
-def load_config(raw: Any, where: str = "config"):
-    """A saved config (a run's config.yaml, a checkpoint's config: a dict, DictConfig or path)
-    merged onto the typed defaults of its baseline. Unknown keys are an error naming `where`."""
-    if isinstance(raw, (str, Path)):
-        where = str(raw)
-        raw = read_yaml(raw)
-        if not isinstance(raw, dict):
-            raise ConfigError(f"{where}: holds a {type(raw).__name__}, not a run's config (a mapping of keys)")
-    raw = OmegaConf.to_container(raw) if OmegaConf.is_config(raw) else dict(raw)
-    raw.pop(CHANGES_KEY, None)  # the record of resumes with changed keys (stdr.train.resume), not a key
-    schema = typed_schema(raw, where)
-    try:
-        return OmegaConf.merge(schema, raw)
-    except Exception as e:  # omegaconf's errors name the key; say which file
-        raise ConfigError(f"{where}: {e}") from None
-
-
-def resolve_schedule(cfg) -> Schedule:
-    """Every boundary of a run from its config (a Config or DictConfig)."""
-    b = cfg.baseline
-    total = int(cfg.optim.iterations)
-    warm = int(b.warmup)
-    s = Schedule(iterations=total, static_warmup_end=warm)
-    if warm >= total:
-        s.never_trains(f"baseline.warmup={warm} is at or after the run's end (optim.iterations={total}): the "
-                         "deformation never trains in this run. Lower baseline.warmup, or leave it unset in the "
-                         "budget files (it then scales with the run)")
-    s.events.append(Event(0, "start", "canonical Gaussians rendered without deformation"))
-    s.events.append(Event(warm, "baseline.warmup", "static warm-up ends: the deformation network is on"))
-    events, windows = get_baseline(b.name).module.stages(b)
-    s.events += [Event(*e) for e in events]
-    s.windows = list(windows)
-    events, notes = get_strategy(getattr(cfg.densify, "name", None)).stages(cfg.densify)
-    s.events += [Event(*e) for e in events]
-    s.notes += notes
-    if getattr(cfg, "prune", None) is not None:  # configs saved before contribution pruning have no node
-        s.prune_steps = prune_steps(cfg.prune, total, int(cfg.densify.refine_stop))
-        s.events += [Event(k, "prune.at", f"contribution pruning: the {float(cfg.prune.share):.0%} least "
-                                          "significant Gaussians removed") for k in s.prune_steps]
-    for spec in enabled_plugins(cfg):  # their phases, kept out of the windows above
-        s.plugins[spec.name] = dict(spec.plugin.stages(plugin_node(cfg, spec.name), cfg, s))
-    return s

@@ -10,7 +10,7 @@ Python beside its torch twin, which the tests pin it to:
 | family | bindings | torch twin |
 |---|---|---|
 | rasterizer (+ projection and SH) | stdr/render/compiled.py | stdr/render/reference.py, projection.py, sh.py |
-| HexPlane sampling | stdr/deform/hexplane.py `hexplane_compiled` | `HexPlaneField.features_torch` |
+| HexPlane sampling | stdr/baselines/fourdgs.py `hexplane_compiled` | `HexPlaneField.features_torch` |
 | training loss | stdr/metrics.py `image_loss_compiled` | `image_loss` |
 | guard's check | stdr/train/guard.py `nonfinite_flags_compiled`, `guard_update_compiled` | `nonfinite_flags`, `Guard.flag_step` |
 

@@ -30,7 +30,7 @@ from .ops import RowView, rows_of, sigmoid
 from .render import RenderOutput, render, resolve_backend
 from .render.reference import ALPHA_MIN
 from .schedule import Schedule
-from .config import load_config, resolve_schedule
+from .store import load_config, resolve_schedule
 from .compression.codecs import nbytes
 from .gaussians import Gaussians, activate, init_params, num_gaussians, random_cube_points
 from .io.checkpoint import save_checkpoint, load_checkpoint

@@ -4,7 +4,8 @@ Four components have stages: the loop's static warm-up (`baseline.warmup`: no de
 before it), the baseline's own stages (SC-GS: node stage, node resampling and the detached
 steps after it; SP-GS: superpoints placed when the warm-up ends), each enabled plug-in's phases
 (`Plugin.stages`: a mask's warm-up and freeze, say) and the densification
-window. `resolve_schedule(cfg)` computes them from the config alone; the model and its
+window. `build_schedule` puts them together by the rules below, and `stdr.store.resolve_schedule(cfg)`
+asks each component of a config for its stages and calls it: from the config alone; the model and its
 components read their boundaries from the result, and `stdr-train` prints it (also in
 `stdr-train --cfg job`, as the derived `schedule` node).
 
@@ -22,7 +23,7 @@ Collision rules:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 from .errors import ConfigError
 
@@ -86,6 +87,36 @@ def keep_out_of_windows(step: int, floor: int, windows: list[tuple[str, int, int
         new = max(floor, (floor + first) // 2)
         return new, f"{step} -> {new}: {name} at [{first}, {last}]"
     return step, None
+
+
+def build_schedule(iterations: int, warmup: int, baseline: tuple[list, list], strategy: tuple[list, list],
+                   prune_steps: Optional[list[int]], prune_share: float,
+                   plugins: list[tuple[str, Callable[["Schedule"], dict]]]) -> "Schedule":
+    """A run's schedule from its components' stages: `baseline` (events, switch windows) of the
+    baseline's module, `strategy` (events, notes) of the densification strategy, the contribution
+    pruning's steps (None: a config without the node), and each enabled plug-in's `(name,
+    stages(schedule) -> values)`, called last so that its phases see the windows. Events are
+    `(step, key, what)` tuples."""
+    s = Schedule(iterations=iterations, static_warmup_end=warmup)
+    if warmup >= iterations:
+        s.never_trains(f"baseline.warmup={warmup} is at or after the run's end (optim.iterations={iterations}): the "
+                       "deformation never trains in this run. Lower baseline.warmup, or leave it unset in the "
+                       "budget files (it then scales with the run)")
+    s.events.append(Event(0, "start", "canonical Gaussians rendered without deformation"))
+    s.events.append(Event(warmup, "baseline.warmup", "static warm-up ends: the deformation network is on"))
+    events, windows = baseline
+    s.events += [Event(*e) for e in events]
+    s.windows = list(windows)
+    events, notes = strategy
+    s.events += [Event(*e) for e in events]
+    s.notes += notes
+    if prune_steps is not None:
+        s.prune_steps = list(prune_steps)
+        s.events += [Event(k, "prune.at", f"contribution pruning: the {prune_share:.0%} least "
+                                          "significant Gaussians removed") for k in s.prune_steps]
+    for name, stages in plugins:  # their phases, kept out of the windows above
+        s.plugins[name] = dict(stages(s))
+    return s
 
 
 class NeverTrains(ConfigError):

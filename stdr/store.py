@@ -11,18 +11,99 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import field
+from pathlib import Path
 from typing import Any, List
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
 from .baselines import BASELINES
-from .baselines.registry import discover_baselines
-from .config import CONFIG_DIR, _schemas, resolve_schedule
-from .densify.strategy import STRATEGIES
-from .plugins import PLUGINS, registered_plugins
+from .baselines.registry import discover_baselines, get_baseline
+from .config import CONFIG_DIR, _schemas, root_schema
+from .densify.prune import prune_steps
+from .densify.strategy import STRATEGIES, get_strategy
+from .errors import ConfigError
+from .io.files import read_yaml
+from .plugins import PLUGINS, enabled_plugins, plugin_node, registered_plugins
+from .schedule import Schedule, build_schedule
+
+#: the top-level entry of a run's config.yaml that records resumes with changed keys (stdr.train.resume)
+CHANGES_KEY = "config_changes"
 
 
+# ----------------------------------------------------------------- a saved config, read back
+# keys of other baselines that configs written before per-baseline config classes carried under
+# `baseline` (every run had baseline.scgs, .spgs and .hexplane); dropped when such a config is read
+_LEGACY_BASELINE_KEYS = ("scgs", "spgs", "hexplane")
+
+
+def typed_schema(raw: dict, where: str = "config"):
+    """The typed schema a saved config `raw` (a plain dict) is read with: the root schema with its
+    baseline's and densification strategy's dataclasses. Drops from `raw`, in place, the keys of
+    earlier versions (other baselines' nodes, plug-ins' removed keys). Unknown sections, baselines
+    and strategies are a ConfigError naming `where`."""
+    b = dict(raw.get("baseline") or {})
+    name = b.get("name", "deform")
+    try:
+        spec = get_baseline(name)
+    except ValueError as e:
+        raise ConfigError(f"{where}: {e}") from None
+    fields = set(spec.config.__dataclass_fields__)
+    for k in _LEGACY_BASELINE_KEYS:
+        if k in b and k not in fields:
+            del b[k]
+    raw["baseline"] = b
+    root = root_schema()
+    for p in registered_plugins():  # keys a plug-in's earlier versions wrote
+        if isinstance(raw.get(p.name), dict) and p.plugin.removed_keys:
+            raw[p.name] = {k: v for k, v in raw[p.name].items() if k not in p.plugin.removed_keys}
+    unknown = sorted(set(raw) - set(root.__dataclass_fields__))
+    if unknown:
+        raise ConfigError(f"{where}: unknown config section(s) {unknown}: a plug-in's keys need the plug-in registered "
+                          f"(registered: {sorted(PLUGINS)}; stdr.plugins.register_plugin, or an installed package "
+                          "with a 'stdr.plugins' entry point)")
+    d = dict(raw.get("densify") or {})
+    try:
+        strategy = get_strategy(d.get("name"))
+    except ValueError as e:
+        raise ConfigError(f"{where}: {e}") from None
+    return OmegaConf.merge(OmegaConf.structured(root), {"baseline": OmegaConf.structured(spec.config),
+                                                         "densify": OmegaConf.structured(strategy)})
+
+
+def load_config(raw: Any, where: str = "config"):
+    """A saved config (a run's config.yaml, a checkpoint's config: a dict, DictConfig or path)
+    merged onto the typed defaults of its baseline. Unknown keys are an error naming `where`."""
+    if isinstance(raw, (str, Path)):
+        where = str(raw)
+        raw = read_yaml(raw)
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{where}: holds a {type(raw).__name__}, not a run's config (a mapping of keys)")
+    raw = OmegaConf.to_container(raw) if OmegaConf.is_config(raw) else dict(raw)
+    raw.pop(CHANGES_KEY, None)  # the record of resumes with changed keys (stdr.train.resume), not a key
+    schema = typed_schema(raw, where)
+    try:
+        return OmegaConf.merge(schema, raw)
+    except Exception as e:  # omegaconf's errors name the key; say which file
+        raise ConfigError(f"{where}: {e}") from None
+
+
+def resolve_schedule(cfg) -> Schedule:
+    """Every boundary of a run from its config (a Config or DictConfig): each component's stages,
+    put together by stdr.schedule.build_schedule."""
+    b = cfg.baseline
+    total = int(cfg.optim.iterations)
+    prune = getattr(cfg, "prune", None)  # configs saved before contribution pruning have no node
+    return build_schedule(
+        total, int(b.warmup), get_baseline(b.name).module.stages(b),
+        get_strategy(getattr(cfg.densify, "name", None)).stages(cfg.densify),
+        prune_steps(prune, total, int(cfg.densify.refine_stop)) if prune is not None else None,
+        float(prune.share) if prune is not None else 0.0,
+        [(spec.name, lambda sched, spec=spec: spec.plugin.stages(plugin_node(cfg, spec.name), cfg, sched))
+         for spec in enabled_plugins(cfg)])
+
+
+# ----------------------------------------------------------------- Hydra
 def _schedule_resolver(*, _root_) -> dict:
     return resolve_schedule(_root_).as_dict()
 

@@ -3,7 +3,7 @@ path of the right kind. Each failure is a ConfigError whose one line names the k
 what is allowed (stdr-train prints it and exits with code 2).
 
 `check_run_config(cfg, base)` is what stdr-train calls on the config Hydra composed. Keys are checked
-against the typed schema that every tool reads a saved run with (`stdr.config.load_config`), so a
+against the typed schema that every tool reads a saved run with (`stdr.store.load_config`), so a
 run folder that stdr-train writes can be read by stdr-eval, stdr-export, stdr-view and a resume. A
 key a baseline, plug-in or densification strategy declares in its config dataclass is part of that
 schema.
@@ -18,7 +18,8 @@ from typing import Any, Callable, Iterator, Optional
 from omegaconf import DictConfig, OmegaConf
 
 from .errors import ConfigError
-from .config import root_schema, typed_schema, load_config, resolve_schedule
+from .config import root_schema
+from .store import typed_schema, load_config, resolve_schedule
 from .data.stress import check_stress
 from .densify.prune import check_prune_config
 from .data.load import resolve_data_path
@@ -275,7 +276,7 @@ def check_data_path(data, base: str | Path | None = None) -> None:
 
 def check_run_config(cfg, base: str | Path | None = None) -> None:
     """Everything above, in the order a user would fix it: keys, values, the data path; then the
-    config must read back as every tool reads a saved run (stdr.config.load_config)."""
+    config must read back as every tool reads a saved run (stdr.store.load_config)."""
     check_keys(cfg)
     check_values(cfg)
     check_data_path(cfg.data, base)

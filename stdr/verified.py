@@ -28,7 +28,7 @@ VERIFIED: dict[str, tuple[str, ...]] = {
     "train.guard.compiled": ("cpu",),
     # the guard's step check without a host sync (stdr.train.guard.resolve_sync_free)
     "train.guard.sync_free": ("cpu",),
-    # 4dgs's HexPlane sampling (stdr.baselines.hexplane.HexPlaneField.compiled_kind)
+    # 4dgs's HexPlane sampling (stdr.baselines.fourdgs.HexPlaneField.compiled_kind)
     "baseline.hexplane.compiled": ("cpu",),
 }
 

@@ -1,2 +1,2 @@
 """The code of one study each (not part of the installed package): run from the checkout, e.g.
-`python studies/stability.py --help`. README.md says how to rerun each study."""
+`python -m studies.stability --help`. README.md says how to rerun each study."""

@@ -1,8 +1,8 @@
 """The capture check: `stdr-data capture` on the real phone capture in ../shared against that
 capture's own cameras (protocol: research/measurements/capture_toy/README.md).
 
-    python studies/capture_check.py run  --toy ../shared/data/nerfies/toy-capture --work /tmp/capture_check
-    python studies/capture_check.py table --work /tmp/capture_check --out research/measurements/capture_toy
+    python -m studies.capture_check run  --toy ../shared/data/nerfies/toy-capture --work /tmp/capture_check
+    python -m studies.capture_check table --work /tmp/capture_check --out research/measurements/capture_toy
 
 `run` (resumable: each finished step leaves its record in WORK/records.json and is skipped next time):
 1. capture the toy capture's 2x images (`stdr-data capture FOLDER --frames 0`), timed per stage;
@@ -20,15 +20,15 @@ import json
 import os
 import platform
 import shutil
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from stdr.tools.runqueue import run_one
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from stdr.tools.runqueue import run_one  # noqa: E402
+
 BUDGET = ["budget=cpu", "eval.lpips=false", "train.progress=false", "eval.save_images=false",
           "train.image_every=0", "device=cpu"]
 

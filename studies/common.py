@@ -21,7 +21,7 @@ def gmean(xs):
 
 def records_in(out: Path, sub: str) -> Path:
     """A study's records folder to read: out/sub where it exists, else (a study folder under
-    research/measurements whose records are packed) the archive's copy (scripts/measurements.py)."""
+    research/measurements whose records are packed) the archive's copy (studies/records.py)."""
     out = Path(out)
     if (out / sub).is_dir() or out.resolve().parent != M.resolve():
         return out / sub
@@ -34,8 +34,8 @@ def records_to_write(out: Path, sub: str) -> Path:
     out = Path(out)
     if not (out / sub).is_dir() and (out / ARCHIVE).is_file():
         raise SystemExit(f"{out / sub}: this study's records are packed in {out / ARCHIVE}; extract them first "
-                         f"(python scripts/measurements.py extract {out.name}), add, then pack again "
-                         f"(python scripts/measurements.py pack {out.name})")
+                         f"(python -m studies.records extract {out.name}), add, then pack again "
+                         f"(python -m studies.records pack {out.name})")
     (out / sub).mkdir(parents=True, exist_ok=True)
     return out / sub
 

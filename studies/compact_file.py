@@ -1,8 +1,8 @@
 """The compact model file's bytes and what its codecs cost, measured on trained runs
 (research/measurements/compact_file).
 
-    python studies/compact_file.py run RUN_DIR [RUN_DIR ...] [--variants default state16]
-    python studies/compact_file.py table
+    python -m studies.compact_file run RUN_DIR [RUN_DIR ...] [--variants default state16]
+    python -m studies.compact_file table
 
 For each run and variant, `stdr-tool pack`'s measurement (stdr/compact/pack.py) into a temporary
 file: the bytes of the full model and of the compact file, and val PSNR / SSIM of both renders.
@@ -25,14 +25,13 @@ from __future__ import annotations
 
 import json
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
 
+from studies.common import commit, records_in, records_to_write, run_table_main
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from studies.common import commit, records_in, records_to_write, run_table_main  # noqa: E402
 
 OUT = ROOT / "research" / "measurements" / "compact_file"
 VARIANTS = {"default": {}, "state16": {"state": "f16"}, "all16": {"shN": "f16", "state": "f16"},
@@ -63,7 +62,7 @@ VARIANTS["vq1024_derivedvq"] = {**VARIANTS["q8m16_vq1024"], "stdr_mask": "derive
 def run(runs: list[Path], variants: list[str], out: Path, tag: str = "") -> None:
     """tag: appended to the method's name in the records (e.g. `nogate` for runs trained with an
     ablation's settings), so they never overwrite the records of the method's default runs."""
-    from stdr.config import load_config
+    from stdr.store import load_config
     from stdr.eval.evaluate import machine_name
     from stdr.compact.pack import pack
     dest = records_to_write(out, "records")

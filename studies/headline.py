@@ -2,7 +2,7 @@
 scenes x seeds 0-2 (96 runs, budget=cpu, test split), breadth first (every method and scene at
 seed 0, then seed 1, then 2), resumable (research/measurements/dnerf_headline_cpu).
 
-    python studies/headline.py DNERF_ROOT [--work WORK] [--code CHECKOUT] [--seeds 0 1 2] [--dry-run]
+    python -m studies.headline DNERF_ROOT [--work WORK] [--code CHECKOUT] [--seeds 0 1 2] [--dry-run]
 
 The runs go through the project's run queue (`stdr-tool queue`, one at a time), each timed by
 scripts/idle_run.py around the --code checkout's stdr-train (a worktree frozen at the table's
@@ -11,7 +11,7 @@ history.json, train_profile.json, load.json; no checkpoint) are copied to
 research/measurements/dnerf_headline_cpu/runs/<experiment>/<scene>/s<seed>/, and a run whose records
 are there already is not planned, so the study goes on from the committed records on any machine.
 A run that shared the machine (other jobs took more than 5 % of it) is not recorded and is run
-again, up to three sweeps over its seed, before the next seed starts. Then scripts/results.py
+again, up to three sweeps over its seed, before the next seed starts. Then studies/results.py
 rebuilds docs/results.md and the README's table.
 
 Run it on an otherwise idle machine: train seconds and FPS are reported. `touch WORK/pause` (or
@@ -26,9 +26,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+from stdr.tools.runqueue import Queue, Run, execute
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from stdr.tools.runqueue import Queue, Run, execute  # noqa: E402
 
 RECORDS = ROOT / "research" / "measurements" / "dnerf_headline_cpu" / "runs"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
@@ -113,7 +113,7 @@ def main(argv=None) -> int:
     if args.dry_run:
         return 0
     if not args.no_results:
-        subprocess.run([str(ROOT / "scripts" / "run.sh"), "python", str(ROOT / "scripts" / "results.py")], check=True)
+        subprocess.run([str(ROOT / "scripts" / "run.sh"), "python", "-m", "studies.results"], cwd=ROOT, check=True)
     print(f"[headline] done; {len(failed)} failed, {len(left)} not recorded (shared the machine in all {SWEEPS} sweeps)")
     return 1 if failed or left else 0
 

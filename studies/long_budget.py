@@ -3,9 +3,9 @@ with train, val and test PSNR along the learning curve (research/measurements/st
 
     # resumable (a run with a record is skipped; a run stopped midway resumes from its last
     # checkpoint), on the project's run queue: --concurrent runs at a time, --threads each
-    python studies/long_budget.py run DNERF_ROOT --work WORK [--seeds 0 1] [--threads 1] [--concurrent 1]
+    python -m studies.long_budget run DNERF_ROOT --work WORK [--seeds 0 1] [--threads 1] [--concurrent 1]
     # the table from the committed records (generated, stamped)
-    python studies/long_budget.py table
+    python -m studies.long_budget table
 
 Each run trains in segments (`train.stop_at` at every --points step, then to the end; a stopped
 run resumes bit-exactly; every run of the grid to one point, then to the next) and after each
@@ -19,13 +19,12 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
 from pathlib import Path
 
+from studies.common import commit, records_in, records_to_write
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from studies.common import commit, records_in, records_to_write  # noqa: E402
 
 RECORDS = ROOT / "research" / "measurements" / "stdr_long"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
@@ -52,7 +51,7 @@ def reference_of(variant: str) -> str:
 
 def evaluate_splits(run_dir: Path, splits=SPLITS) -> dict:
     """PSNR and SSIM of every frame of each split, rendered from the run's last checkpoint."""
-    from stdr.config import load_config
+    from stdr.store import load_config
     from stdr.data.load import load_scene
     from stdr.eval.evaluate import evaluate_model
     from stdr.model import model_from_checkpoint
@@ -172,7 +171,7 @@ def table(records: Path) -> str:
     for variant in sorted({m for (_, _, m) in by if m.startswith("deform_stdr__")}):
         lines += _decision_lines(decide(by, variant))
     lines += ["", f"Generated {time.strftime('%Y-%m-%d')} from {len(recs)} records by "
-              f"`python studies/long_budget.py table` (code {commit()})."]
+              f"`python -m studies.long_budget table` (code {commit()})."]
     return "\n".join(lines) + "\n"
 
 

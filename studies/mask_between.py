@@ -1,7 +1,7 @@
 """STDR's mask between training times, an evaluation-time ablation (research/measurements/stdr_unseen_times).
 
-    python studies/mask_between.py run RUN_DIR [RUN_DIR ...] [--out FOLDER]   # records, one per run
-    python studies/mask_between.py table [--out FOLDER]                       # FOLDER/mask_between.md
+    python -m studies.mask_between run RUN_DIR [RUN_DIR ...] [--out FOLDER]   # records, one per run
+    python -m studies.mask_between table [--out FOLDER]                       # FOLDER/mask_between.md
 
 For each trained run (the unseen-times queue's `embedded_deform` and `embedded_deform_stdr`
 folders, with their checkpoints): PSNR on the training frames (every one at a knot of the mask) and
@@ -16,21 +16,20 @@ from __future__ import annotations
 
 import json
 import statistics
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
+from studies.common import commit, records_in, records_to_write, run_table_main
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from studies.common import commit, records_in, records_to_write, run_table_main  # noqa: E402
 
 OUT = ROOT / "research" / "measurements" / "stdr_unseen_times"
 RULES = ("linear", "nearest", "logit")
 
 
 def measure(run: Path) -> dict:
-    from stdr.config import load_config
+    from stdr.store import load_config
     from stdr.data.load import load_scene
     from stdr.eval.evaluate import evaluate_model, machine_name
     from stdr.model import model_from_checkpoint

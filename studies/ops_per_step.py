@@ -10,9 +10,9 @@ frequent operators of each. Two counts: every operator dispatched, and the "comp
 launch work (views such as t, view, slice or detach launch no kernel on a GPU, nor do bare
 allocations or profiler records). Counts are deterministic: they do not depend on the machine.
 
-    python studies/ops_per_step.py --scene ../shared/data/dnerf/jumpingjacks --label after \\
+    python -m studies.ops_per_step --scene ../shared/data/dnerf/jumpingjacks --label after \\
         --out research/measurements/ops_per_step
-    python studies/ops_per_step.py --compare research/measurements/ops_per_step/before.json \\
+    python -m studies.ops_per_step --compare research/measurements/ops_per_step/before.json \\
         research/measurements/ops_per_step/after.json research/measurements/ops_per_step/fused.json \\
         --out research/measurements/ops_per_step
 """

@@ -1,10 +1,10 @@
 """Per-run records of the studies, kept as one compressed archive per study.
 
-    python scripts/measurements.py pack STUDY [STUDY ...] | --all   # folders -> STUDY/records.tar.xz
-    python scripts/measurements.py extract STUDY [--dest DIR]       # records.tar.xz -> the folders again
-    python scripts/measurements.py list                              # what each study keeps and archives
+    python -m studies.records pack STUDY [STUDY ...] | --all   # folders -> STUDY/records.tar.xz
+    python -m studies.records extract STUDY [--dest DIR]       # records.tar.xz -> the folders again
+    python -m studies.records list                              # what each study keeps and archives
 
-(scripts/measurements.py runs this module's `main`; the studies read records through
+(studies/records.py runs this module's `main`; the studies read records through
 `records_dir` and `record_file`.)
 
 A study folder under research/measurements/ keeps what a reader opens — its README, protocol, tables

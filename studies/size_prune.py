@@ -8,8 +8,8 @@ size prune of either value, with `densify.prune_big_after` at 1500 (the preset) 
 (`budget=paper`'s value in steps). It records the Gaussian count at chosen steps and every
 size-prune warning.
 
-    python studies/size_prune.py run DNERF_DIR --work WORK [--scenes ...] [--values 1500 3000]
-    python studies/size_prune.py table [--work WORK]    # WORK's runs as records, then table.md from the records
+    python -m studies.size_prune run DNERF_DIR --work WORK [--scenes ...] [--values 1500 3000]
+    python -m studies.size_prune table [--work WORK]    # WORK's runs as records, then table.md from the records
 """
 from __future__ import annotations
 
@@ -17,13 +17,11 @@ import argparse
 import json
 import re
 import shutil
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from studies.common import M, commit, records_in, records_to_write  # noqa: E402
-from stdr.tools.runqueue import STDOUT, run_one  # noqa: E402
+from studies.common import M, commit, records_in, records_to_write
+from stdr.tools.runqueue import STDOUT, run_one
 
 OUT = M / "size_prune_probe"
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")

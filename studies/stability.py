@@ -35,7 +35,7 @@ an error. Writes OUT/table.md and table.json, and OUT/degradation_<metric>.{png,
 (stdr/configs/sweep/stability.yaml: every registered baseline, plain and +STDR, on its scenes) it
 prints `PRESET:SEED experiment=a,b data.name=x`, a line per group of scenes lacking the same
 experiments, and nothing for a preset whose runs the given tables all hold.
-studies/stability_study.sh uses it, so a study resumed on another machine runs only what its
+studies/stability_study.py plans with it (missing_runs), so a study resumed on another machine runs only what its
 committed table lacks.
 """
 from __future__ import annotations
@@ -389,6 +389,19 @@ def todo_overrides(have: set[tuple], grid: tuple[list[tuple[str, str]], list[str
     (study_grid) whose RUN_KEY is not in `have` (a crashed run counts as held: it is a result).
     One line per group of scenes that lack the same experiments, e.g.
     'experiment=dnerf_spgs,dnerf_spgs_stdr data.name=standup'."""
+    missing = missing_runs(have, grid, preset, seed)
+    groups: dict[tuple[str, ...], list[str]] = {}
+    for scene in grid[1]:
+        lack = tuple(e for e, sc in missing if sc == scene)
+        if lack:
+            groups.setdefault(lack, []).append(scene)
+    return [f"experiment={','.join(lack)} data.name={','.join(sc)}" for lack, sc in groups.items()]
+
+
+def missing_runs(have: set[tuple], grid: tuple[list[tuple[str, str]], list[str]], preset: str,
+                 seed: int) -> list[tuple[str, str]]:
+    """The (experiment, scene) runs of one stress preset and seed of the study grid (study_grid)
+    whose RUN_KEY is not in `have`, scene by scene (a crashed run counts as held: it is a result)."""
     from stdr.config import CONFIG_DIR
     f = CONFIG_DIR / "stress" / f"{preset}.yaml"
     if not f.is_file():
@@ -396,12 +409,7 @@ def todo_overrides(have: set[tuple], grid: tuple[list[tuple[str, str]], list[str
     # `# @package data.stress`: the preset's keys sit at the top of its file
     label, level = _stress({"data": {"stress": yaml.safe_load(f.read_text()) or {}}})
     exps, scenes = grid
-    groups: dict[tuple[str, ...], list[str]] = {}
-    for scene in scenes:
-        lack = tuple(e for e, method in exps if (method, scene, seed, label, level) not in have)
-        if lack:
-            groups.setdefault(lack, []).append(scene)
-    return [f"experiment={','.join(lack)} data.name={','.join(sc)}" for lack, sc in groups.items()]
+    return [(e, scene) for scene in scenes for e, method in exps if (method, scene, seed, label, level) not in have]
 
 
 def main(argv=None) -> None:

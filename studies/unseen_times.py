@@ -1,6 +1,6 @@
 """deform ± STDR where every held-out frame lies between training times (research/measurements/stdr_unseen_times).
 
-    python studies/unseen_times.py RUNS_DIR --train-times SCENE/transforms_train.json [--out FOLDER]
+    python -m studies.unseen_times RUNS_DIR --train-times SCENE/transforms_train.json [--out FOLDER]
 
 RUNS_DIR holds the queue's runs (<experiment>__default__s<seed>/metrics.json, as `stdr-tool queue`
 packs them). For each seed with both methods: the split's mean PSNR of each, their difference, and

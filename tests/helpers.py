@@ -88,7 +88,7 @@ def hard_case_scene(dtype=torch.float64, extra_rows=()):
 
 
 def load_script(path, name: str):
-    """A script of the checkout (e.g. scripts/results.py) imported as module `name` (registered in
+    """A script of the checkout (e.g. studies/results.py) imported as module `name` (registered in
     sys.modules, where dataclasses look their module up)."""
     import importlib.util
     import sys

@@ -6,11 +6,11 @@ import math
 import pytest
 import torch
 
-from stdr.baselines.control_nodes import (FEATURE_KEY, ControlNodeDeformation, arap_energy, blend_translation,
+from stdr.baselines.scgs import (FEATURE_KEY, ControlNodeDeformation, arap_energy, blend_translation,
                                        log_interp_schedule, skinning_weights)
 from stdr.geometry import farthest_point_sampling, quat_multiply, quat_to_rotmat, so3_exp, so3_exp_quat, so3_log
-from stdr.baselines.hexplane import PAIRS, HexPlaneDeformation, HexPlaneField, sample_plane
-from stdr.baselines.superpoints import ASSOC_KEY, SuperpointDeformation
+from stdr.baselines.fourdgs import PAIRS, HexPlaneDeformation, HexPlaneField, sample_plane
+from stdr.baselines.spgs import ASSOC_KEY, SuperpointDeformation
 from stdr.baselines import BASELINES
 from stdr.gaussians import init_params
 from stdr.densify.strategy import duplicate, split
@@ -424,7 +424,7 @@ def test_hexplane_sampling_equals_grid_sample_with_gradients():
     """The HexPlane field's gather / index_add sampling (and the time planes' row-blended line)
     equal F.grid_sample(align_corners=True, zeros padding), values and plane gradients,
     including points outside the plane and on its edges."""
-    from stdr.baselines.hexplane import _grid_sample, sample_plane, sample_plane_row
+    from stdr.baselines.fourdgs import _grid_sample, sample_plane, sample_plane_row
     g = torch.Generator().manual_seed(0)
     plane = torch.randn(8, 13, 17, generator=g, dtype=torch.float64, requires_grad=True)
     uv = torch.rand(500, 2, generator=g, dtype=torch.float64) * 2.6 - 1.3

@@ -172,7 +172,7 @@ def test_the_compact_file_round_trips_through_load_model(tmp_path, experiment):
     for pa, pb in zip(a["per_frame_psnr"], b["per_frame_psnr"]):
         assert abs(pa - pb) < 0.05, (pa, pb)
     if experiment.startswith("embedded_spgs"):
-        from stdr.baselines.superpoints import ASSOC_KEY
+        from stdr.baselines.spgs import ASSOC_KEY
         assert rec["spec"][ASSOC_KEY] == "cols"
         idx, G, hard = full.deform.assignment(full.params)
         idx2, G2, hard2 = small.deform.assignment(small.params)

@@ -91,8 +91,8 @@ def test_the_readme_is_a_front_door():
 
 
 def test_the_numbers_the_readme_quotes_are_the_generated_ones():
-    """README.md's results and demo blocks and docs/results.md are what scripts/results.py makes
+    """README.md's results and demo blocks and docs/results.md are what studies/results.py makes
     from the committed records now (a hand edit, or a record added without regenerating, fails)."""
-    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "results.py"), "--check"], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "studies.results", "--check"], cwd=ROOT, capture_output=True,
                        text=True)
     assert r.returncode == 0, r.stderr + r.stdout

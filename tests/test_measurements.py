@@ -1,4 +1,4 @@
-"""studies/records.py (run as scripts/measurements.py): a study's per-run records in one archive, read through records_dir."""
+"""studies/records.py (run as studies/records.py): a study's per-run records in one archive, read through records_dir."""
 import io
 import subprocess
 import tarfile

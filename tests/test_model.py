@@ -147,7 +147,7 @@ def test_the_model_reloads_alone_and_renders_what_training_rendered(tmp_path, ta
     m.save(tmp_path / "model.pt")
     assert torch.equal(load_model(tmp_path / "model.pt", device="cpu").render(f.camera, f.time).image, a)
     # a model built without the plug-in refuses the checkpoint, naming why
-    from stdr.config import load_config
+    from stdr.store import load_config
     off = load_config(t.cfg)
     off.tagger.enabled = False
     with pytest.raises(ValueError, match="saved with plug-ins \\['tagger'\\] but this model has none"):

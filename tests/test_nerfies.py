@@ -333,7 +333,7 @@ DEGENERATE_DEPTH = 1e-4  # scene units; far from both the degenerate point (3.5e
 def _reprojection(scene, model, root, image_scale, lens_source):
     """Distance (in 4x pixels) between the loaded cameras' projections of the COLMAP points and
     COLMAP's keypoints carried into the loaded (undistorted) images through the same lens."""
-    from stdr.data.nerfies import lens_from_camera_json, lens_from_colmap
+    from stdr.data.lenses import lens_from_camera_json, lens_from_colmap
     pid = {p: i for i, p in enumerate(model.point_ids)}
     by_name = {Path(i.name).stem: i for i in model.images.values()}
     errs, inside, depth_ok, degenerate = [], [], [], []
@@ -396,7 +396,7 @@ def test_toy_capture_loads_and_colmap_points_project_where_observed(toy, tmp_pat
 def test_toy_capture_undistortion_round_trips(toy):
     cj = json.loads((toy / "camera" / "000010.json").read_text())
     from stdr.data.images import read_image
-    from stdr.data.nerfies import lens_from_camera_json
+    from stdr.data.lenses import lens_from_camera_json
     lens = lens_from_camera_json(cj, toy / "camera" / "000010.json").scaled(240, 428)
     assert lens.has_distortion
     img = read_image(toy / "rgb" / "2x" / "000010.png")

@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 from stdr.eval.table import method_suffix
 from stdr.plugins import PLUGINS, Plugin, enabled_plugins, register_plugin, unregister_plugin
 from stdr.schedule import Event
-from stdr.config import resolve_schedule
+from stdr.store import resolve_schedule
 from stdr.testing import make_cfg
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -144,7 +144,7 @@ def test_stdr_eval_takes_plugin_keys_but_not_the_switch():
 
 
 def test_a_saved_config_with_an_unregistered_plugin_is_refused_by_name(tmp_path):
-    from stdr.config import load_config
+    from stdr.store import load_config
     raw = OmegaConf.to_container(make_cfg([]), resolve=True)
     raw["sparkle"] = {"enabled": True}
     with pytest.raises(ValueError, match=r"run.yaml: unknown config section\(s\) \['sparkle'\]: a plug-in's keys "
@@ -194,3 +194,12 @@ def test_a_plugins_frozen_keys_lose_their_optimizer_whatever_their_dtype(tmp_pat
     t.train()
     assert "sh0" not in t.state.optimizers and "means" in t.state.optimizers
     assert torch.equal(t.state.model.params["sh0"], before) and t.step == 16
+
+
+def test_the_reserved_names_cover_the_run_and_eval_schemas():
+    """No plug-in may take a name the run config or stdr-eval already uses: RESERVED_KEYS, a constant
+    of the registry (no module sets it at import), holds every section of both schemas."""
+    from stdr.config import Config, EvalAppConfig
+    from stdr.plugins import RESERVED_KEYS
+    assert set(Config.__dataclass_fields__) | set(EvalAppConfig.__dataclass_fields__) <= RESERVED_KEYS
+

@@ -9,7 +9,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import nn
 
-from stdr.config import load_config
+from stdr.store import load_config
 from stdr.store import data_options, experiment_names
 from stdr.baselines import BASELINES, BaselineConfig, Deformation, Deltas, get_baseline, register_baseline
 from stdr.baselines.registry import unregister_baseline
@@ -204,7 +204,7 @@ def test_longer_cpu_preset_is_the_cpu_preset_on_the_paper_schedule_scaled_to_10k
         arap = long["baseline.scgs.arap_steps"]
         assert all(abs(a - b * f) <= 1 for a, b in zip(arap, paper["baseline.scgs.arap_steps"])), arap
     if stdr:  # STDR's phases follow the baseline's static warm-up: the paper's 3000 / 6000 of 40k, scaled
-        from stdr.config import resolve_schedule
+        from stdr.store import resolve_schedule
         sc = resolve_schedule(make_cfg(exp + ["budget=cpu_long"]))
         assert sc.plugins["stdr"]["warmup_end"] == long["baseline.warmup"]
         assert sc.plugins["stdr"]["freeze_at"] >= 2 * long["baseline.warmup"]

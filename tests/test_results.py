@@ -1,4 +1,4 @@
-"""scripts/results.py's headline table from the rerun's records: shown only once every method has
+"""studies/results.py's headline table from the rerun's records: shown only once every method has
 every scene at one seed, averaging only seeds that are complete over the whole grid."""
 import json
 from pathlib import Path
@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _results():
-    return load_script(ROOT / "scripts" / "results.py", "results_script")
+    return load_script(ROOT / "studies" / "results.py", "results_script")
 
 
 def _record(root: Path, baseline: str, stdr: bool, scene: str, seed: int, psnr: float, gaussians: int = 1000,

@@ -9,7 +9,7 @@ from stdr.testing import make_cfg
 from stdr.testing import tiny_config as _tiny
 
 from stdr.baselines import BASELINES
-from stdr.config import resolve_schedule
+from stdr.store import resolve_schedule
 
 
 @pytest.mark.parametrize("name", sorted(BASELINES))

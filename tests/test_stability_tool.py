@@ -4,11 +4,13 @@ import csv
 import json
 import math
 import shutil
+import sys
 from pathlib import Path
 
 import pytest
 import yaml
 from studies.stability import main as stability
+from studies.stability import study_grid
 
 
 TIMES = [0.1, 0.4, 0.6, 0.9]  # evaluation frames' times in the fixture; window [0.3, 0.7] holds two
@@ -244,55 +246,62 @@ def test_todo_names_what_a_committed_table_lacks(tmp_path, capsys):
         stability(["--todo", "window_1:0", str(tmp_path)])
 
 
-def test_the_study_script_runs_the_whole_grid_breadth_first_and_keeps_the_committed_table(tmp_path):
-    import os
-    import subprocess
+def test_the_study_plans_the_grid_breadth_first_through_the_queue_and_keeps_the_committed_table(tmp_path, capsys):
+    """studies/stability_study.py: the presets in GRID's order, each planned with only the runs the
+    committed table lacks, every run a job of the one run queue with the sweep's keys."""
+    import studies.stability_study as st
     from stdr.config import CONFIG_DIR
-    script = Path(__file__).resolve().parents[1] / "studies" / "stability_study.sh"
     table, exps, scenes = _study_table(tmp_path, lacking={("spgs", "standup"), ("spgs+STDR", "standup")})
-    out = table.parent
-    code = tmp_path / "frozen"  # STDR_STUDY_CODE: another checkout runs stdr-train
-    (code / "scripts").mkdir(parents=True)
-    (code / "scripts" / "run.sh").write_text("#!/bin/sh\n")
-    (code / "scripts" / "run.sh").chmod(0o755)
-    env = {**os.environ, "STDR_STUDY_DRY": "1", "STDR_STUDY_CODE": str(code)}
-    r = subprocess.run(["bash", str(script), "/data/dnerf", str(out), "train.threads=2"], cwd=tmp_path, env=env,
-                       capture_output=True, text=True, check=True)
-    lines = [ln.split() for ln in r.stdout.splitlines() if " stdr-train " in ln]
-    assert all(w[0] == f"{code}/scripts/run.sh" and w[1] == "stdr-train" for w in lines)
-    arg = lambda words, key: next((w.split("=", 1)[1] for w in words if w.startswith(key + "=")), None)  # noqa: E731
-    order = [(arg(w, "stress"), int(arg(w, "seed"))) for w in lines]
+    work = tmp_path / "work"
+    q = st.plan(Path("/data/dnerf"), list(st.GRID), table, work, ["train.threads=2"])
+    assert "window_1 seed 0: every run is in" in capsys.readouterr().out
     presets = sorted(p.stem for p in (CONFIG_DIR / "stress").glob("*.yaml"))
-    done = {("none", 0), ("window_1", 0)}  # every run of these is in the table: skipped
-    assert sorted(order) == sorted([(p, 0) for p in presets if (p, 0) not in done] + [("none", 1), ("none", 2)])
-    assert "window_1 seed 0: every run is in" in r.stdout
-    assert all("data.root=/data/dnerf" in w and "+sweep=stability" in w and w[-1] == "train.threads=2" for w in lines)
-    # breadth first, as the script's header says: (unstressed seed 0: done), level 3 of each stress
-    # (window, fraction, sparse, pose, jitter), unstressed seeds 1-2, level 1 (window_1: done), level 2
-    assert order == [("window_3", 0), ("fraction_3", 0), ("sparse_3", 0), ("pose_3", 0), ("jitter_3", 0),
-                     ("none", 1), ("none", 2), ("fraction_1", 0), ("sparse_1", 0), ("pose_1", 0), ("jitter_1", 0),
-                     ("window_2", 0), ("fraction_2", 0), ("sparse_2", 0), ("pose_2", 0), ("jitter_2", 0)]
-    # fraction_1 runs only what the table lacks; a preset with nothing recorded runs whole
-    frac = [w for w in lines if arg(w, "stress") == "fraction_1"]
-    assert len(frac) == 1 and arg(frac[0], "experiment") == "dnerf_spgs,dnerf_spgs_stdr"
-    assert arg(frac[0], "data.name") == "standup"
-    pose = next(w for w in lines if arg(w, "stress") == "pose_1")
-    assert arg(pose, "experiment") == ",".join(e for e, _ in exps) and arg(pose, "data.name") == ",".join(scenes)
-    tool = [ln for ln in r.stdout.splitlines() if "studies/stability.py " in ln]
-    assert tool == [f"{script.parents[1]}/scripts/run.sh python {script.parents[1]}/studies/stability.py "
-                    f"{out}/table.json --split val --out {out}"]  # no sweep folder yet
-    # without a committed table every preset runs whole, with the sweep's own lists
-    fresh = subprocess.run(["bash", str(script), "/data/dnerf", str(tmp_path / "none_yet")], cwd=tmp_path,
-                           env={**env, "STDR_STUDY_PRESETS": "window_1:0"}, capture_output=True, text=True,
-                           check=True)
-    [w] = [ln.split() for ln in fresh.stdout.splitlines() if " stdr-train " in ln]
-    assert arg(w, "stress") == "window_1" and arg(w, "experiment") is None and arg(w, "data.name") is None
-    bad = subprocess.run(["bash", str(script), "/data/dnerf"], cwd=tmp_path, capture_output=True, text=True,
-                         env={**env, "STDR_STUDY_PRESETS": "none:0 windw_1:0"})
-    assert bad.returncode == 2 and "bad preset 'windw_1:0'" in bad.stderr
-    nocode = subprocess.run(["bash", str(script), "/data/dnerf"], cwd=tmp_path, capture_output=True, text=True,
-                            env={**env, "STDR_STUDY_CODE": str(tmp_path / "nowhere")})
-    assert nocode.returncode == 2 and "no scripts/run.sh there" in nocode.stderr
+    assert sorted(st.GRID) == sorted([f"{p}:0" for p in presets] + ["none:1", "none:2"])
+    order = list(dict.fromkeys(tuple(r.id.split("/")[2:]) for r in q.runs))
+    # breadth first: (unstressed seed 0: recorded), level 3 of each stress, unstressed seeds 1-2,
+    # level 1 (window_1: recorded), level 2
+    assert order == [(p, "s0") for p in ("window_3", "fraction_3", "sparse_3", "pose_3", "jitter_3")] + \
+        [("none", "s1"), ("none", "s2")] + [(p, "s0") for p in ("fraction_1", "sparse_1", "pose_1", "jitter_1")] + \
+        [(p, "s0") for p in ("window_2", "fraction_2", "sparse_2", "pose_2", "jitter_2")]
+    # fraction_1 plans only what the table lacks; a preset with nothing recorded, the whole grid
+    assert sorted(r.id for r in q.runs if "/fraction_1/" in r.id) == \
+        ["dnerf_spgs/standup/fraction_1/s0", "dnerf_spgs_stdr/standup/fraction_1/s0"]
+    assert sorted(r.id for r in q.runs if "/pose_1/" in r.id) == \
+        sorted(f"{e}/{s}/pose_1/s0" for e, _ in exps for s in scenes)
+    r = next(r for r in q.runs if r.id == "dnerf_spgs/standup/fraction_1/s0")
+    assert r.overrides[:6] == ["experiment=dnerf_spgs", "budget=cpu", "stress=fraction_1", "seed=0",
+                               "data.path=/data/dnerf/standup", "data.name=standup"]
+    assert {"data.eval_split=val", "train.eval_every=500", "train.progress=false"} <= set(r.overrides)
+    assert r.overrides[-1] == "train.threads=2" and all(r.state == "pending" for r in q.runs)
+    # a run whose folder holds its metrics.json is done; a bad preset is named
+    (work / r.id).mkdir(parents=True)
+    (work / r.id / "metrics.json").write_text("{}")
+    assert [x.state for x in st.plan(Path("/data/dnerf"), ["fraction_1:0"], table, work, []).runs] == ["done", "pending"]
+    with pytest.raises(SystemExit, match="bad preset 'windw_1:0'"):
+        st.plan(Path("/data/dnerf"), ["none:0", "windw_1:0"], table, work, [])
+    with pytest.raises(SystemExit, match="no scripts/run.sh there"):
+        st.main(["/data/dnerf", "--code", str(tmp_path / "nowhere"), "--dry-run"])
+
+
+def test_the_study_trains_its_runs_on_the_queue_and_tabulates_them(tmp_path, monkeypatch):
+    """One preset of the study on the run queue with a stand-in for stdr-train that writes a
+    finished run: every run ends done in WORK, and the table is written from them."""
+    import studies.stability_study as st
+    fake = tmp_path / "fake_run.py"
+    fake.write_text("import json, sys\nfrom pathlib import Path\n"
+                    "run = Path(next(a for a in sys.argv if a.startswith('hydra.run.dir=')).split('=', 1)[1])\n"
+                    "run.mkdir(parents=True, exist_ok=True)\n(run / 'metrics.json').write_text('{}')\n")
+    monkeypatch.setattr(st, "command", lambda code: [sys.executable, str(fake)])
+    tables = []
+    monkeypatch.setattr(st, "stability_table", lambda argv: tables.append(argv))
+    work, out = tmp_path / "work", tmp_path / "out"
+    assert st.main(["/data/dnerf", "--presets", "jitter_2:3", "--work", str(work), "--out", str(out)]) == 0
+    exps, scenes = study_grid()
+    assert sorted(p.parent.relative_to(work).as_posix() for p in work.rglob("metrics.json")) == \
+        sorted(f"{e}/{s}/jitter_2/s3" for e, _ in exps for s in scenes)
+    assert tables == [[str(work.resolve()), "--split", "val", "--out", str(out)]]
+    q = json.loads((work / "queue.json").read_text())
+    assert {r["state"] for r in q["runs"]} == {"done"}
 
 
 def test_frame_times_come_from_the_scene_for_runs_that_did_not_record_them(tmp_path):

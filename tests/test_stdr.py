@@ -15,7 +15,7 @@ from stdr.baselines import DeformMLP
 from stdr.eval.table import method_name
 from stdr.gaussians import init_params
 from stdr.densify.strategy import DensifyStrategy
-from stdr.config import resolve_schedule
+from stdr.store import resolve_schedule
 
 from stdr.testing import TINY_SCENE, make_cfg
 
@@ -325,7 +325,7 @@ def test_ghosting_scene_masks_separate_the_two_places(tmp_path):
     frozen-opacity warm-up the mask alone must do the time-gating: the Gaussians at A are on at
     A's times and off at B's, and the other way round. (With opacity training too, the mask
     separates the two places less sharply, measured: on 0.94, off 0.64 at A.) Whether STDR then
-    beats deform's PSNR on this scene is a measurement, not a unit test: `python studies/ghosting.py`
+    beats deform's PSNR on this scene is a measurement, not a unit test: `python -m studies.ghosting`
     (its margin differs between CPUs, +0.38 to +0.5 dB)."""
     from studies import ghosting
     from stdr.train.trainer import Trainer
@@ -494,7 +494,7 @@ def test_freeze_colliding_with_a_stage_switch_is_moved_by_rule_or_rejected_when_
     """SC-GS at budget=cpu: static to 500, node->skinning switch at 1000 (+100 detached steps).
     The default freeze (2 x 500 = 1000) lands on it and moves to the midpoint 750; an explicit
     freeze_at inside the window is an error; one outside is kept."""
-    from stdr.baselines.control_nodes import ControlNodeDeformation
+    from stdr.baselines.scgs import ControlNodeDeformation
     from stdr.schedule import keep_out_of_windows
 
     def place_freeze(step, floor, windows, explicit):

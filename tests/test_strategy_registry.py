@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from stdr.densify.strategy import STRATEGIES, DensifyStrategy, get_strategy, register_strategy, unregister_strategy
-from stdr.config import resolve_schedule
+from stdr.store import resolve_schedule
 from stdr.testing import make_cfg, tiny_config
 
 
@@ -70,7 +70,7 @@ def test_a_second_strategy_is_an_option_with_typed_keys_and_stages(thinning):
     s = resolve_schedule(cfg)
     assert "10  first thinning  [densify.every]" in s.describe() and "thinning: no growth" in s.notes
     assert "densify.refine_start" not in s.describe()  # its stages replace the default's
-    from stdr.config import load_config
+    from stdr.store import load_config
     from omegaconf import OmegaConf
     assert load_config(OmegaConf.to_container(cfg, resolve=True)).densify.share == 0.25
 

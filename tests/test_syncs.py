@@ -71,7 +71,7 @@ def _files(sites) -> set[str]:
 
 
 # the one sync an ordinary step keeps by design: SC-GS's ARAP term finds its rotations by SVD
-SVD_SITE = "stdr/baselines/control_nodes.py"
+SVD_SITE = "stdr/baselines/scgs.py"
 
 
 @pytest.mark.slow

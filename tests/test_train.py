@@ -201,7 +201,8 @@ def test_stdr_eval_render_keys_change_only_themselves():
     from omegaconf import OmegaConf
 
     from stdr.cli.eval import apply_overrides
-    from stdr.config import EvalAppConfig, load_config
+    from stdr.config import EvalAppConfig
+    from stdr.store import load_config
     from stdr.testing import tiny_config as _t
     cfg = load_config(OmegaConf.to_container(_t("/tmp/unused", ["render.antialiased=true", "render.eps2d=0.1",
                                                                "stdr.lambda_temp=0.5"])))

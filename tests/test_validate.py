@@ -164,7 +164,7 @@ def test_a_run_stdr_train_writes_is_read_by_every_tool(tmp_path):
     loader and a resume all read what stdr-train wrote (with a plug-in's keys set)."""
     from stdr.train.run import run_training as run
     from stdr.cli.view import export_main
-    from stdr.config import load_config
+    from stdr.store import load_config
     from stdr.testing import tiny_config
     from stdr.view.core import open_run
     sched = ["optim.iterations=30", "baseline.warmup=10", "densify.refine_start=5", "densify.refine_every=10",

@@ -3,11 +3,11 @@ registry (`registry.BASELINES`: name -> module and config dataclass)."""
 from __future__ import annotations
 
 from .base import BaselineConfig, Deformation, Deltas, apply_post_activation, apply_pre_activation
-from .control_nodes import ControlNodeDeformation, ScgsBaselineConfig, ScgsConfig
-from .deform3dgs import DeformConfig, DeformMLP
-from .hexplane import HexPlaneBaselineConfig, HexPlaneConfig, HexPlaneDeformation, hexplane_time_res
+from .scgs import ControlNodeDeformation, ScgsBaselineConfig, ScgsConfig
+from .deform import DeformConfig, DeformMLP
+from .fourdgs import HexPlaneBaselineConfig, HexPlaneConfig, HexPlaneDeformation, hexplane_time_res
 from .registry import BASELINES, BaselineSpec, build_deformation, get_baseline, register_baseline, unregister_baseline
-from .superpoints import SpgsBaselineConfig, SpgsConfig, SuperpointDeformation
+from .spgs import SpgsBaselineConfig, SpgsConfig, SuperpointDeformation
 
 __all__ = ["Deformation", "Deltas", "BaselineConfig", "DeformMLP", "ControlNodeDeformation", "SuperpointDeformation",
            "HexPlaneDeformation", "DeformConfig", "ScgsBaselineConfig", "ScgsConfig", "SpgsBaselineConfig",

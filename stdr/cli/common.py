@@ -5,7 +5,7 @@ import os
 from pathlib import Path
 
 from ..store import compose_config
-from ..config import typed_schema
+from ..store import typed_schema
 from ..validate import schema_keys, unknown_key_hint
 from ..errors import ConfigError, reported
 

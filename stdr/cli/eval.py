@@ -14,7 +14,9 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from ..config import CHANGES_KEY, CONFIG_DIR, load_config
+from ..config import CONFIG_DIR
+
+from ..store import CHANGES_KEY, load_config
 from ..io.files import read_json, read_yaml
 from ..io.files import run_lock
 from ..store import register

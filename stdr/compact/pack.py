@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 from typing import Any, Optional
 
-from ..config import load_config
+from ..store import load_config
 from ..data.load import load_scene
 from ..errors import ConfigError
 from ..eval.evaluate import evaluate_model

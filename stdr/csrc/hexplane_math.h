@@ -1,5 +1,5 @@
 // HexPlane sampling math shared by the CPU (C++) and CUDA backends (4DGaussians' feature field,
-// stdr/deform/hexplane.py, whose torch code is the twin the parity tests pin these to).
+// stdr/baselines/fourdgs.py, whose torch code is the twin the parity tests pin these to).
 //
 // A plane is [C, H, W] (row-major, channel first); a point samples it at (u, v) in [-1, 1]
 // with u along W and v along H, bilinearly, -1 and 1 being the centres of the corner cells

@@ -11,7 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..errors import BadInput
+from ..errors import BadInput, MissingKey
 
 #: |R R^T - I| above this is not a rotation (float32 poses written as JSON are ~1e-6 off)
 ROTATION_TOL = 1e-3
@@ -88,6 +88,13 @@ def finite_values(values: Sequence, where: str, what: str) -> np.ndarray:
     if not np.isfinite(a).all():
         raise BadInput(f"{where}: {what} has non-finite values: {values!r}")
     return a
+
+
+def need_key(d: dict, key: str, path, where: str = ""):
+    """d[key], or a MissingKey naming the file `path` (and `where` in it)."""
+    if not isinstance(d, dict) or key not in d:
+        raise MissingKey(f"{path}: missing key {key!r}{where}")
+    return d[key]
 
 
 def numbers(value, where: str, key: str, shape: tuple = (), finite: bool = True) -> np.ndarray:

@@ -21,10 +21,11 @@ import torch
 
 from ..errors import BadInput, MissingInput, MissingKey
 from ..cameras import Camera
-from .checks import check_intrinsics, check_pose, numbers
+from .checks import check_pose, need_key, numbers
 from .colmap import ColmapModel, read_model
 from .dnerf import output_size
 from .distortion import LensCamera, UndistortCache
+from .lenses import lens_from_camera_json, lens_from_colmap, scale_for
 from .images import read_image, resize
 from .types import Frame, SceneData
 
@@ -49,12 +50,6 @@ def _read_json(path: Path, what: str) -> dict:
     if not isinstance(doc, dict):
         raise BadInput(f"{path}: expected a JSON object, got a {type(doc).__name__}")
     return doc
-
-
-def _need(d: dict, key: str, path: Path, where: str = ""):
-    if not isinstance(d, dict) or key not in d:
-        raise MissingKey(f"{path}: missing key {key!r}{where}")
-    return d[key]
 
 
 def _choice(name: str, value, allowed) -> None:
@@ -87,12 +82,12 @@ def split_ids(dataset: dict, path: Path, mode: str) -> tuple[list[str], list[str
     ids two after those for testing (the HyperNeRF interpolation protocol: test times are unseen).
     """
     _choice("split_mode", mode, SPLIT_MODES)
-    ids = [str(i) for i in _need(dataset, "ids", path)]
+    ids = [str(i) for i in need_key(dataset, "ids", path)]
     if len(set(ids)) != len(ids):
         raise BadInput(f"{path}: 'ids' has duplicates")
     if mode == "interp":
         return ids[::4], ids[2::4]
-    train = [str(i) for i in _need(dataset, "train_ids", path, " (data.split_mode=ids needs it; "
+    train = [str(i) for i in need_key(dataset, "train_ids", path, " (data.split_mode=ids needs it; "
                                    "data.split_mode=interp splits 'ids' instead)")]
     val = [str(i) for i in dataset.get("val_ids", [])]
     unknown = sorted(set(train + val) - set(ids))
@@ -130,7 +125,7 @@ def frame_times(metadata: dict, ids: list[str], path: Path, time_key: str) -> tu
                            "set data.time_key=warp_id to use warp_id for all")
     raw = {}
     for i in ids:
-        v = _need(metadata[i], key, path, f" in entry {i!r} (data.time_key={time_key})")
+        v = need_key(metadata[i], key, path, f" in entry {i!r} (data.time_key={time_key})")
         if not isinstance(v, (int, float)) or v < 0 or int(v) != v:
             raise BadInput(f"{path}: entry {i!r} has {key}={v!r}; expected a non-negative integer")
         raw[i] = int(v)
@@ -138,65 +133,6 @@ def frame_times(metadata: dict, ids: list[str], path: Path, time_key: str) -> tu
     if top == 0:
         raise BadInput(f"{path}: every frame has {key}=0; a dynamic scene needs more than one time")
     return {i: v / top for i, v in raw.items()}, key
-
-
-# ----------------------------------------------------------------------------- cameras
-def lens_from_camera_json(cam: dict, path: Path) -> LensCamera:
-    """The 1x intrinsics of a Nerfies camera file (checked: finite, positive focal lengths, the
-    principal point inside the image_size it gives)."""
-    f = float(numbers(_need(cam, "focal_length", path), path, "focal_length"))
-    pp = list(numbers(_need(cam, "principal_point", path), path, "principal_point", (2,)))
-    size = list(numbers(_need(cam, "image_size", path), path, "image_size", (2,)))
-    if any(v != int(v) or v < 1 for v in size):
-        raise BadInput(f"{path}: image_size={size} must be two whole numbers >= 1 [w, h]")
-    radial = list(numbers(cam.get("radial_distortion", [0.0, 0.0, 0.0]), path, "radial_distortion", (-1,)))
-    if not 1 <= len(radial) <= 3:
-        raise BadInput(f"{path}: radial_distortion must hold k1[, k2[, k3]], got {radial}")
-    radial = (radial + [0.0, 0.0])[:3]
-    tang = list(numbers(cam.get("tangential_distortion", cam.get("tangential", [0.0, 0.0])), path,
-                        "tangential_distortion", (2,)))
-    par = float(numbers(cam.get("pixel_aspect_ratio", 1.0), path, "pixel_aspect_ratio"))
-    skew = float(numbers(cam.get("skew", 0.0), path, "skew"))
-    if f <= 0 or par <= 0:
-        raise BadInput(f"{path}: focal_length and pixel_aspect_ratio must be positive")
-    check_intrinsics(f, f * par, float(pp[0]), float(pp[1]), int(size[0]), int(size[1]), str(path))
-    return LensCamera(fx=f, fy=f * par, cx=float(pp[0]), cy=float(pp[1]), skew=skew,
-                      k=tuple(float(v) for v in radial), p=tuple(float(v) for v in tang),
-                      width=int(size[0]), height=int(size[1]))
-
-
-def lens_from_colmap(model: ColmapModel, image_name: str, folder: Path) -> LensCamera:
-    """The intrinsics COLMAP estimated for one image (at the size COLMAP saw)."""
-    img = next((im for im in model.images.values() if Path(im.name).stem == image_name), None)
-    if img is None:
-        raise MissingKey(f"{folder}: no image named {image_name}.* in the COLMAP model; "
-                       "use data.intrinsics=camera")
-    c = model.cameras[img.camera_id]
-    p = c.params
-    z = 0.0
-    table = {
-        "SIMPLE_PINHOLE": lambda: (p[0], p[0], p[1], p[2], (z, z, z), (z, z)),
-        "PINHOLE": lambda: (p[0], p[1], p[2], p[3], (z, z, z), (z, z)),
-        "SIMPLE_RADIAL": lambda: (p[0], p[0], p[1], p[2], (p[3], z, z), (z, z)),
-        "RADIAL": lambda: (p[0], p[0], p[1], p[2], (p[3], p[4], z), (z, z)),
-        "OPENCV": lambda: (p[0], p[1], p[2], p[3], (p[4], p[5], z), (p[6], p[7])),
-        "FULL_OPENCV": lambda: (p[0], p[1], p[2], p[3], (p[4], p[5], p[8]), (p[6], p[7])),
-    }
-    if c.model not in table or (c.model == "FULL_OPENCV" and np.any(p[9:] != 0)):
-        raise BadInput(f"{folder}: COLMAP camera model {c.model} is not supported; "
-                         "use data.intrinsics=camera")
-    fx, fy, cx, cy, k, tp = table[c.model]()
-    return LensCamera(float(fx), float(fy), float(cx), float(cy), 0.0, tuple(map(float, k)),
-                      tuple(map(float, tp)), c.width, c.height)
-
-
-def scale_for(w1: int, h1: int, w: int, h: int, image_scale: int, img_path: Path, cam_path: Path) -> None:
-    """Raise unless (w, h) is the 1x size divided by image_scale (either rounding)."""
-    ew, eh = w1 / image_scale, h1 / image_scale
-    if abs(w - ew) >= 1.0 or abs(h - eh) >= 1.0:
-        raise BadInput(f"{img_path}: image is {w}x{h}, but {cam_path.name} gives image_size "
-                         f"{w1}x{h1}, so rgb/{image_scale}x should hold {ew:g}x{eh:g} images; "
-                         "check data.image_scale and that the rgb folders are not mixed up")
 
 
 # ----------------------------------------------------------------------------- points
@@ -243,8 +179,8 @@ def _normalization(spath: Path, normalize_scene: bool) -> tuple[np.ndarray, floa
     if not normalize_scene:
         return np.zeros(3), 1.0
     sc = _read_json(spath, "set data.normalize_scene=false to use the raw world frame")
-    center = np.asarray(_need(sc, "center", spath), dtype=np.float64)
-    scale = float(_need(sc, "scale", spath))
+    center = np.asarray(need_key(sc, "center", spath), dtype=np.float64)
+    scale = float(need_key(sc, "scale", spath))
     if center.shape != (3,) or not scale > 0:
         raise BadInput(f"{spath}: center must have 3 values and scale must be positive")
     return center, scale
@@ -310,8 +246,8 @@ class _FrameReader:
     def frame(self, fid: str) -> Frame:
         cpath = self.root / "camera" / f"{fid}.json"
         cam = _read_json(cpath, f"every id needs a camera file (id {fid!r} from {self.dpath.name})")
-        R = numbers(_need(cam, "orientation", cpath), cpath, "orientation", (3, 3), finite=False)
-        pos = numbers(_need(cam, "position", cpath), cpath, "position", (3,), finite=False)
+        R = numbers(need_key(cam, "orientation", cpath), cpath, "orientation", (3, 3), finite=False)
+        pos = numbers(need_key(cam, "position", cpath), cpath, "position", (3,), finite=False)
         check_pose(R, pos, f"{cpath} (id {fid!r})", "camera (orientation, position)")
         lens1 = lens_from_camera_json(cam, cpath)
         ip = self._image_path(fid)

@@ -16,8 +16,7 @@ from typing import Any
 
 from ..errors import BadInput, MissingInput, MissingKey
 from ..io.files import make_folder, read_json, read_yaml, write_atomic
-from ..config import RESERVED_KEYS
-from ..plugins import registered_plugins
+from ..plugins import RESERVED_KEYS, registered_plugins
 from .evaluate import commit_stamp
 
 METRICS = ("psnr", "ssim", "lpips", "fps", "num_gaussians", "train_seconds")

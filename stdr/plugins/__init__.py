@@ -144,23 +144,19 @@ class PluginSpec:
     row_tags: Callable[[dict], list[str]] = field(default=lambda pcfg: [], compare=False)
 
 
-#: the config's own sections and stdr-train's groups (names a plug-in may not take); stdr.config
-#: sets it when it loads (set_reserved_keys), so this module never imports the config
-_RESERVED: set[str] = set()
+#: the names a plug-in may not take: the run config's own sections (stdr.config.Config), stdr-eval's
+#: keys (stdr.config.EvalAppConfig) and the config groups of stdr-train (tests/test_plugin_registry.py
+#: checks that it covers both schemas)
+RESERVED_KEYS = frozenset({
+    "baseline", "budget", "compact", "data", "densify", "device", "eval", "model", "name", "optim", "pack", "prune",
+    "render", "schedule", "seed", "train",
+    "experiment", "experiment_data", "budget_baseline", "stress", "sweep", "hydra", "defaults",
+    "runs", "split", "out", "reevaluate", "remeasure", "unfinished", "allow_mixed", "base_config", "base_eval"})
 #: every plug-in by name (stdr.registries.Registry; the entry-point group `stdr.plugins`); the
 #: built-in ones are registered by importing stdr.plugins.stdr
 PLUGINS: Registry[PluginSpec] = Registry(
     "plug-in", "plug-in", "stdr.plugins", "stdr.plugins.register_plugin", builtin=("stdr.plugins.stdr",),
     owner=lambda spec: spec.plugin)
-
-
-def set_reserved_keys(keys) -> None:
-    """The names no plug-in may take (stdr.config's RESERVED_KEYS). A plug-in registered before
-    they were known, under one of them, is an error now."""
-    _RESERVED.update(keys)
-    clash = sorted(set(PLUGINS) & _RESERVED)
-    if clash:
-        raise ValueError(f"plug-in(s) {clash} registered under a config section's name; choose another name")
 
 
 def register_plugin(name: str, plugin: type, config: type, label: Optional[str] = None,
@@ -174,7 +170,7 @@ def register_plugin(name: str, plugin: type, config: type, label: Optional[str] 
     if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
         raise ValueError(f"register_plugin({name!r}): the name must be lower-case letters, digits and '_' "
                          "(it is a config key and an experiment suffix)")
-    if name in _RESERVED:
+    if name in RESERVED_KEYS:
         raise ValueError(f"register_plugin({name!r}): {name!r} is a config section of its own; choose another name")
     if not (isinstance(plugin, type) and issubclass(plugin, Plugin)):
         raise TypeError(f"register_plugin({name!r}): plugin must be a Plugin subclass, got {plugin!r}")

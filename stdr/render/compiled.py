@@ -4,7 +4,7 @@ rasterizer with its hand-written backward, the contribution score, the CUDA binn
 `stdr/csrc/project_math.h`). The torch twins are `reference.py`, `projection.py` and `sh.py`, which
 the tests pin these to. The extension itself (sources, build, loading, the verified-device
 switch) is `stdr.extension`; its other families are bound beside their own twins (HexPlane:
-stdr.baselines.hexplane, the training loss: stdr.metrics, the guard's check: stdr.train.guard).
+stdr.baselines.fourdgs, the training loss: stdr.metrics, the guard's check: stdr.train.guard).
 
 The extension sorts the visible Gaussians by depth (a stable radix sort), packs one row per
 visible Gaussian, [mx, my, a, b, c, o, f_0..f_{F-1}], bins Gaussian-tile pairs with an exact

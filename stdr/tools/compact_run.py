@@ -23,7 +23,8 @@ import copy
 import shutil
 from pathlib import Path
 from typing import Optional
-from ..config import CONFIG_DIR, resolve_schedule, load_config
+from ..config import CONFIG_DIR
+from ..store import resolve_schedule, load_config
 from ..compact.pack import spec_of_config, pack
 from ..compression.hooks import check_plugin_spec, fallback_of
 from ..plugins import enabled_plugins, plugin_node

@@ -2,7 +2,7 @@
 
     stdr-tool experiments [--data dnerf] [--baseline scgs] [--plugin stdr|plain] [--json]
 
-Experiments are not files: `<data>_<baseline>[_<plug-in>]` is made in stdr/config.py
+Experiments are not files: `<data>_<baseline>[_<plug-in>]` is made in stdr/store.py
 (`derived_experiments`) for every data option, registered baseline and registered plug-in, so a
 baseline or plug-in of your own gets its experiments without a file. A YAML file
 stdr/configs/experiment/<name>.yaml defines an experiment of its own, or replaces a derived one of

@@ -32,7 +32,7 @@ from typing import Any, Iterator, Optional
 
 from omegaconf import OmegaConf
 
-from ..config import CHANGES_KEY, load_config
+from ..store import CHANGES_KEY, load_config
 from ..errors import ConfigError
 from ..io.files import read_yaml
 

@@ -7,7 +7,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from ..compact.pack import check_pack_config, pack, summary
-from ..config import CHANGES_KEY
+from ..store import CHANGES_KEY
 from ..io.checkpoint import CKPT, load_checkpoint
 from ..io.files import leftover_temporaries, write_atomic
 from ..io.files import run_lock

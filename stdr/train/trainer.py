@@ -9,28 +9,19 @@ import time
 from pathlib import Path
 from typing import Any, Optional
 
-import numpy as np
 import torch
 from torch import Tensor
 
-from ..data.load import load_scene
-from ..device import resolve_device
-from ..metrics import fused_loss, image_loss, image_loss_compiled
-from ..model import build_model, check_init_fits, initial_points
-from ..render.compiled import camera_values
-from ..gaussians import scene_extent
 from ..io.ply import save_ply
 from ..densify.prune import prune_event
-from ..densify.strategy import build_strategy
-from .optim import adam_step, make_optimizers, net_groups, update_lrs, uses_fused_adam
+from .optim import adam_step, make_optimizers, update_lrs
 from ..io.checkpoint import load_checkpoint
 from ..io.files import write_atomic, writing
-from ..validate import check_guard_config
-from .guard import Guard, monitor_split, resolve_compiled_check, resolve_sync_free
 from .evaluations import Evaluations
 from .resume import preemption
 from .timing import Profiler
-from .state import PAYLOAD_KEYS, CameraSampler, RunLog, RunState
+from .build import build_run
+from .state import PAYLOAD_KEYS, RunLog
 
 def _rewind(bar, step: int) -> None:
     """The progress bar back to `step` after a recovery restored an earlier state."""
@@ -47,58 +38,10 @@ class Trainer(Evaluations):
     def __init__(self, cfg, run_dir: str | Path, splits=("train",), data_base: Optional[str] = None):
         self.cfg = cfg
         self.run_dir = Path(run_dir)
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        if cfg.train.threads > 0:
-            torch.set_num_threads(cfg.train.threads)
-        self.device = resolve_device(cfg.device)
-        self.fused_adam = uses_fused_adam(cfg, self.device)  # optim.fused_adam where torch has the kernel
-        torch.manual_seed(cfg.seed)  # also seeds every CUDA device
-        np.random.seed(cfg.seed)
-        if cfg.train.eval_every > 0 or cfg.train.eval_at_warmup_end:  # evaluations during training need it
-            splits = tuple(dict.fromkeys((*splits, cfg.data.eval_split)))
-        check_guard_config(cfg.train.guard)
-        # the divergence detector (periodic evaluations only) reads its own split, never test's
-        self.monitor = (monitor_split(cfg.train.guard, cfg.data.format)
-                        if cfg.train.guard.enabled and cfg.train.eval_every > 0 else None)
-        if self.monitor is not None:
-            splits = tuple(dict.fromkeys((*splits, self.monitor)))
-        self.scene = load_scene(cfg.data, splits, base=data_base, seed=cfg.seed).to(self.device)  # images moved once
-        for f in self.scene.frames("train"):  # each camera's host copy of its numbers, once (no sync in a step)
-            camera_values(f.camera)
-        has_train = "train" in self.scene.splits
-        train_times = self.scene.train_times() if has_train else None
-        check_init_fits(cfg.model, self.device)  # model.init_num that cannot fit: named, not an allocator's traceback
-        pts, colors = initial_points(cfg.model, self.scene.init_points, self.scene.init_colors, cfg.seed,
-                                     where=str(self.scene.root))
-        background = torch.tensor(self.scene.background, dtype=torch.float32)
-        model = build_model(cfg, train_times, background, self.device, pts, colors)
-        self.strategy = build_strategy(cfg.densify)  # densify=<name> (stdr.densify.strategy)
-        self.cull_train = model.cull_mode() == "train"
-        if self.cull_train and self.strategy.count_invisible:
-            raise ValueError("render.cull=train renders only the rows that can reach opacity 1/255, so "
-                             "densification cannot count the others as seen: set densify.count_invisible=false "
-                             "as well, or render.cull=eval to cull outside training only")
-        extent = scene_extent(self.scene.camera_centers("train")) if has_train else 1.0
-        white = all(float(c) >= 1.0 for c in self.scene.background)
-        guard = Guard(peak_gaussians=len(pts), monitor=self.monitor, checks=bool(cfg.train.guard.enabled),
-                      sync_free=resolve_sync_free(cfg.train.guard, self.device, self.fused_adam),
-                      compiled=resolve_compiled_check(cfg.train.guard, self.device), cfg=cfg.train.guard)
-        # the photometric loss as one compiled pass (optim.fused_loss) or its torch twin
-        self.fused_loss = fused_loss(cfg.optim.fused_loss, self.device)
-        self.image_loss = image_loss_compiled if self.fused_loss else image_loss
-        # the run's state (stdr.train.state): what a checkpoint holds, what the guard and the evaluations see
-        self.state = RunState(model=model, run_dir=self.run_dir, guard=guard,
-                              strategy_state=self.strategy.initialize_state(len(pts), extent, white_background=white,
-                                                                            device=self.device),
-                              sampler=CameraSampler(len(self.scene.splits.get("train", [])), cfg.seed),
-                              train_threads=torch.get_num_threads(),
-                              train_loss="compiled" if self.fused_loss else "torch",
-                              make_optimizers=lambda: make_optimizers(cfg, self.state.model, self.fused_adam))
-        self.state.optimizers = make_optimizers(cfg, model, self.fused_adam)
-        self.net_groups = net_groups(model)
-        self.state.net_opt = torch.optim.Adam([{k: v for k, v in g.items() if k == "params" or k == "name"}
-                                               for g in self.net_groups], lr=cfg.baseline.lr_init, eps=1e-15,
-                                              fused=self.fused_adam)
+        parts = build_run(cfg, self.run_dir, splits, data_base)
+        self.device, self.fused_adam, self.monitor, self.scene = parts.device, parts.fused_adam, parts.monitor, parts.scene
+        self.strategy, self.cull_train, self.state, self.net_groups = parts.strategy, parts.cull_train, parts.state, parts.net_groups
+        self.fused_loss, self.image_loss = parts.fused_loss, parts.image_loss
         self.log = RunLog(self.run_dir)  # TensorBoard (run_dir/tb), opened by the loop or the guard
         self.profile = Profiler()
 

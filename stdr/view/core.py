@@ -19,7 +19,7 @@ from ..cameras import Camera
 from ..data.colmap import qvec_to_rotmat
 from ..data.types import Frame
 from ..data.load import load_scene
-from ..config import load_config
+from ..store import load_config
 from ..device import resolve_device
 from ..model import model_from_checkpoint
 from ..io.checkpoint import load_checkpoint, CKPT

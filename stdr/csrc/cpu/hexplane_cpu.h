@@ -1,5 +1,5 @@
 // The HexPlane family of the CPU extension (ops_cpu.cpp binds it): 4DGaussians' six-plane
-// feature sampling (math in ../hexplane_math.h, torch twin stdr/deform/hexplane.py) and the planes'
+// feature sampling (math in ../hexplane_math.h, torch twin stdr/baselines/fourdgs.py) and the planes'
 // gradients, deterministic on any thread count.
 #pragma once
 

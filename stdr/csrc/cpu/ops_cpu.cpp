@@ -3,7 +3,7 @@
 //
 //   rasterizer (raster_cpu.h)   forward, backward, score, bin_pairs_split, forward_bounded, project_forward/backward
 //                               twins: stdr/render/reference.py, projection.py, sh.py
-//   HexPlane (hexplane_cpu.h)   hexplane_forward/backward          twin: stdr/deform/hexplane.py
+//   HexPlane (hexplane_cpu.h)   hexplane_forward/backward          twin: stdr/baselines/fourdgs.py
 //   training loss (loss_cpu.h)  image_loss_forward/backward        twin: stdr/metrics.py image_loss
 //   guard (guard_cpu.h)         nonfinite_flags, guard_update      twin: stdr/train/guard.py
 //

@@ -1,5 +1,5 @@
 // The HexPlane family of the CUDA extension's host side (ops_cuda.cpp binds it; twin
-// stdr/deform/hexplane.py); the kernels live in kernels.cu.
+// stdr/baselines/fourdgs.py); the kernels live in kernels.cu.
 #pragma once
 
 #include <torch/extension.h>

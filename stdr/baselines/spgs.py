@@ -23,7 +23,7 @@ from ..ops import rows_of, scatter_mean, take_rows
 from ..knn import knn
 from .base import (BaselineConfig, Deformation, Deltas, apply_post_activation, flag_value, mlp_kwargs, set_flag,
                    stage_start)
-from .deform3dgs import DeformMLP
+from .deform import DeformMLP
 from .registry import register_baseline
 from ..geometry import farthest_point_sampling, quat_multiply, so3_exp, so3_exp_quat
 

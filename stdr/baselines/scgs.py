@@ -28,7 +28,7 @@ from ..ops import RowView, rows_of, scatter_mean, sigmoid, take_rows
 from ..knn import knn
 from ..syncs import host_only
 from .base import BaselineConfig, Deformation, Deltas, flag_value, mlp_kwargs, set_flag, stage_start
-from .deform3dgs import DeformMLP
+from .deform import DeformMLP
 from .registry import register_baseline
 from ..geometry import farthest_point_sampling, quat_to_rotmat
 from ..gaussians import Gaussians

@@ -191,9 +191,9 @@ class _HexPlane(torch.autograd.Function):
 def hexplane_compiled(coords: Tensor, planes: list[Tensor], kind: str = "cpu") -> Tensor:
     """A HexPlane field's features in one compiled pass, forward and backward (the planes'
     gradients; the coordinates get none): [N, M*C] = for each scale m (6 planes each, in the
-    order of `stdr.baselines.hexplane.PAIRS`), the product over its planes of the bilinear samples
+    order of `stdr.baselines.fourdgs.PAIRS`), the product over its planes of the bilinear samples
     at the coordinate pairs, zero outside the planes (grid_sample, align_corners=True). The
-    torch twin is `stdr.baselines.hexplane.HexPlaneField.features_torch`; tests/test_compiled.py
+    torch twin is `stdr.baselines.fourdgs.HexPlaneField.features_torch`; tests/test_compiled.py
     pins the two together. The CPU backward is deterministic; the CUDA one adds atomically.
 
     coords [N, 4] in [-1, 1] (x, y, z, t), planes 6*M tensors [C, H, W] (one C)."""
