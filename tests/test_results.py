@@ -129,3 +129,24 @@ def test_headline_runs_of_the_former_stdr_default_are_its_stdr_rows():
     assert results._headline_label("deform+STDR w/o spatial_reg") == "deform+STDR w/o spatial_reg"
     assert results._headline_label("deform") == "deform"
     assert "mask_after_freeze=true" in results.GATED_NOTE
+
+
+def test_the_rerun_with_todays_defaults_replaces_the_former_table_once_one_seed_is_complete(tmp_path, monkeypatch):
+    """headline(): until the rerun (RERUN) has every method on every scene at one seed, the former
+    rerun's table is shown and says how many of the new runs exist; then the new one is shown."""
+    r = _results()
+    folders = {r.RERUN: tmp_path / "rerun", "runs": tmp_path / "former"}
+    monkeypatch.setattr(r, "records_dir", lambda study, sub: folders[sub])
+    cells = [(b, stdr, sc) for b in r.BASELINES for stdr in (False, True) for sc in r.HEADLINE_SCENES]
+    for b, stdr, sc in cells:
+        _record(folders["runs"], b, stdr, sc, 0, 20.0 + stdr)
+    _record(folders[r.RERUN], "deform", True, r.HEADLINE_SCENES[0], 0, 30.0)
+    means, prov = r.headline()
+    assert means["deform+STDR"]["psnr"] == pytest.approx(21.0)
+    assert f"has 1 of its {r.HEADLINE_PLANNED} runs, the rest queued" in prov["runs"]
+    for b, stdr, sc in cells[1:]:
+        if (b, stdr, sc) != ("deform", True, r.HEADLINE_SCENES[0]):
+            _record(folders[r.RERUN], b, stdr, sc, 0, 30.0 + stdr)
+    _record(folders[r.RERUN], "deform", False, r.HEADLINE_SCENES[0], 0, 30.0)
+    means, prov = r.headline()
+    assert means["deform+STDR"]["psnr"] == pytest.approx((30.0 + 3 * 31.0) / 4) and "the rest queued" not in prov["runs"]
