@@ -9,10 +9,10 @@ functions below, which give the defaults for a method that implements none.
   (SP-GS's association logits at each Gaussian's K nearest superpoints). Default: none.
 * `CompactPlugin.compact_form(params, state, step, derive)` (a plug-in): its part of the file, a
   `CompactForm`. Default: its state as it is.
-* `CompactPlugin.check_compact_spec(pcfg, spec)` (a plug-in class): before training, raise a
+* `check_compact_spec(pcfg, spec)` (a classmethod of a plug-in, read by `check_plugin_spec`): before training, raise a
   ValueError when the spec asks this plug-in for a form its config cannot give, so a run fails at
   its start and not after training. Default: nothing to check.
-* `CompactPlugin.compact_fallback` (a plug-in class): {key: codec} for each derivable table, the
+* `compact_fallback` (a class attribute of a plug-in, read by `fallback_of`): {key: codec} for each derivable table, the
   codec used when the run's config does not allow the `derived` form (`stdr-tool compact` applies
   the compact preset to older runs that way). Default: none.
 """
