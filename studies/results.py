@@ -111,8 +111,9 @@ def headline_from_records(runs_dir: Path | None = None, baselines=BASELINES, sce
         code = r["metrics"].get("code", {})
         c = commit_stamp(code) if code.get("commit") else "not recorded"
         commits[c] = commits.get(c, 0) + 1
-    prov = {"runs": f"{len(use)} (seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))} complete; {len(runs)} of the "
-                    f"{HEADLINE_PLANNED} planned recorded so far)",
+    left = (f"{len(runs)} of the {HEADLINE_PLANNED} planned recorded, the rest queued" if len(runs) < HEADLINE_PLANNED
+            else f"all {HEADLINE_PLANNED} planned recorded")
+    prov = {"runs": f"{len(use)} (seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))} complete; {left})",
             "code": ", ".join(f"{k} ({v} runs)" for k, v in sorted(commits.items())),
             "machine": ", ".join(f"{k} ({v} runs)" for k, v in sorted(machines.items())),
             "command": "bash scripts/headline_table.sh DNERF (a folder of the four scenes), in the tree of the records' commit; today "

@@ -10,6 +10,7 @@ import pytest
 
 from helpers import load_script
 from stdr.testing import TINY_SCENE
+from stdr.tools import queue_tool
 from stdr.tools import runqueue as qm
 
 
@@ -82,7 +83,7 @@ def test_a_failing_run_is_marked_with_its_log_and_the_others_go_on(tmp_path):
 def test_plan_never_overwrites_a_queue_and_ids_are_unique(tmp_path):
     (tmp_path / "q.json").write_text("{}")
     with pytest.raises(SystemExit, match="exists"):
-        qm.main(["plan", str(tmp_path / "q.json"), "--experiments", "embedded_deform", "--est-seconds", "1"])
+        queue_tool.main(["plan", str(tmp_path / "q.json"), "--experiments", "embedded_deform", "--est-seconds", "1"])
     with pytest.raises(ValueError, match="share an id"):
         qm.plan(["embedded_deform"], [tmp_path / "a" / "x", tmp_path / "b" / "x"], [0], [], 1)
 
@@ -97,7 +98,7 @@ def test_variants_are_runs_of_their_own_side_by_side(tmp_path):
 
 
 def test_plan_from_the_command_line_takes_the_overrides_after_the_dashes(tmp_path, capsys):
-    qm.main(["plan", str(tmp_path / "q.json"), "--experiments", "dnerf_deform", "--scenes", str(tmp_path / "s1"),
+    queue_tool.main(["plan", str(tmp_path / "q.json"), "--experiments", "dnerf_deform", "--scenes", str(tmp_path / "s1"),
              "--seeds", "0", "1", "--est-seconds", "300", "--variants", "a:seed=0", "--", "budget=gpu", "device=cuda"])
     q = qm.Queue.load(tmp_path / "q.json")
     assert len(q.runs) == 2 and all(r.overrides[-3:-1] == ["budget=gpu", "device=cuda"] for r in q.runs)
@@ -191,7 +192,7 @@ def test_one_call_at_a_time_on_a_work_folder(tmp_path):
             qm.execute(q, work, 1, 60, log=lambda m: None)
         q.save(tmp_path / "q.json")
         with pytest.raises(SystemExit, match="another queue call is running"):
-            qm.main(["run", str(tmp_path / "q.json"), "--work", str(work), "--out", str(tmp_path / "out")])
+            queue_tool.main(["run", str(tmp_path / "q.json"), "--work", str(work), "--out", str(tmp_path / "out")])
     assert q.runs[0].state == "pending" and q.runs[0].tries == 0
 
 
@@ -293,3 +294,66 @@ def test_stopping_the_queue_stops_its_runs(tmp_path):
     assert proc.wait(timeout=60) == 128 + signal.SIGTERM
     time.sleep(1)
     assert not alive()
+
+
+def test_the_calibration_chooses_the_level_that_finishes_the_most_runs_in_the_time_left():
+    """Made-up slices: a run alone takes 100 s; 4 at once make each 2x slower, 8 at once 5x, 16 at
+    once 12.5x. With the 10 % margin a run takes 110, 220, 550 and 1375 s. In 600 s: 1 at once
+    finishes 5 runs, 4 at once 8 (two waves), 8 at once 8 (one wave), 16 at once none. A tie goes
+    to the larger level."""
+    from stdr.tools.concurrency import choose
+
+    def levels(**extra):
+        rates = {1: 10.0, 4: 5.0, 8: 2.0, 16: 0.8}
+        return [{"n": n, "per_run_steps_per_s": r, "steps_per_s": r * n, "failed": 0, **extra.get(str(n), {})}
+                for n, r in rates.items()]
+
+    lv = levels()
+    pick = choose(lv, left_s=600, alone_s=100, pending=32)
+    assert pick["chosen"] == 8 and pick["est_run_s"] == pytest.approx(550)
+    assert [x["runs_in_time"] for x in lv] == [5, 8, 8, 0]
+    assert [x["slowdown"] for x in lv] == pytest.approx([1.0, 2.0, 5.0, 12.5])
+    # fewer runs pending than the waves would take: 1 at once runs them all as well as 8 at once would
+    assert choose(levels(), left_s=600, alone_s=100, pending=3)["chosen"] == 8
+    # 300 s left: only 1 at once (2 waves) and 4 at once (1 wave) finish anything; 4 > 2
+    assert choose(levels(), left_s=300, alone_s=100, pending=32)["chosen"] == 4
+    # nothing fits: no chunk, and the record says why
+    none = choose(levels(), left_s=100, alone_s=100, pending=32)
+    assert none["chosen"] is None and "no level finishes a run in the 100 s left" in none["why"]
+    # a level where a copy failed (e.g. out of memory) is never chosen, however fast the others were
+    failed = levels(**{"8": {"failed": 1}})
+    assert choose(failed, left_s=600, alone_s=100, pending=32)["chosen"] == 4 and failed[2]["runs_in_time"] == 0
+    with pytest.raises(ValueError, match="needs level 1"):
+        choose([lv[1]], left_s=600, alone_s=100, pending=32)
+
+
+def test_a_calibrated_call_measures_each_level_then_runs_the_chunk_at_the_chosen_one(tmp_path, capsys):
+    """`queue run --calibrate 1 2`: copies of the next run train at each level in WORK/calibrate
+    (gone after), their steps/s and the choice go into the call's entry of the queue file, and the
+    chunk runs at the chosen level. A run alone is said to take 2 s, so both levels finish both
+    runs in the budget and the tie goes to 2 at once."""
+    q = qm.plan(["embedded_deform"], [], [0, 1], _toy(tmp_path), est_s=5)
+    q.save(tmp_path / "q.json")
+    base = ["run", str(tmp_path / "q.json"), "--work", str(tmp_path / "work"), "--out", str(tmp_path / "out")]
+    with pytest.raises(SystemExit, match="not both"):
+        queue_tool.main([*base, "--concurrent", "4", "--calibrate", "1", "2"])
+    with pytest.raises(SystemExit, match="1 among them"):
+        queue_tool.main([*base, "--calibrate", "2", "4"])
+    assert not (tmp_path / "work" / "calibrate").exists() and qm.Queue.load(tmp_path / "q.json").calls == []
+    # a long slice: the copies end at their 20 steps anyway, and a first run that builds the extension still fits
+    queue_tool.main([*base, "--calibrate", "1", "2", "--slice", "300", "--alone-seconds", "2", "--budget", "900",
+                     "--cores", "2"])
+    state = qm.Queue.load(tmp_path / "out" / "queue.json")
+    assert state.counts()["done"] == 2 and [r.est_s for r in state.runs] == [5, 5]  # the plan's estimates kept
+    call = state.calls[-1]
+    cal = call["calibration"]
+    assert [(lv["n"], lv["copies"], lv["failed"]) for lv in cal["levels"]] == [(1, 1, 0), (2, 2, 0)]
+    assert all(lv["steps_per_s"] > 0 for lv in cal["levels"]) and cal["levels"][0]["slowdown"] == 1.0
+    assert cal["chosen"] == 2 and call["concurrent"] == 2 and call["threads_each"] == 1 and sorted(call["finished"]) == \
+        sorted(r.id for r in q.runs)
+    assert call["wall_s"] >= call["chunk_wall_s"] + cal["wall_s"] - 1
+    assert not (tmp_path / "work" / "calibrate").exists()
+    capsys.readouterr()
+    queue_tool.main(["status", str(tmp_path / "out" / "queue.json")])
+    out = capsys.readouterr().out
+    assert "calibration   2 at once:" in out and "chosen: 2 (2 runs in the" in out and "chunk: 2 runs of one try" in out

@@ -149,4 +149,5 @@ def test_the_rerun_with_todays_defaults_replaces_the_former_table_once_one_seed_
             _record(folders[r.RERUN], b, stdr, sc, 0, 30.0 + stdr)
     _record(folders[r.RERUN], "deform", False, r.HEADLINE_SCENES[0], 0, 30.0)
     means, prov = r.headline()
-    assert means["deform+STDR"]["psnr"] == pytest.approx((30.0 + 3 * 31.0) / 4) and "the rest queued" not in prov["runs"]
+    assert means["deform+STDR"]["psnr"] == pytest.approx((30.0 + 3 * 31.0) / 4) and "replaces this table" not in prov["runs"]
+    assert prov["runs"] == f"32 (seed 0 complete; 32 of the {r.HEADLINE_PLANNED} planned recorded, the rest queued)"

@@ -13,6 +13,6 @@ TOOLS = {
     "variants": "variants",                  # variants of one method side by side (plain, +STDR, +cull, ...)
     "compact": "compact_run",                # prune a trained run by contribution, fine-tune, save as a new run
     "pack": "pack_file",                     # a trained run's compact model file (model.stdrc) and its cost
-    "queue": "runqueue",                     # a resumable queue of runs, several at once, time-boxed calls
+    "queue": "queue_tool",                   # a resumable queue of runs, several at once, time-boxed calls
     "experiments": "experiments",            # every experiment stdr-train accepts, with what it composes
 }

@@ -1,14 +1,6 @@
 """A resumable queue of training runs, several at once, in time-boxed calls (a GPU rented by the hour,
-a Slurm job with a wall-clock limit).
-
-    # plan a grid: every experiment x scene x seed, with overrides for all (a queue file)
-    stdr-tool queue plan QUEUE.json --experiments dnerf_deform dnerf_deform_stdr --scenes DIR/jumpingjacks ... \
-        --seeds 0 --est-seconds 90 -- budget=gpu device=cuda
-    # one call: at most N runs at a time, none started that its estimate says would not end before
-    # --budget seconds; every finished run's small files packed into OUT/runs.tgz, the queue's state
-    # into OUT/queue.json (carry it back as QUEUE.json for the next call)
-    stdr-tool queue run QUEUE.json --work WORK --out OUT --concurrent 8 --budget 540
-    stdr-tool queue status QUEUE.json
+a Slurm job with a wall-clock limit): the library behind `stdr-tool queue` (stdr.tools.queue_tool,
+its command line) and every study's runs.
 
 A call is one Hydra multirun of `stdr-train` (`hydra/sweeper=stdr_queue` reads the pending runs
 from the queue file; `hydra/launcher=joblib` runs N at once on this machine; `-- hydra/launcher=slurm ...`
@@ -25,7 +17,6 @@ at least 1).
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
 import fcntl
 import io
@@ -38,7 +29,7 @@ import sys
 import tarfile
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 FILES = ("metrics.json", "config.yaml", "train_profile.json")
@@ -183,13 +174,14 @@ def _stop(proc: subprocess.Popen) -> None:
 
 
 def execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, cores: int | None = None,
-            launcher=(), command=None, grace_s: float = 30.0, log=print) -> dict:
+            launcher=(), command=None, grace_s: float = 30.0, log=print, est_s: float | None = None) -> dict:
     """Run the pending runs as one sweep on Hydra's launcher, at most `concurrent` at a time. Every
     job gets the call's deadline: a run stops there with a checkpoint and stays pending (it resumes
     where its folder is kept), and a run whose estimate does not fit before it is not started. The
     sweep is killed `grace_s` after the deadline. budget_s None: no deadline. Books each run (done:
     metrics.json; failed: a line in WORK/failures.jsonl; else pending) and returns this call's
-    record (also in q.calls). One call at a time per WORK (QueueBusy)."""
+    record (also in q.calls). One call at a time per WORK (QueueBusy). est_s: every run's estimate
+    for this call's start-by check instead of its own (a calibrated one, stdr.tools.concurrency)."""
     if concurrent < 1:
         raise ValueError(f"--concurrent must be at least 1, got {concurrent}")
     work = Path(work).resolve()
@@ -198,7 +190,7 @@ def execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, cores
     prev = signal.signal(signal.SIGTERM, _exit_on_term) if main else None  # SIGTERM stops the sweep too
     try:
         with work_lock(work):
-            return _execute(q, work, concurrent, budget_s, cores, launcher, command, grace_s, log)
+            return _execute(q, work, concurrent, budget_s, cores, launcher, command, grace_s, log, est_s)
     finally:
         if main:
             signal.signal(signal.SIGTERM, prev)
@@ -209,7 +201,7 @@ def _exit_on_term(signum, frame):
 
 
 def _execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, cores, launcher, command, grace_s,
-             log) -> dict:
+             log, est_s) -> dict:
     t0 = time.time()
     deadline = None if budget_s is None else t0 + budget_s
     threads = max(1, (cores or os.cpu_count() or 1) // concurrent)
@@ -221,7 +213,8 @@ def _execute(q: Queue, work: Path, concurrent: int, budget_s: float | None, core
     offset = fails.stat().st_size if fails.is_file() else 0
     rc = 0
     if batch:
-        q.save(work / "queue_call.json")  # what the sweeper reads
+        call = q if est_s is None else Queue([replace(r, est_s=est_s) for r in q.runs])
+        call.save(work / "queue_call.json")  # what the sweeper reads
         cmd = sweep_command(work / "queue_call.json", work, concurrent, threads, deadline, launcher, command)
         with open(work / "queue.log", "a") as logf:
             logf.write(f"$ {shlex.join(cmd)}\n")
@@ -307,68 +300,3 @@ def pack(q: Queue, work: Path, out: Path) -> Path:
     if (work / "queue.log").is_file():
         (out / "queue_log_tail.txt").write_bytes(_tail(work / "queue.log", 200))
     return out / "runs.tgz"
-
-
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(prog="stdr-tool queue", description=__doc__.split("\n")[0])
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    p = sub.add_parser("plan", help="a queue file of experiment x scene x seed runs")
-    p.add_argument("queue", type=Path)
-    p.add_argument("--experiments", nargs="+", required=True)
-    p.add_argument("--scenes", nargs="*", default=[], help="scene folders (none: the experiments' own data)")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0])
-    p.add_argument("--est-seconds", type=float, required=True, help="a run's expected wall seconds (concurrent)")
-    p.add_argument("--variants", nargs="*", default=[], help="LABEL:KEY=V,KEY=V ... each a run of its own")
-    p.add_argument("--order", choices=("scene", "experiment"), default="scene",
-                   help="scene: the methods of one scene next to each other; experiment: each experiment on every "
-                   "scene before the next")
-    p.epilog = "After --: the overrides every run gets (e.g. -- budget=gpu device=cuda)."
-    r = sub.add_parser("run", help="run pending runs until the budget; pack the results")
-    r.add_argument("queue", type=Path)
-    r.add_argument("--work", type=Path, required=True)
-    r.add_argument("--out", type=Path, required=True)
-    r.add_argument("--concurrent", type=int, default=1)
-    r.add_argument("--budget", type=float, default=540.0, help="seconds for this call")
-    r.add_argument("--cores", type=int, default=None, help="CPU cores to split between the runs (default: all)")
-    r.add_argument("--command", default=None, help="what each run executes instead of `python -m stdr.cli.train`, "
-                   "e.g. 'python scripts/idle_run.py --out {run_dir}/load.json -- CHECKOUT/scripts/run.sh stdr-train'")
-    r.epilog = "After --: Hydra overrides for the sweep (e.g. -- hydra/launcher=slurm hydra.launcher.partition=gpu)."
-    s = sub.add_parser("status", help="the queue's counts and runs")
-    s.add_argument("queue", type=Path)
-    argv = list(sys.argv[1:] if argv is None else argv)
-    overrides = argv[argv.index("--") + 1:] if "--" in argv else []
-    args = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
-    args.overrides = overrides
-    if args.cmd == "plan":
-        if args.queue.exists():
-            raise SystemExit(f"stdr-tool queue: {args.queue} exists; a plan never overwrites a queue's state")
-        q = plan(args.experiments, args.scenes, args.seeds, args.overrides, args.est_seconds,
-                 [parse_variant(v) for v in args.variants], args.order)
-        q.save(args.queue)
-        print(f"[queue] {args.queue}: {len(q.runs)} runs planned")
-    elif args.cmd == "run":
-        q = Queue.load(args.queue)
-        try:
-            rec = execute(q, args.work, args.concurrent, args.budget, args.cores, launcher=args.overrides,
-                          command=shlex.split(args.command) if args.command else None)
-        except QueueBusy as e:
-            raise SystemExit(f"stdr-tool queue: {e}") from None
-        q.save(args.queue)
-        args.out.mkdir(parents=True, exist_ok=True)
-        q.save(args.out / "queue.json")
-        pack(q, args.work, args.out)
-        if rec["sweep_exit"] != 0:
-            tail = (args.work / "queue.log").read_text(errors="replace").splitlines()[-15:]
-            print("\n".join(["[queue] the sweep itself failed (exit {}); the end of {}:".format(
-                rec["sweep_exit"], args.work / "queue.log"), *tail]), file=sys.stderr)
-        print(f"[queue] call done in {rec['wall_s']} s: {len(rec['finished'])} finished, {len(rec['failed'])} failed; "
-              f"{q.counts()}; results in {args.out / 'runs.tgz'}, state in {args.out / 'queue.json'}")
-    else:
-        q = Queue.load(args.queue)
-        print(json.dumps(q.counts()))
-        for r in q.runs:
-            print(f"{r.state:8s} {r.id}  tries {r.tries}  {r.seconds:.0f} s  {r.error}")
-
-
-if __name__ == "__main__":
-    main()
