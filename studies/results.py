@@ -194,6 +194,9 @@ def headline():
     the former rerun's table, which says how far the new one has come."""
     means, prov = headline_from_records(records_dir("dnerf_headline_cpu", RERUN))
     if means is not None:
+        prov["command"] = (f"python studies/headline.py DNERF --code <a worktree at {RERUN_CODE}> (DNERF: a folder of the four "
+                           "scenes; today python -m studies.headline, research/measurements/dnerf_headline_cpu/README.md)")
+        prov["source"] = f"{RERUN}/ in research/measurements/dnerf_headline_cpu/records.tar.xz"
         return means, prov
     recorded = prov
     means, prov = headline_from_records()
@@ -274,17 +277,19 @@ def unseen():
     """The check on the D-NeRF scenes the tests do not use: a row per baseline (pairs, mean Δ PSNR,
     Δ per pair by scene), from pairs.json as reported."""
     d = _read_json(M / "unseen_scenes_check" / "pairs.json")
-    rows = ["| baseline | pairs | seeds | mean Δ PSNR | Δ per pair |", "|---|---|---|---|---|"]
+    rows = ["| baseline | pairs | seeds | code | mean Δ PSNR | Δ per pair |", "|---|---|---|---|---|---|"]
     n, below = 0, 0
     for b in d["by_baseline"]:
         deltas = [x for xs in b["pairs"].values() for x in xs]
         n += len(deltas)
         below += sum(math.copysign(1, x) < 0 for x in deltas)
         per = ", ".join(f"{sc} " + "/".join(f"{x:+.2f}" for x in xs) for sc, xs in b["pairs"].items())
-        rows.append(f"| {b['baseline']} | {len(deltas)} | {', '.join(map(str, b['seeds']))} | **{b['mean_delta_psnr']:+.2f}**"
+        rows.append(f"| {b['baseline']} | {len(deltas)} | {', '.join(map(str, b['seeds']))} | {b['commit']} | "
+                    f"**{b['mean_delta_psnr']:+.2f}**"
                     + (f" (95 % interval {b['interval_95'][0]:+.2f} to {b['interval_95'][1]:+.2f})" if b.get("interval_95") else "")
                     + f" | {per} |")
-    means = ", ".join(f"{b['mean_delta_psnr']:+.2f} ({b['baseline']})" for b in d["by_baseline"])
+    means = ", ".join(f"{b['mean_delta_psnr']:+.2f} ({b['baseline']}, seed{'s' if len(b['seeds']) > 1 else ''} "
+                      f"{', '.join(map(str, b['seeds']))}, code {b['commit']})" for b in d["by_baseline"])
     return rows, {"n": n, "below": below, "means": means}, d
 
 

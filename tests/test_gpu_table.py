@@ -85,7 +85,8 @@ def test_the_rule_pairs_variant_runs_by_seed_and_reads_the_mean_gap(tmp_path):
 
 
 def test_the_committed_table_queue_composes_for_every_run(tmp_path):
-    """research/measurements/dnerf_gpu/queue.json (what the next GPU machine runs, 16 at a time): 32
+    """research/measurements/dnerf_gpu/queue.json (what the next GPU machine runs, as many at once as
+    its first job's calibration chooses): 32
     runs, deform +- STDR first on all four scenes, and every run's command passes stdr-train's
     checks (a scene folder stands in for build/gpucarry), so no typo costs a GPU window."""
     from stdr.store import compose_config
@@ -107,6 +108,31 @@ def test_the_committed_table_queue_composes_for_every_run(tmp_path):
         assert cfg.budget == "gpu" and cfg.device == "cuda"
         check_run_config(cfg)
     assert len(seen) == 8
+
+
+def test_the_queue_commands_of_the_open_gpu_work_parse(tmp_path):
+    """Every `stdr-tool queue plan|run` of docs/install.md's "The open GPU work" is taken by the
+    queue's own parser, with the levels, slice and budget it names: a typo there costs a GPU window."""
+    import re
+    import shlex
+
+    from stdr.tools.concurrency import MARGIN
+    from stdr.tools.queue_tool import _parser
+    text = (Path(__file__).resolve().parents[1] / "docs" / "install.md").read_text()
+    work = text[text.index("The open GPU work"):]
+    cmds = [" ".join(c.split()) for c in re.findall(r"`([^`]*stdr-tool queue (?:run|plan)[^`]*)`", work, flags=re.S)]
+    assert len(cmds) >= 3
+    parsed = []
+    for c in cmds:
+        argv = shlex.split(c.split("stdr-tool queue ", 1)[1].replace("$OUT", str(tmp_path)).rstrip("&").strip())
+        parsed.append(_parser().parse_args(argv[:argv.index("--")] if "--" in argv else argv))
+    first = parsed[0]
+    assert first.cmd == "run" and first.queue == Path("research/measurements/dnerf_gpu/queue.json")
+    assert first.calibrate == [1, 4, 8, 16] and first.concurrent is None
+    # after the slices (each some seconds longer than --slice: the sweep's start, the checkpoint at the
+    # deadline) the chunk still has the time of one run alone, with the estimates' margin
+    assert first.budget - len(first.calibrate) * (first.slice + 5) >= first.alone_seconds * MARGIN
+    assert first.budget <= 570  # a job is at most 600 s, and the sweep's grace follows the deadline
 
 
 def gt_folder():

@@ -151,3 +151,4 @@ def test_the_rerun_with_todays_defaults_replaces_the_former_table_once_one_seed_
     means, prov = r.headline()
     assert means["deform+STDR"]["psnr"] == pytest.approx((30.0 + 3 * 31.0) / 4) and "replaces this table" not in prov["runs"]
     assert prov["runs"] == f"32 (seed 0 complete; 32 of the {r.HEADLINE_PLANNED} planned recorded, the rest queued)"
+    assert prov["source"].startswith(f"{r.RERUN}/ in ") and f"--code <a worktree at {r.RERUN_CODE}>" in prov["command"]
