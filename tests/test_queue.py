@@ -325,6 +325,9 @@ def test_the_calibration_chooses_the_level_that_finishes_the_most_runs_in_the_ti
     assert choose(failed, left_s=600, alone_s=100, pending=32)["chosen"] == 4 and failed[2]["runs_in_time"] == 0
     with pytest.raises(ValueError, match="needs level 1"):
         choose([lv[1]], left_s=600, alone_s=100, pending=32)
+    # level 1 measured but its copy reached no step within the slice (a cold start): named, with the fix
+    with pytest.raises(ValueError, match="reached no training step within --slice: give a longer slice"):
+        choose(levels(**{"1": {"per_run_steps_per_s": None, "steps_per_s": None}}), left_s=600, alone_s=100, pending=32)
 
 
 def test_a_calibrated_call_measures_each_level_then_runs_the_chunk_at_the_chosen_one(tmp_path, capsys):
