@@ -37,9 +37,9 @@ from . import user_cache
 CSRC = Path(__file__).resolve().parent / "csrc"
 CPU_SOURCES = [CSRC / "cpu" / "ops_cpu.cpp"]
 CUDA_SOURCES = [CSRC / "cuda" / "ops_cuda.cpp", CSRC / "cuda" / "kernels.cu"]
-HEADERS = [CSRC / "hd.h", CSRC / "raster_math.h", CSRC / "project_math.h", CSRC / "hexplane_math.h", CSRC / "loss_math.h",
-           *(CSRC / "cpu" / f for f in ("raster_cpu.h", "raster_simd.h", "hexplane_cpu.h", "loss_cpu.h", "guard_cpu.h")),
-           *(CSRC / "cuda" / f for f in ("kernels.h", "raster_cuda.h", "hexplane_cuda.h", "loss_cuda.h", "guard_cuda.h"))]
+# every header under csrc/ is in the cache key: a cached module is loaded without asking the
+# build tool, so a header the key missed could leave an edited kernel unbuilt
+HEADERS = sorted(CSRC.rglob("*.h"))
 PORTABLE_ENV = "STDR_PORTABLE_BUILD"  # =1: no -march=native (e.g. a cache shared by machines)
 
 _lock = threading.Lock()
@@ -118,6 +118,47 @@ def clear_stale_lock(build_dir: Path, max_age: float = STALE_LOCK_SECONDS) -> bo
     return False
 
 
+def _stamp(so: Path) -> str:
+    st = so.stat()
+    return f"{st.st_size} {st.st_mtime_ns}\n"
+
+
+def _load_built(name: str, build_dir: Path):
+    """The module a finished build left in `build_dir`, imported without running the build tool,
+    or None where there is none to trust. The folder's name is the key of every input (sources,
+    headers, flags, torch, CPU, Python), so a module there is up to date once its build finished:
+    the stamp beside it (size and time of the file a successful load imported) says so, and a
+    link killed midway, which leaves a partial file (importing it kills the process), never has
+    one. Asking ninja instead rebuilds it (~45 s, silently) whenever a process finds another ninja
+    first on PATH than the one that built it (the system's and the pip package's logs differ)."""
+    import importlib.util
+
+    so, stamp = build_dir / f"{name}.so", build_dir / f"{name}.so.built"
+    try:
+        if not stamp.is_file() or stamp.read_text() != _stamp(so):
+            return None
+        spec = importlib.util.spec_from_file_location(name, so)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+    except Exception as e:  # e.g. a file another machine built into a shared cache
+        warnings.warn(f"{so} does not load ({e}); asking the build tool", RuntimeWarning, stacklevel=3)
+        return None
+
+
+def _mark_built(name: str, build_dir: Path) -> None:
+    so, stamp = build_dir / f"{name}.so", build_dir / f"{name}.so.built"
+    tmp = stamp.with_name(f"{stamp.name}.{os.getpid()}")
+    try:
+        tmp.write_text(_stamp(so))
+        os.replace(tmp, stamp)
+    except OSError:  # a cache this user may read but not write: each load asks the build tool
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+
+
 def _compile(kind: str, verbose: bool = False):
     import shutil
 
@@ -144,6 +185,10 @@ def _compile(kind: str, verbose: bool = False):
         build_dir.mkdir(parents=True, exist_ok=True)
         clear_stale_lock(build_dir)
         cached = any(build_dir.glob(f"{name}*.so"))
+        if cached and not (build_dir / "lock").exists():
+            mod = _load_built(name, build_dir)
+            if mod is not None:
+                return mod
         if not cached:
             print(f"[stdr] compiling the {kind.upper()} kernels into {build_dir} "
                   f"(first use only; ~20-60 s)...", file=sys.stderr, flush=True)
@@ -159,6 +204,7 @@ def _compile(kind: str, verbose: bool = False):
         if not cached:
             print(f"[stdr] {kind.upper()} kernels built in {time.perf_counter() - t0:.0f} s",
                   file=sys.stderr, flush=True)
+        _mark_built(name, build_dir)
         return mod
     raise BuildError(f"could not build the {kind} extension: {last_err}")
 

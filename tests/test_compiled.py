@@ -7,6 +7,7 @@ when nvcc is on PATH.
 import shutil
 import subprocess
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -390,6 +391,38 @@ def test_a_lock_left_by_a_killed_build_is_cleared_not_waited_on_forever(tmp_path
     with pytest.warns(RuntimeWarning, match="did not finish"):
         assert clear_stale_lock(tmp_path, max_age=600)
     assert not lock.exists()
+
+
+def test_a_built_module_loads_without_the_build_tool_and_an_unfinished_one_goes_to_it(tmp_path):
+    """A process that finds another ninja first on PATH (the system's, not the venv's: their logs
+    differ, so that ninja would rebuild it) still loads the cached module: the build tool is not
+    run while a finished module is there. A module whose build did not finish (it has no stamp of
+    the file a load imported) goes to the build tool instead of being imported."""
+    import os
+    import sys
+
+    built = Path(extension.load_extension("cpu").__file__).parent
+    cache = tmp_path / "ext"
+    shutil.copytree(built, cache / built.name)
+    (cache / built.name / "lock").unlink(missing_ok=True)
+    bindir = tmp_path / "bin"
+    bindir.mkdir()
+    calls = tmp_path / "ninja_calls"
+    (bindir / "ninja").write_text(f'#!/bin/sh\n[ "$1" = --version ] && echo 1.11.1 && exit 0\necho "$@" >> {calls}\nexit 1\n')
+    (bindir / "ninja").chmod(0o755)
+    env = {**os.environ, "STDR_EXT_DIR": str(cache), "PATH": f"{bindir}{os.pathsep}{os.environ['PATH']}"}
+    code = ("import warnings; warnings.simplefilter('always'); from stdr import extension as e\n"
+            "try:\n    m = e.load_extension('cpu'); print('loaded', m.__file__)\n"
+            "except e.BuildError as x:\n    print('build error', x)\n")
+    run = lambda: subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)  # noqa: E731
+    first = run()
+    assert f"loaded {cache / built.name / built.name}.so" in first.stdout, first.stdout + first.stderr
+    assert not calls.exists()  # the build tool was never asked
+    so = cache / built.name / f"{built.name}.so"
+    so.write_bytes(so.read_bytes()[:4096])  # a link killed midway: importing it would kill the process
+    second = run()
+    assert second.returncode == 0 and "build error" in second.stdout, second.stdout + second.stderr
+    assert calls.is_file()  # not imported: the (here failing) build tool was asked
 
 
 # ---------------------------------------------------------------- projection and SH (csrc/project_math.h)
