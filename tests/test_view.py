@@ -185,7 +185,9 @@ def test_the_browser_and_every_helper_it_forked_are_stopped(ignore_term):
     from stdr.view.browser import stop_process_group
     trap = 'trap "" TERM; ' if ignore_term else ""
     proc = subprocess.Popen(["bash", "-c", f"{trap}sleep 300 & sleep 300 & wait"], start_new_session=True)
-    time.sleep(0.3)
+    t0 = time.time()
+    while len(_live_group_members(proc.pid)) < 3 and time.time() - t0 < 20:  # a loaded machine forks slowly
+        time.sleep(0.05)
     assert len(_live_group_members(proc.pid)) == 3  # bash and its two children
     t0 = time.time()
     stop_process_group(proc, timeout=1.0)
