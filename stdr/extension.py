@@ -19,6 +19,7 @@ read by `use_compiled`.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import platform
@@ -118,6 +119,11 @@ def clear_stale_lock(build_dir: Path, max_age: float = STALE_LOCK_SECONDS) -> bo
     return False
 
 
+def _built_paths(name: str, build_dir: Path) -> tuple[Path, Path]:
+    """(the module file, its stamp: the size and time of the file a successful load imported)."""
+    return build_dir / f"{name}.so", build_dir / f"{name}.so.built"
+
+
 def _stamp(so: Path) -> str:
     st = so.stat()
     return f"{st.st_size} {st.st_mtime_ns}\n"
@@ -133,7 +139,7 @@ def _load_built(name: str, build_dir: Path):
     first on PATH than the one that built it (the system's and the pip package's logs differ)."""
     import importlib.util
 
-    so, stamp = build_dir / f"{name}.so", build_dir / f"{name}.so.built"
+    so, stamp = _built_paths(name, build_dir)
     try:
         if not stamp.is_file() or stamp.read_text() != _stamp(so):
             return None
@@ -147,16 +153,14 @@ def _load_built(name: str, build_dir: Path):
 
 
 def _mark_built(name: str, build_dir: Path) -> None:
-    so, stamp = build_dir / f"{name}.so", build_dir / f"{name}.so.built"
+    so, stamp = _built_paths(name, build_dir)
     tmp = stamp.with_name(f"{stamp.name}.{os.getpid()}")
-    try:
+    # a cache this user may read but not write stays unstamped: each load asks the build tool
+    with contextlib.suppress(OSError):
         tmp.write_text(_stamp(so))
         os.replace(tmp, stamp)
-    except OSError:  # a cache this user may read but not write: each load asks the build tool
-        try:
-            tmp.unlink(missing_ok=True)
-        except OSError:
-            pass
+    with contextlib.suppress(OSError):
+        tmp.unlink(missing_ok=True)
 
 
 def _compile(kind: str, verbose: bool = False):
