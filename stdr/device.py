@@ -35,6 +35,26 @@ def resolve_device(name: str) -> torch.device:
     return dev
 
 
+#: the CPU flags (Linux /proc/cpuinfo names) of matrix instructions that multiply in bfloat16
+BF16_CPU_FLAGS = ("avx512_bf16", "amx_bf16")
+
+
+def cpu_bf16_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> tuple[str, ...]:
+    """Which of BF16_CPU_FLAGS this CPU has (AVX512-BF16: AMD Zen 4 and later, Intel Cooper Lake and
+    Sapphire Rapids; AMX-BF16: Intel Sapphire Rapids and later). Empty where the CPU has neither,
+    or where /proc/cpuinfo cannot be read (not Linux): torch then emulates bfloat16 products, and
+    they run slower than fp32."""
+    try:
+        text = Path(cpuinfo).read_text(errors="replace")
+    except OSError:
+        return ()
+    flags: set[str] = set()
+    for line in text.splitlines():
+        if line.startswith("flags"):
+            flags.update(line.partition(":")[2].split())
+    return tuple(f for f in BF16_CPU_FLAGS if f in flags)
+
+
 def synchronize(device: torch.device) -> None:
     """Wait for queued kernels on `device` (for timings); a no-op on the CPU."""
     if device.type == "cuda":

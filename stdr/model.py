@@ -24,6 +24,7 @@ from torch import Tensor
 from .errors import BadInput, ConfigError
 from .cameras import Camera
 from .baselines import build_deformation
+from .baselines.base import choose_precision
 from .device import available_bytes, resolve_device
 from .plugins import Plugin, enabled_plugins, plugin_node, registered_plugins
 from .ops import RowView, rows_of, sigmoid
@@ -315,6 +316,8 @@ def build_model(cfg, train_times: Optional[np.ndarray], background: Tensor, devi
     b = cfg.baseline
     deform = build_deformation(b, sum(p.cond_dim for p in plugins), train_times, seed=cfg.seed,
                                schedule=schedule).to(device)
+    if deform.precision == "auto":  # a run resolves it first (stdr.train.run) and records the choice
+        deform.precision = choose_precision("auto", type(deform), device, name=b.name)[0]
     model = DynamicGaussians(cfg, schedule, params, deform, plugins, train_times, background, device)
     if points is not None:  # per-Gaussian state of the baseline (kept aligned by densification)
         tt = None if train_times is None else train_times

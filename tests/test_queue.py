@@ -362,3 +362,32 @@ def test_a_calibrated_call_measures_each_level_then_runs_the_chunk_at_the_chosen
     queue_tool.main(["status", str(tmp_path / "out" / "queue.json")])
     out = capsys.readouterr().out
     assert "calibration   2 at once:" in out and "chosen: 2 (2 runs in the" in out and "chunk: 2 runs of one try" in out
+
+
+@pytest.mark.slow
+def test_a_call_runs_one_per_core_by_default_and_gives_the_bits_of_one_at_a_time(tmp_path):
+    """Without --concurrent a call on 2 cores trains 2 runs at once, one thread each, and every run
+    ends with the checkpoint the same runs reach one at a time on 2 threads (no timing is recorded
+    by such a call; a timing study passes --concurrent 1)."""
+    import torch
+    from stdr.io.checkpoint import load_checkpoint
+
+    assert queue_tool.default_concurrency(2) == 2 and queue_tool.default_concurrency(None) >= 1
+    toy = _toy(tmp_path, iterations=30) + ["train.checkpoint_every=0"]
+    q = qm.plan(["embedded_deform", "embedded_deform_stdr"], [], [0], toy, est_s=5)
+    for mode, extra in (("alone", ["--concurrent", "1"]), ("cores", [])):
+        q.save(tmp_path / f"{mode}.json")
+        proc = subprocess.run([sys.executable, "-m", "stdr.cli.tool", "queue", "run", str(tmp_path / f"{mode}.json"),
+                               "--work", str(tmp_path / mode), "--out", str(tmp_path / f"out_{mode}"), "--budget", "600",
+                               "--cores", "2", *extra], capture_output=True, text=True, timeout=900)
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    alone, cores = (qm.Queue.load(tmp_path / f"{m}.json").calls[-1] for m in ("alone", "cores"))
+    assert (alone["concurrent"], alone["threads_each"]) == (1, 2)
+    assert (cores["concurrent"], cores["threads_each"]) == (2, 1) and len(cores["finished"]) == 2
+    for r in q.runs:
+        a, b = (load_checkpoint(tmp_path / m / r.id / "checkpoints" / "last.pt")["model"] for m in ("alone", "cores"))
+        assert a["step"] == b["step"] == 30
+        for k, v in a["params"].items():
+            assert torch.equal(v, b["params"][k]), (r.id, k)
+        for k, v in a["deform"].items():
+            assert torch.equal(v, b["deform"][k]), (r.id, k)

@@ -128,15 +128,21 @@ def test_mkl_products_sum_alike_on_any_thread_count(restore_threads):
     _assert_same(_each_thread_count(lambda: (a.t() @ b,)), "a.t() @ b")
 
 
-def test_a_short_stdr_run_trains_to_the_same_bits_on_one_and_two_threads(tmp_path, restore_threads):
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_a_short_stdr_run_trains_to_the_same_bits_on_one_and_two_threads(tmp_path, restore_threads, precision):
     """deform+STDR through densification, an opacity reset and STDR's regularized phase (its
-    temporal loss takes the sigmoid of the whole mask), on 1 and 2 threads."""
+    temporal loss takes the sigmoid of the whole mask), on 1 and 2 threads; the deformation network
+    in fp32 and in bf16 (on a CPU with bf16 matrix instructions, where baseline.precision=auto picks
+    it: elsewhere bf16 is emulated, never a default, and not claimed thread-invariant)."""
+    from stdr.device import cpu_bf16_flags
     from stdr.testing import tiny_config
     from stdr.tools import identity_check as ic
     from stdr.train.trainer import Trainer
 
+    if precision == "bf16" and not cpu_bf16_flags():
+        pytest.skip("this CPU has no AVX512-BF16 or AMX: bf16 is emulated here and never the default")
     sched = [s for s in ic.SCHEDULE if not s.startswith("optim.iterations=")] + ic.STDR_PHASES + \
-        ["optim.iterations=60", "train.stop_at=40", "experiment=embedded_deform_stdr"]
+        ["optim.iterations=60", "train.stop_at=40", "experiment=embedded_deform_stdr", f"baseline.precision={precision}"]
     params = {}
     for n in (1, 2):
         torch.set_num_threads(n)

@@ -86,10 +86,12 @@ class BaselineConfig:
     lr_final: float = 1.6e-6
     lr_max_steps: int = II("optim.iterations")  # the network's lr decays over the whole run
     lr_from_warmup: bool = False    # the network's lr schedule starts at the warm-up's end (4DGS restarts it)
-    # the network's arithmetic: "fp32", or "bf16" (autocast: matrix products in bfloat16 with fp32
-    # accumulation, deltas returned in fp32; fast where the CPU has AMX / AVX512-BF16 or on a GPU;
-    # docs/performance.md has the measurement)
-    precision: str = "fp32"
+    # the network's arithmetic: "fp32"; "bf16" (autocast: matrix products in bfloat16 with fp32
+    # accumulation, deltas returned in fp32); or "auto": bf16 on a CPU with AVX512-BF16 or AMX for a
+    # baseline whose bf16 training passed its speed and val checks (Deformation.bf16_default),
+    # fp32 elsewhere (CUDA included, until bf16 is verified on a GPU). A run records the precision
+    # it chose in config.yaml and metrics.json; docs/performance.md has the rule and measurements
+    precision: str = "auto"
     # the deformation MLP (deform's network; scgs's and spgs's trunk) through torch.compile
     # (inductor, dynamic shapes). Off: on the CPU it is no faster at budget=cpu sizes and costs
     # seconds of compilation a process (docs/performance.md); not measured on a GPU yet. 4dgs has no
@@ -169,8 +171,13 @@ class Deformation(nn.Module):
 
     #: width of the per-Gaussian conditioning input this module was built for (0 = none)
     cond_dim: int = 0
-    #: "fp32" or "bf16" (baseline.precision): the arithmetic of `deltas`
+    #: "fp32" or "bf16" (baseline.precision): the arithmetic of `deltas` ("auto" until the model
+    #: is built on its device: `choose_precision`; unresolved it computes in fp32)
     precision: str = "fp32"
+    #: whether baseline.precision=auto trains this module in bf16 on a CPU with bf16 matrix
+    #: instructions: set only where bf16 training is faster and passed the val rule, plain and with
+    #: each built-in plug-in (docs/performance.md, "bf16 by default")
+    bf16_default: bool = False
 
     @classmethod
     def config_kwargs(cls, b: Any, cond_dim: int = 0, train_times: Optional[np.ndarray] = None, seed: int = 0,
@@ -246,7 +253,7 @@ class Deformation(nn.Module):
         (`deform`, `deform_rows`, the model's static rows) calls the network through this."""
         def run() -> Deltas:
             return self.forward(params, t, cond) if rows is None else self.forward_rows(params, t, cond, rows)
-        if self.precision == "fp32":
+        if self.precision != "bf16":
             return run()
         with torch.autocast(device_type=params["means"].device.type, dtype=torch.bfloat16):
             d = run()
@@ -284,9 +291,38 @@ PRECISIONS = ("fp32", "bf16")
 
 
 def check_precision(p: str) -> str:
-    if p not in PRECISIONS:
-        raise ValueError(f"baseline.precision={p!r}: use one of {PRECISIONS}")
+    if p not in (*PRECISIONS, "auto"):
+        raise ValueError(f"baseline.precision={p!r}: use one of {('auto', *PRECISIONS)}")
     return p
+
+
+def choose_precision(requested: str, module: type, device: torch.device, cpu_flags=None,
+                     name: Optional[str] = None) -> tuple[str, str]:
+    """(precision, why) of a run: `requested` is baseline.precision, `module` the baseline's
+    Deformation class, `device` the run's. `auto` is bf16 on a CPU with bf16 matrix instructions
+    (stdr.device.cpu_bf16_flags, or `cpu_flags`) for a module with `bf16_default`, fp32 otherwise;
+    `why` is one line that says which and why (empty for an explicit fp32)."""
+    from ..device import cpu_bf16_flags
+
+    check_precision(requested)
+    name = name or module.__name__
+    flags = cpu_bf16_flags() if cpu_flags is None and device.type == "cpu" else tuple(cpu_flags or ())
+    if requested == "fp32":
+        return "fp32", ""
+    if requested == "bf16":
+        if device.type == "cpu" and not flags:
+            return "bf16", ("baseline.precision=bf16 on a CPU without AVX512-BF16 or AMX: bfloat16 products are emulated "
+                            "here and run slower than fp32 (baseline.precision=auto picks fp32 on this CPU)")
+        return "bf16", ""
+    if device.type != "cpu":
+        return "fp32", (f"baseline.precision=auto: fp32 (bf16 is not yet verified on {device.type}; "
+                        "baseline.precision=bf16 to try it)")
+    if not flags:
+        return "fp32", "baseline.precision=auto: fp32 (this CPU has no AVX512-BF16 or AMX)"
+    if not module.bf16_default:
+        return "fp32", (f"baseline.precision=auto: fp32 ({name} is not among the baselines whose bf16 training is "
+                        "faster and passed the val check; docs/performance.md, 'bf16 by default')")
+    return "bf16", f"baseline.precision=auto: bf16 (this CPU has {', '.join(flags).upper()}; {name} verified in bf16)"
 
 
 def _scaled(d: Deltas, delta_scale: Optional[Tensor], n: int) -> Deltas:

@@ -244,12 +244,16 @@ def training_facts(state) -> dict[str, Any]:
       None: unknown (a checkpoint from before it was recorded);
     * train_loss: the form of the training loss that ran (optim.fused_loss), `compiled` or `torch`
       (None: not recorded);
+    * precision: the deformation network's arithmetic, `fp32` or `bf16` (baseline.precision as the
+      run resolved `auto`);
     * prune: the contribution-pruning events (stdr.densify.prune), when there were any;
     * config_changes: the keys a resume changed (train.resume=override; stdr.train.resume), when any."""
     cpu, secs, threads = state.train_cpu_seconds, float(state.train_seconds or 0.0), state.train_threads
     out = {"train_cpu_seconds": cpu,
            "train_cpu_utilization": cpu / (secs * threads) if cpu is not None and threads and secs > 0 else None,
-           "train_loss": state.train_loss}
+           "train_loss": state.train_loss,
+           # the deformation network's arithmetic (baseline.precision as the run resolved it)
+           "precision": getattr(getattr(state.model, "deform", None), "precision", None)}
     if state.prune_log:
         out["prune"] = list(state.prune_log)
     if getattr(state, "config_changes", None):  # resumed with changed keys: what changed at which step

@@ -3,7 +3,7 @@
     # plan a grid: every experiment x scene x seed, with overrides for all (a queue file)
     stdr-tool queue plan QUEUE.json --experiments dnerf_deform dnerf_deform_stdr --scenes DIR/jumpingjacks ... \\
         --seeds 0 --est-seconds 90 -- budget=gpu device=cuda
-    # one call: at most N runs at a time, none started that its estimate says would not end before
+    # one call: at most N runs at a time (default: one per core, one thread each), none started that its estimate says would not end before
     # --budget seconds; every finished run's small files packed into OUT/runs.tgz, the queue's state
     # into OUT/queue.json (carry it back as QUEUE.json for the next call)
     stdr-tool queue run QUEUE.json --work WORK --out OUT --concurrent 8 --budget 540
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import sys
 import time
@@ -45,7 +46,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("queue", type=Path)
     r.add_argument("--work", type=Path, required=True)
     r.add_argument("--out", type=Path, required=True)
-    r.add_argument("--concurrent", type=int, default=None, help="runs at once (default 1; not with --calibrate)")
+    r.add_argument("--concurrent", type=int, default=None,
+                   help="runs at once (default: one per core, one thread each: the results are the same bits on any "
+                   "thread count; --concurrent 1 where the runs' timings are the record; not with --calibrate)")
     r.add_argument("--calibrate", type=int, nargs="+", default=None, metavar="N",
                    help="levels to measure before the chunk (1 among them), e.g. 1 4 8 16: the chunk runs at the one "
                    "that finishes the most runs in the budget left")
@@ -63,13 +66,21 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
+def default_concurrency(cores: int | None) -> int:
+    """Runs at once when the call names none: one per core (`--cores`, else the machine's), each on
+    one thread. Training gives the same bits on any thread count (docs/performance.md,
+    "Determinism"), so a study that records results and no timings loses nothing and finishes in
+    about half the time on two cores; timing records run with --concurrent 1 and say so."""
+    return max(1, cores or os.cpu_count() or 1)
+
+
 def _run(args) -> None:
     if args.calibrate and args.concurrent is not None:
         raise SystemExit("stdr-tool queue run: give --concurrent N or --calibrate N ..., not both")
     q = Queue.load(args.queue)
     command = shlex.split(args.command) if args.command else None
     t0, cal, est = time.time(), None, None
-    concurrent = args.concurrent or 1
+    concurrent = args.concurrent or default_concurrency(args.cores)
     try:
         if args.calibrate:
             cal = calibrate(q, args.work, args.calibrate, args.slice, args.budget, args.alone_seconds, args.cores,

@@ -16,7 +16,9 @@ from ..model import check_init_fits
 from ..data.load import scene_folder
 from ..eval.table import collect, markdown, table_row
 from ..validate import check_run_config
-from .resume import resume_changes
+from ..baselines.base import PRECISIONS, choose_precision
+from ..baselines.registry import get_baseline
+from .resume import resume_changes, saved_config
 from .trainer import Trainer
 
 
@@ -35,13 +37,32 @@ def run_training(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -
         return _train_locked(cfg, run_dir, data_base)
 
 
+def settle_precision(cfg: DictConfig, record: dict | None) -> str:
+    """Resolve baseline.precision=auto in `cfg` before the run's record is written, so config.yaml
+    and metrics.json name the arithmetic that trained: a resumed run keeps the precision its record
+    names (exact resume, on any machine); a new one takes stdr.baselines.base.choose_precision's.
+    Returns the one line to print (empty: nothing to say)."""
+    requested = str(cfg.baseline.precision)
+    recorded = ((record or {}).get("baseline") or {}).get("precision")
+    if requested == "auto" and recorded in PRECISIONS:
+        requested = recorded
+    chosen, why = choose_precision(requested, get_baseline(cfg.baseline.name).module, resolve_device(cfg.device),
+                                   name=cfg.baseline.name)
+    cfg.baseline.precision = chosen
+    return why
+
+
 def _train_locked(cfg: DictConfig, run_dir: Path, data_base: str | None) -> dict | None:
     for stale in leftover_temporaries(run_dir):  # a writer killed mid-write (we hold the lock: none is writing)
         stale.unlink(missing_ok=True)
     if not cfg.data.name:  # label for tables: the scene folder's name
         cfg.data.name = scene_folder(cfg.data, data_base).name
     ckpt = run_dir / CKPT
-    if cfg.train.resume and ckpt.is_file():  # a resume keeps its run's record (stdr.train.resume)
+    resuming = bool(cfg.train.resume and ckpt.is_file())
+    note = settle_precision(cfg, saved_config(run_dir) if resuming else None)
+    if note:
+        print(f"[stdr] {note}")
+    if resuming:  # a resume keeps its run's record (stdr.train.resume)
         step = int(load_checkpoint(ckpt).get("model", {}).get("step", 0))
         record, changes = resume_changes(cfg, run_dir, step)
     else:
