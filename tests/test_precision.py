@@ -92,3 +92,29 @@ def test_every_built_in_baseline_declares_its_bf16_default():
     for name in ("deform", "scgs", "spgs", "4dgs"):
         if BASELINES.get(name).module.bf16_default:
             assert f"`{name}`: bf16 by default" in doc, name
+
+
+def _record(folder, rid, psnr):
+    d = folder / rid
+    d.mkdir(parents=True)
+    (d / "metrics.json").write_text(json.dumps({"val": {
+        "psnr": psnr, "train_seconds": 100.0, "conventions": {"machine": "m"}, "code": {"commit": "abcdef0"}}}))
+
+
+def test_the_val_check_gives_a_verdict_only_on_every_planned_pair(tmp_path):
+    from studies import precision_val as pv
+    pairs = [(sc, s) for sc in pv.SCENES for s in pv.SEEDS]
+    for i, (sc, s) in enumerate(pairs):  # deform: bf16 0.05 dB below on every pair; stdr: 0.3 dB below
+        _record(tmp_path, f"dnerf_deform__{sc}__s{s}__fp32", 30.0 + i)
+        _record(tmp_path, f"dnerf_deform__{sc}__s{s}__bf16", 29.95 + i)
+        _record(tmp_path, f"dnerf_deform_stdr__{sc}__s{s}__fp32", 30.0)
+        _record(tmp_path, f"dnerf_deform_stdr__{sc}__s{s}__bf16", 29.7)
+    _record(tmp_path, "dnerf_scgs__standup__s0__fp32", 30.0)  # a lone variant makes no pair
+    s = pv.summary(pv.load(tmp_path))
+    assert s["dnerf_deform"]["verdict"] == "pass" and abs(s["dnerf_deform"]["mean_delta"] + 0.05) < 1e-9
+    assert s["dnerf_deform_stdr"]["verdict"] == "fail"
+    assert s["dnerf_scgs"]["verdict"] == "incomplete" and s["dnerf_scgs"]["pairs"] == []
+    import shutil
+    shutil.rmtree(tmp_path / f"dnerf_deform__{pairs[-1][0]}__s{pairs[-1][1]}__bf16")
+    assert pv.summary(pv.load(tmp_path))["dnerf_deform"]["verdict"] == "incomplete"
+    assert "| dnerf_deform_stdr | 8 of 8 | -0.300 |" in pv.table(tmp_path)
