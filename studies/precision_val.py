@@ -20,9 +20,10 @@ import statistics
 from pathlib import Path
 
 from stdr.eval.table import markdown_table
-from studies.common import M, commit
+from studies.common import M, commit, records_in, records_to_write
 
-RECORDS = M / "precision_val" / "runs"
+STUDY = M / "precision_val"
+RECORDS = STUDY / "runs"  # in the study's records archive once packed (studies.records)
 KEEP = ("metrics.json", "config.yaml", "train_profile.json")
 SCENES = ("bouncingballs", "hellwarrior", "jumpingjacks", "standup")
 SEEDS = (0, 1)
@@ -31,6 +32,8 @@ THRESHOLD = -0.1  # dB, the rule's bound on the mean val delta PSNR (bf16 - fp32
 
 def collect(work: Path, records: Path = RECORDS) -> list[str]:
     """Copy every run of WORK that has a metrics.json (a finished run) and no record yet."""
+    if records == RECORDS:
+        records = records_to_write(STUDY, "runs")
     added = []
     for m in sorted(Path(work).glob("*/metrics.json")):
         dst = records / m.parent.name
@@ -47,6 +50,8 @@ def collect(work: Path, records: Path = RECORDS) -> list[str]:
 def load(records: Path = RECORDS) -> dict[tuple, dict]:
     """{(experiment, scene, seed, precision): the val entry of its metrics.json} (the run id is
     <experiment>__<scene>__s<seed>__<precision>, as stdr-tool queue plan names variants)."""
+    if records == RECORDS:
+        records = records_in(STUDY, "runs")
     out = {}
     for m in sorted(Path(records).glob("*/metrics.json")):
         exp, scene, seed, prec = m.parent.name.split("__")
@@ -115,7 +120,7 @@ def main(argv=None) -> None:
     if args.cmd == "collect":
         print(f"[precision_val] added {collect(args.work, args.records)}")
     text = table(args.records)
-    (args.records.parent / "table.md").write_text(text)
+    (STUDY if args.records == RECORDS else args.records.parent).joinpath("table.md").write_text(text)
     print(text)
 
 
