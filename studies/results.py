@@ -25,6 +25,7 @@ from pathlib import Path
 
 from studies.records import record_file, records_dir
 from stdr.eval.evaluate import code_version, commit_stamp
+from stdr.eval.table import markdown_table
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -123,6 +124,7 @@ def headline_from_records(runs_dir: Path | None = None, baselines=BASELINES, sce
             "seeds": ("seed " if len(seeds) == 1 else "seeds ") + ", ".join(map(str, seeds)),
             **({"caveat": GATED_NOTE + "."} if gated else {}),
             "ratios": paired_time_ratios(use, baselines),
+            "sections": stdr_time_sections(use, baselines),
             "delta_by_seed": delta_by_seed(use, baselines, scenes, seeds)}
     means = {m: {**t["means"][m], "n_scenes": len(scenes)} for m in methods}
     return means, prov
@@ -163,6 +165,56 @@ def paired_time_ratios(use: list, baselines=BASELINES) -> dict:
         out[b] = {**{k: (statistics.geometric_mean(v) if v else None) for k, v in rs.items()},
                   "pairs": len(rs["train_seconds"]), "of": len(keys)}
     return out
+
+
+#: a training step's sections as the trainer's profiler names them (train_profile.json), in table order
+SECTIONS = ("deform", "backward", "stdr_reg", "deform_reg", "render_fwd", "loss", "optimizer", "guard", "densify")
+
+
+def stdr_time_sections(use: list, baselines=BASELINES) -> dict:
+    """Where +STDR's extra training time goes: for each baseline, each section's seconds
+    (train_profile.json) summed over the matched (scene, seed) pairs that paired_time_ratios counts
+    (both runs alone on one machine), plain and +STDR. {baseline: {"pairs": n, "plain": {section: s},
+    "stdr": {section: s}, "plain_total": s, "stdr_total": s}}; the totals are metrics.json's
+    train_seconds (the sections and what lies between them)."""
+    by = {(r["method"], r["scene"], r["seed"]): r for r in use}
+    out = {}
+    for b in baselines:
+        acc = {"pairs": 0, "plain": dict.fromkeys(SECTIONS, 0.0), "stdr": dict.fromkeys(SECTIONS, 0.0),
+               "plain_total": 0.0, "stdr_total": 0.0}
+        for (m, sc, sd), p in sorted(by.items()):
+            s = by.get((b + "+STDR", sc, sd))
+            if m != b or s is None:
+                continue
+            prof = [_read_json(Path(r["run_dir"]) / "train_profile.json") for r in (p, s)]
+            mach = [r["metrics"].get("conventions", {}).get("machine") for r in (p, s)]
+            if not (all(prof) and mach[0] and mach[0] == mach[1] and _idle(Path(p["run_dir"])) and _idle(Path(s["run_dir"]))):
+                continue
+            acc["pairs"] += 1
+            for side, r, pr in (("plain", p, prof[0]), ("stdr", s, prof[1])):
+                for k in SECTIONS:
+                    acc[side][k] += float(pr["seconds"].get(k, 0.0))
+                acc[f"{side}_total"] += float(r["metrics"]["train_seconds"])
+        out[b] = acc
+    return out
+
+
+def stdr_sections_table(sections: dict) -> list[str]:
+    """Markdown: per baseline, +STDR's extra seconds by section and each section's share of it."""
+    head = ["baseline", "pairs", "train s plain → +STDR", *(f"{k}" for k in SECTIONS), "outside the sections"]
+    body = []
+    for b, a in sections.items():
+        if not a["pairs"]:
+            continue
+        extra = a["stdr_total"] - a["plain_total"]
+        cells = []
+        for k in SECTIONS:
+            d = a["stdr"][k] - a["plain"][k]
+            cells.append(f"{d:+.0f} ({100 * d / extra:.0f} %)" if extra > 0 else f"{d:+.0f}")
+        rest = extra - sum(a["stdr"][k] - a["plain"][k] for k in SECTIONS)
+        body.append([b, str(a["pairs"]), f"{a['plain_total']:.0f} → {a['stdr_total']:.0f} ({a['stdr_total'] / a['plain_total']:.2f}x)",
+                     *cells, f"{rest:+.0f}"])
+    return [markdown_table(head, body)]
 
 
 def headline_from_previous_table(recorded: int = 0):
@@ -443,6 +495,14 @@ def build() -> tuple[str, str]:
     if prov.get("caveat"):
         page += [f"**Caveat:** {prov['caveat']}", ""]
     page += headline_table(means, prov.get("ratios"))
+    if prov.get("sections"):
+        page += ["", "### Where +STDR's extra training time goes", "",
+                 "Seconds +STDR spends beyond plain, by section of the training step (the trainer's profiler, "
+                 "`train_profile.json`), summed over the pairs counted for the ratios above, and each section's share "
+                 "of the extra: `deform` is the deformation's forward (STDR's separated field, the mask's softmax and "
+                 "the network's wider input), `backward` their gradients, `stdr_reg` STDR's regularizers, "
+                 "`deform_reg` the baseline's (SC-GS's ARAP evaluates the network under STDR's conditioning).", ""]
+        page += stdr_sections_table(prov["sections"])
     page += ["", f"PSNR, LPIPS and Gaussians are means over the scenes (± the std over seeds of each seed's "
              f"scene mean, where there are several seeds). {RATIO_NOTE} Mean Δ over the {eff['n']} baselines: "
              f"{eff['mean']:+.2f} dB (from {eff['min']:+.2f} to {eff['max']:+.2f}{_by_seed(prov)}).", "",
