@@ -147,6 +147,9 @@ class TrainConfig:
     eval_lpips: bool = False    # LPIPS in periodic evaluations too (the final one follows eval.lpips)
     eval_at_warmup_end: bool = True
     checkpoint_every: int = 5000
+    # also a checkpoint after this many minutes of wall time since the last one (0: off): what a hard
+    # kill can lose. Ctrl+C and SIGTERM checkpoint the step they stop at whatever this says
+    checkpoint_minutes: float = 10.0
     log_every: int = 50
     image_every: int = 1000
     # resume from run_dir/checkpoints/last.pt when present (true | false: start over | override: resume

@@ -559,3 +559,106 @@ def test_sigkill_at_random_moments_resumes_bit_identical_with_no_file_damaged(tm
     assert not [p.name for p in (run / "checkpoints").iterdir() if p.name.startswith(".")]
     assert _params(run)["step"] == _params(ref)["step"] == 700
     _equal(_params(run), _params(ref))
+
+
+# ---------------------------------------------------------------- Ctrl+C and SIGTERM
+# The real command in a real process, a real signal: the step in progress is checkpointed, one line
+# says where it stopped, the exit code is the signal's (130, 143), and the same command resumes to
+# the bits of a run never stopped. A second Ctrl+C stops at once.
+STOP_CFG = [c for c in CFG if not c.startswith(("optim.iterations=", "train.checkpoint_every="))] + [
+    "optim.iterations=3000", "train.checkpoint_every=0", "train.checkpoint_minutes=0"]
+
+
+def _stop_cmd(tmp: Path, run: Path, *extra) -> list[str]:
+    return [sys.executable, "-m", "stdr.cli.train", *STOP_CFG, f"data.cache_dir={tmp / 'cache'}",
+            f"hydra.run.dir={run}", *extra]
+
+
+def _training(p: subprocess.Popen, run: Path, timeout: float = 300) -> None:
+    """Wait until the process trains: TensorBoard's first scalars are on the disk (log_every)."""
+    t0 = time.time()
+    while not any(f.stat().st_size > 200 for f in (run / "tb").glob("events.*")) if (run / "tb").is_dir() else True:
+        assert p.poll() is None, p.communicate()[0][-2000:]
+        assert time.time() - t0 < timeout, "the run did not start training"
+        time.sleep(0.05)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_ctrl_c_and_sigterm_checkpoint_the_step_and_the_run_resumes_bit_identical(tmp_path, sig, code):
+    run = tmp_path / "run"
+    p = subprocess.Popen(_stop_cmd(tmp_path, run), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        _training(p, run)
+        time.sleep(1.0)
+        p.send_signal(sig)
+        out = p.communicate(timeout=120)[0]
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == code, out[-3000:]
+    assert "Traceback" not in out, out[-3000:]
+    step = _params(run)["step"]
+    assert 0 < step < 3000
+    line = [ln for ln in out.splitlines() if ln.startswith("[stdr] stopped at iteration")]
+    assert line == [f"[stdr] stopped at iteration {step} of 3000 ({sig.name}); checkpoint "
+                    f"{run / 'checkpoints' / 'last.pt'}: the same command resumes from it"], out[-3000:]
+    assert not (run / "metrics.json").exists()
+    # the same command resumes; it and an uninterrupted run stop a few steps later with the same bits
+    stop = [f"train.stop_at={step + 5}"]
+    done = subprocess.run(_stop_cmd(tmp_path, run, *stop), capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and f"resumed from {run / 'checkpoints' / 'last.pt'} at iteration {step}" in done.stdout, \
+        done.stdout[-2000:] + done.stderr[-2000:]
+    ref = subprocess.run(_stop_cmd(tmp_path, tmp_path / "ref", *stop), capture_output=True, text=True, timeout=600)
+    assert ref.returncode == 0, ref.stderr[-2000:]
+    _equal(_params(run), _params(tmp_path / "ref"))
+
+
+@pytest.mark.slow
+def test_a_second_ctrl_c_stops_at_once(tmp_path):
+    run = tmp_path / "run"
+    # the checkpoint write pauses (KILL_CHILD's marker): only a second Ctrl+C can end this process
+    marker = tmp_path / "in_write"
+    env = {**os.environ, "STDR_TEST_PAUSE_IN_WRITE": str(marker)}
+    p = subprocess.Popen([sys.executable, "-c", KILL_CHILD, *_stop_cmd(tmp_path, run)[3:]], env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        _training(p, run)
+        p.send_signal(signal.SIGINT)
+        t0 = time.time()
+        while not marker.exists():  # the first Ctrl+C: the step ends, its checkpoint is being written
+            assert p.poll() is None and time.time() - t0 < 120
+            time.sleep(0.02)
+        p.send_signal(signal.SIGINT)
+        out = p.communicate(timeout=30)[0]
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130, out[-3000:]
+    assert "Traceback" not in out, out[-3000:]
+    assert "[stdr] Ctrl+C again: stopped without a checkpoint" in out, out[-3000:]
+    assert not list((run / "checkpoints").glob(".*")), "the unfinished checkpoint write left its temporary file"
+
+
+@pytest.mark.slow
+def test_a_checkpoint_is_written_every_checkpoint_minutes_of_wall_time(tmp_path, monkeypatch):
+    """train.checkpoint_minutes bounds what a hard kill loses, whatever checkpoint_every says;
+    0 turns it off."""
+    from stdr.train import trainer as tr_mod
+    sched = ["optim.iterations=30", "baseline.warmup=10", "train.checkpoint_every=0", "train.eval_at_warmup_end=false"]
+    clock = {"t": 1000.0}
+
+    def tick():  # every read of the clock is 3 s later: a step takes at least that
+        clock["t"] += 3.0
+        return clock["t"]
+    monkeypatch.setattr(tr_mod, "_clock", tick)
+    saves = {}
+    for minutes in (0.25, 0):
+        t = tr_mod.Trainer(tiny_config(tmp_path, sched + [f"train.checkpoint_minutes={minutes}"]), tmp_path / f"m{minutes}")
+        steps = []
+        real = t.state.save
+        monkeypatch.setattr(t.state, "save", lambda real=real, t=t, steps=steps: (steps.append(t.step), real()))
+        t.train()
+        saves[minutes] = steps
+    assert saves[0] == [30]  # the end only
+    assert len(saves[0.25]) >= 4 and saves[0.25][-1] == 30 and all(0 < s < 30 for s in saves[0.25][:-1])

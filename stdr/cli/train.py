@@ -19,6 +19,7 @@ from ..store import register
 from ..errors import UserError, reported
 from ..io.files import LOCK_NAME
 from ..tools.runqueue import FAILURES, STDOUT
+from ..train.resume import StopNow
 from ..train.run import run_training
 from .common import check_overrides, reproducible_blas, run_hydra_app, use_fast_allocator_hint
 from .sweep import LAST_SWEEP
@@ -134,7 +135,15 @@ def main() -> None:
             sys.argv.append("--resolve")
     check_overrides("stdr-train", sys.argv[1:])  # a bad override: one line, exit code 2
     LAST_SWEEP["failed"] = 0
-    run_hydra_app("stdr-train", _main)
+    try:
+        run_hydra_app("stdr-train", _main)
+    except KeyboardInterrupt as e:  # before training holds Ctrl+C, or a second one while it stops
+        again = isinstance(e, StopNow)
+        print("[stdr] Ctrl+C again: stopped without a checkpoint of the step in progress; the same command resumes "
+              "from the last checkpoint written" if again else
+              "[stdr] Ctrl+C: stopped outside the training steps; the same command goes on from the last checkpoint "
+              "written, if there is one", flush=True)
+        raise SystemExit(130) from None
     if LAST_SWEEP["failed"]:
         raise SystemExit(1)
 

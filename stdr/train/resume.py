@@ -11,6 +11,11 @@ Keys that only steer the process (when it stops, how many threads, what it print
 how often it checkpoints) and the final evaluation's keys (`eval.*`: they change no training
 step) may differ freely: PROCESS_KEYS, listed in docs/outputs.md.
 
+**Stop signals.** Ctrl+C (SIGINT) and SIGTERM (kill, docker stop, systemd) end training the same
+way: the step in progress finishes, its checkpoint is written, one line says where the run stopped
+and how to go on, and the process exits with 130 or 143. A second Ctrl+C stops at once. A
+launcher's own SIGTERM handler (submitit's, in a Slurm job) is left in place.
+
 **The warning signal.** A Slurm job near its time limit, or about to be preempted, is sent a
 signal ahead of the kill (submitit's `signal_delay_s`: SIGUSR2 unless SUBMITIT_PREEMPT_SIGNAL names another). Training
 holds that signal while it runs (`preemption()`): the step in progress finishes, the checkpoint of
@@ -38,7 +43,8 @@ from ..io.files import read_yaml
 
 #: keys a resume may change without train.resume=override: prefixes end with "."
 PROCESS_KEYS = ("train.stop_at", "train.deadline", "train.start_by", "train.threads", "train.progress",
-                "train.log_every", "train.image_every", "train.checkpoint_every", "train.skip_finished",
+                "train.log_every", "train.image_every", "train.checkpoint_every", "train.checkpoint_minutes",
+                "train.skip_finished",
                 "train.resume", "eval.")
 
 #: derived from other keys (a change there shows in the keys it is derived from)
@@ -122,23 +128,53 @@ def warning_signal() -> signal.Signals:
     return getattr(signal, name if name.startswith("SIG") else f"SIG{name}", signal.SIGUSR2)
 
 
-class Preemption:
-    """Set by the warning signal; `hand_over` passes it on once the checkpoint is written."""
+#: the signals a user or a system sends to stop a process (Ctrl+C; kill, docker stop, systemd)
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-    def __init__(self, signum: signal.Signals, previous):
+
+class StopNow(KeyboardInterrupt):
+    """A second Ctrl+C while training stops for the first: the process ends at once, without the
+    checkpoint of the step in progress (stdr-train prints one line and exits 130)."""
+
+
+class Preemption:
+    """What stopped the loop: the cluster's warning signal (`hand_over` passes it on once the
+    checkpoint is written) or a stop signal (SIGINT, SIGTERM: `hand_over` exits with 128 + its
+    number, as the signal would have ended the process, with nothing lost)."""
+
+    def __init__(self, signum: signal.Signals, previous, stops: Optional[dict] = None):
         self.signum = signum
         self.previous = previous
+        self.stops = stops or {}  # {stop signal: its handler before}
         self.frame = None
         self.requested = False
+        self.stopped_by: Optional[signal.Signals] = None  # the stop signal that arrived, if one did
 
     def _caught(self, signum, frame) -> None:
         self.requested, self.frame = True, frame
         print(f"[stdr] {signal.Signals(signum).name}: the cluster stops this job soon; the step in progress "
               "finishes and is checkpointed", flush=True)
 
+    def _stop(self, signum, frame) -> None:
+        signum = signal.Signals(signum)
+        if self.stopped_by is not None and signum == signal.SIGINT:  # a second Ctrl+C: at once
+            raise StopNow
+        self.requested, self.frame = True, frame
+        self.stopped_by = self.stopped_by or signum
+        print(f"[stdr] {signum.name}: stopping after the step in progress, with a checkpoint "
+              "(Ctrl+C again stops at once, without one)", flush=True)
+
+    def restore(self) -> None:
+        for s, h in self.stops.items():
+            if signal.getsignal(s) == self._stop:
+                signal.signal(s, h)
+
     def hand_over(self) -> None:
-        """The signal to its earlier handler (submitit: requeue and exit); without one, exit as the
-        signal would have ended the process."""
+        """A stop signal: exit with 128 + its number. The warning signal: to its earlier handler
+        (submitit: requeue and exit); without one, exit as the signal would have ended the process."""
+        self.restore()
+        if self.stopped_by is not None:
+            raise SystemExit(128 + int(self.stopped_by))
         signal.signal(self.signum, self.previous)
         if callable(self.previous):
             self.previous(self.signum, self.frame)
@@ -146,18 +182,30 @@ class Preemption:
             raise SystemExit(128 + int(self.signum))
 
 
+def _takes(signum: signal.Signals, handler) -> bool:
+    """Whether training may take a stop signal over: only from the interpreter's own default
+    (SIGINT's KeyboardInterrupt, SIGTERM's termination). A launcher's handler (submitit bypasses
+    SIGTERM in a Slurm job, whose warning signal comes first) or an ignored signal stays as it is."""
+    return handler is signal.default_int_handler if signum == signal.SIGINT else handler == signal.SIG_DFL
+
+
 @contextlib.contextmanager
 def preemption() -> Iterator[Optional[Preemption]]:
-    """Hold the warning signal while the body trains (the main thread only: elsewhere, None)."""
+    """Hold the warning signal and the stop signals while the body trains (the main thread only:
+    elsewhere, None): each ends the loop after the step in progress, which is checkpointed."""
     if threading.current_thread() is not threading.main_thread():
         yield None
         return
     signum = warning_signal()
     previous = signal.getsignal(signum)
-    p = Preemption(signum, previous)
+    stops = {s: signal.getsignal(s) for s in STOP_SIGNALS if s != signum and _takes(s, signal.getsignal(s))}
+    p = Preemption(signum, previous, stops)
     signal.signal(signum, p._caught)
+    for s in stops:
+        signal.signal(s, p._stop)
     try:
         yield p
     finally:
         if signal.getsignal(signum) == p._caught:
             signal.signal(signum, previous)
+        p.restore()

@@ -23,6 +23,10 @@ from .timing import Profiler
 from .build import build_run
 from .state import PAYLOAD_KEYS, RunLog
 
+#: the clock of train.checkpoint_minutes (monotonic: a change of the system's time moves no checkpoint)
+_clock = time.monotonic
+
+
 def _rewind(bar, step: int) -> None:
     """The progress bar back to `step` after a recovery restored an earlier state."""
     if bar is not None:
@@ -38,6 +42,7 @@ class Trainer(Evaluations):
     def __init__(self, cfg, run_dir: str | Path, splits=("train",), data_base: Optional[str] = None):
         self.cfg = cfg
         self.run_dir = Path(run_dir)
+        self._last_save = _clock()  # train.checkpoint_minutes counts from here
         parts = build_run(cfg, self.run_dir, splits, data_base)
         self.device, self.fused_adam, self.monitor, self.scene = parts.device, parts.fused_adam, parts.monitor, parts.scene
         self.strategy, self.cull_train, self.state, self.net_groups = parts.strategy, parts.cull_train, parts.state, parts.net_groups
@@ -80,6 +85,7 @@ class Trainer(Evaluations):
     def save(self) -> None:
         """checkpoints/last.pt (atomic, checksummed; the one it replaces is kept as last.previous.pt)."""
         self.state.save()
+        self._last_save = _clock()
 
     def load(self, path: str | Path) -> None:
         """Resume: the model, the optimizers, the strategy, the sampler, every RNG and the guard."""
@@ -207,7 +213,10 @@ class Trainer(Evaluations):
             if bar is not None:
                 bar.close()
             if self.step < total:
-                if pre is not None and pre.requested:
+                if pre is not None and pre.stopped_by is not None:
+                    print(f"[stdr] stopped at iteration {self.step} of {total} ({pre.stopped_by.name}); checkpoint "
+                          f"{self.checkpoint_path}: the same command resumes from it", flush=True)
+                elif pre is not None and pre.requested:
                     print(f"[stdr] stopped at iteration {self.step} of {total} (a cluster's warning signal); the "
                           "requeued job resumes from the checkpoint")
                 else:
@@ -221,7 +230,7 @@ class Trainer(Evaluations):
             write_atomic(self.run_dir / "train_profile.json", json.dumps(self.profile_summary(), indent=1),
                          site="profile")
             if pre is not None and pre.requested:
-                pre.hand_over()  # submitit requeues the job; the checkpoint above is where it resumes
+                pre.hand_over()  # exit 130/143, or submitit requeues the job; the checkpoint above is where it resumes
 
     def _loop(self, end: int, total: int, deadline, tb, bar, pre) -> None:
         """The steps up to `end` (train.stop_at or optim.iterations), a deadline or a warning signal."""
@@ -254,10 +263,17 @@ class Trainer(Evaluations):
                 if self.step != it:  # recovered: go on from the restored step
                     _rewind(bar, self.step)
                     continue
-            if cfg.train.checkpoint_every and it % cfg.train.checkpoint_every == 0 and it < total:
+            if it < total and ((cfg.train.checkpoint_every and it % cfg.train.checkpoint_every == 0)
+                               or self._checkpoint_due_by_time()):
                 self.save()
             if guard.enabled and it % guard.snapshot_every == 0 and it < total:
                 self.state.guard.take_snapshot(self.state, self.log)
+
+    def _checkpoint_due_by_time(self) -> bool:
+        """train.checkpoint_minutes of wall time since the last checkpoint this process wrote (or
+        its start): bounds what a hard kill (SIGKILL, a power cut) can lose."""
+        minutes = self.cfg.train.get("checkpoint_minutes")
+        return bool(minutes) and _clock() - self._last_save >= 60.0 * float(minutes)
 
     def _log_step(self, tb, bar, it: int, total: int, logs: dict[str, Any], dt: float) -> None:
         """TensorBoard scalars and the plug-ins' entries every train.log_every steps, the render
