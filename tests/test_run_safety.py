@@ -135,6 +135,36 @@ def test_train_resume_takes_true_false_or_override_only(tmp_path):
         in one_line_error(r, "stdr-train")
 
 
+@pytest.mark.slow
+def test_a_restart_moves_the_earlier_results_aside_and_no_reader_sees_them_as_its_own(tmp_path):
+    """`train.resume=false` into a finished run's folder: the earlier metrics.json, history.json,
+    checkpoints and the rest go to previous/<time>/ with the config that made them; the new run's
+    folder holds its own files only, so stdr-eval refuses it as unfinished instead of reporting the
+    earlier run's numbers, and a sweep would not skip it as finished."""
+    import shutil
+    run = tmp_path / "run"
+    r = sh(train_cmd(tmp_path, run, "optim.iterations=30"))
+    assert r.returncode == 0, r.stderr[-3000:]
+    old = {f: (run / f).read_bytes() for f in ("metrics.json", "history.json", "point_cloud.ply", "config.yaml")}
+    r = sh(train_cmd(tmp_path, run, "optim.iterations=30", "train.resume=false", "train.stop_at=5"))
+    assert r.returncode == 0, r.stderr[-3000:]
+    prev = sorted((run / "previous").iterdir())
+    assert len(prev) == 1 and f"train.resume=false: the earlier run's results in {run} moved to {prev[0]}" in r.stdout
+    for f, data in old.items():
+        assert (prev[0] / f).read_bytes() == data, f
+    assert (prev[0] / "checkpoints" / "last.pt").is_file() and (prev[0] / "tb").is_dir()
+    assert not (run / "metrics.json").exists() and not (run / "history.json").exists()
+    assert not (run / "previous" / prev[0].name / "previous").exists()
+    from stdr.io.checkpoint import load_checkpoint
+    assert load_checkpoint(run / "checkpoints" / "last.pt")["model"]["step"] == 5
+    line = one_line_error(_eval(run, f"out={tmp_path / 't'}", "reevaluate=false"), "stdr-eval")
+    assert "has not finished: its checkpoint is at iteration 5 of 30" in line
+    # a second restart keeps both earlier runs apart
+    shutil.rmtree(tmp_path / "t", ignore_errors=True)
+    r = sh(train_cmd(tmp_path, run, "optim.iterations=30", "train.resume=false", "train.stop_at=3"))
+    assert r.returncode == 0 and len(list((run / "previous").iterdir())) == 2, r.stderr[-3000:]
+
+
 # ---------------------------------------------------------------- evaluations and tables
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):

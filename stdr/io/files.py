@@ -27,13 +27,14 @@ step takes the lock its own training holds.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Optional
 
 import contextlib
 import errno
 import fcntl
 import json
 import os
+import shutil
 import socket
 import time
 
@@ -282,3 +283,37 @@ def run_lock(run_dir: str | Path, prog: str) -> Iterator[None]:
         except OSError:
             pass  # a full or read-only disk: the record stays, and the next taker says it was left
         fh.close()
+
+
+# ---------------------------------------------------------------- a run started over
+#: a run folder's entries that are not results of its training: what this command writes anew or
+#: reads (config, Hydra's record, the lock, the job's log, the viewer's camera paths) and the results
+#: set aside before
+NOT_RESULTS = frozenset({"config.yaml", ".hydra", LOCK_NAME, "train.log", "stdout.log", "camera_paths", "previous"})
+
+
+def set_aside_results(run_dir: str | Path, when: Optional[str] = None) -> Optional[Path]:
+    """A run started over (train.resume=false) in a folder that holds an earlier run's results:
+    move them (checkpoints, metrics.json, history.json, the PLY, the compact file, renders, videos,
+    TensorBoard's events, ...) into run_dir/previous/<time>/ with a copy of that run's config.yaml,
+    so no file of the earlier run stands beside the new one as if it were its result. Returns the
+    folder they went to, or None when there was nothing to move."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        return None
+    found = sorted(p for p in run_dir.iterdir() if p.name not in NOT_RESULTS and not p.name.startswith("."))
+    if not found:
+        return None
+    stamp = when or time.strftime("%Y%m%d-%H%M%S")
+    dest = run_dir / "previous" / stamp
+    n = 1
+    while dest.exists():
+        n += 1
+        dest = run_dir / "previous" / f"{stamp}-{n}"
+    make_folder(dest)
+    with writing(dest, "config"):
+        if (run_dir / "config.yaml").is_file():
+            shutil.copy2(run_dir / "config.yaml", dest / "config.yaml")
+        for p in found:
+            os.replace(p, dest / p.name)
+    return dest

@@ -10,7 +10,7 @@ from ..compact.pack import check_pack_config, pack, summary
 from ..store import CHANGES_KEY
 from ..io.checkpoint import CKPT, load_checkpoint
 from ..io.files import leftover_temporaries, write_atomic
-from ..io.files import run_lock
+from ..io.files import run_lock, set_aside_results
 from ..device import resolve_device
 from ..model import check_init_fits
 from ..data.load import scene_folder
@@ -58,6 +58,10 @@ def _train_locked(cfg: DictConfig, run_dir: Path, data_base: str | None) -> dict
     if not cfg.data.name:  # label for tables: the scene folder's name
         cfg.data.name = scene_folder(cfg.data, data_base).name
     ckpt = run_dir / CKPT
+    if cfg.train.resume is False:  # started over: the earlier run's results never stand beside the new one's
+        moved = set_aside_results(run_dir)
+        if moved is not None:
+            print(f"[stdr] train.resume=false: the earlier run's results in {run_dir} moved to {moved}")
     resuming = bool(cfg.train.resume and ckpt.is_file())
     note = settle_precision(cfg, saved_config(run_dir) if resuming else None)
     if note:
