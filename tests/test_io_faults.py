@@ -141,6 +141,56 @@ def test_a_fault_while_writing_a_video_leaves_the_previous_one(finished, tmp_pat
     assert digest(tmp_path / "v") == before and leftovers(tmp_path / "v") == []
 
 
+@pytest.mark.parametrize("fmt", ["mp4", "gif"])
+def test_a_video_cut_short_by_a_file_size_limit_is_refused_and_the_good_one_stays(finished, tmp_path, fmt):
+    """ulimit -f below the new video's size (the encoder is stopped mid-file, or Python's write fails):
+    one line naming the video, a non-zero exit, and the previous, good video untouched."""
+    cmd = [sys.executable, "-c", "from stdr.cli.view import render_main; import sys; render_main(sys.argv[1:])",
+           str(finished), "--out", str(tmp_path / "v"), "--kinds", "time", "--width", "64", "--format", fmt]
+    ok = sh(cmd + ["--frames", "4"])
+    assert ok.returncode == 0 and "[stdr] wrote" in ok.stdout, ok.stderr[-2000:]
+    video = tmp_path / "v" / f"time_rgb.{fmt}"
+    good = video.read_bytes()
+    limit = max(len(good) // 2, 512)  # the new, longer video cannot fit
+
+    def cap():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    r = subprocess.run(cmd + ["--frames", "40"], capture_output=True, text=True, timeout=600, preexec_fn=cap)
+    line = error_line(r, "stdr-render")
+    assert str(video) in line, line
+    assert "[stdr] wrote" not in r.stdout
+    assert video.read_bytes() == good and leftovers(tmp_path / "v") == []
+
+
+def test_a_video_is_encoded_as_its_frames_come_and_checked_before_it_is_kept(tmp_path):
+    """write_video takes any iterable: an MP4's memory does not grow with the frame count (each
+    frame goes to the encoder as it comes); a file that does not read back with every frame is
+    refused, naming it."""
+    import tracemalloc
+
+    import numpy as np
+
+    from stdr.view.video import VideoError, check_video, write_video
+
+    def frames(n):
+        for i in range(n):
+            yield np.full((96, 96, 3), i % 256, np.uint8)  # 27 KB each
+    peaks = {}
+    for n in (10, 200):
+        tracemalloc.start()
+        write_video(frames(n), tmp_path / f"v{n}", 10.0, "mp4", total=n, progress=False)
+        peaks[n] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    assert peaks[200] < peaks[10] + 1_000_000, peaks  # a list of 200 frames alone would be 5.5 MB
+    for suffix in (".mp4", ".gif"):
+        good = write_video(frames(10), tmp_path / f"g{suffix}", 10.0, suffix[1:], progress=False)
+        check_video(good, 10, good)
+        bad = tmp_path / f"bad{suffix}"
+        bad.write_bytes(good.read_bytes()[:len(good.read_bytes()) // 3])
+        with pytest.raises(VideoError, match=f"{tmp_path / 'named'}{suffix}: the encoder's file reads back with"):
+            check_video(bad, 10, tmp_path / f"named{suffix}")
+
+
 def test_a_fault_during_a_download_keeps_the_resumable_part_and_names_it(tmp_path):
     from stdr.data import fetch
     from stdr.errors import IOFault

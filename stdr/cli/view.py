@@ -117,7 +117,7 @@ def render_main(argv=None) -> None:
         if a.path is not None:
             imgs = path_frames(run, cp.cameras, cp.times, a.view)
             paths = {"path": write_video(imgs, (a.out or a.run / "videos") / f"{a.path.stem}_{a.view}",
-                                         a.fps if fps_given else cp.fps, a.format)}
+                                         a.fps if fps_given else cp.fps, a.format, total=len(cp.cameras))}
         else:
             paths = render_videos(run, a.out or a.run / "videos", [k for k in a.kinds.split(",") if k], a.width,
                                   a.frames, a.fps, a.view, a.split, a.format)
