@@ -47,3 +47,13 @@ def test_a_time_outside_the_run_is_an_error(tmp_path):
     from stdr.io.export import export_times
     with pytest.raises(ValueError, match=r"--times 1.5: the model.s times run over \[0, 1\]"):
         export_times(object(), [1.5], tmp_path)
+
+
+def test_times_that_round_alike_get_names_of_their_own_and_a_repeated_time_is_refused(tmp_path):
+    from stdr.io.export import export_times, time_names
+    assert time_names([0, 0.5, 1]) == ["t_0.0000.ply", "t_0.5000.ply", "t_1.0000.ply"]
+    assert time_names([0.12341, 0.12344, 0.9]) == ["t_0.12341.ply", "t_0.12344.ply", "t_0.90000.ply"]
+    a, b = 0.1, 0.1 + 1e-16 * 3  # differ in the last bits only
+    assert a != b and len(set(time_names([a, b]))) == 2
+    with pytest.raises(ValueError, match=r"--times 0.5: given more than once"):
+        export_times(object(), [0.5, 0.25, 0.5], tmp_path)

@@ -41,16 +41,31 @@ def check_times(times: list[float]) -> None:
     if bad:
         raise BadInput(f"--times {' '.join(str(t) for t in bad)}: the model's times run over [0, 1] (0: the "
                        "first training frame's time, 1: the last); give times in that range")
+    twice = sorted({float(t) for t in times if [float(x) for x in times].count(float(t)) > 1})
+    if twice:
+        raise BadInput(f"--times {' '.join(str(t) for t in twice)}: given more than once; each time is one file")
+
+
+def time_names(times: list[float]) -> list[str]:
+    """The file name of each time, t_<time>.ply: 4 decimals, or as many more as it takes for
+    different times to get different names (0.12341 and 0.12344: t_0.12341.ply, t_0.12344.ply),
+    never one file written over another."""
+    ts = [float(t) for t in times]
+    for d in range(4, 18):
+        names = [f"t_{t:.{d}f}.ply" for t in ts]
+        if len(set(names)) == len(set(ts)):
+            return names
+    return [f"t_{t!r}.ply" for t in ts]
 
 
 def export_times(model, times: list[float], out: str | Path) -> list[Path]:
-    """One PLY per time, out/t_<time>.ply; returns the paths."""
+    """One PLY per time, out/t_<time>.ply (time_names); returns the paths."""
     check_times(times)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for t in times:
-        p = out / f"t_{float(t):.4f}.ply"
+    for t, name in zip(times, time_names(times)):
+        p = out / name
         save_ply(gaussians_at(model, float(t)), p)
         paths.append(p)
     return paths
