@@ -56,6 +56,8 @@ IO_FIXES = {
     errno.ENOTDIR: "a part of the path is a file, not a folder",
     errno.EISDIR: "it is a folder, where a file is needed",
     errno.EEXIST: "a file is in the way of a folder of that name",
+    errno.ENAMETOOLONG: "a name in the path is longer than the file system allows (255 bytes a folder or file "
+                        "name, 4096 the whole path): choose a shorter one",
 }
 
 

@@ -5,8 +5,12 @@ import torch
 from torch import Tensor
 
 
+#: query points per block of the distance matrix: a block is KNN_CHUNK x len(points) floats
+KNN_CHUNK = 1024
+
+
 def knn(query: Tensor, points: Tensor, k: int, exclude_self: bool = False,
-        chunk: int = 1024) -> tuple[Tensor, Tensor]:
+        chunk: int = KNN_CHUNK) -> tuple[Tensor, Tensor]:
     """Squared distances [Q, k] and indices [Q, k] of the k nearest `points` [P, D] to `query` [Q, D].
 
     With exclude_self, query i is assumed to be points i and is not its own neighbour.

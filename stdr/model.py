@@ -26,6 +26,7 @@ from .cameras import Camera
 from .baselines import build_deformation
 from .baselines.base import choose_precision
 from .device import available_bytes, resolve_device
+from .knn import KNN_CHUNK
 from .plugins import Plugin, enabled_plugins, plugin_node, registered_plugins
 from .ops import RowView, rows_of, sigmoid
 from .render import RenderOutput, render, resolve_backend
@@ -56,18 +57,22 @@ def build_plugins(cfg, schedule: Schedule, train_times: Optional[np.ndarray], de
 
 
 def check_init_fits(model_cfg, device: torch.device) -> None:
-    """model.init_num random Gaussians must fit in `device`'s free memory: their parameters alone
-    (means, scales, quaternion, opacity and the colour coefficients in float32) are a lower bound
-    of what training needs. Refused by name (ConfigError) instead of an allocator's traceback."""
+    """model.init_num random Gaussians must fit in `device`'s free memory: their parameters
+    (means, scales, quaternion, opacity and the colour coefficients in float32) and the peak of
+    the nearest-neighbour search that sets their initial scales are a lower bound of what training
+    needs. Refused by name (ConfigError) instead of an allocator's traceback."""
     if model_cfg.init != "random":
         return
     n = int(model_cfg.init_num)
     floats = 3 + 3 + 4 + 1 + 3 * (int(model_cfg.sh_degree) + 1) ** 2
-    need, free = n * floats * 4, available_bytes(device)
+    # the initial scales' nearest-neighbour search (stdr.knn: distances of KNN_CHUNK points to all n)
+    params, search = n * floats * 4, min(KNN_CHUNK, n) * n * 4
+    need, free = params + search, available_bytes(device)
     if free is not None and need > free:
-        raise ConfigError(f"model.init_num={n}: {n:,} Gaussians need at least {need / 2 ** 30:,.1f} GiB for their "
-                          f"parameters alone, more than the {free / 2 ** 30:,.1f} GiB free on {device}; the "
-                          "budgets start from 10,000 to 100,000 (docs/budgets.md)")
+        raise ConfigError(f"model.init_num={n}: {n:,} Gaussians need at least {need / 2 ** 30:,.1f} GiB ("
+                          f"{params / 2 ** 30:,.1f} for their parameters, {search / 2 ** 30:,.1f} for the nearest-"
+                          f"neighbour search of their initial scales), more than the {free / 2 ** 30:,.1f} GiB free on "
+                          f"{device}; the budgets start from 10,000 to 100,000 (docs/budgets.md)")
 
 
 def initial_points(model_cfg, scene_points: Optional[np.ndarray], scene_colors: Optional[np.ndarray],

@@ -262,12 +262,56 @@ def test_a_python_tag_in_config_yaml_runs_nothing_and_is_one_line_in_eval_and_vi
     (["data.max_width=-5"], "data.max_width=-5: use null (no limit) or a whole number >= 1"),
     (["budget=demo", "optim.iterations=400", "baseline.warmup=400"], "the deformation never trains in this run"),
     (["model.init_num=1000000000000"], "model.init_num=1000000000000: 1,000,000,000,000 Gaussians need at least"),
+    # fits by its parameters (~0.7 GB), not by its initial scales' nearest-neighbour search (1024 x 3M floats = 12 GB a
+    # block): counted before anything is allocated, on a machine with less free memory than that
+    (["model.init_num=3000000"] if __import__("stdr.device").device.available_bytes(__import__("torch").device("cpu"))
+     < 12 * 2 ** 30 else ["model.init_num=20000000"], "for the nearest-neighbour search of their initial scales"),
+    (["+optim." + ".".join(f"k{i}" for i in range(300)) + "=1"], "characters): no such key or option in the config"),
 ])
 def test_a_refused_config_is_one_line_and_leaves_no_folder(tmp_path, extra, said):
     run = tmp_path / "outputs" / "mine" / "run"
     r = sh(train_cmd(tmp_path, run, *extra), cwd=tmp_path)
     assert said in one_line_error(r, "stdr-train")
     assert not (tmp_path / "outputs").exists()  # neither the run folder nor the parents Hydra made
+
+
+def test_a_run_folder_name_too_long_for_the_file_system_is_one_line(tmp_path):
+    r = sh(train_cmd(tmp_path, tmp_path / ("a" * 300)))
+    assert "File name too long" in one_line_error(r, "stdr-train") and "choose a shorter one" in r.stderr
+
+
+@pytest.mark.slow
+def test_a_lock_file_of_any_bytes_is_taken_over(tmp_path):
+    """A damaged .stdr.lock (here not UTF-8) left by nobody is replaced: the run trains."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / LOCK_NAME).write_bytes(b"\xff\xfe\x00 not a record")
+    r = sh(train_cmd(tmp_path, run, "optim.iterations=30", "train.stop_at=2"))
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-3000:]
+    assert read_holder(run) == {}  # released: the record emptied
+
+
+@pytest.mark.parametrize("content, said", [
+    (None, "no queue file there"),
+    ('{"runs": [', "not a queue file (Expecting value"),
+    ("[]", "not a queue file (a JSON object with a 'runs' list)"),
+    ('{"runs": [{"x": 1}]}', "a run entry is not one stdr-tool queue wrote"),
+])
+def test_a_queue_file_that_is_not_one_is_one_line(tmp_path, content, said):
+    q = tmp_path / "q.json"
+    if content is not None:
+        q.write_text(content)
+    for cmd in (["status", str(q)], ["run", str(q), "--work", str(tmp_path / "w"), "--out", str(tmp_path / "o")]):
+        r = sh([sys.executable, "-m", "stdr.cli.tool", "queue", *cmd])
+        assert f"{q}: {said}" in one_line_error(r, "stdr-tool")
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("cmd", [["verify"], ["prepare", "dnerf-400"]])
+def test_stdr_data_on_a_missing_folder_is_one_line(tmp_path, cmd):
+    r = sh([sys.executable, "-m", "stdr.cli.data", *cmd, str(tmp_path / "nope"), *([str(tmp_path / "out")]
+                                                                                  if cmd[0] == "prepare" else [])])
+    assert f"{tmp_path / 'nope'}: no such folder" in one_line_error(r, "stdr-data")
 
 
 def test_the_demo_budget_shorter_than_its_warm_up_is_named():

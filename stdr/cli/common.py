@@ -1,6 +1,7 @@
 """Shared pieces of the Hydra entry points."""
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 
@@ -90,6 +91,12 @@ def check_overrides(prog: str, argv: list[str], config_name: str = "train") -> N
             compose_config(list(argv), config_name)
         except (HydraException, OmegaConfBaseException) as e:
             raise ConfigError(_override_problem(e, list(argv), config_name)) from None
+        except OSError as e:  # Hydra looks an override up as a config file: a key too long for a file name
+            if e.errno != errno.ENAMETOOLONG:
+                raise
+            long = max(argv, key=len)
+            raise ConfigError(f"{long[:60]}... ({len(long)} characters): no such key or option in the config; "
+                              f"`{prog} --help` lists them") from None
 
 
 def run_hydra_app(prog: str, app) -> None:

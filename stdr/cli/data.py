@@ -18,7 +18,7 @@ from pathlib import Path
 from ..data.capture import capture
 from ..data.capture_input import MATCHERS, SELECT_MODES, CaptureConfig
 from ..data import fetch, load
-from ..errors import reported
+from ..errors import MissingInput, reported
 from ..eval.lpips import fetch_dir, fetch_weights
 from ..data.dnerf import _resolve_image
 
@@ -107,8 +107,18 @@ def _download(args) -> list[Path]:
     return placed
 
 
+def _existing_folder(path: Path, what: str) -> Path:
+    """`path` as a folder that exists, else one MissingInput naming it."""
+    path = Path(path)
+    if not path.exists():
+        raise MissingInput(f"{path}: no such folder ({what})")
+    if not path.is_dir():
+        raise MissingInput(f"{path}: a file, not a folder ({what})")
+    return path
+
+
 def _verify(folder: Path, fmt: str | None) -> int:
-    folder = Path(folder)
+    folder = _existing_folder(folder, "stdr-data verify takes a scene folder or a folder of scenes")
     scenes = [folder] if load.detect_format(folder) else sorted(p for p in folder.iterdir()
                                                                   if p.is_dir() and load.detect_format(p))
     if not scenes:
@@ -136,7 +146,7 @@ def prepare_dnerf(src: Path, dest: Path, size: int = 400) -> list[Path]:
 
     from PIL import Image
 
-    src, dest = Path(src), Path(dest)
+    src, dest = _existing_folder(src, "stdr-data prepare takes a D-NeRF scene or a folder of them"), Path(dest)
     scenes = [src] if load.detect_format(src) == "dnerf" else sorted(
         p for p in src.iterdir() if p.is_dir() and load.detect_format(p) == "dnerf")
     if not scenes:

@@ -206,7 +206,7 @@ def read_holder(run_dir: str | Path) -> dict:
     """The record in RUN/.stdr.lock ({} when empty, absent or unreadable): the holder, or the last
     holder if it was killed."""
     try:
-        return _parse((Path(run_dir) / LOCK_NAME).read_text())
+        return _parse((Path(run_dir) / LOCK_NAME).read_text(errors="replace"))
     except OSError:
         return {}
 
@@ -238,7 +238,7 @@ def run_lock(run_dir: str | Path, prog: str) -> Iterator[None]:
         finally:
             _HELD[key][1] -= 1
         return
-    fh = open(path, "a+")
+    fh = open(path, "a+", errors="replace")  # a damaged record (any bytes) is replaced, never a traceback
     try:
         fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError as e:

@@ -32,6 +32,8 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+from ..errors import BadInput, MissingInput
+
 FILES = ("metrics.json", "config.yaml", "train_profile.json")
 STATES = ("pending", "running", "done", "failed")
 
@@ -54,8 +56,21 @@ class Queue:
 
     @staticmethod
     def load(path: Path) -> "Queue":
-        d = json.loads(Path(path).read_text())
-        return Queue([Run(**r) for r in d["runs"]], list(d.get("calls", [])))
+        """The queue file at `path`; a missing, unreadable or malformed one is one error naming it."""
+        path = Path(path)
+        if not path.is_file():
+            raise MissingInput(f"{path}: no queue file there (stdr-tool queue plan {path} ... makes one)")
+        fix = "plan a new queue (stdr-tool queue plan), or restore the file from the run's copy (OUT/queue.json)"
+        try:
+            d = json.loads(path.read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise BadInput(f"{path}: not a queue file ({e}); {fix}") from None
+        if not isinstance(d, dict) or not isinstance(d.get("runs"), list):
+            raise BadInput(f"{path}: not a queue file (a JSON object with a 'runs' list); {fix}")
+        try:
+            return Queue([Run(**r) for r in d["runs"]], list(d.get("calls", [])))
+        except TypeError as e:
+            raise BadInput(f"{path}: a run entry is not one stdr-tool queue wrote ({e}); {fix}") from None
 
     def save(self, path: Path) -> None:
         tmp = Path(path).with_suffix(".tmp")
