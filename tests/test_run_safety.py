@@ -338,3 +338,44 @@ def test_stdr_export_refuses_times_outside_the_run_in_one_line(runs, tmp_path, t
             str(runs["done"]), "--times", *times, "--out", str(tmp_path / "ply")], timeout=120)
     assert "the model's times run over [0, 1]" in one_line_error(r, "stdr-export")
     assert not (tmp_path / "ply").exists()
+
+
+# ---------------------------------------------------------------- a run's data, pinned
+@pytest.mark.slow
+def test_a_run_reads_the_data_it_trained_on_and_refuses_other_data_under_its_path(tmp_path):
+    """Trained with a relative data.path: stdr-eval from another folder, where that relative path is
+    another scene, reads the run's own scene (data.json pins its folder); once that folder is gone,
+    the other scene is refused in one line and metrics.json is left as it was; a copy of the run's
+    scene (a project moved) is accepted."""
+    import shutil
+
+    from stdr.data.procedural import SceneOptions, generate_scene
+    opts = SceneOptions(n_train=6, n_val=2, n_test=3, resolution=24)
+    a, b = tmp_path / "a", tmp_path / "b"
+    generate_scene(a / "data" / "scene", opts)
+    generate_scene(b / "data" / "scene", SceneOptions(n_train=6, n_val=2, n_test=3, resolution=24, motion="jump"))
+    run = a / "run"
+    cmd = [sys.executable, "-m", "stdr.cli.train", "experiment=dnerf_deform", "data.path=data/scene", "device=cpu",
+           "model.init_num=300", "eval.lpips=false", "train.progress=false", "eval.save_images=false",
+           "train.image_every=0", "eval.fps_repeats=1", "eval.fps_warmup=0", "optim.iterations=20",
+           "baseline.warmup=10", "train.eval_at_warmup_end=false", "densify.refine_start=5", "train.threads=1",
+           f"hydra.run.dir={run}"]
+    r = sh(cmd, cwd=a)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rec = json.loads((run / "data.json").read_text())
+    assert rec["root"] == str((a / "data" / "scene").resolve()) and rec["path"] == "data/scene"
+    assert set(rec["splits"]) >= {"train", "test"} and rec["splits"]["train"]["frames"] == 6
+    trained = json.loads((run / "metrics.json").read_text())["test"]["psnr"]
+    ok = _eval(run, f"out={tmp_path / 't1'}", cwd=b)  # from b: data/scene there is another scene
+    assert ok.returncode == 0, ok.stderr[-3000:]
+    assert json.loads((run / "metrics.json").read_text())["test"]["psnr"] == trained  # the run's own scene, again
+    shutil.move(a / "data" / "scene", tmp_path / "kept")
+    before = (run / "metrics.json").read_bytes()
+    line = one_line_error(_eval(run, f"out={tmp_path / 't2'}", cwd=b), "stdr-eval")
+    assert f"{run}: the data at {(b / 'data' / 'scene').resolve()} is not what this run trained on" in line
+    assert (run / "metrics.json").read_bytes() == before
+    moved = tmp_path / "moved"
+    shutil.copytree(tmp_path / "kept", moved / "data" / "scene")
+    ok = _eval(run, f"out={tmp_path / 't3'}", cwd=moved)
+    assert ok.returncode == 0, ok.stderr[-3000:]
+    assert json.loads((run / "metrics.json").read_text())["test"]["psnr"] == trained

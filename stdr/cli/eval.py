@@ -25,7 +25,7 @@ from .common import check_overrides, reproducible_blas, run_hydra_app
 from ..eval.table import check_mixed_rows, collect, find_run_dirs, markdown, read_metrics, table_row, write_tables
 from ..eval.evaluate import evaluate_run, measure_fps, save_metrics, machine_name
 from ..train.state import RunState
-from ..data.load import load_scene
+from ..data.load import load_run_scene
 from ..device import resolve_device
 from ..model import has_model_entry, model_from_checkpoint, model_bytes
 from ..io.checkpoint import load_checkpoint, CKPT
@@ -137,7 +137,7 @@ def _load_for_eval(rd: Path, cfg, split: str, base: str):
     dev = resolve_device(cfg.device)
     # a checkpoint from before format 2 does not hold the training times: read them from the data
     splits = (split,) if has_model_entry(ck) else tuple(dict.fromkeys(("train", split)))
-    scene = load_scene(cfg.data, splits, base=base, seed=cfg.seed).to(dev)
+    scene = load_run_scene(rd, cfg, splits, base=base, seed=cfg.seed).to(dev)  # the data it trained on
     model = model_from_checkpoint(ck, dev, cfg, None if has_model_entry(ck) else scene.train_times(), str(rd / CKPT))
     return ck, model, scene
 

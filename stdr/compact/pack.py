@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 from ..store import load_config
-from ..data.load import load_scene
+from ..data.load import load_run_scene
 from ..errors import ConfigError
 from ..eval.evaluate import evaluate_model
 from ..io.checkpoint import CKPT, save_checkpoint
@@ -96,11 +96,11 @@ def _pack_locked(run_dir: Path, src: Path, out: Optional[Path], spec: Optional[d
     full = load_model(src, "cpu", cfg)
     frames = None
     if (spec or {}).get("finetune"):  # the codebooks' fine-tune renders the training frames
-        frames = load_scene(cfg.data, ("train",), base=data_base, seed=cfg.seed).frames("train")
+        frames = load_run_scene(run_dir, cfg, ("train",), base=data_base, seed=cfg.seed).frames("train")
     rec = {"file": str(out), **write_compact(full, out, spec, frames)}
     rec["ratio"] = rec["bytes"] / rec["full_bytes"]
     if split:
-        scene = load_scene(cfg.data, (split,), base=data_base, seed=cfg.seed)
+        scene = load_run_scene(run_dir, cfg, (split,), base=data_base, seed=cfg.seed)
         small = load_model(out, "cpu", cfg)
         a = evaluate_model(full, scene.frames(split), fps_warmup=0)
         b = evaluate_model(small, scene.frames(split), fps_warmup=0)

@@ -1,11 +1,14 @@
 """Build a SceneData from the `data` config."""
 from __future__ import annotations
 
+import copy
+import hashlib
 import json
 from pathlib import Path
 from typing import Iterable, Optional
 
 from ..errors import BadInput
+from ..io.files import read_json, write_atomic
 from .dnerf import SplitImages, _read_json, _resolve_image, load_dnerf, parse_background
 from .fetch import DataError
 from .images import image_channels
@@ -70,6 +73,82 @@ def load_scene(cfg, splits: Iterable[str], base: str | Path | None = None, seed:
                            resolution_scale=cfg.resolution_scale, max_width=cfg.max_width)
     scene.meta["name"] = cfg.name
     apply_stress(scene, cfg.stress, seed)
+    return scene
+
+
+# ------------------------------------------------------------------ a run's data, pinned
+#: the run folder's record of the data it trained on (stdr-train writes it; readers check it)
+RUN_DATA = "data.json"
+
+
+def split_fingerprint(scene: SceneData, split: str) -> dict:
+    """What identifies a split's data on disk: its frame count, the files' total bytes and a
+    SHA-256 over each file's name and size (names relative to the scene folder). Reading no
+    pixels, it is cheap; a replaced, resized or re-encoded image changes it."""
+    root = Path(scene.root)
+    lines, total = [], 0
+    for name in sorted(f.name for f in scene.frames(split)):
+        try:
+            size = (root / name).stat().st_size
+        except OSError:
+            size = -1
+        total += max(size, 0)
+        lines.append(f"{name}\t{size}")
+    return {"frames": len(lines), "bytes": total, "sha256": hashlib.sha256("\n".join(lines).encode()).hexdigest()}
+
+
+def pin_run_data(run_dir: Path, cfg, scene: SceneData, base: str | Path | None) -> None:
+    """At the start of training: a new run records its scene folder (absolute, and data.path as
+    given) and its splits' fingerprints in run_dir/data.json; a resumed run is checked against it
+    (BadInput naming both when the data changed: training on would mix two scenes)."""
+    run_dir = Path(run_dir)
+    rec = read_run_data(run_dir)
+    prints = {sp: split_fingerprint(scene, sp) for sp, frames in scene.splits.items() if frames}
+    if rec is not None:
+        check_run_data(run_dir, rec, scene, prints)
+        return
+    write_atomic(run_dir / RUN_DATA, json.dumps({"root": str(Path(scene.root).resolve()), "path": cfg.path,
+                                                 "base": None if base is None else str(base), "splits": prints},
+                                                indent=1), site="config")
+
+
+def read_run_data(run_dir: Path) -> Optional[dict]:
+    """run_dir/data.json, or None for a run trained before it was written."""
+    path = Path(run_dir) / RUN_DATA
+    if not path.is_file():
+        return None
+    rec = read_json(path, "run data record")
+    if not isinstance(rec, dict) or not isinstance(rec.get("splits"), dict):
+        raise BadInput(f"{path}: not a run's data record (root, splits); it is written by stdr-train")
+    return rec
+
+
+def check_run_data(run_dir: Path, rec: dict, scene: SceneData, prints: Optional[dict] = None) -> None:
+    """Every split both have: the scene's fingerprint equals the one the run recorded; else one
+    BadInput naming the run, the folder read and how to point at the right one."""
+    prints = prints or {sp: split_fingerprint(scene, sp) for sp, frames in scene.splits.items() if frames}
+    for sp, fp in prints.items():
+        was = rec["splits"].get(sp)
+        if was is not None and was != fp:
+            raise BadInput(
+                f"{run_dir}: the data at {scene.root} is not what this run trained on: its {sp} split has "
+                f"{fp['frames']} frames, {fp['bytes']:,} bytes here and had {was['frames']} frames, "
+                f"{was['bytes']:,} bytes in {rec['root']} (data.path {rec.get('path')!r}). Point data.path at the "
+                f"run's scene (its folder as it was at {rec['root']}), or evaluate a run of this data")
+
+
+def load_run_scene(run_dir: Path, cfg, splits: Iterable[str], base: str | Path | None = None, seed: int = 0) -> SceneData:
+    """The scene of a trained run (stdr-eval, stdr-view, stdr-render, stdr-tool pack): the folder
+    the run recorded in data.json while it is there (whatever the working folder), else data.path
+    as the config gives it; then checked against the run's fingerprints (check_run_data)."""
+    rec = read_run_data(run_dir)
+    data = cfg.data if hasattr(cfg, "data") else cfg
+    if rec is not None and data.format != "procedural" and Path(rec["root"]).is_dir():
+        data = copy.deepcopy(data)
+        data.path = rec["root"]
+    scene = load_scene(data, splits, base=base, seed=seed)
+    if rec is not None:
+        check_run_data(run_dir, rec, scene)
     return scene
 
 

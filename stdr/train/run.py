@@ -13,7 +13,7 @@ from ..io.files import leftover_temporaries, write_atomic
 from ..io.files import run_lock, set_aside_results
 from ..device import resolve_device
 from ..model import check_init_fits
-from ..data.load import scene_folder
+from ..data.load import pin_run_data, scene_folder
 from ..eval.table import collect, markdown, table_row
 from ..validate import check_run_config
 from ..baselines.base import PRECISIONS, choose_precision
@@ -77,6 +77,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path, data_base: str | None) -> dict
     split = cfg.data.eval_split
     spec = check_pack_config(cfg)  # the compact file's codecs are checked before training, not after it
     trainer = Trainer(cfg, run_dir, splits=("train", split), data_base=data_base)
+    pin_run_data(run_dir, cfg.data, trainer.scene, data_base)  # data.json: the scene's folder and fingerprints
     trainer.state.config_changes = changes
     print(f"[stdr] {cfg.name}: {len(trainer.scene.frames('train'))} train / "
           f"{len(trainer.scene.frames(split))} {split} frames at "

@@ -18,7 +18,7 @@ from ..errors import BadInput, MissingInput
 from ..cameras import Camera
 from ..data.colmap import qvec_to_rotmat
 from ..data.types import Frame
-from ..data.load import load_scene
+from ..data.load import load_run_scene
 from ..store import load_config
 from ..device import resolve_device
 from ..model import model_from_checkpoint
@@ -95,7 +95,7 @@ def open_run(run_dir: str | Path, device: Optional[str] = None, base: Optional[s
     model.eval()
     run = ViewRun(rd, cfg, model)
     try:
-        scene = load_scene(cfg.data, tuple(splits), base=base, seed=cfg.seed)
+        scene = load_run_scene(rd, cfg, tuple(splits), base=base, seed=cfg.seed)
         run.frames = {s: v for s, v in scene.splits.items() if v}
     except (FileNotFoundError, ValueError, KeyError, OSError) as e:
         run.data_note = f"the run's data could not be read ({e}); no dataset cameras"
