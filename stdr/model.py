@@ -13,6 +13,8 @@ deformed, the SH degree grows with the step, and plug-ins have phases (stdr.plug
 """
 from __future__ import annotations
 
+import sys
+
 from pathlib import Path
 from typing import Any, Optional
 
@@ -21,7 +23,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor
 
-from .errors import BadInput, ConfigError
+from .errors import BadInput, ConfigError, UserError
 from .cameras import Camera
 from .baselines import build_deformation
 from .baselines.base import choose_precision
@@ -35,7 +37,8 @@ from .schedule import Schedule
 from .store import load_config, resolve_schedule
 from .compression.codecs import nbytes
 from .gaussians import Gaussians, activate, init_params, num_gaussians, random_cube_points
-from .io.checkpoint import save_checkpoint, load_checkpoint
+from .io.checkpoint import CKPT, checkpoint_identity, load_checkpoint, save_checkpoint
+from .io.files import read_json
 from .compression.file import decode_model, is_compact
 from .data.dnerf import parse_background
 
@@ -353,7 +356,29 @@ def load_model(path: str | Path, device: str | torch.device = "auto", cfg=None,
     cfg: the config to build with (default: the one saved in the checkpoint; a run's own
     config.yaml may override render settings). A checkpoint written before format 2 has no
     config or training times: pass both (stdr-eval does, from the run folder and its data)."""
-    return model_from_checkpoint(load_checkpoint(path), device, cfg, train_times, str(path))
+    model = model_from_checkpoint(load_checkpoint(path), device, cfg, train_times, str(path))
+    note = compact_source_note(path)
+    if note:
+        print(f"[stdr] {note}", file=sys.stderr, flush=True)
+    return model
+
+
+def compact_source_note(path: str | Path) -> str:
+    """A compact model file in a run folder (RUN/model.stdrc) packed from another checkpoint than
+    the run's last (pack.json names its source): one line saying so; "" otherwise."""
+    path = Path(path)
+    pack, ck = path.parent / "pack.json", path.parent / CKPT
+    if path.suffix != ".stdrc" or not pack.is_file() or not ck.is_file():
+        return ""
+    try:
+        src = (read_json(pack, "pack record") or {}).get("checkpoint")
+    except UserError:
+        return ""
+    now = checkpoint_identity(ck)
+    if not isinstance(src, dict) or now is None or src.get("sha256") == now["sha256"]:
+        return ""
+    return (f"{path} was packed from the checkpoint at iteration {src.get('step')}; the run's {CKPT} is at iteration "
+            f"{now['step']}: this file is not the run's model now (stdr-tool pack {path.parent} packs it again)")
 
 
 def model_from_checkpoint(ck: dict[str, Any], device: str | torch.device = "auto", cfg=None,

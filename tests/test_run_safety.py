@@ -379,3 +379,43 @@ def test_a_run_reads_the_data_it_trained_on_and_refuses_other_data_under_its_pat
     ok = _eval(run, f"out={tmp_path / 't3'}", cwd=moved)
     assert ok.returncode == 0, ok.stderr[-3000:]
     assert json.loads((run / "metrics.json").read_text())["test"]["psnr"] == trained
+
+
+# ---------------------------------------------------------------- results name their checkpoint
+@pytest.mark.slow
+def test_results_name_their_checkpoint_and_readers_refuse_or_say_when_it_is_not_the_runs(tmp_path):
+    """metrics.json, history.json's final entry and pack.json record the checkpoint (iteration,
+    SHA-256) they came from. A compact file packed at step 5 of a run that then finished says so when
+    loaded; metrics.json left behind by training that went on is refused by stdr-eval
+    reevaluate=false and is not a finished run to a sweep."""
+    from stdr.cli.train import _stale_metrics
+    from stdr.io.checkpoint import checkpoint_identity
+    run = tmp_path / "run"
+    assert sh(train_cmd(tmp_path, run, "optim.iterations=30", "train.stop_at=5")).returncode == 0
+    r = sh([sys.executable, "-m", "stdr.cli.tool", "pack", str(run), "--no-eval"])
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((run / "pack.json").read_text())["checkpoint"]["step"] == 5
+    r = sh(train_cmd(tmp_path, run, "optim.iterations=30"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    now = checkpoint_identity(run / "checkpoints" / "last.pt")
+    assert now["step"] == 30
+    m = json.loads((run / "metrics.json").read_text())["test"]
+    assert m["checkpoint"] == now and _stale_metrics(run) == ""
+    final = [h for h in json.loads((run / "history.json").read_text()) if h["tag"] == "final"]
+    assert final[-1]["checkpoint"] == now
+    load = sh([sys.executable, "-c", "import sys; from stdr.model import load_model; load_model(sys.argv[1], 'cpu')",
+               str(run / "model.stdrc")])
+    assert load.returncode == 0, load.stderr[-2000:]
+    assert (f"{run / 'model.stdrc'} was packed from the checkpoint at iteration 5; the run's checkpoints/last.pt is at "
+            "iteration 30") in load.stderr
+    # training goes on (a longer run, resumed with the change recorded), and the metrics.json of iteration 30 is
+    # put back (a copy restored from elsewhere): it is not the run's now
+    old = (run / "metrics.json").read_bytes()
+    r = sh(train_cmd(tmp_path, run, "optim.iterations=40", "train.resume=override"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    (run / "metrics.json").write_bytes(old)
+    line = one_line_error(_eval(run, f"out={tmp_path / 't'}", "reevaluate=false"), "stdr-eval")
+    assert f"{run / 'metrics.json'} is of the checkpoint at iteration 30" in line and "at iteration 40" in line
+    assert "iteration 40" in _stale_metrics(run) and (run / "metrics.json").read_bytes() == old
+    # re-evaluated, it is the run's again
+    assert _eval(run, f"out={tmp_path / 't2'}").returncode == 0 and _stale_metrics(run) == ""

@@ -17,7 +17,8 @@ from omegaconf import DictConfig
 from ..config import CONFIG_DIR
 from ..store import register
 from ..errors import UserError, reported
-from ..io.files import LOCK_NAME
+from ..eval.table import stale_results
+from ..io.files import LOCK_NAME, read_json
 from ..tools.runqueue import FAILURES, STDOUT
 from ..train.resume import StopNow
 from ..train.run import run_training
@@ -67,8 +68,11 @@ def sweep_job(cfg: DictConfig, run_dir: Path, data_base: str) -> dict | None:
     overrides and log, printed, and does not stop the other jobs (SweepReport sums them up)."""
     hc = HydraConfig.get()
     if cfg.train.skip_finished and (run_dir / "metrics.json").is_file():
-        print(f"[stdr] skipping finished run {run_dir} (metrics.json present; train.skip_finished=false reruns it)")
-        return None
+        stale = _stale_metrics(run_dir)
+        if not stale:
+            print(f"[stdr] skipping finished run {run_dir} (metrics.json present; train.skip_finished=false reruns it)")
+            return None
+        print(f"[stdr] {stale}; not skipped as finished", flush=True)
     isolate = bool(hc.sweeper.get("isolate", False))
     try:
         if isolate:
@@ -84,6 +88,19 @@ def sweep_job(cfg: DictConfig, run_dir: Path, data_base: str) -> dict | None:
             f.write(json.dumps(rec) + "\n")
         print(f"[stdr] FAILED {' '.join(rec['overrides'])}: {rec['error']} (log: {log})", flush=True)
         return None
+
+
+def _stale_metrics(run_dir: Path) -> str:
+    """Why run_dir's metrics.json is not its last checkpoint's ("" when it is, or cannot tell)."""
+    try:
+        metrics = read_json(run_dir / "metrics.json", "metrics")
+    except UserError:
+        return f"{run_dir / 'metrics.json'} is damaged"
+    for entry in (metrics.values() if isinstance(metrics, dict) else []):
+        why = stale_results(run_dir, entry)
+        if why:
+            return why
+    return ""
 
 
 @hydra.main(version_base=None, config_path=str(CONFIG_DIR), config_name="train")

@@ -18,7 +18,7 @@ from ..store import load_config
 from ..data.load import load_run_scene
 from ..errors import ConfigError
 from ..eval.evaluate import evaluate_model
-from ..io.checkpoint import CKPT, save_checkpoint
+from ..io.checkpoint import CKPT, checkpoint_identity, save_checkpoint
 from ..io.files import write_atomic
 from ..io.files import run_lock
 from ..model import load_model, model_bytes, model_from_checkpoint
@@ -97,7 +97,8 @@ def _pack_locked(run_dir: Path, src: Path, out: Optional[Path], spec: Optional[d
     frames = None
     if (spec or {}).get("finetune"):  # the codebooks' fine-tune renders the training frames
         frames = load_run_scene(run_dir, cfg, ("train",), base=data_base, seed=cfg.seed).frames("train")
-    rec = {"file": str(out), **write_compact(full, out, spec, frames)}
+    rec = {"file": str(out), **write_compact(full, out, spec, frames),
+           "checkpoint": checkpoint_identity(src)}  # the model it packs (readers compare it with the run's)
     rec["ratio"] = rec["bytes"] / rec["full_bytes"]
     if split:
         scene = load_run_scene(run_dir, cfg, (split,), base=data_base, seed=cfg.seed)

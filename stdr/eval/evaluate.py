@@ -229,6 +229,8 @@ def evaluate_state(state, frames, split: str, tag: str = "final", step: Optional
     res = evaluate_model(state.model, frames, step=state.step if step is None else step, lpips_fn=lpips_fn,
                          save_dir=save_dir, fps_warmup=fps_warmup, fps_repeats=fps_repeats, seen=seen)
     rec = history_record(tag, state.step, split, state.train_seconds, res)
+    if tag == "final":  # the final evaluation names the checkpoint it evaluated
+        rec["checkpoint"] = getattr(state, "checkpoint_id", None)
     state.history.append(rec)
     if log is not None:
         for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds"):
@@ -273,6 +275,9 @@ def metrics_entry(res: dict[str, Any], split: str, state, max_gaussians: Optiona
     if state.guard is not None:
         res["guard"] = state.guard.summary(max_gaussians)
     res.update(training_facts(state))
+    # the checkpoint these numbers are of (stdr.io.checkpoint.checkpoint_identity): readers compare
+    # it with the run's last checkpoint, so a result never outlives the model it measured unnoticed
+    res["checkpoint"] = getattr(state, "checkpoint_id", None)
     return res
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import BadInput, MissingInput, MissingKey
+from ..io.checkpoint import CKPT, checkpoint_identity
 from ..io.files import make_folder, read_json, read_yaml, write_atomic
 from ..plugins import RESERVED_KEYS, registered_plugins
 from .evaluate import commit_stamp
@@ -48,7 +49,8 @@ def write_outputs(out: Path | None, md: str, data: Any) -> None:
 
 
 def read_metrics(run: str | Path, split: str) -> dict[str, Any]:
-    """metrics.json[split] of a run folder; the errors name the file and the splits it has."""
+    """metrics.json[split] of a run folder; the errors name the file and the splits it has, and
+    refuse an entry of another checkpoint than the run's last (stale_results)."""
     mp = Path(run) / "metrics.json"
     if not mp.is_file():
         raise MissingInput(f"{mp} not found: the run has not finished, or {run} is not a stdr run directory")
@@ -59,7 +61,26 @@ def read_metrics(run: str | Path, split: str) -> dict[str, Any]:
     if split not in allm:
         raise MissingKey(f"{mp} has no {split!r} entry; it has "
                        f"{sorted(k for k, v in allm.items() if isinstance(v, dict) and 'psnr' in v)}")
+    stale = stale_results(run, allm[split])
+    if stale:  # a result never outlives the model it measured unnoticed
+        raise BadInput(f"{stale}; re-evaluate it (stdr-eval {run} reevaluate=true), or restore the checkpoint its "
+                       "results came from")
     return allm[split]
+
+
+def stale_results(run: str | Path, entry: dict[str, Any], what: str = "metrics.json") -> str:
+    """Why a result of `run` (a metrics.json entry, pack.json, ...: a dict with "checkpoint", the
+    identity of the checkpoint it came from) is not of the run's last checkpoint; "" when it is,
+    when the result predates recording it, or when the run keeps no checkpoint (a study's record)."""
+    src = entry.get("checkpoint") if isinstance(entry, dict) else None
+    if not isinstance(src, dict) or not src.get("sha256"):
+        return ""
+    now = checkpoint_identity(Path(run) / CKPT)
+    if now is None or now["sha256"] == src["sha256"]:
+        return ""
+    return (f"{Path(run) / what} is of the checkpoint at iteration {src.get('step')} (SHA-256 {src['sha256'][:12]}), "
+            f"but the run's {CKPT} is at iteration {now['step']} ({now['sha256'][:12]}): its numbers are not this "
+            "model's")
 
 
 def find_run_dirs(paths: list[str | Path]) -> list[Path]:

@@ -11,7 +11,7 @@ import random
 import re
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 import torch
@@ -79,19 +79,21 @@ def _keep_as_previous(path: Path) -> None:
 
 
 def save_checkpoint(path: str | Path, payload: dict[str, Any], keep_previous: bool = False,
-                    site: str = "checkpoint") -> None:
+                    site: str = "checkpoint") -> dict[str, Any]:
     """Write `payload` with a SHA-256 of its bytes (torch's own format does not notice a flipped
     byte: it loads wrong values) to a temporary file in the same folder, fsync, then rename over
     `path` (stdr.io.files.atomic_path: a failed write leaves the previous file and no temporary
     one, and names the path). keep_previous: the file being replaced is kept as
     `previous_path(path)` first, and `path` exists at every moment, so a damaged last one leaves
-    the one before. site: the failpoint's name (stdr.io.files.failpoint)."""
+    the one before. site: the failpoint's name (stdr.io.files.failpoint). Returns the file's identity
+    (checkpoint_identity)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.BytesIO()
     torch.save(payload, buf)
     raw = buf.getbuffer()
-    envelope = {"envelope": ENVELOPE, "sha256": hashlib.sha256(raw).hexdigest(),
+    sha = hashlib.sha256(raw).hexdigest()
+    envelope = {"envelope": ENVELOPE, "sha256": sha, "step": payload_step(payload),
                 "data": torch.frombuffer(bytearray(raw), dtype=torch.uint8)}
     # a full disk, a file-size limit, a kill: no half file is left, and the previous checkpoint stays
     with atomic_path(path, site) as tmp:
@@ -101,6 +103,7 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any], keep_previous: bo
             os.fsync(f.fileno())
         if keep_previous and path.is_file():
             _keep_as_previous(path)
+    return {"step": envelope["step"], "sha256": sha}
 
 
 def _damaged(path: Path, why: str) -> CheckpointError:
@@ -136,6 +139,36 @@ def _torch_load(src, path: Path) -> Any:
         raise _damaged(path, f"it cannot be read (UnpicklingError: {text.splitlines()[0][:200]})") from None
     except Exception as e:  # noqa: BLE001 - truncated zip, bad record, ...: a damaged file
         raise _damaged(path, f"it cannot be read ({type(e).__name__}: {str(e).splitlines()[0][:200]})") from None
+
+
+def payload_step(payload: Any) -> Optional[int]:
+    """The training step a checkpoint payload holds (a training checkpoint's or a model file's)."""
+    if not isinstance(payload, dict):
+        return None
+    model = payload.get("model")
+    step = model.get("step") if isinstance(model, dict) else payload.get("step")
+    return None if step is None else int(step)
+
+
+def checkpoint_identity(path: str | Path) -> Optional[dict[str, Any]]:
+    """{"step", "sha256"} of a checkpoint file: the SHA-256 its envelope was written with and the
+    step it holds, read without loading the payload (the file is memory-mapped). What the results
+    of a run (metrics.json, history.json, pack.json, videos, exports) record as their source, and
+    what readers compare with the run's last checkpoint. None: no file, or one from before the
+    checksum (nothing to compare)."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception:  # noqa: BLE001 - unreadable: load_checkpoint names the damage where it matters
+        return None
+    if not (isinstance(ck, dict) and ck.get("envelope") == ENVELOPE):
+        return None
+    step = ck.get("step")
+    if step is None:  # written before the envelope named its step
+        step = payload_step(_torch_load(io.BytesIO(ck["data"].numpy().tobytes()), path))
+    return {"step": step, "sha256": ck["sha256"]}
 
 
 def load_checkpoint(path: str | Path, require: tuple[str, ...] = ()) -> dict[str, Any]:

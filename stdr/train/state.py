@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from .optim import clear_grads
-from ..io.checkpoint import CKPT, rng_state, save_checkpoint, set_rng_state
+from ..io.checkpoint import CKPT, checkpoint_identity, rng_state, save_checkpoint, set_rng_state
 from ..io.files import writing
 from .guard import Guard
 from ..syncs import host_only
@@ -150,6 +150,9 @@ class RunState:
     # resumes with changed keys (train.resume=override): config.yaml's config_changes (stdr.train.resume)
     config_changes: list[dict[str, Any]] = field(default_factory=list)
     make_optimizers: Optional[Callable[[], dict[str, torch.optim.Optimizer]]] = None
+    # the checkpoint this state was last saved to or loaded from ({"step", "sha256"},
+    # stdr.io.checkpoint.checkpoint_identity): the source every result of the run records
+    checkpoint_id: Optional[dict[str, Any]] = None
 
     @property
     def step(self) -> int:
@@ -190,7 +193,7 @@ class RunState:
 
     def save(self) -> None:
         """checkpoints/last.pt (atomic, checksummed; the one it replaces is kept as last.previous.pt)."""
-        save_checkpoint(self.checkpoint_path, self.payload(), keep_previous=True)
+        self.checkpoint_id = save_checkpoint(self.checkpoint_path, self.payload(), keep_previous=True)
 
     def restore(self, ck: dict[str, Any], where: str) -> None:
         """Back to a payload's state (a checkpoint file's, or a guard snapshot's): the model, the
@@ -233,4 +236,5 @@ class RunState:
                    train_cpu_seconds=None if cpu is None else float(cpu),
                    train_threads=ck.get("train_threads"), train_loss=ck.get("train_loss"),
                    history=history, prune_log=list(ck.get("prune_log", [])),
-                   strategy_state=dict(ck.get("strategy_state") or {}))
+                   strategy_state=dict(ck.get("strategy_state") or {}),
+                   checkpoint_id=checkpoint_identity(run_dir / CKPT))

@@ -15,7 +15,7 @@ from torch import Tensor
 from ..io.ply import save_ply
 from ..densify.prune import prune_event
 from .optim import adam_step, make_optimizers, update_lrs
-from ..io.checkpoint import load_checkpoint
+from ..io.checkpoint import checkpoint_identity, load_checkpoint
 from ..io.files import write_atomic, writing
 from .evaluations import Evaluations
 from .resume import preemption
@@ -91,6 +91,7 @@ class Trainer(Evaluations):
         """Resume: the model, the optimizers, the strategy, the sampler, every RNG and the guard."""
         ck = load_checkpoint(path, require=PAYLOAD_KEYS)
         self.state.restore(ck, str(path))
+        self.state.checkpoint_id = checkpoint_identity(path)
         self.state.guard.load_state_dict(ck.get("guard", {}))
         self.state.guard.clear()
         self.state.guard.monitor = self.monitor  # this run's detector split, whatever the checkpoint's run had

@@ -7,6 +7,8 @@ stdr-eval, on the run's device with its configured backend.
 """
 from __future__ import annotations
 
+import sys
+
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional
@@ -21,7 +23,7 @@ from ..data.types import Frame
 from ..data.load import load_run_scene
 from ..store import load_config
 from ..device import resolve_device
-from ..model import model_from_checkpoint
+from ..model import compact_source_note, model_from_checkpoint
 from ..io.checkpoint import load_checkpoint, CKPT
 from ..render.sh import rgb_to_sh
 from ..plugins.stdr.mask import mask_at
@@ -92,6 +94,9 @@ def open_run(run_dir: str | Path, device: Optional[str] = None, base: Optional[s
     dev = resolve_device(cfg.device)
     ck = load_checkpoint(ckpt)
     model = model_from_checkpoint(ck, dev, cfg, path=str(ckpt))
+    note = compact_source_note(ckpt) if model_file is not None else ""
+    if note:
+        print(f"[stdr] {note}", file=sys.stderr, flush=True)
     model.eval()
     run = ViewRun(rd, cfg, model)
     try:
