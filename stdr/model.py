@@ -363,6 +363,16 @@ def load_model(path: str | Path, device: str | torch.device = "auto", cfg=None,
     return model
 
 
+def unfinished_note(model, what: str) -> str:
+    """One line when `model` (loaded from a run's checkpoint) stopped before its config's
+    optim.iterations (train.stop_at, a deadline, a kill, or still training); "" otherwise."""
+    total = int(model.cfg.optim.iterations)
+    if int(model.step) >= total:
+        return ""
+    return (f"{what} is of an unfinished run: its model is at iteration {model.step} of {total} "
+            "(resume the run to finish it)")
+
+
 def compact_source_note(path: str | Path) -> str:
     """A compact model file in a run folder (RUN/model.stdrc) packed from another checkpoint than
     the run's last (pack.json names its source): one line saying so; "" otherwise."""

@@ -419,3 +419,17 @@ def test_results_name_their_checkpoint_and_readers_refuse_or_say_when_it_is_not_
     assert "iteration 40" in _stale_metrics(run) and (run / "metrics.json").read_bytes() == old
     # re-evaluated, it is the run's again
     assert _eval(run, f"out={tmp_path / 't2'}").returncode == 0 and _stale_metrics(run) == ""
+
+
+def test_an_export_or_a_video_of_an_unfinished_run_says_so(runs, tmp_path):
+    stopped, done = runs["stopped"], runs["done"]
+    for run, said in ((stopped, True), (done, False)):
+        ex = sh([sys.executable, "-c", "import sys; from stdr.cli.view import export_main; export_main(sys.argv[1:])",
+                 str(run), "--times", "0.5", "--out", str(tmp_path / f"e_{run.name}")])
+        assert ex.returncode == 0, ex.stderr[-2000:]
+        assert ("the export is of an unfinished run: its model is at iteration 5 of 30" in ex.stdout) is said
+        vid = sh([sys.executable, "-c", "import sys; from stdr.cli.view import render_main; render_main(sys.argv[1:])",
+                  str(run), "--out", str(tmp_path / f"v_{run.name}"), "--kinds", "time", "--frames", "2", "--width", "32",
+                  "--format", "gif"])
+        assert vid.returncode == 0, vid.stderr[-2000:]
+        assert ("the video is of an unfinished run: its model is at iteration 5 of 30" in vid.stdout) is said

@@ -139,3 +139,17 @@ def test_tool_dispatcher_lists_every_tool_and_rejects_unknown_names(capsys):
     assert all(name in out for name in TOOLS)
     with pytest.raises(SystemExit, match="no tool 'nope'"):
         tool(["nope"])
+
+
+def test_table_json_writes_a_nan_as_null_so_that_any_json_reader_parses_it(tmp_path):
+    import json
+    import math
+
+    from stdr.eval.table import json_text, write_outputs
+
+    def strict(text):  # JSON has no NaN or Infinity: a reader that follows it refuses them
+        return json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+    data = {"rows": [{"psnr": float("nan"), "ssim": 0.9, "fps": math.inf, "n": 3}], "mean": [float("-inf"), 1.0]}
+    assert strict(json_text(data)) == {"rows": [{"psnr": None, "ssim": 0.9, "fps": None, "n": 3}], "mean": [None, 1.0]}
+    write_outputs(tmp_path / "t", "| x |", data)
+    assert strict((tmp_path / "t.json").read_text())["rows"][0]["psnr"] is None

@@ -16,7 +16,7 @@ from ..view.server import Viewer, check_port
 from ..view.browser import screenshot
 from ..view.video import KINDS, path_frames, render_videos, write_video
 from ..view.camera_path import read_camera_path
-from ..model import load_model
+from ..model import load_model, unfinished_note
 from ..io.export import check_times, export_times
 
 
@@ -53,6 +53,9 @@ def view_main(argv=None) -> None:
     try:
         check_port(a.host, a.port)  # before loading the model: fail fast
         run = open_run(a.run, device=a.device, model_file=a.model)
+        note = unfinished_note(run.model, "the video")
+        if note:
+            print(f"[stdr] {note}", flush=True)
         viewer = Viewer(run, host=a.host, port=a.port, max_width=a.max_width, allow_origins=tuple(a.allow_origin))
     except UserError:
         raise  # bad input: one line and exit 2 (reported)
@@ -114,6 +117,9 @@ def render_main(argv=None) -> None:
         if a.path is not None:
             cp = read_camera_path(a.path, width=a.width)  # before loading the model: fail fast
         run = open_run(a.run, device=a.device, model_file=a.model)
+        note = unfinished_note(run.model, "the video")
+        if note:
+            print(f"[stdr] {note}", flush=True)
         if a.path is not None:
             imgs = path_frames(run, cp.cameras, cp.times, a.view)
             paths = {"path": write_video(imgs, (a.out or a.run / "videos") / f"{a.path.stem}_{a.view}",
@@ -147,6 +153,9 @@ def export_main(argv=None) -> None:
     check_times(args.times)  # before the model is loaded: fail fast
     model = load_model(ck, device=args.device)
     model.eval()
+    note = unfinished_note(model, "the export")
+    if note:
+        print(f"[stdr] {note}", flush=True)
     run_dir = args.run if args.run.is_dir() else None
     out = args.out or (args.run if args.run.is_dir() else args.run.parent) / "export"
     inside = run_dir is not None and Path(os.path.realpath(out)).is_relative_to(os.path.realpath(run_dir))

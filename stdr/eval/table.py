@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,20 @@ def markdown_table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(out + ["| " + " | ".join(str(c) for c in r) + " |" for r in rows])
 
 
+def json_text(data: Any) -> str:
+    """JSON that any reader parses: a NaN or infinite number (a diverged run's PSNR) is written as
+    null, never as the bare NaN that Python's json writes and JSON does not have."""
+    def clean(x):
+        if isinstance(x, float):
+            return x if math.isfinite(x) else None
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        return x
+    return json.dumps(clean(data), indent=1, allow_nan=False)
+
+
 def write_outputs(out: Path | None, md: str, data: Any) -> None:
     """Write OUT.md (the Markdown) and OUT.json (the numbers behind it), creating the folder."""
     if out is None:
@@ -45,7 +60,7 @@ def write_outputs(out: Path | None, md: str, data: Any) -> None:
     out = Path(out)
     make_folder(out.parent)
     write_atomic(out.with_suffix(".md"), md, site="table")
-    write_atomic(out.with_suffix(".json"), json.dumps(data, indent=1) + "\n", site="table")
+    write_atomic(out.with_suffix(".json"), json_text(data) + "\n", site="table")
 
 
 def read_metrics(run: str | Path, split: str) -> dict[str, Any]:
@@ -345,6 +360,6 @@ def write_tables(t: dict[str, Any], out_dir: Path) -> dict[str, Path]:
     w = csv.writer(buf)
     w.writerow(cols)
     w.writerows(body)
-    for k, text in (("md", markdown(t)), ("csv", buf.getvalue()), ("tex", latex(t)), ("json", json.dumps(t, indent=1))):
+    for k, text in (("md", markdown(t)), ("csv", buf.getvalue()), ("tex", latex(t)), ("json", json_text(t))):
         write_atomic(paths[k], text, site="table")
     return paths

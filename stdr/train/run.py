@@ -1,6 +1,7 @@
 """One training run of a composed config, start to end (`run_training`)."""
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -28,6 +29,10 @@ def run_training(cfg: DictConfig, run_dir: Path, data_base: str | None = None) -
     compact file written when pack.enabled, and the result row printed. Returns the evaluation
     (None for a run stopped early by train.stop_at or train.deadline, or not started: train.start_by)."""
     check_run_config(cfg, data_base)  # keys, values and paths, before anything is written or trained
+    cores = os.cpu_count() or 1
+    if cfg.train.threads > cores:  # torch's threads then take turns on the cores: many times slower
+        print(f"[stdr] train.threads={cfg.train.threads} on a machine with {cores} cores: more threads than cores "
+              f"slow training down several times; train.threads=0 takes one per core", flush=True)
     check_init_fits(cfg.model, resolve_device(cfg.device))
     start_by = cfg.train.get("start_by")
     if start_by is not None and time.time() > start_by:

@@ -119,8 +119,9 @@ class VideoError(UserError, OSError):
 
 
 def check_video(tmp: Path, frames: int, path: Path) -> None:
-    """The written file reads back with `frames` frames (MP4: ffmpeg counts the stream's packets;
-    GIF: every frame decoded); else VideoError naming `path`."""
+    """The written file reads back whole: an MP4 with `frames` frames (ffmpeg counts the stream's
+    packets), a GIF decoded to its end (Pillow merges identical consecutive frames into one
+    longer frame, so a GIF may hold fewer); else VideoError naming `path`."""
     import imageio.v2 as imageio
     got, why = 0, ""
     try:
@@ -128,6 +129,13 @@ def check_video(tmp: Path, frames: int, path: Path) -> None:
             raise ValueError("the file is empty")
         with imageio.get_reader(tmp) as r:
             got = r.count_frames() if tmp.suffix == ".mp4" else sum(1 for _ in r)
+        if tmp.suffix == ".gif":
+            with open(tmp, "rb") as f:
+                f.seek(-1, 2)
+                if f.read(1) != b";":
+                    raise ValueError("no GIF trailer: the file was cut short")
+            if 1 <= got <= frames:
+                got = frames  # decoded to its end, trailer and all: complete
     except Exception as e:  # noqa: BLE001 - any decoding failure is the file's
         why = f": {str(e).splitlines()[0] if str(e) else type(e).__name__}"
     if got != frames:
