@@ -162,7 +162,7 @@ def test_a_video_cut_short_by_a_file_size_limit_is_refused_and_the_good_one_stay
     assert video.read_bytes() == good and leftovers(tmp_path / "v") == []
 
 
-def test_a_video_is_encoded_as_its_frames_come_and_checked_before_it_is_kept(tmp_path):
+def test_a_video_is_encoded_as_its_frames_come_and_checked_before_it_is_kept(tmp_path, capsys):
     """write_video takes any iterable: an MP4's memory does not grow with the frame count (each
     frame goes to the encoder as it comes); a file that does not read back with every frame is
     refused, naming it."""
@@ -182,6 +182,9 @@ def test_a_video_is_encoded_as_its_frames_come_and_checked_before_it_is_kept(tmp
         peaks[n] = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
     assert peaks[200] < peaks[10] + 1_000_000, peaks  # a list of 200 frames alone would be 5.5 MB
+    # a video whose first frame says it takes hours is announced (here 10 million frames are promised)
+    write_video(frames(3), tmp_path / "long", 10.0, "mp4", total=10_000_000, progress=False)
+    assert "10,000,000 frames at about" in capsys.readouterr().out
     for suffix in (".mp4", ".gif"):
         good = write_video(frames(10), tmp_path / f"g{suffix}", 10.0, suffix[1:], progress=False)
         check_video(good, 10, good)

@@ -391,3 +391,12 @@ def test_a_call_runs_one_per_core_by_default_and_gives_the_bits_of_one_at_a_time
             assert torch.equal(v, b["params"][k]), (r.id, k)
         for k, v in a["deform"].items():
             assert torch.equal(v, b["deform"][k]), (r.id, k)
+
+
+def test_a_plan_with_an_unknown_experiment_is_one_line_and_writes_nothing(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "stdr.cli.tool", "queue", "plan", str(tmp_path / "q.json"),
+                        "--experiments", "dnerf_defrom", "dnerf_deform", "--est-seconds", "5"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert "no such experiment: dnerf_defrom (did you mean dnerf_deform?)" in r.stderr
+    assert not (tmp_path / "q.json").exists()

@@ -433,3 +433,16 @@ def test_an_export_or_a_video_of_an_unfinished_run_says_so(runs, tmp_path):
                   "--format", "gif"])
         assert vid.returncode == 0, vid.stderr[-2000:]
         assert ("the video is of an unfinished run: its model is at iteration 5 of 30" in vid.stdout) is said
+
+
+def test_a_scene_that_cannot_be_read_is_one_line_and_leaves_no_run_folder(tmp_path):
+    """The data is read before the run's record is written: an image missing from a D-NeRF scene
+    (found only when the loader reads it) leaves no config.yaml, log or lock behind."""
+    from stdr.data.procedural import SceneOptions, generate_scene
+    scene = generate_scene(tmp_path / "scene", SceneOptions(n_train=6, n_val=2, n_test=3, resolution=24))
+    (scene / "train" / "r_003.png").unlink()
+    run = tmp_path / "outputs" / "run"
+    r = sh([sys.executable, "-m", "stdr.cli.train", "experiment=dnerf_deform", f"data.path={scene}", "device=cpu",
+            "train.progress=false", f"hydra.run.dir={run}"], cwd=tmp_path)
+    assert "frames[3] image './train/r_003' not found" in one_line_error(r, "stdr-train")
+    assert not (tmp_path / "outputs").exists()

@@ -24,6 +24,7 @@ import sys
 import time
 from pathlib import Path
 
+from ..errors import ConfigError
 from .concurrency import calibrate
 from .runqueue import Queue, QueueBusy, execute, pack, parse_variant, plan
 
@@ -141,6 +142,15 @@ def main(argv=None) -> None:
     if args.cmd == "plan":
         if args.queue.exists():
             raise SystemExit(f"stdr-tool queue: {args.queue} exists; a plan never overwrites a queue's state")
+        from ..store import experiment_names
+        known = set(experiment_names())
+        unknown = [e for e in args.experiments if e not in known]
+        if unknown:
+            import difflib
+            hints = [f"{e} (did you mean {m[0]}?)" if (m := difflib.get_close_matches(e, sorted(known), 1)) else e
+                     for e in unknown]
+            raise ConfigError(f"stdr-tool queue plan: no such experiment: {', '.join(hints)}; `stdr-train --help` "
+                              "lists the experiment options")
         q = plan(args.experiments, args.scenes, args.seeds, args.overrides, args.est_seconds,
                  [parse_variant(v) for v in args.variants], args.order)
         q.save(args.queue)

@@ -78,10 +78,11 @@ def _train_locked(cfg: DictConfig, run_dir: Path, data_base: str | None) -> dict
         record, changes = OmegaConf.to_container(cfg, resolve=True), []
     if changes:
         record[CHANGES_KEY] = changes
-    write_atomic(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(record)), site="config")
     split = cfg.data.eval_split
     spec = check_pack_config(cfg)  # the compact file's codecs are checked before training, not after it
+    # the data read (and refused) before the record is written: a scene that cannot be read leaves no config.yaml
     trainer = Trainer(cfg, run_dir, splits=("train", split), data_base=data_base)
+    write_atomic(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(record)), site="config")
     pin_run_data(run_dir, cfg.data, trainer.scene, data_base)  # data.json: the scene's folder and fingerprints
     trainer.state.config_changes = changes
     print(f"[stdr] {cfg.name}: {len(trainer.scene.frames('train'))} train / "
