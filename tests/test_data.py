@@ -1,4 +1,5 @@
 import json
+import re
 import shutil
 
 import numpy as np
@@ -182,3 +183,36 @@ def test_a_split_mixing_rgb_and_rgba_frames_or_repeating_an_image_is_named_at_lo
         load_dnerf(scene, ["train"])
     rc, out = _verify_line(scene)
     assert rc != 0 and "both use the image" in out
+
+
+@pytest.mark.parametrize("change, said", [
+    (lambda m: m["frames"][2].update(time=1.5), "frames[2]: time=1.5 is outside [0, 1]"),
+    (lambda m: m.update(camera_angle_x=-0.5), "camera_angle_x=-0.5 must be a field of view in radians"),
+    ("big", "all frames of a D-NeRF scene must have one size"),
+])
+def test_verify_refuses_what_stdr_train_refuses(small_scene, tmp_path, change, said):
+    """stdr-data verify applies the loader's checks: a scene it calls ok is one stdr-train reads."""
+    import cv2
+    scene, meta = _scene_copy(small_scene, tmp_path)
+    if change == "big":  # one image 4x the others' size
+        fp = meta["frames"][1]["file_path"]
+        img = scene / (fp if fp.endswith(".png") else fp + ".png")
+        cv2.imwrite(str(img), cv2.resize(cv2.imread(str(img), cv2.IMREAD_UNCHANGED), (96, 96)))
+    else:
+        change(meta)
+        (scene / "transforms_train.json").write_text(json.dumps(meta))
+    rc, out = _verify_line(scene)
+    assert rc != 0 and "FAIL" in out and said in out, out
+    with pytest.raises(BadInput, match=re.escape(said)):
+        load_dnerf(scene, ["train"])
+
+
+def test_a_field_of_view_no_camera_has_is_said_once_where_it_is_read(small_scene, tmp_path, capsys):
+    scene, meta = _scene_copy(small_scene, tmp_path)
+    meta["camera_angle_x"] = 1e-9
+    (scene / "transforms_train.json").write_text(json.dumps(meta))
+    load_dnerf(scene, ["train"])
+    err = capsys.readouterr().err
+    assert "camera_angle_x=1e-09 rad" in err and "is not a field of view a camera has" in err
+    load_dnerf(small_scene, ["train"])  # 0.69 rad (about 40 degrees): nothing said
+    assert "field of view" not in capsys.readouterr().err

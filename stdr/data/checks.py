@@ -7,6 +7,7 @@ raises a ValueError that names the file, the frame and the value, so the fix is 
 from __future__ import annotations
 
 import math
+import sys
 from typing import Sequence
 
 import numpy as np
@@ -79,7 +80,15 @@ def check_fov(angle, where: str, key: str) -> float:
         raise BadInput(f"{where}: {key}={angle!r} is not a number") from None
     if not 0.0 < v < math.pi:  # NaN fails this too
         raise BadInput(f"{where}: {key}={angle} must be a field of view in radians, in (0, pi)")
+    if not math.radians(FOV_PLAUSIBLE[0]) <= v <= math.radians(FOV_PLAUSIBLE[1]):
+        print(f"[stdr] {where}: {key}={angle} rad ({math.degrees(v):.4g} degrees) is not a field of view a camera "
+              f"has (outside {FOV_PLAUSIBLE[0]}-{FOV_PLAUSIBLE[1]} degrees): check the file (radians, horizontal)",
+              file=sys.stderr, flush=True)
     return v
+
+
+#: fields of view (degrees) outside which a camera is implausible: said once where it is read
+FOV_PLAUSIBLE = (1.0, 170.0)
 
 
 def finite_values(values: Sequence, where: str, what: str) -> np.ndarray:

@@ -172,6 +172,10 @@ def verify_scene(folder: Path, fmt: str) -> int:
                     n += 1
             except (FileNotFoundError, ValueError, KeyError) as e:
                 raise DataError(f"{folder} is not a complete D-NeRF scene: {e}") from None
+        try:  # the loader's own checks, as stdr-train applies them (times, fields of view, one image size)
+            load_dnerf(folder, ("train", "val", "test"), max_width=8)
+        except (FileNotFoundError, ValueError, KeyError) as e:
+            raise DataError(f"{folder} is not a D-NeRF scene stdr-train reads: {e}") from None
         return n
     if fmt == "nerfies":
         need = ["dataset.json", "metadata.json", "scene.json"]
