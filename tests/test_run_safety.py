@@ -227,6 +227,13 @@ def test_stdr_eval_and_pack_refuse_a_second_writer_while_training_holds_the_run(
         assert f"{run} is in use: stdr-train, pid {holder.pid}" in line and not (run / "model.stdrc").exists()
         # a reader needs no lock: tabulating the metrics as they are
         assert _eval(run, "reevaluate=false", f"out={tmp_path / 't2'}").returncode == 0
+        # two runs, the second held: the first is not re-evaluated either (nothing written before the refusal)
+        first = tmp_path / "first"
+        shutil.copytree(runs["done"], first)
+        mine = {p: p.read_bytes() for p in (first / "metrics.json", first / "history.json")}
+        line = one_line_error(_eval(first, run, f"out={tmp_path / 't3'}"), "stdr-eval")
+        assert f"{run} is in use" in line
+        assert {p: p.read_bytes() for p in mine} == mine and not (tmp_path / "t3").exists()
     finally:
         holder.kill()
 

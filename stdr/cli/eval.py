@@ -6,6 +6,8 @@ model_mb to runs evaluated before it was recorded. `render.<key>=...` and `<plug
 change those keys of each run's config for the evaluation."""
 from __future__ import annotations
 
+import contextlib
+
 import sys
 from pathlib import Path
 
@@ -49,7 +51,8 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
                          "'size' (model_mb from the checkpoint, for runs from before it was recorded) or 'fps+size'")
     if remeasure and reevaluate:
         reevaluate = False  # remeasure=fps re-times the renders and keeps every quality number
-    rows = []
+    rows, plan = [], []
+    # first every check that can refuse, on every run, before anything is written into any of them:
     # a folder of runs (a sweep's multirun folder) stands for the finished runs under it
     for rd in find_run_dirs([Path(r) if Path(r).is_absolute() else Path(base) / r for r in runs]):
         cfg_path = rd / "config.yaml"
@@ -67,17 +70,21 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
                            "and it has no final evaluation, so stdr-eval writes nothing into it. Resume it with "
                            "the stdr-train command that started it, or add unfinished=true to evaluate its last "
                            f"checkpoint into {out_dir / 'unfinished' / rd.name}")
-        if left is not None:  # its last checkpoint, evaluated outside the run
-            res = reevaluate_run(rd, cfg, sp, eval_cfg, base, into=out_dir / "unfinished" / rd.name)
-        elif reevaluate:
-            with run_lock(rd, "stdr-eval"):  # it writes metrics.json, history.json and renders into the run
+        plan.append((rd, cfg, sp, left))
+    with contextlib.ExitStack() as locks:
+        for rd, cfg, sp, left in plan:  # every run written into is held before the first is (one writer a run)
+            if left is None and (reevaluate or remeasure):
+                locks.enter_context(run_lock(rd, "stdr-eval"))
+        for rd, cfg, sp, left in plan:
+            if left is not None:  # its last checkpoint, evaluated outside the run
+                res = reevaluate_run(rd, cfg, sp, eval_cfg, base, into=out_dir / "unfinished" / rd.name)
+            elif reevaluate:  # it writes metrics.json, history.json and renders into the run
                 res = reevaluate_run(rd, cfg, sp, eval_cfg, base)
-        elif remeasure:
-            with run_lock(rd, "stdr-eval"):
+            elif remeasure:
                 res = remeasure_run(rd, cfg, sp, eval_cfg, base, remeasure.split("+"))
-        else:
-            res = read_metrics(rd, sp)
-        rows.append(table_row(OmegaConf.to_container(cfg, resolve=True), sp, res, str(rd)))
+            else:
+                res = read_metrics(rd, sp)
+            rows.append(table_row(OmegaConf.to_container(cfg, resolve=True), sp, res, str(rd)))
     table = collect(check_mixed_rows(rows, allow_mixed))
     paths = write_tables(table, out_dir)
     print(markdown(table))
