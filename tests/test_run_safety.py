@@ -321,6 +321,16 @@ def test_stdr_data_on_a_missing_folder_is_one_line(tmp_path, cmd):
     assert f"{tmp_path / 'nope'}: no such folder" in one_line_error(r, "stdr-data")
 
 
+def test_a_refused_config_keeps_the_empty_folders_the_user_made(tmp_path):
+    for made in ("outputs/mine", "outputs/mine/run"):
+        (tmp_path / made).mkdir(parents=True)
+        r = sh(train_cmd(tmp_path, tmp_path / "outputs" / "mine" / "run", "+optim.iteratons=5"), cwd=tmp_path)
+        assert "unknown config key optim.iteratons" in one_line_error(r, "stdr-train")
+        assert (tmp_path / made).is_dir() and not any((tmp_path / made).iterdir()), made
+        assert sorted(p.name for p in (tmp_path / "outputs").rglob("*")) == sorted(Path(made).parts[1:])
+        __import__("shutil").rmtree(tmp_path / "outputs")
+
+
 def test_the_demo_budget_shorter_than_its_warm_up_is_named():
     r = sh([sys.executable, "-m", "stdr.cli.train", "budget=demo", "optim.iterations=400", "hydra.run.dir=/nonexistent/x"])
     assert "baseline.warmup" in one_line_error(r, "stdr-train") and "train.stop_at" in r.stderr

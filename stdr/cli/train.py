@@ -136,11 +136,31 @@ def _remove_if_untouched(run_dir: Path, cwd: Path) -> None:
             return  # a run's files: not this command's to remove
         if p.name == LOCK_NAME and p.stat().st_size:
             return
+    if run_dir.resolve() in _EXISTED:  # the user's folder: only what Hydra put into it goes
+        for p in run_dir.iterdir():
+            shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+        return
     shutil.rmtree(run_dir, ignore_errors=True)
     parent = run_dir.parent
-    while parent != cwd and cwd in parent.parents and not any(parent.iterdir()):
+    while (parent != cwd and cwd in parent.parents and parent.resolve() not in _EXISTED
+           and not any(parent.iterdir())):
         parent.rmdir()
         parent = parent.parent
+
+
+#: the folders on the way to the run folder that existed before this command (hydra.run.dir): a
+#: refused command removes only what it made
+_EXISTED: set[Path] = set()
+
+
+def _note_existing(argv: list[str]) -> None:
+    _EXISTED.clear()
+    given = [a.split("=", 1)[1] for a in argv if a.startswith("hydra.run.dir=")]
+    if given:
+        d = Path(given[-1]).expanduser().resolve()
+        for f in (d, *d.parents):
+            if f.is_dir():
+                _EXISTED.add(f)
 
 
 def main() -> None:
@@ -152,6 +172,7 @@ def main() -> None:
             sys.argv.append("--resolve")
     check_overrides("stdr-train", sys.argv[1:])  # a bad override: one line, exit code 2
     LAST_SWEEP["failed"] = 0
+    _note_existing(sys.argv[1:])
     try:
         run_hydra_app("stdr-train", _main)
     except KeyboardInterrupt as e:  # before training holds Ctrl+C, or a second one while it stops
