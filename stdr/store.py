@@ -58,6 +58,9 @@ def typed_schema(raw: dict, where: str = "config"):
         if isinstance(raw.get(p.name), dict) and p.plugin.removed_keys:
             raw[p.name] = {k: v for k, v in raw[p.name].items() if k not in p.plugin.removed_keys}
     unknown = sorted(set(raw) - set(root.__dataclass_fields__))
+    for k in [k for k in unknown if isinstance(raw.get(k), dict) and raw[k].get("enabled") is False]:
+        del raw[k]  # a plug-in that was off in this run, not installed now: nothing of the run depends on it
+        unknown.remove(k)
     if unknown:
         raise ConfigError(f"{where}: unknown config section(s) {unknown}: a plug-in's keys need the plug-in registered "
                           f"(registered: {sorted(PLUGINS)}; stdr.plugins.register_plugin, or an installed package "

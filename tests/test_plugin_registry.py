@@ -203,3 +203,23 @@ def test_the_reserved_names_cover_the_run_and_eval_schemas():
     from stdr.plugins import RESERVED_KEYS
     assert set(Config.__dataclass_fields__) | set(EvalAppConfig.__dataclass_fields__) <= RESERVED_KEYS
 
+
+
+def test_a_run_with_a_disabled_plugin_that_is_not_installed_now_still_reads(tmp_path):
+    """A section of a plug-in that was off in the run (enabled: false) is dropped when the plug-in
+    is not registered; an enabled one is still an error naming it (the run depends on it)."""
+    import yaml
+
+    from stdr.errors import ConfigError
+    from stdr.store import load_config
+    from stdr.testing import make_cfg
+    from omegaconf import OmegaConf
+    raw = OmegaConf.to_container(make_cfg([]), resolve=True)
+    for enabled in (False, True):
+        raw["vel"] = {"enabled": enabled, "weight": 1.0}
+        (tmp_path / "config.yaml").write_text(yaml.safe_dump(raw))
+        if enabled:
+            with pytest.raises(ConfigError, match=r"unknown config section\(s\) \['vel'\]"):
+                load_config(tmp_path / "config.yaml")
+        else:
+            assert "vel" not in load_config(tmp_path / "config.yaml")
