@@ -129,6 +129,24 @@ def test_a_resume_with_a_changed_training_key_is_refused_and_override_records_th
     assert entry["iterations"] == 30 and entry["config_changes"][0]["keys"] == {"optim.iterations": [40, 30]}
 
 
+def test_a_config_yaml_edited_by_hand_is_refused_on_resume(tmp_path):
+    """config.yaml must say how the checkpoint was trained: a seed edited by hand, with a command that
+    agrees with the edit, is refused naming both values; override takes the command's and records it."""
+    run = tmp_path / "run"
+    assert sh(train_cmd(tmp_path, run, "optim.iterations=30", "train.stop_at=5")).returncode == 0
+    text = (run / "config.yaml").read_text()
+    assert "\nseed: 0\n" in text
+    (run / "config.yaml").write_text(text.replace("\nseed: 0\n", "\nseed: 7\n"))
+    r = sh(train_cmd(tmp_path, run, "optim.iterations=30", "seed=7", "train.stop_at=6"))
+    line = one_line_error(r, "stdr-train")
+    assert "config.yaml differs from the config its checkpoint at iteration 5 was trained with" in line
+    assert "seed: 0 (trained) -> 7 (config.yaml)" in line
+    r = sh(train_cmd(tmp_path, run, "optim.iterations=30", "seed=7", "train.stop_at=6", "train.resume=override"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    changes = yaml.safe_load((run / "config.yaml").read_text())["config_changes"]
+    assert changes[-1]["step"] == 5 and changes[-1]["keys"] == {"seed": [0, 7]}
+
+
 def test_train_resume_takes_true_false_or_override_only(tmp_path):
     r = sh(train_cmd(tmp_path, tmp_path / "run", "train.resume=sometimes"))
     assert "train.resume='sometimes': use true (resume from the checkpoint), false (start over) or override" \

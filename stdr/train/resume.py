@@ -86,7 +86,18 @@ def saved_config(run_dir: Path) -> dict | None:
     return raw if isinstance(raw, dict) else None
 
 
-def resume_changes(cfg, run_dir: Path, step: int) -> tuple[dict, list]:
+def trained_config(run_dir: Path, trained: Optional[dict]) -> Optional[dict]:
+    """The config the run's last checkpoint was trained with (its model entry's `trained`), as
+    today's code reads it; None when there is none or it cannot be read here."""
+    if trained is None:
+        return None
+    try:
+        return OmegaConf.to_container(load_config(dict(trained), f"{run_dir}/checkpoints/last.pt"), resolve=False)
+    except ConfigError:
+        return None  # a config of another version or plug-in set: resume_changes names what it cannot read
+
+
+def resume_changes(cfg, run_dir: Path, step: int, trained: Optional[dict] = None) -> tuple[dict, list]:
     """For a run about to resume at `step`: (the config to write as config.yaml, the list of
     changes recorded so far, this resume's included). Raises ConfigError naming every changed
     key with both values unless cfg.train.resume == "override"."""
@@ -98,6 +109,16 @@ def resume_changes(cfg, run_dir: Path, step: int) -> tuple[dict, list]:
     # the run's config as today's code reads it (stdr-eval rebuilds the run the same way): a key
     # renamed or added since the run was trained is not a change this command makes
     old = OmegaConf.to_container(load_config(Path(run_dir) / "config.yaml"), resolve=False)
+    ck = trained_config(run_dir, trained)
+    edited = config_diff(ck, old) if ck is not None else {}
+    if edited:  # config.yaml edited by hand: it no longer says how the checkpoint was trained
+        if cfg.train.resume != "override":
+            listed = "; ".join(f"{k}: {_show(a)} (trained) -> {_show(b)} (config.yaml)" for k, (a, b) in edited.items())
+            raise ConfigError(f"{run_dir}/config.yaml differs from the config its checkpoint at iteration {step} was "
+                              f"trained with, in {len(edited)} key(s) that change training: {listed}. Restore the "
+                              "run's values in config.yaml, or add train.resume=override to continue with this "
+                              "command's values (config.yaml then records the change)")
+        old = ck  # the change recorded is from what trained to what this command trains
     diff = config_diff(old, new)
     if diff:
         listed = "; ".join(f"{k}: {_show(a)} (the run's) -> {_show(b)} (this command's)" for k, (a, b) in diff.items())

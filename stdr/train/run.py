@@ -72,8 +72,9 @@ def _train_locked(cfg: DictConfig, run_dir: Path, data_base: str | None) -> dict
     if note:
         print(f"[stdr] {note}")
     if resuming:  # a resume keeps its run's record (stdr.train.resume)
-        step = int(load_checkpoint(ckpt).get("model", {}).get("step", 0))
-        record, changes = resume_changes(cfg, run_dir, step)
+        model = load_checkpoint(ckpt).get("model", {})
+        step = int(model.get("step", 0))
+        record, changes = resume_changes(cfg, run_dir, step, trained=model.get("config"))
     else:
         record, changes = OmegaConf.to_container(cfg, resolve=True), []
     if changes:
