@@ -23,7 +23,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor
 
-from .errors import BadInput, ConfigError, UserError
+from .errors import BadInput, ConfigError
 from .cameras import Camera
 from .baselines import build_deformation
 from .baselines.base import choose_precision
@@ -37,9 +37,8 @@ from .schedule import Schedule
 from .store import load_config, resolve_schedule
 from .compression.codecs import nbytes
 from .gaussians import Gaussians, activate, init_params, num_gaussians, random_cube_points
-from .io.checkpoint import CKPT, checkpoint_identity, load_checkpoint, save_checkpoint
-from .io.files import read_json
-from .compression.file import decode_model, is_compact
+from .io.checkpoint import load_checkpoint, save_checkpoint
+from .compression.file import compact_source_note, decode_model, is_compact
 from .data.dnerf import parse_background
 
 CHECKPOINT_FORMAT = 2
@@ -363,32 +362,7 @@ def load_model(path: str | Path, device: str | torch.device = "auto", cfg=None,
     return model
 
 
-def unfinished_note(model, what: str) -> str:
-    """One line when `model` (loaded from a run's checkpoint) stopped before its config's
-    optim.iterations (train.stop_at, a deadline, a kill, or still training); "" otherwise."""
-    total = int(model.cfg.optim.iterations)
-    if int(model.step) >= total:
-        return ""
-    return (f"{what} is of an unfinished run: its model is at iteration {model.step} of {total} "
-            "(resume the run to finish it)")
 
-
-def compact_source_note(path: str | Path) -> str:
-    """A compact model file in a run folder (RUN/model.stdrc) packed from another checkpoint than
-    the run's last (pack.json names its source): one line saying so; "" otherwise."""
-    path = Path(path)
-    pack, ck = path.parent / "pack.json", path.parent / CKPT
-    if path.suffix != ".stdrc" or not pack.is_file() or not ck.is_file():
-        return ""
-    try:
-        src = (read_json(pack, "pack record") or {}).get("checkpoint")
-    except UserError:
-        return ""
-    now = checkpoint_identity(ck)
-    if not isinstance(src, dict) or now is None or src.get("sha256") == now["sha256"]:
-        return ""
-    return (f"{path} was packed from the checkpoint at iteration {src.get('step')}; the run's {CKPT} is at iteration "
-            f"{now['step']}: this file is not the run's model now (stdr-tool pack {path.parent} packs it again)")
 
 
 def model_from_checkpoint(ck: dict[str, Any], device: str | torch.device = "auto", cfg=None,

@@ -20,6 +20,7 @@ import torch
 from omegaconf import II, OmegaConf
 from torch import Tensor, nn
 
+from .. import device as devices  # module attribute: cpu_bf16_flags is looked up at call time
 from ..ops import RowView, rows_of, sigmoid
 from ..gaussians import Gaussians
 
@@ -302,11 +303,9 @@ def choose_precision(requested: str, module: type, device: torch.device, cpu_fla
     Deformation class, `device` the run's. `auto` is bf16 on a CPU with bf16 matrix instructions
     (stdr.device.cpu_bf16_flags, or `cpu_flags`) for a module with `bf16_default`, fp32 otherwise;
     `why` is one line that says which and why (empty for an explicit fp32)."""
-    from ..device import cpu_bf16_flags
-
     check_precision(requested)
     name = name or module.__name__
-    flags = cpu_bf16_flags() if cpu_flags is None and device.type == "cpu" else tuple(cpu_flags or ())
+    flags = devices.cpu_bf16_flags() if cpu_flags is None and device.type == "cpu" else tuple(cpu_flags or ())
     if requested == "fp32":
         return "fp32", ""
     if requested == "bf16":

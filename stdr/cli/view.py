@@ -11,12 +11,12 @@ from pathlib import Path
 
 from ..errors import UserError, reported
 from ..io.files import run_lock
-from ..view.core import VIEWS, open_run
+from ..view.core import VIEWS, open_run, unfinished_note
 from ..view.server import Viewer, check_port
 from ..view.browser import screenshot
 from ..view.video import KINDS, path_frames, render_videos, write_video
 from ..view.camera_path import read_camera_path
-from ..model import load_model, unfinished_note
+from ..model import load_model
 from ..io.export import check_times, export_times
 
 

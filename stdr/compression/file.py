@@ -29,11 +29,15 @@ than this code reads is refused with an error that says so.
 """
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Optional
 
 import torch
 from torch import Tensor
 
+from ..errors import UserError
+from ..io.checkpoint import CKPT, checkpoint_identity
+from ..io.files import read_json
 from . import codecs, entropy
 from .hooks import columns_of, form_of
 
@@ -200,3 +204,21 @@ def decode_model(payload: dict[str, Any], where: str = "compact file") -> dict[s
         raise ValueError(f"{where}: a {FORMAT} file of version {v}, written by a newer stdr; this stdr reads "
                          f"versions up to {VERSION}: upgrade stdr (pip install -U stdr) to load it")
     return _walk_decode(entropy.unpack_tree(payload["model"]))
+
+
+def compact_source_note(path: str | Path) -> str:
+    """A compact model file in a run folder (RUN/model.stdrc) packed from another checkpoint than
+    the run's last (pack.json names its source): one line saying so; "" otherwise."""
+    path = Path(path)
+    pack, ck = path.parent / "pack.json", path.parent / CKPT
+    if path.suffix != ".stdrc" or not pack.is_file() or not ck.is_file():
+        return ""
+    try:
+        src = (read_json(pack, "pack record") or {}).get("checkpoint")
+    except UserError:
+        return ""
+    now = checkpoint_identity(ck)
+    if not isinstance(src, dict) or now is None or src.get("sha256") == now["sha256"]:
+        return ""
+    return (f"{path} was packed from the checkpoint at iteration {src.get('step')}; the run's {CKPT} is at iteration "
+            f"{now['step']}: this file is not the run's model now (stdr-tool pack {path.parent} packs it again)")

@@ -17,6 +17,7 @@ The queue itself (plan, execute, pack) is stdr.tools.runqueue.
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
 import os
 import shlex
@@ -25,6 +26,7 @@ import time
 from pathlib import Path
 
 from ..errors import ConfigError
+from ..store import experiment_names
 from .concurrency import calibrate
 from .runqueue import Queue, QueueBusy, execute, pack, parse_variant, plan
 
@@ -142,11 +144,9 @@ def main(argv=None) -> None:
     if args.cmd == "plan":
         if args.queue.exists():
             raise SystemExit(f"stdr-tool queue: {args.queue} exists; a plan never overwrites a queue's state")
-        from ..store import experiment_names
         known = set(experiment_names())
         unknown = [e for e in args.experiments if e not in known]
         if unknown:
-            import difflib
             hints = [f"{e} (did you mean {m[0]}?)" if (m := difflib.get_close_matches(e, sorted(known), 1)) else e
                      for e in unknown]
             raise ConfigError(f"stdr-tool queue plan: no such experiment: {', '.join(hints)}; `stdr-train --help` "

@@ -23,7 +23,8 @@ from ..data.types import Frame
 from ..data.load import load_run_scene
 from ..store import load_config
 from ..device import resolve_device
-from ..model import compact_source_note, model_from_checkpoint
+from ..compression.file import compact_source_note
+from ..model import model_from_checkpoint
 from ..io.checkpoint import load_checkpoint, CKPT
 from ..render.sh import rgb_to_sh
 from ..plugins.stdr.mask import mask_at
@@ -246,3 +247,13 @@ def available_views(run: ViewRun) -> list[str]:
         if p.field is not None and p.phase(run.model.step).name == "FROZEN":
             views.append("dynamic")
     return views
+
+
+def unfinished_note(model, what: str) -> str:
+    """One line when `model` (loaded from a run's checkpoint) stopped before its config's
+    optim.iterations (train.stop_at, a deadline, a kill, or still training); "" otherwise."""
+    total = int(model.cfg.optim.iterations)
+    if int(model.step) >= total:
+        return ""
+    return (f"{what} is of an unfinished run: its model is at iteration {model.step} of {total} "
+            "(resume the run to finish it)")
