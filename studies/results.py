@@ -186,7 +186,8 @@ def stdr_time_sections(use: list, baselines=BASELINES) -> dict:
             s = by.get((b + "+STDR", sc, sd))
             if m != b or s is None:
                 continue
-            prof = [_read_json(Path(r["run_dir"]) / "train_profile.json") for r in (p, s)]
+            files = [Path(r["run_dir"]) / "train_profile.json" for r in (p, s)]
+            prof = [_read_json(f) if f.is_file() else None for f in files]  # a record may keep no profile
             mach = [r["metrics"].get("conventions", {}).get("machine") for r in (p, s)]
             if not (all(prof) and mach[0] and mach[0] == mach[1] and _idle(Path(p["run_dir"])) and _idle(Path(s["run_dir"]))):
                 continue
