@@ -438,6 +438,21 @@ def test_results_name_their_checkpoint_and_readers_refuse_or_say_when_it_is_not_
     assert m["checkpoint"] == now and _stale_metrics(run) == ""
     final = [h for h in json.loads((run / "history.json").read_text()) if h["tag"] == "final"]
     assert final[-1]["checkpoint"] == now
+    # the PLY, an export and a video carry it in their headers (comment lines / metadata)
+    from plyfile import PlyData
+    src = f"stdr checkpoint step=30 sha256={now['sha256']}"
+    assert src in PlyData.read(str(run / "point_cloud.ply")).comments
+    ex = sh([sys.executable, "-c", "import sys; from stdr.cli.view import export_main; export_main(sys.argv[1:])",
+             str(run), "--times", "0.25", "--out", str(tmp_path / "ex")])
+    assert ex.returncode == 0, ex.stderr[-2000:]
+    assert PlyData.read(str(tmp_path / "ex" / "t_0.2500.ply")).comments == [src, "stdr time t=0.25"]
+    vid = sh([sys.executable, "-c", "import sys; from stdr.cli.view import render_main; render_main(sys.argv[1:])",
+              str(run), "--out", str(tmp_path / "v"), "--kinds", "time", "--frames", "2", "--width", "32"])
+    assert vid.returncode == 0, vid.stderr[-2000:]
+    import imageio_ffmpeg
+    probe = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-i", str(tmp_path / "v" / "time_rgb.mp4")],
+                           capture_output=True, text=True)
+    assert src in probe.stderr
     load = sh([sys.executable, "-c", "import sys; from stdr.model import load_model; load_model(sys.argv[1], 'cpu')",
                str(run / "model.stdrc")])
     assert load.returncode == 0, load.stderr[-2000:]

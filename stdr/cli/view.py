@@ -16,6 +16,8 @@ from ..view.server import Viewer, check_port
 from ..view.browser import screenshot
 from ..view.video import KINDS, path_frames, render_videos, write_video
 from ..view.camera_path import read_camera_path
+from ..compression.file import model_source
+from ..io.checkpoint import source_line
 from ..model import load_model
 from ..io.export import check_times, export_times
 
@@ -53,7 +55,7 @@ def view_main(argv=None) -> None:
     try:
         check_port(a.host, a.port)  # before loading the model: fail fast
         run = open_run(a.run, device=a.device, model_file=a.model)
-        note = unfinished_note(run.model, "the video")
+        note = unfinished_note(run.model, "the view")
         if note:
             print(f"[stdr] {note}", flush=True)
         viewer = Viewer(run, host=a.host, port=a.port, max_width=a.max_width, allow_origins=tuple(a.allow_origin))
@@ -117,16 +119,18 @@ def render_main(argv=None) -> None:
         if a.path is not None:
             cp = read_camera_path(a.path, width=a.width)  # before loading the model: fail fast
         run = open_run(a.run, device=a.device, model_file=a.model)
+        source = source_line(model_source(a.model or a.run / "checkpoints" / "last.pt"))
         note = unfinished_note(run.model, "the video")
         if note:
             print(f"[stdr] {note}", flush=True)
         if a.path is not None:
             imgs = path_frames(run, cp.cameras, cp.times, a.view)
             paths = {"path": write_video(imgs, (a.out or a.run / "videos") / f"{a.path.stem}_{a.view}",
-                                         a.fps if fps_given else cp.fps, a.format, total=len(cp.cameras))}
+                                         a.fps if fps_given else cp.fps, a.format, total=len(cp.cameras),
+                                         comment=source)}
         else:
             paths = render_videos(run, a.out or a.run / "videos", [k for k in a.kinds.split(",") if k], a.width,
-                                  a.frames, a.fps, a.view, a.split, a.format)
+                                  a.frames, a.fps, a.view, a.split, a.format, comment=source)
     except UserError:
         raise  # bad input: one line and exit 2 (reported)
     except (FileNotFoundError, RuntimeError, ValueError) as e:
@@ -160,5 +164,5 @@ def export_main(argv=None) -> None:
     out = args.out or (args.run if args.run.is_dir() else args.run.parent) / "export"
     inside = run_dir is not None and Path(os.path.realpath(out)).is_relative_to(os.path.realpath(run_dir))
     with run_lock(run_dir, "stdr-export") if inside else contextlib.nullcontext():  # writing into the run
-        for p in export_times(model, args.times, out):
+        for p in export_times(model, args.times, out, source=source_line(model_source(ck))):
             print(f"[stdr] {p}")

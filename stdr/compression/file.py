@@ -222,3 +222,16 @@ def compact_source_note(path: str | Path) -> str:
         return ""
     return (f"{path} was packed from the checkpoint at iteration {src.get('step')}; the run's {CKPT} is at iteration "
             f"{now['step']}: this file is not the run's model now (stdr-tool pack {path.parent} packs it again)")
+
+
+def model_source(path: str | Path) -> Optional[dict[str, Any]]:
+    """The checkpoint a model file came from ({"step", "sha256"}): a checkpoint's own identity, or
+    for a compact file the one its run's pack.json recorded; None when unknown."""
+    path = Path(path)
+    if path.suffix != ".stdrc":
+        return checkpoint_identity(path)
+    try:
+        src = (read_json(path.parent / "pack.json", "pack record") or {}).get("checkpoint")
+    except UserError:
+        return None
+    return src if isinstance(src, dict) else None

@@ -171,6 +171,14 @@ def checkpoint_identity(path: str | Path) -> Optional[dict[str, Any]]:
     return {"step": step, "sha256": ck["sha256"]}
 
 
+def source_line(identity: Optional[dict[str, Any]]) -> str:
+    """The one-line form of a checkpoint identity that a PLY header or a video's metadata carries:
+    'stdr checkpoint step=N sha256=...'; '' for an unknown source."""
+    if not identity or not identity.get("sha256"):
+        return ""
+    return f"stdr checkpoint step={identity.get('step')} sha256={identity['sha256']}"
+
+
 def load_checkpoint(path: str | Path, require: tuple[str, ...] = ()) -> dict[str, Any]:
     """The payload saved by save_checkpoint (also files written before the checksum: plain
     payloads, not verified). `require`: top-level entries that must be present. Never runs code

@@ -58,14 +58,15 @@ def time_names(times: list[float]) -> list[str]:
     return [f"t_{t!r}.ply" for t in ts]
 
 
-def export_times(model, times: list[float], out: str | Path) -> list[Path]:
-    """One PLY per time, out/t_<time>.ply (time_names); returns the paths."""
+def export_times(model, times: list[float], out: str | Path, source: str = "") -> list[Path]:
+    """One PLY per time, out/t_<time>.ply (time_names); returns the paths. `source`: the model's
+    checkpoint (stdr.io.checkpoint.source_line), a header comment of every file with its time."""
     check_times(times)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for t, name in zip(times, time_names(times)):
         p = out / name
-        save_ply(gaussians_at(model, float(t)), p)
+        save_ply(gaussians_at(model, float(t)), p, comments=[c for c in (source, f"stdr time t={float(t)!r}") if c])
         paths.append(p)
     return paths

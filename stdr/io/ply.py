@@ -18,7 +18,9 @@ from torch import nn
 from ..gaussians import GAUSSIAN_KEYS
 
 
-def save_ply(params, path: str | Path) -> None:
+def save_ply(params, path: str | Path, comments=()) -> None:
+    """params in the 3DGS layout at `path` (atomic); `comments`: header comment lines (where the
+    model came from: stdr's checkpoint step and SHA-256, the time of an export)."""
     p = {k: v.detach().cpu().float().numpy() for k, v in params.items()}
     N = p["means"].shape[0]
     f_dc = p["sh0"].reshape(N, 3)
@@ -38,7 +40,7 @@ def save_ply(params, path: str | Path) -> None:
     for name, v in cols:
         arr[name] = v
     with atomic_path(path, "ply") as tmp:  # the previous PLY stays until the new one is complete
-        PlyData([PlyElement.describe(arr, "vertex")]).write(str(tmp))
+        PlyData([PlyElement.describe(arr, "vertex")], comments=list(comments)).write(str(tmp))
 
 
 def load_ply(path: str | Path, extra_keys: dict[str, tuple] | None = None) -> nn.ParameterDict:

@@ -15,7 +15,7 @@ from torch import Tensor
 from ..io.ply import save_ply
 from ..densify.prune import prune_event
 from .optim import adam_step, make_optimizers, update_lrs
-from ..io.checkpoint import checkpoint_identity, load_checkpoint
+from ..io.checkpoint import checkpoint_identity, load_checkpoint, source_line
 from ..io.files import write_atomic, writing
 from .evaluations import Evaluations
 from .resume import preemption
@@ -226,7 +226,8 @@ class Trainer(Evaluations):
                           f"{why} resumes from the checkpoint")
             self.state.guard.note_memory(self.device)
             self.save()
-            save_ply(self.state.model.params, self.run_dir / "point_cloud.ply")
+            src = source_line(self.state.checkpoint_id)  # the checkpoint just written: the PLY's source
+            save_ply(self.state.model.params, self.run_dir / "point_cloud.ply", comments=[src] if src else [])
             self.log.flush()  # TensorBoard's events on the disk: a fault there is named now, not lost
             write_atomic(self.run_dir / "train_profile.json", json.dumps(self.profile_summary(), indent=1),
                          site="profile")

@@ -50,14 +50,15 @@ LONG_VIDEO_S = 3600.0
 
 
 def write_video(frames: Iterable[np.ndarray], stem: Path, fps: float, fmt: str = "auto",
-                total: Optional[int] = None, progress: bool = True) -> Path:
+                total: Optional[int] = None, progress: bool = True, comment: str = "") -> Path:
     """frames (uint8 [H, W, 3], all the same size; any iterable: an MP4 encodes each as it comes,
     so memory stays flat in their number; Pillow keeps a GIF's frames until it writes the file) to stem.mp4 (fmt auto with an ffmpeg writer, or mp4) or
     stem.gif; returns the path written. `total`: the frame count, for the progress bar and for the
     note, after the first frame, of a video that will take more than an hour. The file is written
     beside its name and moved there only once the encoder has finished and the file reads back with
     every frame: a full disk, a file size limit or an encoder that died leaves the previous video
-    and raises an error naming the path."""
+    and raises an error naming the path. `comment`: the file's comment metadata (the model's
+    checkpoint, stdr.io.checkpoint.source_line)."""
     import imageio.v2 as imageio
     from tqdm import tqdm
     if fmt not in ("auto", "mp4", "gif"):
@@ -72,9 +73,11 @@ def write_video(frames: Iterable[np.ndarray], stem: Path, fps: float, fmt: str =
     with atomic_path(path, "video") as tmp:  # the previous video stays until the new one is complete
         if use_mp4:
             writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1,
-                                        ffmpeg_params=["-pix_fmt", "yuv420p"])
+                                        ffmpeg_params=["-pix_fmt", "yuv420p", *(["-metadata", f"comment={comment}"]
+                                                                                 if comment else [])])
         else:
-            writer = imageio.get_writer(tmp, mode="I", duration=1000.0 / fps, loop=0)
+            writer = imageio.get_writer(tmp, mode="I", duration=1000.0 / fps, loop=0,
+                                        **({"comment": comment} if comment else {}))
         t0 = time.perf_counter()
         try:
             for f in frames:
@@ -196,7 +199,8 @@ def path_frames(run: ViewRun, cameras, times, view: str = "rgb") -> Iterator[np.
 
 
 def render_videos(run: ViewRun, out: Path, kinds=KINDS, width: int | None = None, frames: int = 60,
-                  fps: float = 15.0, view: str = "rgb", split: str = "test", fmt: str = "auto") -> dict[str, Path]:
+                  fps: float = 15.0, view: str = "rgb", split: str = "test", fmt: str = "auto",
+                  comment: str = "") -> dict[str, Path]:
     """Write each of `kinds` as out/<kind>_<view>.<mp4|gif>; returns {kind: path}."""
     bad = [k for k in kinds if k not in KINDS]
     if bad:
@@ -211,5 +215,5 @@ def render_videos(run: ViewRun, out: Path, kinds=KINDS, width: int | None = None
         imgs = (time_sweep(run, frames, width, view) if k == "time" else orbit(run, frames, width, view)
                 if k == "orbit" else compare(run, width, split, view))
         total = len(run.frames.get(split, [])) if k == "compare" else frames
-        paths[k] = write_video(imgs, Path(out) / f"{k}_{view}", fps, fmt, total=total)
+        paths[k] = write_video(imgs, Path(out) / f"{k}_{view}", fps, fmt, total=total, comment=comment)
     return paths
