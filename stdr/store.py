@@ -140,6 +140,22 @@ def derived_experiments(name: str) -> dict[str, dict]:
     return out
 
 
+def run_name(cfg) -> str:
+    """The experiment name a run is labelled with: `cfg.name`, unless it is a derived experiment's
+    name (`<data>_<baseline>[_<plug-in>]`) whose baseline or plug-ins the command changed
+    (`baseline=linear` without `experiment=`, `stdr=on`): then the name of the experiment the run
+    really is, `<data>_<its baseline>[_<each plug-in on>]`."""
+    name = str(cfg.name)
+    data = next((d for d in sorted(data_options(), key=len, reverse=True) if name.startswith(d + "_")), None)
+    if data is None or name in _experiment_files():
+        return name
+    derived = {e for b in BASELINES for e in derived_experiments(b)}
+    if name not in derived:
+        return name  # a name the user gave
+    actual = f"{data}_{cfg.baseline.name}" + "".join(f"_{p.name}" for p in enabled_plugins(cfg))
+    return actual
+
+
 def experiment_names() -> list[str]:
     """Every experiment `stdr-train experiment=<name>` accepts."""
     return sorted(_experiment_files() | {e for b in BASELINES for e in derived_experiments(b)})

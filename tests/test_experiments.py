@@ -40,3 +40,16 @@ def test_the_filters_select(argv, capsys):
     tool.main(argv + ["--json"])
     got = json.loads(capsys.readouterr().out)
     assert got and all(r["plugins"] == ["stdr"] for r in got)
+
+
+def test_a_run_is_named_after_the_baseline_and_plugins_it_trains():
+    """baseline=X without experiment= is the run <data>_X (not the default experiment's name);
+    stdr=on adds _stdr; an experiment as composed, or a name the user gave, stays."""
+    from stdr.store import run_name
+    from stdr.testing import make_cfg
+    assert run_name(make_cfg([])) == "embedded_deform"
+    assert run_name(make_cfg(["baseline=scgs"])) == "embedded_scgs"
+    assert run_name(make_cfg(["stdr=on"])) == "embedded_deform_stdr"
+    assert run_name(make_cfg(["experiment=dnerf_spgs_stdr", "data.path=/x"])) == "dnerf_spgs_stdr"
+    assert run_name(make_cfg(["experiment=dnerf_spgs_stdr", "data.path=/x", "baseline=4dgs"])) == "dnerf_4dgs_stdr"
+    assert run_name(make_cfg(["name=my_study", "baseline=scgs"])) == "my_study"

@@ -42,7 +42,7 @@ from ..errors import ConfigError
 from ..io.files import read_yaml
 
 #: keys a resume may change without train.resume=override: prefixes end with "."
-PROCESS_KEYS = ("train.stop_at", "train.deadline", "train.start_by", "train.threads", "train.progress",
+PROCESS_KEYS = ("name", "train.stop_at", "train.deadline", "train.start_by", "train.threads", "train.progress",
                 "train.log_every", "train.image_every", "train.checkpoint_every", "train.checkpoint_minutes",
                 "train.skip_finished",
                 "train.resume", "eval.")

@@ -8,7 +8,8 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from ..compact.pack import check_pack_config, pack, summary
-from ..store import CHANGES_KEY
+from ..plugins import enabled_plugins
+from ..store import CHANGES_KEY, run_name
 from ..io.checkpoint import CKPT, load_checkpoint
 from ..io.files import leftover_temporaries, write_atomic
 from ..io.files import run_lock, set_aside_results
@@ -62,6 +63,11 @@ def _train_locked(cfg: DictConfig, run_dir: Path, data_base: str | None) -> dict
         stale.unlink(missing_ok=True)
     if not cfg.data.name:  # label for tables: the scene folder's name
         cfg.data.name = scene_folder(cfg.data, data_base).name
+    name = run_name(cfg)  # baseline=X without experiment=: the run is <data>_X, not the default experiment
+    if name != cfg.name:
+        print(f"[stdr] run name {name} (experiment {cfg.name} with baseline={cfg.baseline.name}"
+              f"{''.join(f', {p.name}=on' for p in enabled_plugins(cfg))})", flush=True)
+        cfg.name = name
     ckpt = run_dir / CKPT
     if cfg.train.resume is False:  # started over: the earlier run's results never stand beside the new one's
         moved = set_aside_results(run_dir)
