@@ -263,7 +263,11 @@ def test_a_damaged_metrics_json_is_one_line_naming_it(runs, tmp_path, content):
     shutil.copytree(runs["done"], run)
     (run / "metrics.json").write_text(content)
     line = one_line_error(_eval(run, "reevaluate=false", f"out={tmp_path / 't'}"), "stdr-eval")
-    assert f"{run / 'metrics.json'} is damaged" in line
+    assert f"{run / 'metrics.json'} is damaged" in line and f"(stdr-eval {run})" in line
+    # the advice works: the command it names re-evaluates the run and writes metrics.json again
+    ok = _eval(run, f"out={tmp_path / 't2'}")
+    assert ok.returncode == 0, ok.stderr[-2000:]
+    assert json.loads((run / "metrics.json").read_text())["test"]["iterations"] == 30
 
 
 def test_a_python_tag_in_config_yaml_runs_nothing_and_is_one_line_in_eval_and_view(runs, tmp_path):
@@ -496,3 +500,20 @@ def test_a_scene_that_cannot_be_read_is_one_line_and_leaves_no_run_folder(tmp_pa
             "train.progress=false", f"hydra.run.dir={run}"], cwd=tmp_path)
     assert "frames[3] image './train/r_003' not found" in one_line_error(r, "stdr-train")
     assert not (tmp_path / "outputs").exists()
+
+
+def test_a_re_evaluation_keeps_the_training_time_fps_and_says_when_the_machine_is_busy(runs, tmp_path, monkeypatch):
+    import shutil
+
+    from stdr.cli import eval as ev
+    run = tmp_path / "run"
+    shutil.copytree(runs["done"], run)
+    trained = json.loads((run / "metrics.json").read_text())["test"]["fps"]
+    for k in range(2):  # the first timing stays, whatever the later ones measure
+        assert _eval(run, f"out={tmp_path / f't{k}'}").returncode == 0
+        assert json.loads((run / "metrics.json").read_text())["test"]["fps_at_training"] == trained
+    monkeypatch.setattr(ev.os, "getloadavg", lambda: (7.5, 7.0, 6.0))
+    monkeypatch.setattr(ev.os, "cpu_count", lambda: 2)
+    assert ev.machine_load() == "the machine is busy (load 7.5 on 2 cores)"
+    monkeypatch.setattr(ev.os, "getloadavg", lambda: (0.4, 0.3, 0.2))
+    assert ev.machine_load() == ""

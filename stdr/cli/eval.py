@@ -7,7 +7,7 @@ change those keys of each run's config for the evaluation."""
 from __future__ import annotations
 
 import contextlib
-
+import os
 import sys
 from pathlib import Path
 
@@ -97,7 +97,10 @@ def unfinished_at(rd: Path, cfg) -> int | None:
     not finished: stopped by train.stop_at or a deadline, killed, or still training), else None."""
     done = rd / "metrics.json"
     if done.is_file():  # finished and evaluated at optim.iterations: no need to read the checkpoint
-        entries = read_json(done, "metrics")
+        try:
+            entries = read_json(done, "metrics")
+        except BadInput:  # damaged: the checkpoint says whether the run finished (a re-evaluation rewrites it)
+            entries = {}
         its = [e.get("iterations") for e in entries.values() if isinstance(e, dict)] if isinstance(entries, dict) else []
         if its and all(isinstance(i, int) and i >= int(cfg.optim.iterations) for i in its):
             return None
@@ -123,7 +126,41 @@ def reevaluate_run(rd: Path, cfg, split: str, eval_cfg, base: str, into: Path | 
     if into is not None:
         into.mkdir(parents=True, exist_ok=True)
         state.run_dir = into
-    return evaluate_run(state, scene, split, eval_cfg, max_gaussians=cfg.densify.max_gaussians)
+    before = _entry(Path(state.run_dir) / "metrics.json", split)
+    busy = machine_load()
+    if busy:
+        print(f"[stdr] {rd}: {busy}: the FPS measured now is not comparable with one taken on an idle machine; "
+              "metrics.json keeps the training-time FPS as fps_at_training", flush=True)
+    res = evaluate_run(state, scene, split, eval_cfg, max_gaussians=cfg.densify.max_gaussians)
+    kept = before.get("fps_at_training", before.get("fps"))
+    if kept is not None:  # the FPS timed when the run finished training stays beside the new timing
+        res["fps_at_training"] = kept
+        mp = Path(state.run_dir) / "metrics.json"
+        metrics = read_json(mp, "metrics")
+        metrics[split]["fps_at_training"] = kept
+        save_metrics(mp, metrics)
+    return res
+
+
+def _entry(path: Path, split: str) -> dict:
+    """metrics.json[split] as it is now ({} when there is none or it cannot be read)."""
+    try:
+        m = read_json(path, "metrics") if path.is_file() else {}
+    except BadInput:
+        return {}
+    e = m.get(split) if isinstance(m, dict) else None
+    return e if isinstance(e, dict) else {}
+
+
+def machine_load() -> str:
+    """'load L on N cores' when other work keeps more than half of this machine's cores busy (the
+    1-minute load average, measured before this process renders anything), else ''."""
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        return ""
+    cores = os.cpu_count() or 1
+    return f"the machine is busy (load {load:.1f} on {cores} cores)" if load > 0.5 * cores else ""
 
 
 def apply_overrides(cfg, section: str, overrides) -> None:

@@ -29,6 +29,7 @@ from ..render import use_compiled_projection
 from .lpips import LPIPS, fetch_weights
 from ..data.fetch import DataError
 from ..densify.prune import seen_per_frame, significance
+from ..errors import BadInput
 from ..io.files import atomic_path, read_json, write_atomic
 from .. import __version__, source_checkout
 
@@ -376,7 +377,12 @@ def write_metrics(run_dir: Path, split: str, res: dict[str, Any], model, eval_cf
     for p in model.plugins:
         res[p.name] = p.stats(model.params)
     path = run_dir / "metrics.json"
-    metrics = read_json(path, "metrics") if path.is_file() else {}
+    try:
+        metrics = read_json(path, "metrics") if path.is_file() else {}
+    except BadInput:  # damaged: this evaluation writes it anew (its other splits were unreadable anyway)
+        metrics = {}
+    if not isinstance(metrics, dict):
+        metrics = {}
     metrics[split] = res
     save_metrics(path, metrics)
 

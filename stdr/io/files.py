@@ -73,13 +73,13 @@ def read_json(path: str | Path, what: str = "file") -> Any:
         raise MissingInput(f"{path} not found") from None
     except UnicodeDecodeError as e:
         raise BadInput(f"{path} is damaged: not text ({e.reason}); restore it, or re-evaluate the run "
-                       f"(stdr-eval RUN) to write the {what} again") from None
+                       f"(stdr-eval {path.parent}) to write the {what} again") from None
     try:
         return json.loads(text)
     except ValueError as e:
         why = "empty" if not text.strip() else f"not valid JSON ({e})"
-        raise BadInput(f"{path} is damaged: {why}; restore it, or re-evaluate the run (stdr-eval RUN) to write "
-                       f"the {what} again") from None
+        raise BadInput(f"{path} is damaged: {why}; restore it, or re-evaluate the run (stdr-eval {path.parent}) to "
+                       f"write the {what} again") from None
 
 
 #: the environment variable that makes one write site fail (tests of the fault paths): SITE or
