@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import re
+
 import pytest
 import torch
 from omegaconf import OmegaConf
@@ -251,3 +253,38 @@ def test_a_baseline_without_budget_files_trains_its_deformation_under_every_budg
     before = t.state.model.deform.speed.detach().clone()
     t.train()
     assert not torch.equal(before, t.state.model.deform.speed.detach())
+
+
+class DriftNoCond(Drift):
+    """Drift whose config_kwargs forgets the plug-ins' conditioning width."""
+
+    @classmethod
+    def config_kwargs(cls, b, cond_dim=0, train_times=None, seed=0, schedule=None):
+        return {"speed": b.drift.speed}
+
+
+class DriftBadKwargs(Drift):
+    @classmethod
+    def config_kwargs(cls, b, cond_dim=0, train_times=None, seed=0, schedule=None):
+        return {"speed": b.drift.speed, "cond_dim": cond_dim, "sped": 1.0}
+
+
+@pytest.mark.parametrize("module, error, said", [
+    (DriftNoCond, "ConfigError", "baseline drift (DriftNoCond) was built for per-Gaussian conditioning of width 0, "
+                                 "but the plug-ins on feed 17"),
+    (DriftBadKwargs, "TypeError", "DriftBadKwargs.config_kwargs returned arguments DriftBadKwargs.__init__ does not take"),
+])
+def test_a_baseline_that_cannot_be_built_as_configured_fails_at_construction_naming_the_hook(tmp_path, module, error,
+                                                                                             said):
+    """Before the first step (and before the run's record): a baseline that does not take STDR's
+    conditioning, or whose config_kwargs does not fit its constructor, is named with the fix."""
+    from stdr.baselines.registry import build_deformation
+    from stdr.testing import make_cfg
+    register_baseline("drift", module, DriftConfig)
+    try:
+        cfg = make_cfg(["experiment=embedded_drift_stdr"] if error == "ConfigError" else ["experiment=embedded_drift"])
+        with pytest.raises(Exception, match=re.escape(said)) as e:
+            build_deformation(cfg.baseline, 17 if error == "ConfigError" else 0)
+        assert type(e.value).__name__ == error
+    finally:
+        unregister_baseline("drift")

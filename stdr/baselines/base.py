@@ -12,6 +12,7 @@ The baselines differ in that rule, so it is explicit, never unified silently:
 """
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field
 from typing import Any, List, Optional
 
@@ -20,6 +21,7 @@ import torch
 from omegaconf import II, OmegaConf
 from torch import Tensor, nn
 
+from ..errors import ConfigError
 from .. import device as devices  # module attribute: cpu_bf16_flags is looked up at call time
 from ..ops import RowView, rows_of, sigmoid
 from ..gaussians import Gaussians
@@ -193,7 +195,20 @@ class Deformation(nn.Module):
     def from_config(cls, b: Any, cond_dim: int = 0, train_times: Optional[np.ndarray] = None, seed: int = 0,
                     schedule=None) -> "Deformation":
         """The module of a baseline config (see `config_kwargs`)."""
-        module = cls(**cls.config_kwargs(b, cond_dim, train_times, seed, schedule))
+        kwargs = cls.config_kwargs(b, cond_dim, train_times, seed, schedule)
+        try:
+            inspect.signature(cls).bind(**kwargs)
+        except TypeError as e:
+            raise TypeError(f"{cls.__name__}.config_kwargs returned arguments {cls.__name__}.__init__ does not take "
+                            f"({e}): make config_kwargs return the constructor's keyword arguments") from None
+        module = cls(**kwargs)
+        if module.cond_dim != cond_dim:
+            name = getattr(b, "name", cls.__name__)
+            raise ConfigError(
+                f"baseline {name} ({cls.__name__}) was built for per-Gaussian conditioning of width {module.cond_dim}, "
+                f"but the plug-ins on feed {cond_dim} (STDR's separated field): its config_kwargs must pass cond_dim "
+                "to the module, which sets self.cond_dim and takes `cond` in forward; or train it without those "
+                "plug-ins (stdr=off)")
         module.precision = check_precision(getattr(b, "precision", "fp32"))
         if getattr(b, "compile", False):
             module.compile_network()

@@ -17,6 +17,8 @@ from typing import Iterable, Optional
 import torch
 from torch import Tensor
 
+from ..errors import ConfigError
+
 
 def _fusable(opt: torch.optim.Optimizer) -> bool:
     """A plain torch Adam whose every group is fused, not differentiable, without capturable
@@ -121,7 +123,10 @@ def gaussian_lr(cfg, model, key: str, step: int) -> float:
         lr = owner.gaussian_lr(key)
         if lr is not None:
             return lr
-    raise KeyError(f"no learning rate configured for per-Gaussian parameter {key!r}")
+    owners = ", ".join(type(o).__name__ for o in [model.deform, *model.plugins])
+    raise ConfigError(f"per-Gaussian parameter {key!r} has no learning rate: the module that adds it in "
+                      f"gaussian_params (or init_gaussians) must return its rate from gaussian_lr({key!r}) "
+                      f"(asked: {owners}; docs/baselines.md, 'Adding a baseline')")
 
 
 def make_optimizers(cfg, model, fused: bool) -> dict[str, torch.optim.Optimizer]:
