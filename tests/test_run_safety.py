@@ -108,12 +108,14 @@ def test_a_resume_with_a_changed_training_key_is_refused_and_override_records_th
     r = sh(train_cmd(tmp_path, run, "optim.iterations=40", "train.stop_at=20"))
     assert r.returncode == 0, r.stderr[-3000:]
     before = (run / "config.yaml").read_text()
+    hydra_before = {f.name: f.read_bytes() for f in (run / ".hydra").iterdir()}
     changed = sh(train_cmd(tmp_path, run, "optim.iterations=30", "optim.lambda_dssim=0.5"))
     line = one_line_error(changed, "stdr-train")
     assert "resume the run at iteration 20" in line and "2 key(s)" in line
     assert "optim.iterations: 40 (the run's) -> 30 (this command's)" in line
     assert "optim.lambda_dssim: 0.2 (the run's) -> 0.5 (this command's)" in line and "train.resume=override" in line
-    assert (run / "config.yaml").read_text() == before  # nothing rewritten
+    assert (run / "config.yaml").read_text() == before  # nothing rewritten, Hydra's record of the command included
+    assert {f.name: f.read_bytes() for f in (run / ".hydra").iterdir()} == hydra_before
     # keys that only steer the process may differ: threads, logging, checkpoints, the stop
     ok = sh(train_cmd(tmp_path, run, "optim.iterations=40", "train.stop_at=25", "train.log_every=7",
                       "train.checkpoint_every=3"))

@@ -1,6 +1,7 @@
 """stdr-train: train one model (Hydra app). `stdr-train --help` lists the config groups."""
 from __future__ import annotations
 
+import contextlib
 import json
 import shlex
 import shutil
@@ -18,7 +19,7 @@ from ..config import CONFIG_DIR
 from ..store import register
 from ..errors import UserError, reported
 from ..eval.table import stale_results
-from ..io.files import LOCK_NAME, read_json
+from ..io.files import LOCK_NAME, read_json, write_atomic
 from ..tools.runqueue import FAILURES, STDOUT
 from ..train.resume import StopNow
 from ..train.run import run_training
@@ -116,6 +117,7 @@ def _main(cfg: DictConfig) -> None:
             try:
                 run_training(cfg, run_dir, data_base=hydra.utils.get_original_cwd())
             except UserError:
+                _restore_hydra_record(run_dir)  # a refused command leaves the run's record as it was
                 _remove_if_untouched(run_dir, Path(hydra.utils.get_original_cwd()))
                 raise
 
@@ -153,14 +155,30 @@ def _remove_if_untouched(run_dir: Path, cwd: Path) -> None:
 _EXISTED: set[Path] = set()
 
 
+#: the run folder's .hydra/ files before Hydra rewrote them for this command: {path: bytes}
+_HYDRA_BEFORE: dict[Path, bytes] = {}
+
+
 def _note_existing(argv: list[str]) -> None:
     _EXISTED.clear()
+    _HYDRA_BEFORE.clear()
     given = [a.split("=", 1)[1] for a in argv if a.startswith("hydra.run.dir=")]
     if given:
         d = Path(given[-1]).expanduser().resolve()
         for f in (d, *d.parents):
             if f.is_dir():
                 _EXISTED.add(f)
+        if (d / ".hydra").is_dir():
+            _HYDRA_BEFORE.update({f: f.read_bytes() for f in (d / ".hydra").iterdir() if f.is_file()})
+
+
+def _restore_hydra_record(run_dir: Path) -> None:
+    """Put back the .hydra/ files (Hydra's record of the command: config.yaml, overrides.yaml) that
+    Hydra rewrote for a command that was then refused (a resume with changed keys)."""
+    for f, data in _HYDRA_BEFORE.items():
+        if f.parent.parent == run_dir.resolve():
+            with contextlib.suppress(OSError):
+                write_atomic(f, data, site="config")
 
 
 def main() -> None:
