@@ -199,7 +199,8 @@ def _record(folder, rid, psnr):
     d = folder / rid
     d.mkdir(parents=True)
     (d / "metrics.json").write_text(json.dumps({"val": {
-        "psnr": psnr, "train_seconds": 100.0, "conventions": {"machine": "m"}, "code": {"commit": "abcdef0"}}}))
+        "psnr": psnr, "train_seconds": 100.0, "train_cpu_utilization": 0.9, "conventions": {"machine": "m"},
+        "code": {"commit": "abcdef0"}}}))
 
 
 def test_the_val_check_gives_a_verdict_only_on_every_planned_pair(tmp_path):
@@ -219,3 +220,10 @@ def test_the_val_check_gives_a_verdict_only_on_every_planned_pair(tmp_path):
     shutil.rmtree(tmp_path / f"dnerf_deform__{pairs[-1][0]}__s{pairs[-1][1]}__bf16")
     assert pv.summary(pv.load(tmp_path))["dnerf_deform"]["verdict"] == "incomplete"
     assert "| dnerf_deform_stdr | 8 of 8 | -0.300 |" in pv.table(tmp_path)
+    # a run paused or crowded out (little of its thread) keeps its PSNR in the check, not its time
+    slow = tmp_path / f"dnerf_deform_stdr__{pairs[0][0]}__s{pairs[0][1]}__bf16" / "metrics.json"
+    m = json.loads(slow.read_text())
+    m["val"].update(train_cpu_utilization=0.1, train_seconds=1000.0)
+    slow.write_text(json.dumps(m))
+    text = pv.table(tmp_path)
+    assert "– (not timed)" in text and "| dnerf_deform_stdr | 8 of 8 | -0.300 | -0.30 | 8 | 1.00 | fail |" in text
