@@ -231,6 +231,15 @@ def test_a_table_row_mixing_iteration_counts_is_refused_or_labelled(runs, tmp_pa
     assert r.returncode == 0, r.stderr[-3000:]
     table = json.loads((tmp_path / "t" / "table.json").read_text())
     assert table["methods"] == ["deform [mixed iterations 20/30]"]
+    # re-evaluating: refused before either run is written into
+    import shutil
+    a, b = tmp_path / "a", tmp_path / "b"
+    shutil.copytree(runs["done"], a)
+    shutil.copytree(runs["short"], b)
+    before = {p: p.read_bytes() for p in (a / "metrics.json", b / "metrics.json", a / "history.json")}
+    line = one_line_error(_eval(a, b, f"out={tmp_path / 't2'}"), "stdr-eval")
+    assert "the 'deform' row mixes runs of different training: iterations 30" in line
+    assert {p: p.read_bytes() for p in before} == before
 
 
 def test_stdr_eval_and_pack_refuse_a_second_writer_while_training_holds_the_run(runs, tmp_path):
@@ -519,3 +528,12 @@ def test_a_re_evaluation_keeps_the_training_time_fps_and_says_when_the_machine_i
     assert ev.machine_load() == "the machine is busy (load 7.5 on 2 cores)"
     monkeypatch.setattr(ev.os, "getloadavg", lambda: (0.4, 0.3, 0.2))
     assert ev.machine_load() == ""
+
+
+def test_stdr_eval_prints_where_its_tables_are_with_hydra_job_chdir(runs, tmp_path):
+    """out= is read from the folder the command was typed in, whatever hydra.job.chdir does, and the
+    printed path is that folder's table."""
+    r = _eval(runs["done"], "reevaluate=false", "out=rel/tables", "hydra.job.chdir=true", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    table = tmp_path / "rel" / "tables" / "table.md"
+    assert table.is_file() and str(table) in r.stdout

@@ -332,3 +332,19 @@ def test_the_test_cluster_script_needs_its_tools_and_says_so(monkeypatch):
     monkeypatch.setattr(shutil, "which", lambda name: None)
     monkeypatch.setattr(slurm_cluster, "TOOLS", ("no-such-slurm-tool",))
     assert "no-such-slurm-tool not installed (apt-get install slurm-wlm munge)" in slurm_cluster.missing()
+
+
+def test_a_sweep_of_very_many_runs_is_announced_before_hydra_composes_them():
+    from stdr.cli.train import BIG_SWEEP, sweep_size
+    assert sweep_size(["-m", "seed=range(0,1000000)", "data.max_width=100,200", "train.stop_at=3"]) == (
+        2_000_000, ["seed=range(0,1000000) (1,000,000)", "data.max_width=100,200 (2)"])
+    assert sweep_size(["-m", "seed=0,1,2"])[0] == 3 <= BIG_SWEEP
+    # the real command says it at once (then it is stopped: composing a million jobs takes minutes)
+    p = subprocess.Popen([sys.executable, "-m", "stdr.cli.train", "-m", "seed=range(0,1000000)",
+                          "hydra.sweep.dir=/nonexistent/never"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        first = p.stdout.readline()
+    finally:
+        p.kill()
+        p.wait()
+    assert first.startswith("[stdr] this sweep is 1,000,000 runs (seed=range(0,1000000) (1,000,000))"), first

@@ -25,7 +25,7 @@ from ..store import register
 from ..errors import BadInput, MissingInput, reported
 from .common import check_overrides, reproducible_blas, run_hydra_app
 from ..eval.table import check_mixed_rows, collect, find_run_dirs, markdown, read_metrics, table_row, write_tables
-from ..eval.evaluate import evaluate_run, measure_fps, save_metrics, machine_name
+from ..eval.evaluate import code_version, evaluate_run, measure_fps, save_metrics, machine_name
 from ..train.state import RunState
 from ..data.load import load_run_scene
 from ..device import resolve_device
@@ -71,6 +71,13 @@ def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reev
                            "the stdr-train command that started it, or add unfinished=true to evaluate its last "
                            f"checkpoint into {out_dir / 'unfinished' / rd.name}")
         plan.append((rd, cfg, sp, left))
+    # the rows as they will be (a re-evaluation stamps this code; iterations are the checkpoint's), checked
+    # for mixed training before any run is written into
+    now = code_version()
+    check_mixed_rows([table_row(OmegaConf.to_container(cfg, resolve=True), sp,
+                                {"iterations": int(cfg.optim.iterations) if left is None else left, "code": now}
+                                if (reevaluate or left is not None) else read_metrics(rd, sp), str(rd))
+                      for rd, cfg, sp, left in plan], allow_mixed)
     with contextlib.ExitStack() as locks:
         for rd, cfg, sp, left in plan:  # every run written into is held before the first is (one writer a run)
             if left is None and (reevaluate or remeasure):
@@ -238,7 +245,10 @@ def _main(cfg: DictConfig) -> None:
     if not cfg.runs:
         raise SystemExit("usage: stdr-eval RUN_DIR [RUN_DIR ...] [key=value ...]")
     reproducible_blas()
-    out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir)
+    # out= is read from where the command was typed (hydra.job.chdir=true moves the working folder)
+    # and printed absolute, so the path printed is where the tables are
+    cwd = Path(hydra.utils.get_original_cwd())
+    out = (cwd / Path(cfg.out).expanduser()).resolve() if cfg.out else Path(HydraConfig.get().runtime.output_dir).resolve()
     with reported("stdr-eval"):  # bad input: one line, exit code 2
         evaluate_dirs(list(cfg.runs), cfg.split, cfg.eval, cfg.render, cfg.reevaluate, out,
                       hydra.utils.get_original_cwd(), cfg.device, cfg.remeasure,

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig
 
 from ..config import CONFIG_DIR
@@ -122,6 +123,33 @@ def _main(cfg: DictConfig) -> None:
                 raise
 
 
+#: a sweep of more runs than this is announced before Hydra composes them (that alone takes minutes)
+BIG_SWEEP = 1000
+
+
+def sweep_size(argv: list[str]) -> tuple[int, list[str]]:
+    """(the number of runs a `-m` command line sweeps: the product of its sweep overrides' lengths,
+    each sweep override with its length)."""
+    total, parts = 1, []
+    try:
+        parsed = OverridesParser.create().parse_overrides([a for a in argv if not a.startswith("-") and "=" in a])
+    except Exception:  # noqa: BLE001 - Hydra reports a bad override itself
+        return 1, []
+    for o in parsed:
+        if o.is_sweep_override() and not o.key_or_group.startswith("hydra"):
+            n = sum(1 for _ in o.sweep_iterator())
+            total *= n
+            parts.append(f"{o.input_line} ({n:,})")
+    return total, parts
+
+
+def _say_sweep_size(argv: list[str]) -> None:
+    total, parts = sweep_size(argv)
+    if total > BIG_SWEEP:
+        print(f"[stdr] this sweep is {total:,} runs ({' x '.join(parts)}); composing them takes a while before the "
+              "first starts. Ctrl+C stops it", flush=True)
+
+
 #: what Hydra writes into a run folder before stdr-train's checks (and the lock file)
 _HYDRA_ONLY = (".hydra", ".stdr.lock")
 
@@ -189,6 +217,8 @@ def main() -> None:
         if "--resolve" not in sys.argv:
             sys.argv.append("--resolve")
     check_overrides("stdr-train", sys.argv[1:])  # a bad override: one line, exit code 2
+    if "-m" in sys.argv[1:] or "--multirun" in sys.argv[1:]:
+        _say_sweep_size(sys.argv[1:])
     LAST_SWEEP["failed"] = 0
     _note_existing(sys.argv[1:])
     try:
