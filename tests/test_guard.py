@@ -574,6 +574,13 @@ def _stop_cmd(tmp: Path, run: Path, *extra) -> list[str]:
             f"hydra.run.dir={run}", *extra]
 
 
+def _as_a_terminal_starts_it():
+    """The child as a shell starts it: SIGINT at its default, whatever the test process has (a
+    pytest-xdist worker ignores SIGINT, and an ignored signal is inherited: Python then installs no
+    KeyboardInterrupt handler, and training rightly leaves an ignored Ctrl+C ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _training(p: subprocess.Popen, run: Path, timeout: float = 300) -> None:
     """Wait until the process trains: TensorBoard's first scalars are on the disk (log_every)."""
     t0 = time.time()
@@ -587,7 +594,8 @@ def _training(p: subprocess.Popen, run: Path, timeout: float = 300) -> None:
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_ctrl_c_and_sigterm_checkpoint_the_step_and_the_run_resumes_bit_identical(tmp_path, sig, code):
     run = tmp_path / "run"
-    p = subprocess.Popen(_stop_cmd(tmp_path, run), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    p = subprocess.Popen(_stop_cmd(tmp_path, run), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                         preexec_fn=_as_a_terminal_starts_it)
     try:
         _training(p, run)
         time.sleep(1.0)
@@ -621,7 +629,7 @@ def test_a_second_ctrl_c_stops_at_once(tmp_path):
     marker = tmp_path / "in_write"
     env = {**os.environ, "STDR_TEST_PAUSE_IN_WRITE": str(marker)}
     p = subprocess.Popen([sys.executable, "-c", KILL_CHILD, *_stop_cmd(tmp_path, run)[3:]], env=env,
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, preexec_fn=_as_a_terminal_starts_it)
     try:
         _training(p, run)
         p.send_signal(signal.SIGINT)

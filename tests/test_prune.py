@@ -180,7 +180,8 @@ def test_stdr_tool_compact_prunes_a_trained_run_into_a_new_one(tmp_path):
     assert m["num_gaussians"] == before["num_gaussians"] - int(0.4 * before["num_gaussians"]) == res["num_gaussians"]
     assert m["seen_per_frame"] is not None and 0 < m["seen_per_frame"] <= 1
     saved = (out / "config.yaml").read_text()
-    assert "prune:" in saved and "share: 0.4" in saved and "name: embedded_deform_compact" in saved
+    # the run is deform+STDR (stdr=on): named embedded_deform_stdr, its compact copy after it
+    assert "prune:" in saved and "share: 0.4" in saved and "name: embedded_deform_stdr_compact" in saved
     # the original run is untouched, and the phases it crossed stayed where they were
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["test"] == before
     assert m["stdr"]["freeze_at"] == before["stdr"]["freeze_at"]

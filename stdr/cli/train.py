@@ -191,13 +191,17 @@ def _note_existing(argv: list[str]) -> None:
     _EXISTED.clear()
     _HYDRA_BEFORE.clear()
     given = [a.split("=", 1)[1] for a in argv if a.startswith("hydra.run.dir=")]
-    if given:
+    if not given:
+        return
+    try:  # a path the command cannot use (too long, not ours to read) is named by the command itself
         d = Path(given[-1]).expanduser().resolve()
         for f in (d, *d.parents):
             if f.is_dir():
                 _EXISTED.add(f)
         if (d / ".hydra").is_dir():
             _HYDRA_BEFORE.update({f: f.read_bytes() for f in (d / ".hydra").iterdir() if f.is_file()})
+    except OSError:
+        pass
 
 
 def _restore_hydra_record(run_dir: Path) -> None:

@@ -47,6 +47,10 @@ PROCESS_KEYS = ("name", "train.stop_at", "train.deadline", "train.start_by", "tr
                 "train.skip_finished",
                 "train.resume", "eval.")
 
+#: where a run's data and caches are: edited in config.yaml when a run moves to another machine or
+#: folder, which is not a change of its training (data.json's fingerprints check the data itself)
+LOCATION_KEYS = ("data.path", "data.cache_dir", "data.undistort_cache")
+
 #: derived from other keys (a change there shows in the keys it is derived from)
 DERIVED = ("schedule",)
 
@@ -110,7 +114,7 @@ def resume_changes(cfg, run_dir: Path, step: int, trained: Optional[dict] = None
     # renamed or added since the run was trained is not a change this command makes
     old = OmegaConf.to_container(load_config(Path(run_dir) / "config.yaml"), resolve=False)
     ck = trained_config(run_dir, trained)
-    edited = config_diff(ck, old) if ck is not None else {}
+    edited = {k: v for k, v in config_diff(ck, old).items() if k not in LOCATION_KEYS} if ck is not None else {}
     if edited:  # config.yaml edited by hand: it no longer says how the checkpoint was trained
         if cfg.train.resume != "override":
             listed = "; ".join(f"{k}: {_show(a)} (trained) -> {_show(b)} (config.yaml)" for k, (a, b) in edited.items())
