@@ -129,7 +129,9 @@ def main(argv=None) -> None:
     if args.cmd == "collect":
         print(f"[precision_val] added {collect(args.work, args.records)}")
     text = table(args.records)
-    (STUDY if args.records == RECORDS else args.records.parent).joinpath("table.md").write_text(text)
+    # the budget=cpu records' table is table.md; another records folder's (runs_cpu_long) is table_<folder>.md
+    name = "table.md" if args.records == RECORDS else f"table_{args.records.name}.md"
+    (STUDY if args.records == RECORDS else args.records.parent).joinpath(name).write_text(text)
     print(text)
 
 
