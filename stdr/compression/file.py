@@ -210,13 +210,10 @@ def compact_source_note(path: str | Path) -> str:
     """A compact model file in a run folder (RUN/model.stdrc) packed from another checkpoint than
     the run's last (pack.json names its source): one line saying so; "" otherwise."""
     path = Path(path)
-    pack, ck = path.parent / "pack.json", path.parent / CKPT
-    if path.suffix != ".stdrc" or not pack.is_file() or not ck.is_file():
+    ck = path.parent / CKPT
+    if path.suffix != ".stdrc" or not (path.parent / "pack.json").is_file() or not ck.is_file():
         return ""
-    try:
-        src = (read_json(pack, "pack record") or {}).get("checkpoint")
-    except UserError:
-        return ""
+    src = model_source(path)
     now = checkpoint_identity(ck)
     if not isinstance(src, dict) or now is None or src.get("sha256") == now["sha256"]:
         return ""
@@ -231,7 +228,8 @@ def model_source(path: str | Path) -> Optional[dict[str, Any]]:
     if path.suffix != ".stdrc":
         return checkpoint_identity(path)
     try:
-        src = (read_json(path.parent / "pack.json", "pack record") or {}).get("checkpoint")
+        rec = read_json(path.parent / "pack.json", "pack record") if (path.parent / "pack.json").is_file() else {}
     except UserError:
         return None
+    src = rec.get("checkpoint") if isinstance(rec, dict) else None
     return src if isinstance(src, dict) else None
