@@ -11,10 +11,12 @@ launch work (views such as t, view, slice or detach launch no kernel on a GPU, n
 allocations or profiler records). Counts are deterministic: they do not depend on the machine.
 
     python -m studies.ops_per_step --scene ../shared/data/dnerf/jumpingjacks --label after \\
+        --out research/measurements/ops_per_step/counts
+    python -m studies.ops_per_step --compare research/measurements/ops_per_step/counts/before.json \\
+        research/measurements/ops_per_step/counts/after.json research/measurements/ops_per_step/counts/fused.json \\
         --out research/measurements/ops_per_step
-    python -m studies.ops_per_step --compare research/measurements/ops_per_step/before.json \\
-        research/measurements/ops_per_step/after.json research/measurements/ops_per_step/fused.json \\
-        --out research/measurements/ops_per_step
+
+(The counts are in the study's records archive: `python -m studies.records extract ops_per_step`.)
 """
 from __future__ import annotations
 
