@@ -46,6 +46,7 @@ PORTABLE_ENV = "STDR_PORTABLE_BUILD"  # =1: no -march=native (e.g. a cache share
 _lock = threading.Lock()
 _modules: dict[str, object] = {}
 _errors: dict[str, str] = {}
+_observer = None  # callback(name, args, result) while `observe_calls` is open
 
 
 class BuildError(RuntimeError):
@@ -219,7 +220,7 @@ def load_extension(kind: str, verbose: bool = False):
         raise ValueError(f"unknown compiled backend {kind!r}")
     with _lock:
         if kind in _modules:
-            return _modules[kind]
+            return _observed(_modules[kind])
         if kind in _errors:
             raise BuildError(_errors[kind])
         if kind == "cuda" and not (torch.cuda.is_available() and torch.version.cuda):
@@ -230,7 +231,45 @@ def load_extension(kind: str, verbose: bool = False):
         except BuildError as e:
             _errors[kind] = str(e)
             raise
-        return _modules[kind]
+        return _observed(_modules[kind])
+
+
+class _Observed:
+    """A compiled module whose every function call is also reported to a callback."""
+
+    def __init__(self, module, callback):
+        self._module, self._callback = module, callback
+
+    def __getattr__(self, name: str):
+        f = getattr(self._module, name)
+        if not callable(f):
+            return f
+
+        def call(*args, **kwargs):
+            out = f(*args, **kwargs)
+            if _observer is self._callback:  # a graph kept past the observation reports nothing
+                self._callback(name, (*args, *kwargs.values()), out)
+            return out
+        return call
+
+
+def _observed(module):
+    return module if _observer is None else _Observed(module, _observer)
+
+
+@contextlib.contextmanager
+def observe_calls(callback):
+    """While open, the modules `load_extension` returns report every call of theirs as
+    callback(function name, its arguments, its result), after the call (`stdr-tool bench-train`
+    counts the bytes the compiled kernels read and write). One observer at a time, not for training."""
+    global _observer
+    if _observer is not None:
+        raise RuntimeError("observe_calls is already open")
+    _observer = callback
+    try:
+        yield
+    finally:
+        _observer = None
 
 
 def available(kind: str) -> bool:

@@ -118,9 +118,17 @@ def test_bench_train_times_the_step_by_section_at_fixed_counts(tmp_path):
         assert sum(parts.values()) == pytest.approx(sec["backward"], rel=1e-6)
         assert r["ms"] > 0 and (r["width"], r["height"]) == (64, 64) and r["iters"] == 2
         assert r["step"] >= 0 and r["active_mean"] <= r["gaussians"]
+        # the bounds' tally (one more step): the backward's parts add up to it, the sections to the step
+        w = r["work"]
+        assert w["sections"]["deform"]["gflop"] > 0 and w["sections"]["optimizer"]["mb"] > 0
+        assert sum(v["bound_ms"] for v in w["backward_parts"].values()) == pytest.approx(
+            w["sections"]["backward"]["bound_ms"], rel=1e-9)
+        assert sum(v["bound_ms"] for v in w["sections"].values()) == pytest.approx(w["step"]["bound_ms"], rel=1e-9)
     assert data["mm_ms_before"] > 0 and data["mm_ms_after"] > 0 and data["threads"] == 2
+    assert all(data["rates"][k] > 0 for k in ("fp32", "bf16", "bandwidth"))
     md = out.with_suffix(".md").read_text()
     assert "÷ mm" in md and "bwd: projection+sh" in md and "embedded_deform_stdr" in md
+    assert "| embedded_deform | 64x64 | 400 | whole step |" in md and "× bound" in md
     with pytest.raises(SystemExit, match="no checkpoints/last.pt"):
         bench_train.main(["--experiments", "embedded_deform", "--run", str(tmp_path), "--", *common])
     # --compare: the same file against a copy with one row twice as fast and one row removed
@@ -138,6 +146,65 @@ def test_bench_train_times_the_step_by_section_at_fixed_counts(tmp_path):
     with pytest.raises(SystemExit, match="not a bench-train result"):
         (tmp_path / "bad.json").write_text("{}")
         bench_train.main(["--compare", str(tmp_path / "bad.json"), str(tmp_path / "after.json")])
+
+
+def test_tally_counts_each_operators_flops_and_bytes_in_its_section_and_backward_part():
+    import pytest
+
+    from stdr.tools.bench_bounds import Tally, WorkProfiler
+    rates = {"fp32": 1e9, "bf16": 2e9, "bandwidth": 1e9}  # FLOP/s and bytes/s: bounds in round numbers
+    tally = Tally(rates)
+    prof = WorkProfiler(tally, after="rest")
+    a, b = torch.ones(64, 32), torch.ones(32, 16)
+    with tally:
+        with prof("mm"):
+            c = a @ b  # 2 * 64 * 32 * 16 FLOPs; reads a and b, writes c
+        with prof("inplace"):
+            c.t()  # a view: moves nothing
+            c.add_(1.0)  # reads c and writes it
+        with prof("bf16"):
+            a.bfloat16() @ b.bfloat16()  # two casts, and a product at the bf16 rate
+        w = torch.ones(4, 2, requires_grad=True)
+        x = torch.ones(8, 4)
+        y = x @ w
+        prof.watch("head", (y,))
+        prof.backward(y.relu().sum())
+    s = tally.summary(1)["sections"]
+    assert s["mm"]["gflop"] * 1e9 == 2 * 64 * 32 * 16
+    assert s["mm"]["mb"] * 1e6 == (64 * 32 + 32 * 16 + 64 * 16) * 4
+    assert s["mm"]["bound_ms"] == pytest.approx(2 * 64 * 32 * 16 / 1e9 * 1e3)  # FLOP-limited: 65,536 > 14,336
+    assert s["mm"]["flop_limited_ms"] == s["mm"]["bound_ms"]
+    assert s["inplace"]["mb"] * 1e6 == 2 * 64 * 16 * 4 and s["inplace"]["gflop"] == 0
+    assert s["inplace"]["flop_limited_ms"] == 0 and s["inplace"]["bound_ms"] == pytest.approx(2 * 64 * 16 * 4 / 1e9 * 1e3)
+    bf = s["bf16"]  # casts: fp32 read, bf16 written; the product: bf16 operands and result
+    assert bf["mb"] * 1e6 == (64 * 32 + 32 * 16) * (4 + 2) + (64 * 32 + 32 * 16 + 64 * 16) * 2
+    assert bf["bound_ms"] == pytest.approx((2 * 64 * 32 * 16 / 2e9 + (64 * 32 + 32 * 16) * 6 / 1e9) * 1e3)
+    # the backward: the relu's and sum's gradients until y's gradient is ready ("head"), then the
+    # product's weight gradient x.t() @ g, 2 * 4 * 8 * 2 FLOPs ("rest"); both also in "backward"
+    parts = tally.summary(1)["backward_parts"]
+    assert parts["head"]["gflop"] == 0 and parts["head"]["mb"] > 0
+    assert parts["rest"]["gflop"] * 1e9 == 2 * 4 * 8 * 2
+    assert s["backward"]["gflop"] * 1e9 == 2 * 4 * 8 * 2
+    assert s["backward"]["mb"] == pytest.approx(parts["head"]["mb"] + parts["rest"]["mb"])
+
+
+def test_observe_calls_reports_the_compiled_modules_calls_while_open():
+    import pytest
+
+    from stdr import extension
+    if not extension.available("cpu"):
+        pytest.skip("the CPU extension does not build here")
+    calls = []
+    t = torch.ones(5)
+    with extension.observe_calls(lambda name, args, out: calls.append((name, len(args)))):
+        extension.load_extension("cpu").nonfinite_flags([t])
+        with pytest.raises(RuntimeError, match="already open"):
+            with extension.observe_calls(print):
+                pass
+    assert calls == [("nonfinite_flags", 1)]
+    ext = extension.load_extension("cpu")  # closed: the module itself, nothing reported
+    ext.nonfinite_flags([t])
+    assert calls == [("nonfinite_flags", 1)] and not isinstance(ext, extension._Observed)
 
 
 def test_profiler_adds_no_hooks_in_training():

@@ -43,6 +43,7 @@ from ..eval.table import fmt_value as fmt
 from ..eval.table import markdown_table, write_outputs
 from ..gaussians import GAUSSIAN_KEYS
 from ..train.timing import Profiler
+from .bench_bounds import bound_rows, machine_rates, mm_reference, tally_steps
 from ..train.trainer import Trainer
 from ..io.checkpoint import load_checkpoint
 from ..syncs import DeviceSyncCounter, OpCounter, SyncCounter
@@ -71,28 +72,14 @@ def replicate(params: dict, n: int, gen: torch.Generator) -> dict:
     out["scales"] -= 0.5 * math.log(copies)
     return out
 
-def mm_reference(device: torch.device, n: int = 2048, repeats: int = 5) -> float:
-    """Median milliseconds of one n x n fp32 torch.mm on `device` (the machine's yardstick)."""
-    a = torch.randn(n, n, device=device)
-    b = torch.randn(n, n, device=device)
-    torch.mm(a, b)
-    times = []
-    for _ in range(repeats):
-        synchronize(device)
-        t0 = time.perf_counter()
-        torch.mm(a, b)
-        synchronize(device)
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times) * 1e3
-
-
 def source_params(run: Path | None, trainer: Trainer) -> dict:
     if run is None:
         return {k: trainer.state.model.params[k].detach().cpu() for k in GAUSSIAN_KEYS}
     return run_gaussians(run)
 
 
-def bench_one(tr: Trainer, source: dict, n: int, iters: int, warmup_iters: int, seed: int = 0) -> dict:
+def bench_one(tr: Trainer, source: dict, n: int, iters: int, warmup_iters: int, seed: int = 0,
+              rates: dict | None = None) -> dict:
     """Time `iters` training steps of `tr` with n Gaussians replicated from `source`."""
     tr.replace_gaussians(replicate(source, n, torch.Generator().manual_seed(seed)))
     total = warmup_iters + iters
@@ -124,7 +111,11 @@ def bench_one(tr: Trainer, source: dict, n: int, iters: int, warmup_iters: int, 
             with DeviceSyncCounter() as dc:
                 tr.train_step()
             dev_syncs += dc.total
-    return {"ops_per_step": ops / n_count, "syncs_per_step": syncs / n_count,
+    work = None
+    if rates is not None:  # FLOPs and bytes per section, on one more step (bench_bounds)
+        tr.step = min(tr.step, tr.cfg.optim.iterations - 1)
+        work = tally_steps(tr, rates, after="deformation+reg")
+    return {"work": work, "ops_per_step": ops / n_count, "syncs_per_step": syncs / n_count,
             "device_syncs_per_step": None if dev_syncs is None else dev_syncs / n_count,
             "gaussians": tr.state.model.num_gaussians, "active_mean": statistics.mean(active),
             "ms": statistics.median(times) * 1e3, "ms_mean": statistics.mean(times) * 1e3,
@@ -134,11 +125,11 @@ def bench_one(tr: Trainer, source: dict, n: int, iters: int, warmup_iters: int, 
 
 
 def run(experiments: list[str], resolutions: list[int], counts: list[int], overrides: list[str],
-        source_run: Path | None, iters: int, warmup_iters: int) -> dict:
+        source_run: Path | None, iters: int, warmup_iters: int, bounds: bool = True) -> dict:
     rows = []
     fixed = ["densify.refine_start=1000000000", "train.progress=false", "eval.lpips=false",
              "train.eval_every=0", "train.eval_at_warmup_end=false"]
-    mm_before = None
+    mm_before, rates = None, None
     for exp in experiments:
         for res in resolutions:
             cfg = compose_config([f"experiment={exp}", *overrides, f"data.max_width={res}", *fixed])
@@ -146,13 +137,14 @@ def run(experiments: list[str], resolutions: list[int], counts: list[int], overr
                 tr = Trainer(cfg, tmp, splits=("train",))
                 if mm_before is None:
                     mm_before = mm_reference(tr.device)
+                    rates = machine_rates(tr.device) if bounds else None
                 cam = tr.scene.frames("train")[0].camera
                 if cam.width < res:
                     print(f"[bench-train] {exp}: the scene's images are {cam.width}x{cam.height}, below "
                           f"data.max_width={res} (images are never upscaled)", file=sys.stderr)
                 src = source_params(source_run, tr)
                 for n in counts:
-                    r = bench_one(tr, src, n, iters, warmup_iters)
+                    r = bench_one(tr, src, n, iters, warmup_iters, rates=rates)
                     r.update({"experiment": exp, "stdr": bool(cfg.stdr.enabled), "width": cam.width,
                               "height": cam.height, "backend": tr.backend, "device": str(tr.device)})
                     rows.append(r)
@@ -164,7 +156,7 @@ def run(experiments: list[str], resolutions: list[int], counts: list[int], overr
             "mm_gflops": 2 * 2048 ** 3 / (min(mm_before or mm_after, mm_after) * 1e-3) / 1e9,
             "threads": torch.get_num_threads(), "machine": machine_name(), "platform": platform.platform(),
             "torch": torch.__version__, "code": code_version(), "overrides": overrides,
-            "source_run": None if source_run is None else str(source_run), "iters": iters,
+            "rates": rates, "source_run": None if source_run is None else str(source_run), "iters": iters,
             "warmup_iters": warmup_iters}
 
 
@@ -189,7 +181,25 @@ def markdown(res: dict) -> str:
         f"{res['mm_ms_before']:.1f} ms before, {res['mm_ms_after']:.1f} ms after ({res['mm_gflops']:.0f} GFLOP/s); "
         f"÷ mm = ms/step over the faster mm time. {res['iters']} timed steps after {res['warmup_iters']} untimed; "
         f"overrides: {' '.join(res['overrides']) or '–'}.", "",
-        markdown_table(head, body), ""])
+        markdown_table(head, body), "", *bounds_markdown(res)])
+
+
+def bounds_markdown(res: dict) -> list[str]:
+    """The second table: each section's time against its bound (stdr.tools.bench_bounds), or nothing
+    for a result taken without it."""
+    rates = res.get("rates")
+    body = [[r["experiment"], f"{r['width']}x{r['height']}", f"{r['gaussians']:,}", *line]
+            for r in res["rows"] for line in bound_rows(r, SECTIONS, PARTS)]
+    if not rates or not body:
+        return []
+    head = ["experiment", "res", "Gaussians", "section", "ms", "GFLOP", "MB moved", "bound ms", "× bound", "limited by"]
+    return ["Each section against its bound (stdr.tools.bench_bounds): an operator's bound is the larger of "
+            "its matrix products' FLOPs at the measured matrix-multiply rate of its precision and the bytes "
+            "of its tensor arguments and results at the measured memory bandwidth; a section's bound is the "
+            "sum over its operators, on one more step; `limited by`: which of the two makes most of the bound.", "",
+            f"Measured here: torch.mm 2048² {rates['fp32'] / 1e9:.0f} GFLOP/s in fp32, {rates['bf16'] / 1e9:.0f} "
+            f"GFLOP/s in bf16; copy_ of 256 MiB {rates['bandwidth'] / 1e9:.1f} GB/s (read + write).", "",
+            markdown_table(head, body), ""]
 
 
 def compare(before: dict, after: dict, labels=("before", "after")) -> tuple[str, dict]:
@@ -261,12 +271,14 @@ def main(argv=None) -> None:
     ap.add_argument("--iters", type=int, default=10)
     ap.add_argument("--warmup-iters", type=int, default=3)
     ap.add_argument("--out", type=Path, default=None, help="write OUT.json and OUT.md")
+    ap.add_argument("--no-bounds", action="store_true",
+                    help="skip the machine's rates and the per-section bounds (one more step per row)")
     a = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
     if a.iters < 1 or a.warmup_iters < 0:
         raise SystemExit("--iters must be at least 1 and --warmup-iters at least 0")
     if a.run is not None and not (a.run / "checkpoints" / "last.pt").is_file():
         raise SystemExit(f"--run {a.run}: no checkpoints/last.pt there (give a finished run's folder)")
-    res = run(a.experiments, a.res, a.gaussians, overrides, a.run, a.iters, a.warmup_iters)
+    res = run(a.experiments, a.res, a.gaussians, overrides, a.run, a.iters, a.warmup_iters, bounds=not a.no_bounds)
     md = markdown(res)
     print(md, end="")
     write_outputs(a.out, md, res)
