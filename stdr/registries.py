@@ -26,6 +26,10 @@ from typing import Callable, Generic, Iterator, Optional, TypeVar
 
 T = TypeVar("T")
 
+#: what a baseline can declare and a plug-in can require (stdr.baselines.registry.CAPABILITIES reads
+#: each from a baseline's module; a plug-in's `requires` names them)
+CAPABILITY_NAMES = ("conditioning", "opacity_deltas", "mixes_rows")
+
 
 class Registry(Mapping, Generic[T]):
     """Components of one kind by name (see the module docstring).

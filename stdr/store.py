@@ -18,7 +18,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
 from .baselines import BASELINES
-from .baselines.registry import discover_baselines, get_baseline
+from .baselines.registry import capabilities, discover_baselines, get_baseline
 from .config import CONFIG_DIR, _schemas, root_schema
 from .densify.prune import prune_steps
 from .densify.strategy import STRATEGIES, get_strategy
@@ -120,17 +120,26 @@ def _experiment_files() -> set[str]:
     return {p.stem for p in (CONFIG_DIR / "experiment").glob("*.yaml")}
 
 
+def plugin_applies(spec, baseline: str, node: Any = None) -> list[str]:
+    """Why plug-in `spec` cannot run with the registered baseline `baseline` ([] when it can):
+    the capabilities it requires that the baseline's module does not declare, or its own list of
+    baselines (PluginSpec.missing). `node`: the plug-in's config node (default: its defaults)."""
+    return spec.missing(baseline, capabilities(get_baseline(baseline).module), node)
+
+
 def derived_experiments(name: str) -> dict[str, dict]:
     """The experiments baseline `name` gets, for every data option: `<data>_<name>` (every
-    plug-in off) and `<data>_<name>_<plug-in>` for each registered plug-in (that one on), each
-    selecting data, baseline and plug-ins, plus what every experiment on that data adds
-    (stdr/configs/experiment_data/<data>.yaml, optional: e.g. init from the capture's points).
-    A YAML file stdr/configs/experiment/<same name>.yaml, when present, is used instead."""
+    plug-in off) and `<data>_<name>_<plug-in>` for each registered plug-in that applies to it
+    (plugin_applies; that one on), each selecting data, baseline and plug-ins, plus what every
+    experiment on that data adds (stdr/configs/experiment_data/<data>.yaml, optional: e.g. init
+    from the capture's points). A YAML file stdr/configs/experiment/<same name>.yaml, when
+    present, is used instead."""
     files = _experiment_files()
     plugins = [s.name for s in registered_plugins()]
+    applying = [s.name for s in registered_plugins() if not plugin_applies(s, name)]
     out = {}
     for d in data_options():
-        for on in (None, *plugins):
+        for on in (None, *applying):
             exp = f"{d}_{name}" + (f"_{on}" if on else "")
             if exp not in files:
                 out[exp] = {"defaults": [{"optional /experiment_data": d}, {"override /data": d},
@@ -230,19 +239,21 @@ def _sync_store(*_) -> None:
 
 
 def experiments_on(data: str, *which: str) -> str:
-    """`${stdr_experiments:dnerf}`: every experiment on data option `data` (each registered
-    baseline, plain and with each plug-in) as a comma-separated sweep list;
-    `${stdr_experiments:dnerf,<plug-in>}` (or `plain`) only those."""
+    """`${stdr_experiments:dnerf}`: the default grid on data option `data` as a comma-separated
+    sweep list: each registered baseline, plain and with each plug-in that joins the grids
+    (PluginSpec.in_grids: STDR) and applies to it; `${stdr_experiments:dnerf,<plug-in>}` (or
+    `plain`) only those, for any registered plug-in, on the baselines it applies to."""
     plugins = [s.name for s in registered_plugins()]
     for w in which:
         if w != "plain" and w not in plugins:
             raise ValueError(f"stdr_experiments:{data},{w}: {w!r} is neither 'plain' nor a registered plug-in "
                              f"({plugins})")
+    picked = [s for s in registered_plugins() if (s.name in which if which else s.in_grids)]
     out = []
     for b in sorted(BASELINES):
-        for on in (None, *plugins):
-            if not which or (on is None and "plain" in which) or on in which:
-                out.append(f"{data}_{b}" + (f"_{on}" if on else ""))
+        if not which or "plain" in which:
+            out.append(f"{data}_{b}")
+        out += [f"{data}_{b}_{s.name}" for s in picked if not plugin_applies(s, b)]
     return ",".join(out)
 
 

@@ -19,7 +19,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from .errors import ConfigError
 from .config import root_schema
-from .store import typed_schema, load_config, resolve_schedule
+from .baselines.registry import get_baseline
+from .plugins import enabled_plugins, plugin_node
+from .store import plugin_applies, typed_schema, load_config, resolve_schedule
 from .data.stress import check_stress
 from .densify.prune import check_prune_config
 from .data.load import resolve_data_path
@@ -274,11 +276,27 @@ def check_data_path(data, base: str | Path | None = None) -> None:
                           f"holding {inside})")
 
 
+def check_plugins_apply(cfg) -> None:
+    """Every plug-in the config turns on applies to its baseline (stdr.store.plugin_applies: the
+    capabilities the plug-in requires, as its config node sets them, against those the baseline
+    declares)."""
+    name = str(cfg.baseline.name)
+    module = get_baseline(name).module
+    for spec in enabled_plugins(cfg):
+        why = plugin_applies(spec, name, plugin_node(cfg, spec.name))
+        if why:
+            fix = (f"declare `takes_conditioning = True` on {module.__name__} once its forward takes `cond`"
+                   if any("'conditioning'" in w for w in why) else "train it with another baseline")
+            raise ConfigError(f"{spec.name}=on with baseline={name} ({module.__name__}): {'; '.join(why)}; "
+                              f"set {spec.name}=off, or {fix} (docs/baselines.md, \"Capabilities\")")
+
+
 def check_run_config(cfg, base: str | Path | None = None) -> None:
     """Everything above, in the order a user would fix it: keys, values, the data path; then the
     config must read back as every tool reads a saved run (stdr.store.load_config)."""
     check_keys(cfg)
     check_values(cfg)
+    check_plugins_apply(cfg)
     check_data_path(cfg.data, base)
     _as_config_error(resolve_schedule, cfg)  # a phase that never trains (NeverTrains) is named here
     _as_config_error(load_config, cfg)

@@ -36,6 +36,8 @@ class WobbleConfig(BaselineConfig):
 class Wobble(Deformation):
     """Every Gaussian moves by a learned vector times sin(t)."""
 
+    takes_conditioning = True  # it takes STDR's conditioning (cond_dim), and leaves it unused
+
     def __init__(self, amplitude=0.01, cond_dim=0):
         super().__init__()
         self.cond_dim = cond_dim

@@ -81,7 +81,53 @@ def test_registration_is_checked():
             register_plugin("pulse", Pulse, bad)
     with pytest.raises(ValueError, match="'stdr' is already registered"):
         register_plugin("stdr", type("Stdr2", (Pulse,), {"name": "stdr"}), PulseConfig)
+    # where it applies: known capabilities, baseline names, a boolean for the grids
+    with pytest.raises(ValueError, match=r"requires must give a tuple of capabilities from \('conditioning'"):
+        register_plugin("pulse", Pulse, PulseConfig, requires=("wings",))
+    with pytest.raises(ValueError, match="requires must give a tuple"):
+        register_plugin("pulse", Pulse, PulseConfig, requires=lambda node: "conditioning")
+    with pytest.raises(TypeError, match="baselines must be a tuple of baseline names"):
+        register_plugin("pulse", Pulse, PulseConfig, baselines="deform")
+    with pytest.raises(TypeError, match="in_grids must be True or False"):
+        register_plugin("pulse", Pulse, PulseConfig, in_grids="yes")
     assert "pulse" not in PLUGINS and "nofactory" not in PLUGINS
+
+
+def test_a_plugin_joins_the_grids_and_baselines_only_where_it_says():
+    from stdr.baselines.registry import CAPABILITIES
+    from stdr.registries import CAPABILITY_NAMES
+    from stdr.store import experiment_names, experiments_on
+    from stdr.validate import check_run_config
+    assert tuple(CAPABILITIES) == CAPABILITY_NAMES
+    grid = experiments_on("dnerf")
+    # by default a new plug-in stays out of the default grid, which stays plain + STDR on every baseline
+    register_plugin("pulse", Pulse, PulseConfig)
+    try:
+        assert experiments_on("dnerf") == grid
+        assert grid.split(",") == [f"dnerf_{b}{s}" for b in ("4dgs", "deform", "scgs", "spgs") for s in ("", "_stdr")]
+        assert "dnerf_scgs_pulse" in experiment_names() and "dnerf_scgs_pulse" in experiments_on("dnerf", "pulse")
+    finally:
+        unregister_plugin("pulse")
+    # limited to one baseline, in the grids: derived, listed and allowed there only
+    register_plugin("pulse", Pulse, PulseConfig, baselines=("deform",), in_grids=True)
+    try:
+        assert [e for e in experiment_names() if e.startswith("dnerf_") and e.endswith("_pulse")] == ["dnerf_deform_pulse"]
+        assert experiments_on("dnerf", "pulse") == "dnerf_deform_pulse"
+        assert "dnerf_deform_pulse" in experiments_on("dnerf").split(",")
+        with pytest.raises(Exception, match=r"pulse=on with baseline=scgs \(ControlNodeDeformation\): pulse applies to "
+                                            r"the baselines deform only; set pulse=off, or train it with another baseline"):
+            check_run_config(make_cfg(["experiment=dnerf_scgs", "pulse=on", "data.path=/x"]))
+    finally:
+        unregister_plugin("pulse")
+    # a requirement every built-in baseline lacks (none changes opacity): no experiment, and refused
+    register_plugin("pulse", Pulse, PulseConfig, requires=("opacity_deltas",), in_grids=True)
+    try:
+        assert not any(e.endswith("_pulse") for e in experiment_names())
+        assert experiments_on("dnerf") == grid and experiments_on("dnerf", "pulse") == ""
+        with pytest.raises(Exception, match="pulse needs a baseline with the capability 'opacity_deltas'"):
+            check_run_config(make_cfg(["experiment=dnerf_deform", "pulse=on", "data.path=/x"]))
+    finally:
+        unregister_plugin("pulse")
 
 
 def test_registering_gives_group_keys_experiments_sweep_schedule_and_label(pulse):

@@ -56,6 +56,8 @@ class DriftConfig(BaselineConfig):
 
 
 class Drift(Deformation):
+    takes_conditioning = True  # its cond_head reads STDR's conditioning
+
     def __init__(self, speed: float = 0.0, cond_dim: int = 0):
         super().__init__()
         self.cond_dim = cond_dim
@@ -154,6 +156,44 @@ def test_registration_is_checked():
         register_baseline("deform", Drift, DriftConfig.__mro__[1])
     with pytest.raises(ValueError, match="not a registered baseline.*register_baseline"):
         get_baseline("nope")
+    # capabilities are declared with booleans, and conditioning needs a config_kwargs that passes it on
+    with pytest.raises(TypeError, match=r"Vague.takes_conditioning must be True or False, got 'yes'"):
+        register_baseline("drift", type("Vague", (Drift,), {"takes_conditioning": "yes"}), DriftConfig)
+
+    class Deaf(Drift):
+        @classmethod
+        def config_kwargs(cls, b, train_times=None, seed=0, schedule=None):
+            return {"speed": b.drift.speed}
+    with pytest.raises(TypeError, match="Deaf.takes_conditioning is True but its config_kwargs takes no cond_dim"):
+        register_baseline("drift", Deaf, DriftConfig)
+    assert "drift" not in BASELINES
+
+
+def test_a_baseline_that_declares_no_conditioning_gets_no_stdr_experiment():
+    """STDR's separated field needs a network that takes `cond`: a baseline without the capability
+    gets its plain experiments only, and turning STDR on is refused before the run starts, unless
+    STDR runs without its field (then it feeds no conditioning)."""
+    from stdr.baselines.registry import capabilities
+    from stdr.errors import ConfigError
+    from stdr.store import experiments_on
+    from stdr.validate import check_run_config
+    assert all(capabilities(BASELINES[b].module) >= {"conditioning"} for b in ("deform", "scgs", "spgs", "4dgs"))
+    assert "mixes_rows" in capabilities(BASELINES["scgs"].module) and "mixes_rows" not in capabilities(Drift)
+
+    class Plain(Drift):
+        takes_conditioning = False
+    register_baseline("drift", Plain, DriftConfig)
+    try:
+        assert capabilities(Plain) == frozenset()
+        assert {e for e in experiment_names() if "drift" in e} == {f"{d}_drift" for d in data_options()}
+        assert "dnerf_drift," in experiments_on("dnerf") + "," and "dnerf_drift_stdr" not in experiments_on("dnerf")
+        with pytest.raises(ConfigError, match=r"^stdr=on with baseline=drift \(Plain\): stdr needs a baseline with "
+                                              r"the capability 'conditioning'; set stdr=off, or declare "
+                                              r"`takes_conditioning = True` on Plain once its forward takes `cond`"):
+            check_run_config(make_cfg(["baseline=drift", "stdr=on", "data.path=/x"]))
+        check_run_config(make_cfg(["experiment=embedded_drift", "stdr=on", "stdr.separated_field=false"]))
+    finally:
+        unregister_baseline("drift")
 
 
 def test_saved_configs_load_onto_their_baselines_typed_defaults(tmp_path):

@@ -174,6 +174,11 @@ class Deformation(nn.Module):
 
     #: width of the per-Gaussian conditioning input this module was built for (0 = none)
     cond_dim: int = 0
+    #: capability (stdr.baselines.registry.CAPABILITIES, "conditioning"): the module takes a
+    #: plug-in's per-Gaussian conditioning (STDR's separated field): config_kwargs passes cond_dim
+    #: to it, it sets self.cond_dim and its forward uses `cond`. A plug-in that needs it (stdr) is
+    #: derived, put in grids and allowed only for a baseline that declares it
+    takes_conditioning: bool = False
     #: "fp32" or "bf16" (baseline.precision): the arithmetic of `deltas` ("auto" until the model
     #: is built on its device: `choose_precision`; unresolved it computes in fp32)
     precision: str = "fp32"
@@ -207,8 +212,8 @@ class Deformation(nn.Module):
             raise ConfigError(
                 f"baseline {name} ({cls.__name__}) was built for per-Gaussian conditioning of width {module.cond_dim}, "
                 f"but the plug-ins on feed {cond_dim} (STDR's separated field): its config_kwargs must pass cond_dim "
-                "to the module, which sets self.cond_dim and takes `cond` in forward; or train it without those "
-                "plug-ins (stdr=off)")
+                "to the module, which sets self.cond_dim and takes `cond` in forward (the capability "
+                f"{cls.__name__}.takes_conditioning declares); or train it without those plug-ins (stdr=off)")
         module.precision = check_precision(getattr(b, "precision", "fp32"))
         if getattr(b, "compile", False):
             module.compile_network()

@@ -35,6 +35,8 @@ class DeformMLP(Deformation):
     identity, which short schedules need.
     """
 
+    takes_conditioning = True  # STDR's separated field feeds its network
+
     apply_rule = staticmethod(apply_post_activation)
 
     @classmethod

@@ -296,6 +296,8 @@ class HexPlaneDeformation(Deformation):
     ReLU-Linear-ReLU-Linear) giving dxyz, dlog-scale, dquat. STDR's conditioning enters the
     decoder input (zero-initialized columns)."""
 
+    takes_conditioning = True  # STDR's separated field feeds its network
+
     apply_rule = staticmethod(apply_pre_activation)
 
     @classmethod

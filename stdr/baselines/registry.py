@@ -21,12 +21,13 @@ stdr/configs/budget_baseline/mine_<budget>.yaml is optional.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from dataclasses import dataclass
 from typing import Any, Optional
 
 import numpy as np
 
-from ..registries import Registry
+from ..registries import CAPABILITY_NAMES, Registry
 from .base import BaselineConfig, Deformation
 
 
@@ -43,11 +44,38 @@ BASELINES: Registry[BaselineSpec] = Registry(
     owner=lambda spec: spec.module)
 
 
+#: what a baseline can do, by the names a plug-in's `requires` uses, each read from the module class:
+#: "conditioning" - it takes a plug-in's per-Gaussian conditioning (Deformation.takes_conditioning);
+#: "opacity_deltas" - its deltas change opacity (Deformation.canonical_opacity is False);
+#: "mixes_rows" - a Gaussian's deltas depend on other Gaussians (it overrides forward_rows)
+CAPABILITIES = {
+    "conditioning": lambda m: m.takes_conditioning,
+    "opacity_deltas": lambda m: not m.canonical_opacity,
+    "mixes_rows": lambda m: m.forward_rows is not Deformation.forward_rows,
+}
+assert tuple(CAPABILITIES) == CAPABILITY_NAMES  # the names plug-ins require (stdr.registries)
+#: the class attributes that declare capabilities (booleans, checked at registration)
+DECLARED = ("takes_conditioning", "canonical_opacity")
+
+
+def capabilities(module: type) -> frozenset[str]:
+    """The capabilities (CAPABILITIES) a Deformation subclass declares."""
+    return frozenset(c for c, has in CAPABILITIES.items() if has(module))
+
+
 def register_baseline(name: str, module: type, config: type) -> BaselineSpec:
     """Add a baseline. `config` must subclass BaselineConfig and default `name` to `name`;
-    `module` must subclass Deformation and implement `config_kwargs`."""
+    `module` must subclass Deformation and implement `config_kwargs`; its capabilities
+    (CAPABILITIES) are declared by class attributes (DECLARED) that must be booleans."""
     if not (isinstance(module, type) and issubclass(module, Deformation)):
         raise TypeError(f"register_baseline({name!r}): module must be a Deformation subclass, got {module!r}")
+    for attr in DECLARED:
+        if not isinstance(getattr(module, attr), bool):
+            raise TypeError(f"register_baseline({name!r}): {module.__name__}.{attr} must be True or False, got "
+                            f"{getattr(module, attr)!r} (docs/baselines.md, \"Capabilities\")")
+    if module.takes_conditioning and "cond_dim" not in inspect.signature(module.config_kwargs).parameters:
+        raise TypeError(f"register_baseline({name!r}): {module.__name__}.takes_conditioning is True but its "
+                        "config_kwargs takes no cond_dim to pass on: implement config_kwargs(b, cond_dim, ...)")
     if not (dataclasses.is_dataclass(config) and issubclass(config, BaselineConfig)):
         raise TypeError(f"register_baseline({name!r}): config must be a dataclass subclassing BaselineConfig, "
                         f"got {config!r}")

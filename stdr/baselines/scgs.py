@@ -109,6 +109,8 @@ def log_interp_schedule(step: int, steps: Sequence[int], values: Sequence[float]
 
 
 class ControlNodeDeformation(Deformation):
+    takes_conditioning = True  # STDR's separated field feeds its network
+
     def __init__(self, num_nodes: int = 512, hyper_dim: int = 8, knn_k: int = 3, start_step: int = 2000,
                  node_stage_end: int = 10000, main_warmup: int = 3000, trajectory_samples: int = 16,
                  local_frame: bool = True, depth: int = 8, width: int = 256, skips=(4,), xyz_freqs: int = 10,

@@ -55,6 +55,8 @@ class SpgsBaselineConfig(BaselineConfig):
 
 
 class SuperpointDeformation(Deformation):
+    takes_conditioning = True  # STDR's separated field feeds its network
+
     apply_rule = staticmethod(apply_post_activation)
 
     @classmethod

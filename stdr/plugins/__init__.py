@@ -8,7 +8,8 @@ loop call the hooks below on every plug-in in order; every default does nothing,
 implements only what it changes.
 
 A plug-in is registered like a baseline (`register_plugin`, below): its config dataclass
-becomes the typed node `cfg.<name>` with the options `<name>=on|off`, every baseline gets the
+becomes the typed node `cfg.<name>` with the options `<name>=on|off`, every baseline it applies
+to (PluginSpec.missing: the capabilities it requires, its own list of baselines) gets the
 experiments `<data>_<baseline>_<name>`, its phase boundaries join the run's one schedule
 (`Plugin.stages`), its label follows the baseline's name in tables and charts, and `stdr-eval`
 accepts `<name>.<key>=...` to change a run's plug-in keys at evaluation time. The built-in
@@ -30,7 +31,7 @@ from typing import Any, Callable, Optional
 import numpy as np
 import torch
 from torch import Tensor, nn
-from ..registries import Registry
+from ..registries import CAPABILITY_NAMES, Registry
 
 
 class Plugin:
@@ -142,6 +143,22 @@ class PluginSpec:
     #: switches that differ from their defaults (e.g. ['w/o spatial_reg']), so ablation rows never
     #: merge: a function of the plug-in's config node as a plain dict
     row_tags: Callable[[dict], list[str]] = field(default=lambda pcfg: [], compare=False)
+    #: the baseline capabilities it needs (stdr.baselines.registry.CAPABILITIES), a function of its
+    #: config node (its registered dataclass's defaults for the derived experiments and grids)
+    requires: Callable[[Any], tuple] = field(default=lambda pcfg: (), compare=False)
+    #: the baselines it applies to, by name (None: every baseline with the capabilities it requires)
+    baselines: Optional[tuple[str, ...]] = None
+    #: whether it joins the default grids (`${stdr_experiments:<data>}`, the dnerf_grid sweeps)
+    in_grids: bool = False
+
+    def missing(self, baseline: str, capabilities: frozenset, node: Any = None) -> list[str]:
+        """Why it cannot run with `baseline` (whose capabilities are given): the capabilities it
+        lacks, or that the plug-in names other baselines; [] when it applies. `node`: the
+        plug-in's config node (default: its dataclass's defaults)."""
+        if self.baselines is not None and baseline not in self.baselines:
+            return [f"{self.name} applies to the baselines {', '.join(self.baselines)} only"]
+        need = self.requires(self.config() if node is None else node)
+        return [f"{self.name} needs a baseline with the capability {c!r}" for c in need if c not in capabilities]
 
 
 #: the names a plug-in may not take: the run config's own sections (stdr.config.Config), stdr-eval's
@@ -160,12 +177,21 @@ PLUGINS: Registry[PluginSpec] = Registry(
 
 
 def register_plugin(name: str, plugin: type, config: type, label: Optional[str] = None,
-                    row_tags: Optional[Callable[[dict], list[str]]] = None) -> PluginSpec:
+                    row_tags: Optional[Callable[[dict], list[str]]] = None,
+                    requires: tuple | Callable[[Any], tuple] = (), baselines: Optional[tuple[str, ...]] = None,
+                    in_grids: bool = False) -> PluginSpec:
     """Add a plug-in: `plugin` a Plugin subclass with `name = name` that implements
     `from_config`; `config` a dataclass whose `enabled` defaults to False (its other fields are
     the plug-in's typed keys, `<name>.<key>`); `label` (default '+<name>') follows the baseline's
     name in table rows and chart legends, and `row_tags(node)` (default: none) gives the tags after
-    it for a run's plug-in node (a plain dict)."""
+    it for a run's plug-in node (a plain dict).
+
+    Where it applies: `requires` the baseline capabilities it needs
+    (stdr.baselines.registry.CAPABILITIES; a tuple, or a function of its config node giving one),
+    `baselines` the names it is limited to (None: any with those capabilities). Experiments
+    `<data>_<baseline>_<name>` are derived only where it applies, and a run that turns it on where
+    it does not is refused before it starts. `in_grids`: whether the default grids include it
+    (default: no; a sweep names it with `${stdr_experiments:<data>,<name>}`)."""
     PLUGINS.discover()  # the built-in and installed ones first, so a clash is seen either way
     if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
         raise ValueError(f"register_plugin({name!r}): the name must be lower-case letters, digits and '_' "
@@ -184,8 +210,22 @@ def register_plugin(name: str, plugin: type, config: type, label: Optional[str] 
                         f"got {config!r}")
     if row_tags is not None and not callable(row_tags):
         raise TypeError(f"register_plugin({name!r}): row_tags must be a function of the plug-in's config node, got {row_tags!r}")
+    need = requires if callable(requires) else (lambda pcfg, r=tuple(requires): r)
+    check_requirements(name, need(config()))
+    if baselines is not None and (isinstance(baselines, str) or not all(isinstance(b, str) for b in baselines)):
+        raise TypeError(f"register_plugin({name!r}): baselines must be a tuple of baseline names or None, got {baselines!r}")
+    if not isinstance(in_grids, bool):
+        raise TypeError(f"register_plugin({name!r}): in_grids must be True or False, got {in_grids!r}")
     return PLUGINS.add(name, PluginSpec(name, plugin, config, label if label is not None else f"+{name}",
-                                        **({"row_tags": row_tags} if row_tags is not None else {})))
+                                        **({"row_tags": row_tags} if row_tags is not None else {}), requires=need,
+                                        baselines=None if baselines is None else tuple(baselines), in_grids=in_grids))
+
+
+def check_requirements(name: str, need) -> None:
+    """A plug-in's `requires` (evaluated): a tuple of known capability names."""
+    if isinstance(need, str) or not isinstance(need, (tuple, list)) or any(c not in CAPABILITY_NAMES for c in need):
+        raise ValueError(f"register_plugin({name!r}): requires must give a tuple of capabilities from "
+                         f"{CAPABILITY_NAMES}, got {need!r}")
 
 
 def unregister_plugin(name: str) -> None:

@@ -8,7 +8,9 @@ from .mask import MASK_KEY, interp_weights, knot_times, mask_at, sample_neighbou
 from .phases import Phase, phase_at, resolve_phases
 from .plugin import STDR
 
-register_plugin("stdr", STDR, StdrConfig, label="+STDR", row_tags=row_tags)
+# the separated field's output feeds the baseline's network: a baseline that takes conditioning
+register_plugin("stdr", STDR, StdrConfig, label="+STDR", row_tags=row_tags,
+                requires=lambda node: ("conditioning",) if node.separated_field else (), in_grids=True)
 
 __all__ = ["MASK_KEY", "STDR", "StdrConfig", "Phase", "SeparatedField", "interp_weights", "knot_times", "mask_at",
            "phase_at", "resolve_phases", "sample_neighbours", "spatial_kl", "temporal_entropy",
