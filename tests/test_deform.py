@@ -195,9 +195,10 @@ def test_every_built_in_baseline_declares_its_bf16_default():
             assert f"`{name}`: bf16 by default" in doc, name
 
 
-def _record(folder, rid, psnr):
+def _record(folder, rid, psnr, budget="cpu"):
     d = folder / rid
     d.mkdir(parents=True)
+    (d / "config.yaml").write_text(f"budget: {budget}\n")
     (d / "metrics.json").write_text(json.dumps({"val": {
         "psnr": psnr, "train_seconds": 100.0, "train_cpu_utilization": 0.9, "conventions": {"machine": "m"},
         "code": {"commit": "abcdef0"}}}))
@@ -205,7 +206,8 @@ def _record(folder, rid, psnr):
 
 def test_the_val_check_gives_a_verdict_only_on_every_planned_pair(tmp_path):
     from studies import precision_val as pv
-    pairs = [(sc, s) for sc in pv.SCENES for s in pv.SEEDS]
+    scenes, seeds = pv.PLANS["cpu"]
+    pairs = [(sc, s) for sc in scenes for s in seeds]
     for i, (sc, s) in enumerate(pairs):  # deform: bf16 0.05 dB below on every pair; stdr: 0.3 dB below
         _record(tmp_path, f"dnerf_deform__{sc}__s{s}__fp32", 30.0 + i)
         _record(tmp_path, f"dnerf_deform__{sc}__s{s}__bf16", 29.95 + i)
@@ -227,3 +229,15 @@ def test_the_val_check_gives_a_verdict_only_on_every_planned_pair(tmp_path):
     slow.write_text(json.dumps(m))
     text = pv.table(tmp_path)
     assert "– (not timed)" in text and "| dnerf_deform_stdr | 8 of 8 | -0.300 | -0.30 | 8 | 1.00 | fail |" in text
+
+
+def test_the_val_check_plans_by_the_records_budget_and_refuses_a_mix(tmp_path):
+    from studies import precision_val as pv
+    for sc in ("jumpingjacks", "standup"):  # the cpu_long plan: two scenes, seed 0
+        _record(tmp_path, f"dnerf_deform__{sc}__s0__fp32", 30.0, budget="cpu_long")
+        _record(tmp_path, f"dnerf_deform__{sc}__s0__bf16", 30.1, budget="cpu_long")
+    assert "| dnerf_deform | 2 of 2 | +0.100 |" in pv.table(tmp_path)
+    assert pv.table(tmp_path).startswith("# bf16 against fp32 on val (budget=cpu_long)")
+    _record(tmp_path, "dnerf_deform__bouncingballs__s0__fp32", 30.0, budget="cpu")
+    with pytest.raises(SystemExit, match=r"budgets \['cpu', 'cpu_long'\]"):
+        pv.table(tmp_path)
