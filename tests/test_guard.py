@@ -670,3 +670,55 @@ def test_a_checkpoint_is_written_every_checkpoint_minutes_of_wall_time(tmp_path,
         saves[minutes] = steps
     assert saves[0] == [30]  # the end only
     assert len(saves[0.25]) >= 4 and saves[0.25][-1] == 30 and all(0 < s < 30 for s in saves[0.25][:-1])
+
+
+# A launcher's SIGTERM (submitit's in a Slurm job: scancel, a time limit, a preemption send it before
+# the kill): training takes it too, checkpoints the step and then writes nothing while it waits for the
+# cluster: the warning signal goes to the launcher (a requeue), else it exits 143 after the wait.
+LAUNCHER_CHILD = r"""
+import signal, sys
+def term(signum, frame):
+    print("launcher: SIGTERM bypassed", flush=True)
+def warn(signum, frame):
+    print("launcher: requeued", flush=True)
+    sys.exit(0)
+signal.signal(signal.SIGTERM, term)
+signal.signal(signal.SIGUSR2, warn)
+from stdr.cli.train import main
+sys.argv = ["stdr-train", *sys.argv[1:]]
+main()
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("then", ["nothing", "warning"])
+def test_a_launchers_sigterm_checkpoints_then_waits_for_the_cluster(tmp_path, then):
+    run, log = tmp_path / "run", tmp_path / "out.txt"
+    env = {**os.environ, "STDR_TERM_WAIT_S": "4" if then == "nothing" else "300"}
+    with open(log, "w") as out:
+        p = subprocess.Popen([sys.executable, "-c", LAUNCHER_CHILD, *_stop_cmd(tmp_path, run)[3:]], env=env,
+                             stdout=out, stderr=subprocess.STDOUT, text=True)
+        try:
+            _training(p, run)
+            p.send_signal(signal.SIGTERM)
+            t0 = time.time()
+            while "waiting up to" not in log.read_text():
+                assert p.poll() is None and time.time() - t0 < 120, log.read_text()[-3000:]
+                time.sleep(0.05)
+            waiting = time.time()
+            if then == "warning":
+                p.send_signal(signal.SIGUSR2)
+            p.wait(timeout=60)
+        finally:
+            if p.poll() is None:
+                p.kill()
+    text = log.read_text()
+    assert "launcher: SIGTERM bypassed" in text and "Traceback" not in text, text[-3000:]
+    if then == "nothing":
+        assert p.returncode == 143 and time.time() - waiting >= 3.0, text[-3000:]
+    else:
+        assert p.returncode == 0 and "launcher: requeued" in text, text[-3000:]
+    step = _params(run)["step"]
+    assert 0 < step < 3000 and f"[stdr] stopped at iteration {step} of 3000 (SIGTERM)" in text, text[-3000:]
+    assert not [f for d in (run, run / "checkpoints") for f in d.iterdir() if ".tmp" in f.name]
+    assert not (run / "metrics.json").exists()

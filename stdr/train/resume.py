@@ -13,8 +13,16 @@ step) may differ freely: PROCESS_KEYS, listed in docs/outputs.md.
 
 **Stop signals.** Ctrl+C (SIGINT) and SIGTERM (kill, docker stop, systemd) end training the same
 way: the step in progress finishes, its checkpoint is written, one line says where the run stopped
-and how to go on, and the process exits with 130 or 143. A second Ctrl+C stops at once. A
-launcher's own SIGTERM handler (submitit's, in a Slurm job) is left in place.
+and how to go on, and the process exits with 130 or 143. A second Ctrl+C stops at once.
+
+**SIGTERM in a launcher's job.** In a Slurm job submitit holds SIGTERM (it ignores it: a
+preemption may send SIGTERM before the warning signal). Slurm sends SIGTERM for `scancel`, at the
+time limit and at a preemption, and SIGKILL some seconds later (KillWait, GraceTime). Training
+takes the signal too, then passes it to the launcher's handler: the step in progress finishes and
+is checkpointed, and the process then trains and writes nothing more. It waits for the cluster's
+next signal: the warning signal goes to the launcher (submitit requeues the job from that
+checkpoint), the kill ends it with every file whole; after TERM_WAIT_S seconds with neither it
+exits with 143 itself.
 
 **The warning signal.** A Slurm job near its time limit, or about to be preempted, is sent a
 signal ahead of the kill (submitit's `signal_delay_s`: SIGUSR2 unless SUBMITIT_PREEMPT_SIGNAL names another). Training
@@ -155,6 +163,10 @@ def warning_signal() -> signal.Signals:
 
 #: the signals a user or a system sends to stop a process (Ctrl+C; kill, docker stop, systemd)
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: after a launcher's SIGTERM and the checkpoint, how long the process waits for the cluster's warning
+#: signal or kill before it exits itself (STDR_TERM_WAIT_S; Slurm's KillWait is 30 s by default)
+TERM_WAIT_ENV = "STDR_TERM_WAIT_S"
+TERM_WAIT_S = 120.0
 
 
 class StopNow(KeyboardInterrupt):
@@ -167,16 +179,19 @@ class Preemption:
     checkpoint is written) or a stop signal (SIGINT, SIGTERM: `hand_over` exits with 128 + its
     number, as the signal would have ended the process, with nothing lost)."""
 
-    def __init__(self, signum: signal.Signals, previous, stops: Optional[dict] = None):
+    def __init__(self, signum: signal.Signals, previous, stops: Optional[dict] = None,
+                 launcher_term=None):
         self.signum = signum
         self.previous = previous
         self.stops = stops or {}  # {stop signal: its handler before}
+        self.launcher_term = launcher_term  # a launcher's SIGTERM handler, taken over too (submitit's)
         self.frame = None
         self.requested = False
+        self.warned = False  # the warning signal arrived
         self.stopped_by: Optional[signal.Signals] = None  # the stop signal that arrived, if one did
 
     def _caught(self, signum, frame) -> None:
-        self.requested, self.frame = True, frame
+        self.requested, self.warned, self.frame = True, True, frame
         print(f"[stdr] {signal.Signals(signum).name}: the cluster stops this job soon; the step in progress "
               "finishes and is checkpointed", flush=True)
 
@@ -189,22 +204,48 @@ class Preemption:
         print(f"[stdr] {signum.name}: stopping after the step in progress, with a checkpoint "
               "(Ctrl+C again stops at once, without one)", flush=True)
 
+    def _launcher_stop(self, signum, frame) -> None:
+        """SIGTERM in a launcher's job: stop after the step in progress, and pass it on."""
+        self.requested, self.frame = True, frame
+        self.stopped_by = self.stopped_by or signal.SIGTERM
+        print("[stdr] SIGTERM: stopping after the step in progress, with a checkpoint; then waiting for the "
+              "cluster", flush=True)
+        self.launcher_term(signum, frame)
+
     def restore(self) -> None:
         for s, h in self.stops.items():
             if signal.getsignal(s) == self._stop:
                 signal.signal(s, h)
+        if self.launcher_term is not None and signal.getsignal(signal.SIGTERM) == self._launcher_stop:
+            signal.signal(signal.SIGTERM, self.launcher_term)
 
     def hand_over(self) -> None:
         """A stop signal: exit with 128 + its number. The warning signal: to its earlier handler
-        (submitit: requeue and exit); without one, exit as the signal would have ended the process."""
+        (submitit: requeue and exit); without one, exit as the signal would have ended the process.
+        A launcher's SIGTERM: wait for the cluster's warning signal (to the launcher) or its kill,
+        at most TERM_WAIT_S seconds, then exit with 143."""
         self.restore()
-        if self.stopped_by is not None:
+        if self.stopped_by is not None and not self.warned:
+            if self.launcher_term is not None and self.stopped_by == signal.SIGTERM:
+                self._wait_for_the_cluster()
             raise SystemExit(128 + int(self.stopped_by))
         signal.signal(self.signum, self.previous)
         if callable(self.previous):
             self.previous(self.signum, self.frame)
         if self.previous != signal.SIG_IGN:
             raise SystemExit(128 + int(self.signum))
+
+
+    def _wait_for_the_cluster(self) -> None:
+        """Sleep, writing nothing, until the warning signal (its earlier handler runs: submitit requeues
+        and exits) or the kill, or TERM_WAIT_S seconds."""
+        signal.signal(self.signum, self.previous)
+        wait = float(os.environ.get(TERM_WAIT_ENV, TERM_WAIT_S))
+        print(f"[stdr] checkpoint written; waiting up to {wait:.0f} s for the cluster's warning signal "
+              "(a requeue) or its kill", flush=True)
+        end = time.monotonic() + wait
+        while time.monotonic() < end:
+            time.sleep(min(1.0, max(end - time.monotonic(), 0.0)))
 
 
 def _takes(signum: signal.Signals, handler) -> bool:
@@ -224,10 +265,14 @@ def preemption() -> Iterator[Optional[Preemption]]:
     signum = warning_signal()
     previous = signal.getsignal(signum)
     stops = {s: signal.getsignal(s) for s in STOP_SIGNALS if s != signum and _takes(s, signal.getsignal(s))}
-    p = Preemption(signum, previous, stops)
+    term = signal.getsignal(signal.SIGTERM)
+    launcher_term = term if signum != signal.SIGTERM and signal.SIGTERM not in stops and callable(term) else None
+    p = Preemption(signum, previous, stops, launcher_term)
     signal.signal(signum, p._caught)
     for s in stops:
         signal.signal(s, p._stop)
+    if launcher_term is not None:
+        signal.signal(signal.SIGTERM, p._launcher_stop)
     try:
         yield p
     finally:

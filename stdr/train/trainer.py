@@ -214,7 +214,7 @@ class Trainer(Evaluations):
             if bar is not None:
                 bar.close()
             if self.step < total:
-                if pre is not None and pre.stopped_by is not None:
+                if pre is not None and pre.stopped_by is not None and not pre.warned:
                     print(f"[stdr] stopped at iteration {self.step} of {total} ({pre.stopped_by.name}); checkpoint "
                           f"{self.checkpoint_path}: the same command resumes from it", flush=True)
                 elif pre is not None and pre.requested:
