@@ -4,6 +4,7 @@ with train, val and test PSNR along the learning curve (research/measurements/st
     # resumable (a run with a record is skipped; a run stopped midway resumes from its last
     # checkpoint), on the project's run queue: --concurrent runs at a time, --threads each
     python -m studies.long_budget run DNERF_ROOT --work WORK [--seeds 0 1] [--threads 1] [--concurrent 1]
+        [--methods deform deform_stdr ...] [--by-run] [--records DIR] [--extra KEY=VALUE ...] [--label NAME]
     # the table from the committed records (generated, stamped)
     python -m studies.long_budget table
 
@@ -99,10 +100,10 @@ def _segment(cells: list[dict], stop: int | None, args) -> None:
 
 
 def run_queue(args) -> None:
-    """The runs without a record, segment by segment: every run to the first point, each evaluated,
-    then to the next; then each run's record."""
-    from stdr.eval.evaluate import machine_name
-
+    """The runs without a record. By default segment by segment: every run to the first point, each
+    evaluated, then to the next; then each run's record. With --by-run each run goes through all its
+    points and is recorded before the next starts (a queue that outlasts a session leaves whole
+    records behind; run two such calls side by side, each with its own --work, for two at a time)."""
     cells = []
     for seed in args.seeds:
         for scene in args.scenes:
@@ -118,19 +119,36 @@ def run_queue(args) -> None:
                               "state": json.loads(state_path.read_text()) if state_path.is_file() else {"points": []}})
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
+    if args.by_run:
+        for c in cells:
+            for stop in (*args.points, None):
+                _segment([c], stop, args)
+            _record(c, args, t0)
+        return
     for stop in (*args.points, None):
         _segment(cells, stop, args)
     for c in cells:
-        m = json.loads((args.work / c["id"] / "metrics.json").read_text())["test"]
-        rec = {"scene": c["scene"], "seed": c["seed"], "method": c["name"], "budget": "cpu_long",
-               "command": "stdr.cli.train " + " ".join(c["overrides"]), "code": commit(), "machine": machine_name(),
-               "threads": args.threads, "concurrent": args.concurrent, "wall_seconds_this_call": round(time.time() - t0, 1),
-               "points": sorted(c["state"]["points"], key=lambda q: q["step"]), "extra": list(args.extra),
-               "final_test": {k: m.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds",
-                                                    "model_mb", "iterations")}}
-        c["rec_path"].parent.mkdir(parents=True, exist_ok=True)
-        c["rec_path"].write_text(json.dumps(rec, indent=1) + "\n")
-        print(f"[long_budget] {c['id']}: recorded {c['rec_path']}", flush=True)
+        _record(c, args, t0)
+
+
+#: the final-test keys a record keeps from the run's metrics.json
+FINAL_KEYS = ("psnr", "ssim", "lpips", "num_gaussians", "train_seconds", "model_mb", "iterations", "fps", "precision")
+
+
+def _record(c: dict, args, t0: float) -> None:
+    """Write the record of cell `c` (its run finished): curve points, final test metrics, command, code,
+    machine."""
+    from stdr.eval.evaluate import machine_name
+
+    m = json.loads((args.work / c["id"] / "metrics.json").read_text())["test"]
+    rec = {"scene": c["scene"], "seed": c["seed"], "method": c["name"], "budget": "cpu_long",
+           "command": "stdr.cli.train " + " ".join(c["overrides"]), "code": commit(), "machine": machine_name(),
+           "threads": args.threads, "concurrent": args.concurrent, "wall_seconds_this_call": round(time.time() - t0, 1),
+           "points": sorted(c["state"]["points"], key=lambda q: q["step"]), "extra": list(args.extra),
+           "final_test": {k: m.get(k) for k in FINAL_KEYS}}
+    c["rec_path"].parent.mkdir(parents=True, exist_ok=True)
+    c["rec_path"].write_text(json.dumps(rec, indent=1) + "\n")
+    print(f"[long_budget] {c['id']}: recorded {c['rec_path']}", flush=True)
 
 
 def load_records(records: Path) -> list[dict]:
@@ -294,6 +312,7 @@ def main(argv=None) -> None:
     r.add_argument("--records", type=Path, default=RECORDS)
     r.add_argument("--iterations", type=int, default=ITERATIONS, help="the run's length (with --extra optim.iterations=N)")
     r.add_argument("--extra", nargs="*", default=[], help="more overrides (a record names them; with --label, an ablation)")
+    r.add_argument("--by-run", action="store_true", help="each run through all its points, recorded before the next")
     r.add_argument("--label", default="", help="an ablation's name: records/<method>__<label>/, compared with plain deform")
     t = sub.add_parser("table", help="the table (and each ablation's decision) from the records")
     t.add_argument("--records", type=Path, default=RECORDS)
