@@ -319,6 +319,9 @@ def test_scancel_of_a_sweep_leaves_finished_runs_intact_and_the_others_resumable
     step = _step(sweep / "1")
     assert 100 <= step < 3000 and not (sweep / "1" / "metrics.json").exists()
     assert not [p for p in (sweep / "1").rglob("*") if ".tmp" in p.name]
+    # scancel's SIGTERM reached training beside submitit's handler: the step it stopped at is checkpointed
+    logs = "".join(p.read_text(errors="replace") for p in (sweep / ".submitit").rglob("*_log.out"))
+    assert f"[stdr] stopped at iteration {step} of 3000 (SIGTERM)" in logs, logs[-3000:]
     # the unfinished run resumes where it was cancelled (the same command on this machine)
     r = subprocess.run([sys.executable, "-m", "stdr.cli.train", *BASE, "train.checkpoint_every=50",
                         "optim.iterations=3000", f"data.cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={sweep / '1'}",
