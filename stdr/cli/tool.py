@@ -10,8 +10,13 @@ from ..tools import TOOLS
 
 def usage() -> str:
     return ("usage: stdr-tool NAME [ARGS]  (stdr-tool NAME --help for its options)\n\ntools:\n"
-            + "\n".join(f"  {name:<18}{(importlib.import_module(f'stdr.tools.{mod}').__doc__ or '').strip().splitlines()[0]}"
-                        for name, mod in TOOLS.items()))
+            + "\n".join(f"  {name:<18}{_summary(mod)}" for name, mod in TOOLS.items()))
+
+
+def _summary(entry: str) -> str:
+    mod, _, kind = entry.partition(":")
+    first = (importlib.import_module(f"stdr.tools.{mod}").__doc__ or "").strip().splitlines()[0]
+    return f"{first} ({kind})" if kind else first
 
 
 @reported("stdr-tool")  # bad input: one line, exit code 2
@@ -23,7 +28,11 @@ def main(argv=None) -> None:
     name, rest = argv[0], argv[1:]
     if name not in TOOLS:
         raise SystemExit(f"stdr-tool: no tool {name!r}; one of {', '.join(TOOLS)}\n\n{usage()}")
-    importlib.import_module(f"stdr.tools.{TOOLS[name]}").main(rest)
+    mod, _, kind = TOOLS[name].partition(":")
+    entry = importlib.import_module(f"stdr.tools.{mod}").main
+    code = entry(rest, kind) if kind else entry(rest)
+    if code:
+        sys.exit(code)
 
 
 if __name__ == "__main__":
