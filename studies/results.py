@@ -481,6 +481,37 @@ def compact_file() -> list[str]:
                "(../research/measurements/compact_bytes/charts/size_accuracy_bytes.png)"] if png.is_file() else [])]
 
 
+def demo_line(records: list[dict]) -> str:
+    """README command 1's expected numbers from research/measurements/embedded_demo/records.json: by
+    the precision `baseline.precision=auto` chose (a record without one ran fp32), the current code's
+    range over machines; records of code whose arithmetic has since changed named apart."""
+    def span(rs, key, fmt):
+        lo, hi = min(r[key] for r in rs), max(r[key] for r in rs)
+        return format(lo, fmt) if lo == hi else f"{lo:{fmt}}-{hi:{fmt}}"
+
+    def part(rs):
+        machines = f"{len(rs)} machine{'s' if len(rs) != 1 else ''}"
+        threads = sorted({n for r in rs for n in r.get("threads", [])})
+        same = (f"the same bits on {', '.join(map(str, threads[:-1]))} and {threads[-1]} threads on one machine"
+                if len(threads) > 1 else "bit-identical from run to run")
+        return (f"test PSNR {span(rs, 'psnr', '.2f')} dB and {span(rs, 'num_gaussians', ',')} Gaussians "
+                f"({machines}; {same})")
+    current = [r for r in records if not r.get("superseded")]
+    old = [r for r in records if r.get("superseded")]
+    by = {p: [r for r in current if r.get("precision", "fp32") == p] for p in ("fp32", "bf16")}
+    parts = []
+    if by["fp32"]:
+        parts.append(("on a CPU without bf16 matrix instructions (fp32): " if by["bf16"] else "") + part(by["fp32"]))
+    if by["bf16"]:
+        parts.append("on one with AVX512-BF16 or AMX, where deform trains in bf16 by default: " + part(by["bf16"]))
+    line = ("Expected: " + "; ".join(parts) + " (`research/measurements/embedded_demo/records.json`); other CPUs "
+            "give other bits")
+    if old:
+        line += (f" (older code, whose arithmetic has since changed: {span(old, 'psnr', '.2f')} dB on {len(old)} "
+                 "records)")
+    return line
+
+
 # ----------------------------------------------------------------- the page
 def build() -> tuple[str, str]:
     means, prov = headline()
@@ -534,22 +565,7 @@ def build() -> tuple[str, str]:
 
     seeds = prov["seeds"]
     records = _read_json(M / "embedded_demo" / "records.json")["records"]
-    demo = [r for r in records if not r.get("superseded")]  # the current code's arithmetic
-    old = [r for r in records if r.get("superseded")]
-
-    def span(rs, key, fmt):
-        lo, hi = min(r[key] for r in rs), max(r[key] for r in rs)
-        return format(lo, fmt) if lo == hi else f"{lo:{fmt}}-{hi:{fmt}}"
-    machines = f"{len(demo)} machine{'s' if len(demo) != 1 else ''}"
-    threads = sorted({n for r in demo for n in r.get("threads", [])})
-    same = (f"the same bits on {', '.join(map(str, threads[:-1]))} and {threads[-1]} threads"
-            if len(threads) > 1 else "bit-identical from run to run")
-    line = (f"Expected: test PSNR {span(demo, 'psnr', '.2f')} dB and {span(demo, 'num_gaussians', ',')} Gaussians "
-            f"({machines}, `research/measurements/embedded_demo/records.json`); {same} on one machine, other CPUs give "
-            "other bits")
-    if old:
-        line += (f" (older code, whose arithmetic has since changed: {span(old, 'psnr', '.2f')} dB on {len(old)} "
-                 "records)")
+    line = demo_line(records)
     demo_block = [_markers("demo")[0], line + ".", _markers("demo")[1]]
     block = [_markers("results")[0],
              f"D-NeRF, the four scenes the tests use (400² copies at 200 px), budget=cpu, test split, {seeds}; "
