@@ -123,6 +123,7 @@ class Kit:
                  f"the conditioning is {tuple(cond.shape)}, the module was built for [N, {model.deform.cond_dim}]")
         frame = tr.scene.frames("train")[len(tr.scene.frames("train")) // 2]
         with torch.no_grad():
+            model.deform.before_step(model.params, step, cond)  # what the loop does first (SP-GS: its superpoints)
             a = model.deform.deform_rows(model.params, frame.time, cond, scale)
             b = model.deform.deform_rows(model.params, frame.time, torch.zeros_like(cond), scale)
         for field in a._fields:
