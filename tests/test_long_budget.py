@@ -107,3 +107,41 @@ def test_an_ablation_queued_after_the_change_is_read_against_nogate(tmp_path):
     text = lb.table(tmp_path)
     assert "## Decision: does `fop` replace nogate?" in text and "Triples (plain, nogate, fop): 1 (a s0)" in text
     assert "## Decision: does `nogate` replace default +STDR?" in text
+
+
+def test_by_run_takes_each_run_through_every_point_and_records_it_before_the_next(tmp_path, monkeypatch):
+    """--by-run: run A to 2500, 5000, the end, its record; then run B; a run with a record is skipped.
+    The training and evaluation of a segment are replaced here by what they leave behind."""
+    import argparse
+    events = []
+
+    def segment(cells, stop, args):
+        assert len(cells) == 1
+        c = cells[0]
+        step = stop or args.iterations
+        events.append((c["id"], step))
+        c["state"]["points"].append({"step": step})
+        run = args.work / c["id"]
+        run.mkdir(parents=True, exist_ok=True)
+        (run / "metrics.json").write_text(json.dumps({"test": {"psnr": 30.0, "precision": "bf16", "fps": 9.0}}))
+
+    def recorded():
+        return sorted(p.parent.name + "/" + p.stem for p in (tmp_path / "out" / "records").rglob("*.json"))
+
+    monkeypatch.setattr(lb, "_segment", segment)
+    real = lb._record
+    monkeypatch.setattr(lb, "_record", lambda c, a, t0: (events.append((c["id"], "record", recorded())), real(c, a, t0)))
+    args = argparse.Namespace(root=tmp_path / "dnerf", work=tmp_path / "work", seeds=[0], scenes=["a", "b"],
+                              methods=["deform"], points=[2500, 5000], threads=1, concurrent=1,
+                              records=tmp_path / "out", iterations=10000, extra=[], label="", by_run=True)
+    lb.run_queue(args)
+    assert events == [("deform__a__s0", 2500), ("deform__a__s0", 5000), ("deform__a__s0", 10000),
+                      ("deform__a__s0", "record", []),
+                      ("deform__b__s0", 2500), ("deform__b__s0", 5000), ("deform__b__s0", 10000),
+                      ("deform__b__s0", "record", ["deform/a_s0"])]
+    rec = json.loads((tmp_path / "out" / "records" / "deform" / "b_s0.json").read_text())
+    assert [p["step"] for p in rec["points"]] == [2500, 5000, 10000]
+    assert rec["final_test"]["precision"] == "bf16" and rec["final_test"]["fps"] == 9.0
+    events.clear()
+    lb.run_queue(args)  # both recorded: nothing runs
+    assert events == []
