@@ -722,3 +722,13 @@ def test_a_launchers_sigterm_checkpoints_then_waits_for_the_cluster(tmp_path, th
     assert 0 < step < 3000 and f"[stdr] stopped at iteration {step} of 3000 (SIGTERM)" in text, text[-3000:]
     assert not [f for d in (run, run / "checkpoints") for f in d.iterdir() if ".tmp" in f.name]
     assert not (run / "metrics.json").exists()
+
+
+@pytest.mark.parametrize("text", ["abc", "-5", "nan"])
+def test_a_bad_term_wait_is_one_line_naming_the_variable_before_training(monkeypatch, text):
+    from stdr.errors import ConfigError
+    from stdr.train.resume import preemption
+    monkeypatch.setenv("STDR_TERM_WAIT_S", text)
+    with pytest.raises(ConfigError, match=f"STDR_TERM_WAIT_S='{text}': give the seconds"):
+        with preemption():
+            pass

@@ -80,9 +80,8 @@ def default_device(device: str):
 class Kit:
     """The runs the checks share, made once each in `work`."""
 
-    def __init__(self, baseline: str, plugin: str | None, work: Path, quick: bool):
-        self.baseline, self.plugin, self.work, self.quick = baseline, plugin, Path(work), quick
-        self.experiment = f"embedded_{baseline}" + (f"_{plugin}" if plugin else "")
+    def __init__(self, experiment: str, plugin: str | None, work: Path, quick: bool):
+        self.experiment, self.plugin, self.work, self.quick = experiment, plugin, Path(work), quick
         stdr_keys = STDR_PHASES if plugin == "stdr" else []
         self.overrides = [o for o in SCHEDULE if not o.startswith("optim.iterations=")] + stdr_keys + [
             f"experiment={self.experiment}", f"optim.iterations={STEPS}"]
@@ -157,7 +156,7 @@ class Kit:
             return "not applicable: the module has opacity deltas (capability 'opacity_deltas'), culling is off"
         gen = torch.Generator().manual_seed(0)
         with torch.no_grad():
-            faint = torch.rand(model.num_gaussians, generator=gen) < 0.6
+            faint = (torch.rand(model.num_gaussians, generator=gen) < 0.6).to(model.params["opacities"].device)
             model.params["opacities"][faint] = FAINT
         frame = tr.scene.frames("test")[1]
         with torch.no_grad():
@@ -207,14 +206,14 @@ def run_kit(baseline: str, plugin: str | None = None, quick: bool = False, work:
     if baseline not in BASELINES:
         raise SystemExit(f"{baseline!r} is not a registered baseline ({', '.join(sorted(BASELINES))})")
     if plugin is not None and plugin not in PLUGINS:
-        raise SystemExit(f"{plugin!r} is not a registered plug-in ({', '.join(p for p in PLUGINS)})")
+        raise SystemExit(f"{plugin!r} is not a registered plug-in ({', '.join(PLUGINS)})")
     exp = f"embedded_{baseline}" + (f"_{plugin}" if plugin else "")
     if exp not in experiment_names():
         raise SystemExit(f"{plugin} does not apply to {baseline} (its capabilities: "
                          f"{', '.join(sorted(capabilities(BASELINES[baseline].module))) or 'none'}): no experiment {exp}")
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
-        kit = Kit(baseline, plugin, Path(work) if work else Path(tmp), quick)
+        kit = Kit(exp, plugin, Path(work) if work else Path(tmp), quick)
         for name in checks:
             t0 = time.perf_counter()
             try:

@@ -19,7 +19,7 @@ and how to go on, and the process exits with 130 or 143. A second Ctrl+C stops a
 preemption may send SIGTERM before the warning signal). Slurm sends SIGTERM for `scancel`, at the
 time limit and at a preemption, and SIGKILL some seconds later (KillWait, GraceTime). Training
 takes the signal too, then passes it to the launcher's handler: the step in progress finishes and
-is checkpointed, and the process then trains and writes nothing more. It waits for the cluster's
+is checkpointed, and the process then trains no further and writes nothing more. It waits for the cluster's
 next signal: the warning signal goes to the launcher (submitit requeues the job from that
 checkpoint), the kill ends it with every file whole; after TERM_WAIT_S seconds with neither it
 exits with 143 itself.
@@ -185,6 +185,7 @@ class Preemption:
         self.previous = previous
         self.stops = stops or {}  # {stop signal: its handler before}
         self.launcher_term = launcher_term  # a launcher's SIGTERM handler, taken over too (submitit's)
+        self.term_wait_s = term_wait_s()
         self.frame = None
         self.requested = False
         self.warned = False  # the warning signal arrived
@@ -240,12 +241,28 @@ class Preemption:
         """Sleep, writing nothing, until the warning signal (its earlier handler runs: submitit requeues
         and exits) or the kill, or TERM_WAIT_S seconds."""
         signal.signal(self.signum, self.previous)
-        wait = float(os.environ.get(TERM_WAIT_ENV, TERM_WAIT_S))
+        wait = self.term_wait_s
         print(f"[stdr] checkpoint written; waiting up to {wait:.0f} s for the cluster's warning signal "
               "(a requeue) or its kill", flush=True)
         end = time.monotonic() + wait
         while time.monotonic() < end:
             time.sleep(min(1.0, max(end - time.monotonic(), 0.0)))
+
+
+def term_wait_s() -> float:
+    """STDR_TERM_WAIT_S (seconds, >= 0), else TERM_WAIT_S; read when training starts, so that a bad
+    value is one line before any step, not a traceback after the checkpoint."""
+    text = os.environ.get(TERM_WAIT_ENV)
+    if text is None:
+        return TERM_WAIT_S
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not value >= 0:
+        raise ConfigError(f"{TERM_WAIT_ENV}={text!r}: give the seconds to wait after a launcher's SIGTERM, a number >= 0 "
+                          f"(unset: {TERM_WAIT_S:.0f})")
+    return value
 
 
 def _takes(signum: signal.Signals, handler) -> bool:
