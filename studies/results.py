@@ -568,7 +568,9 @@ def build() -> tuple[str, str]:
     line = demo_line(records)
     demo_block = [_markers("demo")[0], line + ".", _markers("demo")[1]]
     block = [_markers("results")[0],
-             f"D-NeRF, the four scenes the tests use (400² copies at 200 px), budget=cpu, test split, {seeds}; "
+             f"D-NeRF, the four scenes the tests use (400² copies at 200 px), budget=cpu, test split, {seeds}, fp32 "
+             "(deform trains in bf16 by default on a CPU with bf16 matrix instructions since a731445: "
+             "`baseline.precision=fp32` reproduces these runs); "
              f"runs: {prov['runs']}; code {prov['code'].split(' ')[0]}. "
              "From [docs/results.md](docs/results.md) (generated):", ""]
     if prov.get("caveat"):
