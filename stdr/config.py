@@ -28,7 +28,7 @@ class DataConfig:
     name: Optional[str] = "embedded"  # scene label in tables (null: the folder name)
     path: Optional[str] = None  # scene folder (dnerf, nerfies); procedural: the generated cache folder
     root: Optional[str] = None  # a dataset folder; the sweeps (stdr/configs/sweep) set path = root/<name>
-    cache_dir: str = "data/embedded"  # where the procedural scene is generated (relative: under the checkout, or ~/.cache/stdr when installed)
+    cache_dir: str = "data/embedded"  # where the procedural scene is generated (relative: under ~/.cache/stdr)
     background: Any = "white"   # white | black | [r, g, b]
     resolution_scale: float = 1.0
     max_width: Optional[int] = None  # after resolution_scale, cap the width (aspect kept)
@@ -42,7 +42,7 @@ class DataConfig:
     distortion: str = "undistort"  # undistort (once, cached) | error | ignore (peers' pinhole, warned)
     intrinsics: str = "camera"   # camera (camera/<id>.json) | colmap (colmap/sparse/0)
     points_source: str = "auto"  # auto (points.npy, else COLMAP) | points_npy | colmap | none
-    undistort_cache: Optional[str] = "data/cache/undistorted"  # repo-relative; null: no cache
+    undistort_cache: Optional[str] = "data/cache/undistorted"  # relative: under ~/.cache/stdr; null: no cache
     scenes: List[str] = field(default_factory=list)  # the benchmark's scene folders (scripts iterate them)
     # a stressed training set, seeded; the evaluation splits untouched (stdr.data.stress, docs/stability.md)
     stress: StressConfig = field(default_factory=StressConfig)

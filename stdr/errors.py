@@ -5,6 +5,7 @@ traceback."""
 from __future__ import annotations
 
 import errno
+import io
 import os
 import sys
 from contextlib import contextmanager
@@ -62,9 +63,26 @@ IO_FIXES = {
 
 
 def io_fault(e: OSError, path=None) -> IOFault:
-    """The IOFault of OSError `e` at `path` (default: the path the error names)."""
-    where = path if path is not None else (e.filename if e.filename is not None else "a file")
+    """The IOFault of OSError `e` at `path` (default: the path the error names; else the file a
+    frame of its traceback was writing)."""
+    where = path if path is not None else (e.filename if e.filename is not None else _file_in_traceback(e))
     return IOFault(e.errno, f"cannot write {where}: {os.strerror(e.errno)} ({IO_FIXES.get(e.errno, 'an I/O error')})")
+
+
+def _file_in_traceback(e: BaseException) -> str:
+    """The name of the open file the innermost frame of `e`'s traceback holds: an OSError raised
+    by a write or close (a full disk, `ulimit -f`) names no path, but the frame that wrote still
+    holds the file object (e.g. Hydra's .hydra/config.yaml). "a file" where no frame holds one."""
+    frames = []
+    tb = e.__traceback__
+    while tb is not None:
+        frames.append(tb.tb_frame)
+        tb = tb.tb_next
+    for frame in reversed(frames):
+        for v in frame.f_locals.values():
+            if isinstance(v, io.IOBase) and isinstance(getattr(v, "name", None), str):
+                return v.name
+    return "a file"
 
 
 def io_cause(e: BaseException) -> Optional[OSError]:

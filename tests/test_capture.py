@@ -326,17 +326,21 @@ def test_a_failed_capture_leaves_neither_its_folder_nor_a_partial_one(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_disk_fault_at_the_end_of_a_capture_keeps_the_previous_one(toy_capture, tmp_path, monkeypatch, capsys):
-    """--overwrite of a finished capture with the disk failing as the new one is complete
-    (STDR_FAILPOINT=capture): one line naming the file, the previous capture intact, no .partial."""
+@pytest.mark.parametrize("site, named", [("capture", r"capture\.json"), ("frames", r"images/\d+\.png")])
+def test_a_disk_fault_at_the_end_of_a_capture_keeps_the_previous_one(toy_capture, tmp_path, monkeypatch, capsys,
+                                                                      site, named):
+    """--overwrite of a finished capture with the disk failing as its first frame is written
+    (STDR_FAILPOINT=frames) or as the new one is complete (capture): one line naming the file,
+    the previous capture intact, no .partial."""
     import hashlib
+    import re
     from stdr.cli.data import main
     toy, out, _ = toy_capture
     before = {str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest() for p in out.rglob("*") if p.is_file()}
-    monkeypatch.setenv("STDR_FAILPOINT", "capture:ENOSPC")
+    monkeypatch.setenv("STDR_FAILPOINT", f"{site}:ENOSPC")
     with pytest.raises(SystemExit) as e:
         main(["capture", str(toy / "rgb" / "2x"), "--out", str(out), "--frames", "40", "--threads", "2", "--overwrite"])
     err = capsys.readouterr().err
-    assert e.value.code == 2 and "stdr-data: error: cannot write" in err and "capture.json: No space left" in err
+    assert e.value.code == 2 and re.search(f"stdr-data: error: cannot write \\S+{named}: No space left", err), err
     after = {str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest() for p in out.rglob("*") if p.is_file()}
     assert after == before and not out.with_name(out.name + ".partial").exists()

@@ -23,8 +23,14 @@ def test_lpips_weights_are_never_looked_up_relative_to_the_source(monkeypatch, t
     assert default_search_dirs()[0] == tmp_path / "w"
 
 
-def test_caches_live_in_the_checkout_only_when_running_from_one():
-    assert stdr.source_checkout() == ROOT and cache_base() == ROOT
+def test_caches_never_live_in_the_source_even_when_running_from_it(tmp_path, monkeypatch):
+    """An editable install or a checkout keeps its caches where an installed copy does: the user
+    cache, never the source (a researcher's outside package must not fill stdr's checkout)."""
+    assert stdr.source_checkout() == ROOT
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cache_base() == tmp_path / "xdg" / "stdr"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    assert cache_base() == Path.home() / ".cache" / "stdr" and not cache_base().is_relative_to(ROOT)
 
 
 @pytest.mark.slow

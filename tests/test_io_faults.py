@@ -185,6 +185,17 @@ def test_a_video_is_encoded_as_its_frames_come_and_checked_before_it_is_kept(tmp
     # a video whose first frame says it takes hours is announced (here 10 million frames are promised)
     write_video(frames(3), tmp_path / "long", 10.0, "mp4", total=10_000_000, progress=False)
     assert "10,000,000 frames at about" in capsys.readouterr().out
+    # a GIF keeps its frames until it is written: one too large for the memory is refused at its first frame
+    made = []
+
+    def counted(n):
+        for f in frames(n):
+            made.append(1)
+            yield f
+    with pytest.raises(VideoError, match=r"long\.gif: a GIF holds every frame in memory .* 10,000,000 frames of 96x96 "
+                                         r"need about 257\.5 GiB.*Write an MP4"):
+        write_video(counted(10_000_000), tmp_path / "long", 10.0, "gif", total=10_000_000, progress=False)
+    assert len(made) == 1 and not list(tmp_path.glob("*long*.gif"))
     for suffix in (".mp4", ".gif"):
         good = write_video(frames(10), tmp_path / f"g{suffix}", 10.0, suffix[1:], progress=False)
         check_video(good, 10, good)
@@ -213,7 +224,7 @@ def test_a_fault_during_a_download_keeps_the_resumable_part_and_names_it(tmp_pat
 
 
 def test_every_failpoint_site_is_tested_here():
-    tested = set(TRAIN_SITES) | {"compact", "pack", "table", "video", "download"} | {"capture"}  # capture: test_capture.py
+    tested = set(TRAIN_SITES) | {"compact", "pack", "table", "video", "download"} | {"capture", "frames", "cache"}  # test_capture.py, test_nerfies.py
     assert tested == set(SITES)
 
 
@@ -277,7 +288,7 @@ def test_a_full_disk_during_the_checkpoint_keeps_the_previous_and_leaves_no_temp
     filler.write_bytes(b"\0" * max(0, free - ck // 2))  # room for half a checkpoint
     r = sh(train_cmd(finished.parent, run))
     line = error_line(r, "stdr-train")
-    assert "No space left on device" in line and "the disk is full" in line
+    assert f"cannot write {run / 'checkpoints' / 'last.pt'}: No space left on device" in line and "the disk is full" in line
     assert leftovers(mnt) == []
     after = digest(run)
     assert after["checkpoints/last.pt"] == before["checkpoints/last.pt"]
@@ -294,8 +305,24 @@ def test_a_file_size_limit_during_the_checkpoint_is_one_line(finished, tmp_path)
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
     r = subprocess.run(train_cmd(finished.parent, run), capture_output=True, text=True, timeout=600, preexec_fn=cap)
     line = error_line(r, "stdr-train")
-    assert "File too large" in line and "ulimit -f" in line
+    assert f"cannot write {run / 'checkpoints' / 'last.pt'}: File too large" in line and "ulimit -f" in line
     assert leftovers(run) == [] and digest(run)["checkpoints/last.pt"] == before["checkpoints/last.pt"]
+
+
+@pytest.mark.parametrize("limit", [2_000, 20_000])
+def test_a_file_size_limit_on_a_new_run_names_the_file_and_prints_no_traceback(finished, tmp_path, limit):
+    """A limit a new run meets early: TensorBoard's writer thread and torch's zip writer hit it,
+    and both hide the OSError's path (a thread of its own; a RuntimeError over the OSError). The one
+    line still names the file, and nothing prints a traceback."""
+    run = tmp_path / "run"
+
+    def cap():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    r = subprocess.run(train_cmd(finished.parent, run), capture_output=True, text=True, timeout=600, preexec_fn=cap)
+    line = error_line(r, "stdr-train")
+    assert f"cannot write {run}/" in line and ": File too large" in line and "ulimit -f" in line
+    assert "Exception in thread" not in r.stderr
+    assert leftovers(run) == []
 
 
 def test_a_path_through_a_file_is_one_line(finished, tmp_path):

@@ -1,6 +1,7 @@
 """Nerfies-format loader (NeRF-DS, HyperNeRF): lens model, undistortion, COLMAP, malformed input,
 and the real phone capture in ../shared/data/nerfies/toy-capture."""
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -12,6 +13,7 @@ import torch
 from stdr.data import colmap
 from stdr.data.distortion import LensCamera, remap, undistortion
 from stdr.data.nerfies import load_nerfies
+from stdr.errors import IOFault
 
 LENS = LensCamera(fx=75.0, fy=78.0, cx=41.3, cy=33.7, skew=0.0, k=(0.09, -0.23, 0.02), p=(0.0025, 0.03),
                   width=80, height=64)
@@ -214,6 +216,39 @@ def test_distortion_undistorted_once_and_cached(tmp_path):
     d = load(tmp_path / "s", cache_dir=cache)
     assert d.meta["undistort_cache"]["misses"] == 1
     assert d.frames("train")[1].camera.fx == pytest.approx(a.frames("train")[1].camera.fx)
+
+
+def test_a_fault_while_caching_an_undistorted_image_names_it_and_leaves_no_half_file(tmp_path, monkeypatch):
+    """The undistortion cache is written through the atomic writer: a full disk is one IOFault
+    naming the image, no temporary or half PNG stays, and the next load fills the cache."""
+    make_scene(tmp_path / "s", size=(40, 30), distortion=([0.05, -0.02, 0.0], [0.001, 0.002]))
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("STDR_FAILPOINT", "cache:ENOSPC")
+    with pytest.raises(IOFault, match=r"cannot write .*cache.*\.png: No space left on device"):
+        load(tmp_path / "s", cache_dir=cache)
+    assert [p.name for p in cache.rglob("*") if p.is_file()] == []
+    monkeypatch.delenv("STDR_FAILPOINT")
+    a = load(tmp_path / "s", cache_dir=cache)
+    assert a.meta["undistort_cache"]["misses"] == 8
+    assert load(tmp_path / "s", cache_dir=cache).meta["undistort_cache"]["hits"] == 8
+
+
+@pytest.mark.parametrize("edit, said", [
+    (lambda r: _edit_json(r / "scene.json", lambda d: d.__setitem__("scale", -1.0)), r"scene\.json: .*scale must be positive"),
+    (lambda r: _edit_json(r / "metadata.json", lambda d: d.pop("000003")), r"metadata\.json.*000003"),
+    (lambda r: _edit_json(r / "camera/000002.json", lambda d: d.pop("focal_length")), r"000002\.json.*focal_length"),
+])
+def test_verify_applies_the_nerfies_loaders_checks(tmp_path, edit, said):
+    """stdr-data verify calls a Nerfies scene ok only if stdr-train reads it: every file is there
+    and decodes, and the loader's own checks (times, cameras, normalization) pass at every scale."""
+    from stdr.data.fetch import DataError
+    from stdr.data.load import verify_scene
+    make_scene(tmp_path / "s")
+    assert verify_scene(tmp_path / "s", "nerfies") == 8
+    edit(tmp_path / "s")
+    with pytest.raises(DataError, match=r"not a Nerfies-format scene stdr-train reads .*data\.split_mode=ids") as e:
+        verify_scene(tmp_path / "s", "nerfies")
+    assert re.search(said, str(e.value))
 
 
 def _edit_json(path: Path, fn):

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from ..errors import UserError
+from ..io.files import write_png
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -110,8 +111,7 @@ def _windows(items, stride: int, select: str, image_of=lambda it: it):
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:
-    if not cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
-        raise CaptureError(f"could not write {path}")
+    write_png(path, cv2.cvtColor(img, cv2.COLOR_RGB2BGR), "frames")
 
 
 def video_frames(video: Path, out: Path, cfg: CaptureConfig) -> list[FrameRecord]:

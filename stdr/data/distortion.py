@@ -21,6 +21,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from ..io.files import write_atomic, write_png
 from .images import read_image
 
 CACHE_VERSION = 2  # the undistortion cache's: bump when the cached content or manifest layout changes
@@ -214,6 +215,6 @@ class UndistortCache:
         if self.dir is not None:
             self.dir.mkdir(parents=True, exist_ok=True)
             out = np.clip(np.round(img * 65535.0), 0, 65535).astype(np.uint16)
-            cv2.imwrite(str(png), out[..., [2, 1, 0, 3]] if out.shape[2] == 4 else out[..., ::-1])
-            js.write_text(json.dumps({**manifest, "pinhole": asdict(pin)}, indent=1))
+            write_png(png, out[..., [2, 1, 0, 3]] if out.shape[2] == 4 else out[..., ::-1], "cache")
+            write_atomic(js, json.dumps({**manifest, "pinhole": asdict(pin)}, indent=1), "cache")
         return np.ascontiguousarray(img), pin

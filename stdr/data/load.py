@@ -12,21 +12,20 @@ from ..io.files import read_json, write_atomic
 from .dnerf import SplitImages, _read_json, _resolve_image, load_dnerf, parse_background
 from .fetch import DataError
 from .images import image_channels
-from .nerfies import load_nerfies
+from .nerfies import capture_defaults, load_nerfies
 from .procedural import SceneOptions, embedded_scene
 from .stress import apply_stress, check_stress
 from .types import SceneData
-from .. import source_checkout, user_cache
+from .. import user_cache
 
 FORMATS = ("procedural", "dnerf", "nerfies")
 
 
 def cache_base() -> Path:
     """Where relative cache paths of the config (data.cache_dir, data.undistort_cache) live: the
-    source checkout when stdr runs from one (pyproject.toml beside the package), else the user
-    cache ($XDG_CACHE_HOME/stdr, default ~/.cache/stdr), so an installed wheel never writes into
-    site-packages."""
-    return source_checkout() or user_cache()
+    user cache ($XDG_CACHE_HOME/stdr, default ~/.cache/stdr), whether stdr is installed, installed
+    editable or run from its checkout: a cache never lands in the installed source."""
+    return user_cache()
 
 
 def resolve_data_path(path: str, base: str | Path | None = None) -> Path:
@@ -202,8 +201,29 @@ def verify_scene(folder: Path, fmt: str) -> int:
                 except ValueError as e:
                     raise DataError(f"{folder} is not a complete Nerfies-format scene: {e}") from None
             n += 1
+        _nerfies_loads(folder, [int(s.name[:-1]) for s in scales if s.name[:-1].isdigit()])
         return n
     raise ValueError(f"unknown format {fmt!r}: dnerf or nerfies")
+
+
+def _nerfies_loads(folder: Path, image_scales: list[int]) -> None:
+    """The Nerfies loader's own checks, as stdr-train applies them (the split, times, cameras,
+    lens, normalization, points), at every rgb/<N>x scale (images at 8 px: decoding is checked
+    above). The split mode is the capture's own (capture.json), else `ids` where dataset.json
+    holds val_ids, else `interp`."""
+    defaults = capture_defaults(folder)
+    split_mode = defaults.get("split_mode")
+    if split_mode is None:
+        try:
+            split_mode = "ids" if json.loads((folder / "dataset.json").read_text()).get("val_ids") else "interp"
+        except (json.JSONDecodeError, AttributeError) as e:
+            raise DataError(f"{folder / 'dataset.json'}: not a JSON object ({e})") from None
+    for scale in image_scales:
+        try:
+            load_nerfies(folder, ("train", "test"), split_mode=split_mode, image_scale=scale, max_width=8)
+        except (FileNotFoundError, ValueError, KeyError) as e:
+            raise DataError(f"{folder} is not a Nerfies-format scene stdr-train reads (data.split_mode={split_mode}, "
+                            f"data.image_scale={scale}): {e}") from None
 
 
 def detect_format(folder: Path) -> Optional[str]:

@@ -13,8 +13,9 @@ import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
+
+from ..io.files import write_png
 
 LIGHT = np.array([0.4, 0.3, 0.85]) / np.linalg.norm([0.4, 0.3, 0.85])
 
@@ -197,7 +198,7 @@ def generate_scene(out_dir: str | Path, opt: SceneOptions | None = None) -> Path
             eye = opt.camera_radius * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
             c2w = look_at_c2w(eye)
             img = render_frame(c2w, float(t), opt)
-            cv2.imwrite(str(out / split / f"r_{i:03d}.png"), img[..., [2, 1, 0, 3]])
+            write_png(out / split / f"r_{i:03d}.png", img[..., [2, 1, 0, 3]], "cache")
             frames.append({"file_path": f"./{split}/r_{i:03d}", "time": float(t),
                            "transform_matrix": c2w.tolist()})
         (out / f"transforms_{split}.json").write_text(
@@ -219,7 +220,11 @@ def embedded_scene(cache_dir: str | Path, opt: SceneOptions | None = None) -> Pa
         # folder and renames it into place; the first complete one wins, the others are dropped
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=path.name + ".tmp-", dir=path.parent))
-        generate_scene(tmp, opt)
+        try:
+            generate_scene(tmp, opt)
+        except BaseException:  # a full disk, an interrupt: no half scene stays in the cache
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
         if path.exists() and not (path / "generator.json").is_file():
             shutil.rmtree(path, ignore_errors=True)  # an incomplete folder from an interrupted run
         try:

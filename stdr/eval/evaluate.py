@@ -11,7 +11,6 @@ Conventions, recorded in the output:
 """
 from __future__ import annotations
 
-import errno
 import json
 import os
 import subprocess
@@ -30,7 +29,7 @@ from .lpips import LPIPS, fetch_weights
 from ..data.fetch import DataError
 from ..densify.prune import seen_per_frame, significance
 from ..errors import BadInput
-from ..io.files import atomic_path, read_json, write_atomic
+from ..io.files import read_json, write_atomic, write_png
 from .. import __version__, source_checkout
 
 
@@ -143,13 +142,8 @@ def evaluate_model(model, frames, step: Optional[int] = None, lpips_fn=None, sav
         if lpips_fn is not None:
             ls.append(float(lpips_fn(img, f.image)))
         if save_dir is not None:
-            import cv2
             both = torch.cat([img, f.image], 1).cpu().numpy()
-            png = save_dir / f"{i:03d}.png"
-            with atomic_path(png, "renders") as tmp:  # cv2 says False instead of raising: named here
-                if not cv2.imwrite(str(tmp), (both[..., ::-1] * 255 + 0.5).astype(np.uint8)):
-                    raise OSError(errno.ENOSPC if tmp.parent.is_dir() else errno.ENOTDIR,
-                                  "the image could not be written", str(png))
+            write_png(save_dir / f"{i:03d}.png", (both[..., ::-1] * 255 + 0.5).astype(np.uint8))
     passes = [float(len(times) / sum(times))]
     passes += [timed_pass(model, frames, step)["fps"] for _ in range(int(fps_repeats) - 1)]
     seen_frac = None

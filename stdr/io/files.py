@@ -41,7 +41,7 @@ import time
 import yaml
 from omegaconf import OmegaConf
 
-from ..errors import IO_FIXES, BadInput, IOFault, MissingInput, UserError, io_fault
+from ..errors import IO_FIXES, BadInput, IOFault, MissingInput, UserError, io_cause, io_fault
 
 
 def read_yaml(path: str | Path) -> Any:
@@ -88,7 +88,7 @@ FAILPOINT_ENV = "STDR_FAILPOINT"
 
 #: the write sites a failpoint can name, each a kind of file the commands write
 SITES = ("config", "checkpoint", "metrics", "history", "profile", "ply", "compact", "pack", "tensorboard", "renders",
-         "table", "video", "download", "capture", "lock")
+         "table", "video", "download", "capture", "frames", "cache", "lock")
 
 
 def failpoint(site: str, path: str | Path) -> None:
@@ -131,8 +131,9 @@ def atomic_path(path: str | Path, site: str) -> Iterator[Path]:
     except BaseException as e:
         with contextlib.suppress(OSError):
             tmp.unlink()
-        if isinstance(e, OSError) and not isinstance(e, IOFault) and e.errno in IO_FIXES:
-            raise io_fault(e, path) from None
+        fault = _fault_behind(e, path)
+        if fault is not None:
+            raise fault from None
         raise
 
 
@@ -143,10 +144,24 @@ def writing(path: str | Path, site: str) -> Iterator[None]:
     try:
         failpoint(site, path)
         yield
-    except OSError as e:
-        if isinstance(e, IOFault) or e.errno not in IO_FIXES:
+    except Exception as e:
+        fault = _fault_behind(e, path)
+        if fault is None:
             raise
-        raise io_fault(e, path) from None
+        raise fault from None
+
+
+def _fault_behind(e: BaseException, path: Path | str) -> Optional[IOFault]:
+    """The IOFault naming `path` for an OSError a user can fix (IO_FIXES) that is `e` or lies
+    behind it: a library may wrap it (torch's zip writer raises a RuntimeError over the OSError
+    of a full disk or `ulimit -f`, with no path). None for anything else, and for an IOFault
+    already made (it names its own path)."""
+    if not isinstance(e, Exception) or isinstance(e, IOFault):
+        return None
+    cause = io_cause(e)
+    if cause is None or isinstance(cause, IOFault):
+        return None
+    return io_fault(cause, path)
 
 
 def make_folder(path: str | Path) -> Path:
@@ -171,6 +186,17 @@ def write_atomic(path: str | Path, data: str | bytes, site: str = "metrics") -> 
             f.write(raw)
             f.flush()
             os.fsync(f.fileno())
+
+
+def write_png(path: str | Path, pixels, site: str = "renders") -> None:
+    """`pixels` (uint8 or uint16 [H, W, C], OpenCV's BGR(A) order) as a PNG at `path`: encoded in
+    memory, then written by write_atomic, so a full disk or a file-size limit is one IOFault naming
+    `path` (cv2.imwrite would answer False, and libpng print to stderr) and no half image is left."""
+    import cv2
+    ok, buf = cv2.imencode(".png", pixels)
+    if not ok:
+        raise ValueError(f"{path}: OpenCV cannot encode an image of shape {tuple(pixels.shape)} as PNG")
+    write_atomic(path, buf.tobytes(), site)
 
 
 # ---------------------------------------------------------------- one writer per run folder

@@ -26,6 +26,7 @@ from torch import Tensor
 
 from .optim import clear_grads
 from ..io.checkpoint import CKPT, checkpoint_identity, rng_state, save_checkpoint, set_rng_state
+from ..errors import io_cause
 from ..io.files import writing
 from .guard import Guard
 from ..syncs import host_only
@@ -71,6 +72,7 @@ class RunLog:
         full or read-only disk is one error naming run_dir/tb."""
         if self.writer is None:
             from torch.utils.tensorboard import SummaryWriter
+            _quiet_writer_thread()
             with writing(self.dir, "tensorboard"):
                 self.writer = SummaryWriter(str(self.dir))
         return self.writer
@@ -123,6 +125,26 @@ class RunLog:
         grid = torch.cat([img.clamp(0, 1), gt, (err * 4).clamp(0, 1)], 1)
         with writing(self.dir, "tensorboard"):
             self.open().add_image(tag, grid, it, dataformats="HWC")
+
+
+def _quiet_writer_thread() -> None:
+    """TensorBoard's writer thread re-raises a fault of the disk (full, `ulimit -f`, read-only),
+    which Python prints as a traceback; the same fault surfaces at RunLog's next call as one line
+    naming run_dir/tb. So such a fault of that thread is not printed (threading.excepthook,
+    wrapped once; everything else is printed as before)."""
+    import threading
+    from tensorboard.summary.writer.event_file_writer import _AsyncWriterThread
+    if getattr(threading.excepthook, "_quiets_disk_faults", False):
+        return
+    printed = threading.excepthook
+
+    def hook(args):
+        if isinstance(args.thread, _AsyncWriterThread) and io_cause(args.exc_value) is not None:
+            return
+        printed(args)
+
+    hook._quiets_disk_faults = True
+    threading.excepthook = hook
 
 
 @dataclass

@@ -25,6 +25,7 @@ import torch
 
 from .core import ViewRun, look_at_point, render_view, scale_to_width, to_uint8
 from ..geometry import so3_exp
+from ..device import available_bytes
 from ..errors import IO_FIXES, UserError
 from ..io.files import atomic_path, make_folder
 
@@ -84,6 +85,8 @@ def write_video(frames: Iterable[np.ndarray], stem: Path, fps: float, fmt: str =
                 writer.append_data(_even(f) if use_mp4 else f)
                 n += 1
                 bar.update()
+                if n == 1 and total and not use_mp4:
+                    _check_gif_memory(path, f, total)
                 if n == 1 and total and (time.perf_counter() - t0) * total > LONG_VIDEO_S:
                     secs = time.perf_counter() - t0
                     print(f"[stdr] {path}: {total:,} frames at about {secs:.2f} s each: about "
@@ -91,6 +94,8 @@ def write_video(frames: Iterable[np.ndarray], stem: Path, fps: float, fmt: str =
             writer.close()  # the encoder finishes the file (a GIF is written whole here)
         except BaseException as e:
             _abandon(writer)
+            if isinstance(e, UserError):
+                raise
             if isinstance(e, (BrokenPipeError, RuntimeError)) or (isinstance(e, OSError) and e.errno not in IO_FIXES):
                 raise VideoError(f"{path}: the video encoder failed after {n} frame(s) ({e}); nothing was written "
                                  "(a full disk or a file size limit?)") from None
@@ -101,6 +106,17 @@ def write_video(frames: Iterable[np.ndarray], stem: Path, fps: float, fmt: str =
             raise ValueError("no frames to write")
         check_video(tmp, n, path)
     return path
+
+
+def _check_gif_memory(path: Path, frame: np.ndarray, total: int) -> None:
+    """A GIF's frames stay in memory until the file is written (Pillow): refuse, after the first
+    frame, one that would take more than half the memory available, before the rest is rendered."""
+    need, free = frame.nbytes * total, available_bytes(torch.device("cpu"))
+    if free is not None and need > free / 2:
+        h, w = frame.shape[:2]
+        raise VideoError(f"{path}: a GIF holds every frame in memory until it is written: {total:,} frames of "
+                         f"{w}x{h} need about {need / 2**30:.1f} GiB, and {free / 2**30:.1f} GiB is available. Write "
+                         "an MP4 (pip install imageio-ffmpeg; it streams), or fewer --frames or a smaller --width")
 
 
 def _abandon(writer) -> None:
