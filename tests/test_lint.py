@@ -53,6 +53,17 @@ def test_markers_select_the_tests_that_need_shared_data_or_cuda():
          for b in ("4dgs", "deform_stdr")]
 
 
+def test_the_measured_slow_tests_exist_and_stay_out_of_the_fast_tier():
+    """tests/durations.json (written by `pytest --update-durations`) names collected tests only: a
+    renamed or removed test leaves it, and `-m "not slow"` leaves every one it names out."""
+    import json
+    named = set(json.loads((ROOT / "tests" / "durations.json").read_text())["tests"])
+    assert len(named) > 10
+    every = set(_collected("slow or not slow", "tests"))
+    assert sorted(named - every) == []
+    assert sorted(named & set(_collected("not slow", "tests"))) == []
+
+
 def _layers() -> list[list[str]]:
     import tomllib
     cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
