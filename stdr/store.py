@@ -10,6 +10,7 @@ later becomes an option at once (the registries call back). The resolvers are `s
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import field
 from pathlib import Path
 from typing import Any, List
@@ -286,6 +287,44 @@ def register() -> None:
         registry.add_listener(_sync_store)
 
 
+
+
+# ----------------------------------------------------------------- config files of other distributions
+#: the entry-point group through which another distribution ships config files: a package whose
+#: folder holds config groups (budget_baseline/, budget/, sweep/, experiment_data/, ...)
+CONFIG_GROUP = "stdr.configs"
+
+
+@functools.lru_cache(maxsize=None)
+def config_packages() -> tuple[tuple[str, str], ...]:
+    """(entry-point name, package) of every installed `stdr.configs` entry point, e.g.
+
+        [project.entry-points."stdr.configs"]
+        mine = "my_package.configs"     # my_package/configs/budget_baseline/mine_demo.yaml, ...
+
+    Hydra searches them after stdr's own folder (hydra_plugins/stdr_configs). A package that does
+    not import, or a file at the path of one stdr ships or another package ships (the first would
+    win unseen), is a ConfigError naming the entry point, its distribution and the file."""
+    import importlib
+    from importlib.metadata import entry_points
+    seen = {str(p.relative_to(CONFIG_DIR)): "stdr" for p in CONFIG_DIR.rglob("*.yaml")}
+    found = []
+    for ep in entry_points(group=CONFIG_GROUP):
+        where = f"entry point {ep.name!r} = {ep.value!r} (group {CONFIG_GROUP!r}" + (
+            f", distribution {ep.dist.name} {ep.dist.version})" if getattr(ep, "dist", None) else ")")
+        try:
+            folder = Path(importlib.import_module(ep.module).__file__).parent
+        except (ImportError, TypeError) as e:
+            raise ConfigError(f"{where}: cannot import the package {ep.module!r} ({e}); it must name a package "
+                              "(a folder with __init__.py) holding config groups") from None
+        for f in sorted(folder.rglob("*.yaml")):
+            rel = str(f.relative_to(folder))
+            if rel in seen:
+                raise ConfigError(f"{where}: {f} has the path {rel} of a config file {seen[rel]} ships, which "
+                                  "would be used instead; rename it (e.g. after your baseline)")
+            seen[rel] = where
+        found.append((ep.name, ep.module))
+    return tuple(found)
 
 
 def compose_config(overrides=(), config_name: str = "train", return_hydra_config: bool = False):

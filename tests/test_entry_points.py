@@ -102,15 +102,24 @@ def register_eager():
 '''
 
 
-def _distribution(root: Path, entry: str, plugin_entry: str = "stdr_wobble:register_glow") -> None:
+def _distribution(root: Path, entry: str, plugin_entry: str = "stdr_wobble:register_glow",
+                  configs: dict[str, str] | None = None) -> None:
+    """configs: {path under the package's configs/ folder: YAML}, shipped through `stdr.configs`."""
     (root / "stdr_wobble").mkdir(parents=True)
     (root / "stdr_wobble" / "__init__.py").write_text(TOY)
     info = root / "stdr_wobble-0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: stdr-wobble\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text(f"[stdr.baselines]\nwobble = {entry}\n\n"
-                                           f"[stdr.plugins]\nglow = {plugin_entry}\n\n"
-                                           "[stdr.strategies]\neager = stdr_wobble:register_eager\n")
+    groups = (f"[stdr.baselines]\nwobble = {entry}\n\n[stdr.plugins]\nglow = {plugin_entry}\n\n"
+              "[stdr.strategies]\neager = stdr_wobble:register_eager\n")
+    if configs is not None:
+        (root / "stdr_wobble" / "configs").mkdir()
+        (root / "stdr_wobble" / "configs" / "__init__.py").write_text("")
+        for rel, text in configs.items():
+            (root / "stdr_wobble" / "configs" / rel).parent.mkdir(parents=True, exist_ok=True)
+            (root / "stdr_wobble" / "configs" / rel).write_text(text)
+        groups += "\n[stdr.configs]\nwobble = stdr_wobble.configs\n"
+    (info / "entry_points.txt").write_text(groups)
 
 
 def _run(args, env):
@@ -179,3 +188,41 @@ def test_a_strategy_from_another_distribution_is_an_option_of_stdr_train(tmp_pat
     p = _run(["-c", code], env)
     assert p.returncode == 0, p.stderr[-3000:]
     assert p.stdout.split() == ["stdr_wobble", "eager", "0.0001"]
+
+
+WOBBLE_DEMO = "# @package _global_\nbaseline:\n  warmup: 30\n  wobble:\n    amplitude: 0.05\n"
+WOBBLE_SWEEP = ("# @package _global_\noptim:\n  iterations: 40\nhydra:\n  sweeper:\n    params:\n"
+                "      experiment: embedded_wobble,embedded_wobble_stdr\n")
+
+
+def test_budget_and_sweep_files_from_another_distribution_are_found_by_name(tmp_path):
+    """The `stdr.configs` group: a package's budget_baseline/wobble_demo.yaml applies to
+    budget=demo as stdr's own files do to its baselines, and its sweep file is a `+sweep=` option."""
+    _distribution(tmp_path / "site", "stdr_wobble:register",
+                  configs={"budget_baseline/wobble_demo.yaml": WOBBLE_DEMO, "sweep/wobble_pair.yaml": WOBBLE_SWEEP})
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), str(ROOT)])}
+    code = textwrap.dedent("""
+        from stdr.store import compose_config
+        demo = compose_config(["experiment=embedded_wobble", "budget=demo"])
+        cpu = compose_config(["experiment=embedded_wobble", "budget=cpu"])
+        deform = compose_config(["experiment=embedded_deform", "budget=demo"])
+        swept = compose_config(["+sweep=wobble_pair"], return_hydra_config=True)
+        print(demo.baseline.warmup, demo.baseline.wobble.amplitude, cpu.baseline.wobble.amplitude,
+              deform.baseline.warmup, swept.optim.iterations, swept.hydra.sweeper.params.experiment)
+    """)
+    p = _run(["-c", code], env)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert p.stdout.split() == ["30", "0.05", "0.01", "400", "40", "embedded_wobble,embedded_wobble_stdr"]
+
+
+def test_a_config_file_at_the_path_of_one_stdr_ships_is_refused_in_one_line(tmp_path):
+    """A package's budget_baseline/deform_demo.yaml would lose to stdr's own without a word: it is
+    refused before anything runs, naming the entry point, the distribution and the file."""
+    _distribution(tmp_path / "site", "stdr_wobble:register", configs={"budget_baseline/deform_demo.yaml": WOBBLE_DEMO})
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), str(ROOT)])}
+    p = _run(["-m", "stdr.cli.train", "budget=demo", f"hydra.run.dir={tmp_path / 'run'}"], env)
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr[-3000:]
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("stdr-train: error:")]
+    assert len(lines) == 1 and "entry point 'wobble' = 'stdr_wobble.configs' (group 'stdr.configs', distribution " \
+        "stdr-wobble 0.1)" in lines[0] and "budget_baseline/deform_demo.yaml of a config file stdr ships" in lines[0]
+    assert not (tmp_path / "run").exists()
