@@ -145,3 +145,46 @@ def test_by_run_takes_each_run_through_every_point_and_records_it_before_the_nex
     events.clear()
     lb.run_queue(args)  # both recorded: nothing runs
     assert events == []
+
+
+# ------------------------------------------------------------ the trained table's cap (studies/trained_table.py)
+def _cap_study(tmp: Path, delta: dict, at_cap: set = frozenset(), missing=()) -> Path:
+    """Seed-0 records at both caps for every baseline and scene: val at step 10,000 is 30 at 20k and
+    30 + delta[baseline] at 40k; the runs named in `at_cap` end at 40,000 Gaussians."""
+    from studies import trained_table as tt
+    for b in tt.BASELINES:
+        for s in tt.SCENES:
+            for label, val, g in (("", 30.0, 19_900), ("cap40k", 30.0 + delta[b], 40_000 if (b, s) in at_cap else 30_000)):
+                if (b, s, label) in missing:
+                    continue
+                rec = {"scene": s, "seed": 0, "method": f"{b}__{label}" if label else b, "code": "abc1234", "machine": "M",
+                       "points": [{"step": 10_000, "val": {"psnr": val}}],
+                       "final_test": {"num_gaussians": g, "train_seconds": 100.0}}
+                p = tmp / "records" / rec["method"] / f"{s}_s0.json"
+                p.parent.mkdir(parents=True, exist_ok=True)
+                p.write_text(json.dumps(rec))
+    return tmp
+
+
+def test_the_cap_rule_keeps_takes_or_probes_as_written(tmp_path):
+    from studies import trained_table as tt
+    level = {"deform": 0.05, "scgs": -0.05, "spgs": 0.08, "4dgs": 0.0}
+    assert "**Verdict: keep 20,000.**" in tt.cap_table(_cap_study(tmp_path / "a", level))
+    # one baseline held back by more than 0.3 dB while the mean stays level: kept, and that one is named
+    text = tt.cap_table(_cap_study(tmp_path / "b", {"deform": 0.35, "scgs": -0.02, "spgs": -0.02, "4dgs": -0.02}))
+    assert "**Verdict: keep 20,000.**" in text and "a cap of their own follows: deform." in text
+    up = {"deform": 0.4, "scgs": 0.3, "spgs": 0.2, "4dgs": 0.1}
+    all_scenes = {(b, s) for b in tt.BASELINES for s in tt.SCENES}
+    four = set(sorted(all_scenes)[:4])
+    assert "**Verdict: take 40,000.**" in tt.cap_table(_cap_study(tmp_path / "c", up, at_cap=four))
+    five = set(sorted(all_scenes)[:5])  # more than 4 of 16 end at the doubled cap: not settled
+    assert "**Verdict: not settled: probe 80,000" in tt.cap_table(_cap_study(tmp_path / "d", up, at_cap=five))
+    down = {b: -0.2 for b in up}  # a worse model with more Gaussians is not taken
+    assert "**Verdict: not settled: probe 80,000" in tt.cap_table(_cap_study(tmp_path / "e", down))
+
+
+def test_the_cap_table_gives_no_verdict_before_all_16_pairs(tmp_path):
+    from studies import trained_table as tt
+    text = tt.cap_table(_cap_study(tmp_path, {b: 0.0 for b in tt.BASELINES}, missing={("4dgs", "standup", "cap40k")}))
+    assert "Verdict" not in text and "missing 1: 4dgs/standup" in text
+    assert text.count("| scgs |") == 4 and "| 4dgs | standup |" not in text
