@@ -226,3 +226,22 @@ def test_a_config_file_at_the_path_of_one_stdr_ships_is_refused_in_one_line(tmp_
     assert len(lines) == 1 and "entry point 'wobble' = 'stdr_wobble.configs' (group 'stdr.configs', distribution " \
         "stdr-wobble 0.1)" in lines[0] and "budget_baseline/deform_demo.yaml of a config file stdr ships" in lines[0]
     assert not (tmp_path / "run").exists()
+
+
+def test_the_search_path_plugin_leaves_another_stdr_alone(monkeypatch):
+    """Hydra loads the plugin from any `hydra_plugins` folder on the path: in a process that runs
+    another stdr (an older checkout on PYTHONPATH beside this editable install), whose stdr.store
+    has no config_packages, it adds nothing and raises nothing."""
+    import stdr.store
+    from hydra.core.config_search_path import ConfigSearchPath
+    from hydra._internal.config_search_path_impl import ConfigSearchPathImpl
+    from hydra_plugins.stdr_configs import StdrConfigPackages
+
+    path: ConfigSearchPath = ConfigSearchPathImpl()
+    monkeypatch.setattr(stdr.store, "config_packages", lambda: (("mine", "my_package.configs"),))
+    StdrConfigPackages().manipulate_search_path(path)
+    assert [e.path for e in path.get_path()] == ["pkg://my_package.configs"]
+    monkeypatch.delattr(stdr.store, "config_packages")
+    older: ConfigSearchPath = ConfigSearchPathImpl()
+    StdrConfigPackages().manipulate_search_path(older)
+    assert older.get_path() == []
