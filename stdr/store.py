@@ -241,9 +241,10 @@ def _sync_store(*_) -> None:
 
 def experiments_on(data: str, *which: str) -> str:
     """`${stdr_experiments:dnerf}`: the default grid on data option `data` as a comma-separated
-    sweep list: each registered baseline, plain and with each plug-in that joins the grids
-    (PluginSpec.in_grids: STDR) and applies to it; `${stdr_experiments:dnerf,<plug-in>}` (or
-    `plain`) only those, for any registered plug-in, on the baselines it applies to."""
+    sweep list: each baseline that joins the grids (BaselineSpec.in_grids: the built-ins), plain
+    and with each plug-in that joins them (PluginSpec.in_grids: STDR) and applies to it;
+    `${stdr_experiments:dnerf,<plug-in>}` (or `plain`) only those, a named plug-in on every
+    baseline it applies to (those of other packages included)."""
     plugins = [s.name for s in registered_plugins()]
     for w in which:
         if w != "plain" and w not in plugins:
@@ -252,9 +253,10 @@ def experiments_on(data: str, *which: str) -> str:
     picked = [s for s in registered_plugins() if (s.name in which if which else s.in_grids)]
     out = []
     for b in sorted(BASELINES):
-        if not which or "plain" in which:
+        in_grid = BASELINES[b].in_grids
+        if in_grid and (not which or "plain" in which):
             out.append(f"{data}_{b}")
-        out += [f"{data}_{b}_{s.name}" for s in picked if not plugin_applies(s, b)]
+        out += [f"{data}_{b}_{s.name}" for s in picked if not plugin_applies(s, b) and (in_grid or s.name in which)]
     return ",".join(out)
 
 

@@ -182,7 +182,7 @@ def test_a_baseline_that_declares_no_conditioning_gets_no_stdr_experiment():
 
     class Plain(Drift):
         takes_conditioning = False
-    register_baseline("drift", Plain, DriftConfig)
+    register_baseline("drift", Plain, DriftConfig, in_grids=True)  # in the grids, to see what they hold of it
     try:
         assert capabilities(Plain) == frozenset()
         assert {e for e in experiment_names() if "drift" in e} == {f"{d}_drift" for d in data_options()}
@@ -326,5 +326,22 @@ def test_a_baseline_that_cannot_be_built_as_configured_fails_at_construction_nam
         with pytest.raises(Exception, match=re.escape(said)) as e:
             build_deformation(cfg.baseline, 17 if error == "ConfigError" else 0)
         assert type(e.value).__name__ == error
+    finally:
+        unregister_baseline("drift")
+
+
+def test_a_baseline_joins_the_default_grids_only_when_it_says_so():
+    """register_baseline(in_grids=False), the default (a baseline from another package): its
+    experiments exist, the default grids stay as they were; a plug-in named in the list still
+    reaches it."""
+    from stdr.store import experiments_on
+    before = experiments_on("dnerf")
+    register_baseline("drift", Drift, DriftConfig)
+    try:
+        assert "dnerf_drift" in experiment_names() and "dnerf_drift_stdr" in experiment_names()
+        assert experiments_on("dnerf") == before and "drift" not in experiments_on("dnerf", "plain")
+        assert "dnerf_drift_stdr" in experiments_on("dnerf", "stdr").split(",")
+        with pytest.raises(TypeError, match="in_grids must be True or False"):
+            register_baseline("drift2", Drift, DriftConfig, in_grids="yes")
     finally:
         unregister_baseline("drift")

@@ -137,4 +137,4 @@ class DeformMLP(Deformation):
         return h
 
 
-register_baseline("deform", DeformMLP, DeformConfig)
+register_baseline("deform", DeformMLP, DeformConfig, in_grids=True)

@@ -359,4 +359,4 @@ class HexPlaneDeformation(Deformation):
                 if self.weights.get(k, 0.0) > 0}
 
 
-register_baseline("4dgs", HexPlaneDeformation, HexPlaneBaselineConfig)
+register_baseline("4dgs", HexPlaneDeformation, HexPlaneBaselineConfig, in_grids=True)

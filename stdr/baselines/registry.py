@@ -36,6 +36,7 @@ class BaselineSpec:
     name: str
     module: type       # a Deformation subclass
     config: type       # a BaselineConfig subclass whose `name` default is `name`
+    in_grids: bool = False  # whether the default grids (${stdr_experiments:<data>}) include it
 
 
 #: every baseline by name (stdr.registries.Registry; the entry-point group `stdr.baselines`)
@@ -63,10 +64,15 @@ def capabilities(module: type) -> frozenset[str]:
     return frozenset(c for c, has in CAPABILITIES.items() if has(module))
 
 
-def register_baseline(name: str, module: type, config: type) -> BaselineSpec:
+def register_baseline(name: str, module: type, config: type, in_grids: bool = False) -> BaselineSpec:
     """Add a baseline. `config` must subclass BaselineConfig and default `name` to `name`;
     `module` must subclass Deformation and implement `config_kwargs`; its capabilities
-    (CAPABILITIES) are declared by class attributes (DECLARED) that must be booleans."""
+    (CAPABILITIES) are declared by class attributes (DECLARED) that must be booleans.
+    `in_grids`: whether the default grids (`${stdr_experiments:<data>}`: the dnerf_grid and
+    stability sweeps) include it; the built-ins do, and a baseline from another package does not
+    unless it says so, so installing one changes no grid a study has run."""
+    if not isinstance(in_grids, bool):
+        raise TypeError(f"register_baseline({name!r}): in_grids must be True or False, got {in_grids!r}")
     if not (isinstance(module, type) and issubclass(module, Deformation)):
         raise TypeError(f"register_baseline({name!r}): module must be a Deformation subclass, got {module!r}")
     for attr in DECLARED:
@@ -82,7 +88,7 @@ def register_baseline(name: str, module: type, config: type) -> BaselineSpec:
     if config().name != name:
         raise ValueError(f"register_baseline({name!r}): {config.__name__}.name defaults to {config().name!r}; "
                          f"set `name: str = {name!r}`")
-    return BASELINES.add(name, BaselineSpec(name, module, config))
+    return BASELINES.add(name, BaselineSpec(name, module, config, in_grids))
 
 
 def unregister_baseline(name: str) -> None:

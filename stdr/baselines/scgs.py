@@ -305,4 +305,4 @@ class ControlNodeDeformation(Deformation):
         return {"scgs_arap": lam * arap_energy(p1, p2, nbr)}
 
 
-register_baseline("scgs", ControlNodeDeformation, ScgsBaselineConfig)
+register_baseline("scgs", ControlNodeDeformation, ScgsBaselineConfig, in_grids=True)

@@ -198,4 +198,4 @@ class SuperpointDeformation(Deformation):
         return {f"spgs_re_{k}": self.weights[k] * v for k, v in terms.items() if self.weights.get(k, 0) > 0}
 
 
-register_baseline("spgs", SuperpointDeformation, SpgsBaselineConfig)
+register_baseline("spgs", SuperpointDeformation, SpgsBaselineConfig, in_grids=True)

@@ -1,0 +1,1 @@
+"""Config groups stdr searches after its own (the `stdr.configs` entry point)."""
