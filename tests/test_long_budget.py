@@ -188,3 +188,33 @@ def test_the_cap_table_gives_no_verdict_before_all_16_pairs(tmp_path):
     text = tt.cap_table(_cap_study(tmp_path, {b: 0.0 for b in tt.BASELINES}, missing={("4dgs", "standup", "cap40k")}))
     assert "Verdict" not in text and "missing 1: 4dgs/standup" in text
     assert text.count("| scgs |") == 4 and "| 4dgs | standup |" not in text
+
+
+def test_the_stdr_table_gives_each_baselines_delta_with_its_interval_and_names_what_is_missing(tmp_path):
+    from scipy import stats
+
+    from studies import trained_table as tt
+    deltas = {("bouncingballs", 0): 0.5, ("bouncingballs", 1): 0.25, ("standup", 0): -0.25, ("standup", 1): 0.5}
+    for (scene, seed), d in deltas.items():
+        for method, psnr in (("deform", 30.0), ("deform_stdr", 30.0 + d)):
+            rec = {"scene": scene, "seed": seed, "method": method, "code": "abc1234", "machine": "M",
+                   "points": [{"step": s, "val": {"psnr": psnr}, "test": {"psnr": psnr - (10_000 - s) / 1000 * (method == "deform")}}
+                              for s in (5_000, 10_000)],
+                   "final_test": {"psnr": psnr, "ssim": 0.9, "lpips": 0.1, "num_gaussians": 1000,
+                                  "train_seconds": 100.0 if method == "deform" else 130.0, "fps": 20.0, "model_mb": 5.0}}
+            p = tmp_path / "records" / method / f"{scene}_s{seed}.json"
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_text(json.dumps(rec))
+    ds = list(deltas.values())
+    half = stats.t.ppf(0.975, len(ds) - 1) * stats.tstd(ds) / len(ds) ** 0.5
+    lo, hi = tt.interval(ds)
+    assert abs(lo - (0.25 - half)) < 1e-3 and abs(hi - (0.25 + half)) < 1e-3
+    text = tt.stdr_table(tmp_path)
+    row = next(ln for ln in text.splitlines() if ln.startswith("| deform |"))
+    assert row.startswith(f"| deform | 4 | +0.25 | {0.25 - half:+.2f} to {0.25 + half:+.2f} | 1: standup s0 (-0.25) |")
+    assert "| 1.30x |" in row and "| scgs | 0 |" in text
+    assert "Runs in: 8 of 64" in text and "scgs/bouncingballs_s0" in text and "deform/hellwarrior_s1" in text
+    # the chart: at step 5,000 plain is 5 dB behind, so STDR's Δ there is 5 + the final Δ
+    assert [p["delta"] for p in tt.stdr_pairs(tt._records(tmp_path), "deform", step=5_000)] == [5.5, 5.25, 4.75, 5.5]
+    assert tt.delta_chart(tmp_path, tmp_path / "charts" / "d.png") and (tmp_path / "charts" / "d.png").stat().st_size > 1000
+    assert not tt.delta_chart(tmp_path / "none", tmp_path / "none.png") and not (tmp_path / "none.png").exists()
