@@ -127,6 +127,33 @@ def test_a_fault_while_writing_a_table_leaves_the_previous_one(finished, tmp_pat
     assert digest(out) == before and leftovers(out) == []
 
 
+def test_a_fault_while_writing_a_chart_leaves_the_previous_one(finished, tmp_path):
+    out = tmp_path / "c"
+    ok = sh([sys.executable, "-m", "stdr.cli.chart", str(finished), "--out", str(out)])
+    assert ok.returncode == 0, ok.stderr[-2000:]
+    before = digest(out)
+    assert any(k.endswith(".png") for k in before) and any(k.endswith(".csv") for k in before)
+    r = sh([sys.executable, "-m", "stdr.cli.chart", str(finished), "--out", str(out)], env={"STDR_FAILPOINT": "chart:ENOSPC"})
+    line = error_line(r, "stdr-chart")
+    assert f"cannot write {out}/" in line and ".png: No space left on device" in line
+    assert digest(out) == before and leftovers(out) == []
+
+
+def test_a_fault_while_writing_a_camera_path_leaves_the_previous_one(tmp_path, monkeypatch):
+    import torch
+
+    from stdr.cameras import Camera
+    from stdr.errors import IOFault
+    from stdr.view.camera_path import write_camera_path
+    cam = Camera(R=torch.eye(3), t=torch.tensor([0.0, 0.0, 4.0]), fx=50.0, fy=50.0, cx=32.0, cy=32.0, width=64, height=64)
+    path = write_camera_path(tmp_path / "path.json", [cam, cam], [0.0, 1.0])
+    before = path.read_bytes()
+    monkeypatch.setenv("STDR_FAILPOINT", "camera_path:ENOSPC")
+    with pytest.raises(IOFault, match=f"cannot write {path}: No space left on device"):
+        write_camera_path(path, [cam], [0.5])
+    assert path.read_bytes() == before and leftovers(tmp_path) == []
+
+
 def test_a_fault_while_writing_a_video_leaves_the_previous_one(finished, tmp_path):
     cmd = [sys.executable, "-c", "from stdr.cli.view import render_main; import sys; render_main(sys.argv[1:])",
            str(finished), "--out", str(tmp_path / "v"), "--kinds", "time", "--frames", "2", "--width", "32",
@@ -224,7 +251,8 @@ def test_a_fault_during_a_download_keeps_the_resumable_part_and_names_it(tmp_pat
 
 
 def test_every_failpoint_site_is_tested_here():
-    tested = set(TRAIN_SITES) | {"compact", "pack", "table", "video", "download"} | {"capture", "frames", "cache"}  # test_capture.py, test_nerfies.py
+    tested = set(TRAIN_SITES) | {"compact", "pack", "table", "chart", "camera_path", "video", "download"} | \
+        {"capture", "frames", "cache"}  # test_capture.py, test_nerfies.py
     assert tested == set(SITES)
 
 

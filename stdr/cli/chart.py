@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from ..errors import reported
 from ..eval.chart import CHARTS, METRIC_LABELS, chart
 
 
@@ -16,10 +17,11 @@ def main(argv=None) -> None:
     ap.add_argument("--split", default="test")
     ap.add_argument("--charts", nargs="+", default=list(CHARTS), choices=list(CHARTS))
     a = ap.parse_args(sys.argv[1:] if argv is None else argv)
-    try:
-        files = chart(a.runs, a.out, a.metric, a.split, a.charts)
-    except (ValueError, KeyError, FileNotFoundError) as e:
-        raise SystemExit(f"stdr-chart: {e}")
+    with reported("stdr-chart"):  # a disk fault: one line naming the file
+        try:
+            files = chart(a.runs, a.out, a.metric, a.split, a.charts)
+        except (ValueError, KeyError, FileNotFoundError) as e:
+            raise SystemExit(f"stdr-chart: {e}")
     for name, paths in files.items():
         print(f"[stdr] {name}: {', '.join(str(p) for p in paths.values())}")
 

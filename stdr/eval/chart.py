@@ -16,10 +16,12 @@ method and scene are averaged over seeds, and runs whose configs differ otherwis
 from __future__ import annotations
 
 import csv
+import io
 import math
 from pathlib import Path
 from typing import Any
 
+from ..io.files import atomic_path, make_folder, write_atomic
 from ..plugins import registered_plugins
 from .table import collect, find_run_dirs as find_runs, load_run, method_suffix, table_row
 from ..baselines import BASELINES
@@ -233,18 +235,24 @@ def palette_png(path: Path) -> None:
 
 def save_chart(fig, out: Path, name: str, header: list[str], data: list[list[Any]]) -> dict[str, Path]:
     """Write a matplotlib figure as out/name.png (palette PNG), .svg and the plotted data as .csv
-    (`header`, then the rows); closes the figure. Returns the three paths."""
-    out.mkdir(parents=True, exist_ok=True)
+    (`header`, then the rows), each through the atomic writer (a full disk leaves the previous
+    file and names the path); closes the figure. Returns the three paths."""
+    import matplotlib.pyplot as plt
+    make_folder(out)
     paths = {ext: out / f"{name}.{ext}" for ext in ("png", "svg", "csv")}
-    fig.savefig(paths["png"], dpi=130, bbox_inches="tight")
-    palette_png(paths["png"])
-    fig.savefig(paths["svg"], bbox_inches="tight")
-    with open(paths["csv"], "w", newline="") as f:
-        w = csv.writer(f)
+    try:
+        with atomic_path(paths["png"], "chart") as tmp:
+            fig.savefig(tmp, dpi=130, bbox_inches="tight", format="png")
+            palette_png(tmp)
+        with atomic_path(paths["svg"], "chart") as tmp:
+            fig.savefig(tmp, bbox_inches="tight", format="svg")
+        rows = io.StringIO(newline="")
+        w = csv.writer(rows)
         w.writerow(header)
         w.writerows(data)
-    import matplotlib.pyplot as plt
-    plt.close(fig)
+        write_atomic(paths["csv"], rows.getvalue(), "chart")
+    finally:
+        plt.close(fig)
     return paths
 
 

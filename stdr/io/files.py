@@ -88,7 +88,7 @@ FAILPOINT_ENV = "STDR_FAILPOINT"
 
 #: the write sites a failpoint can name, each a kind of file the commands write
 SITES = ("config", "checkpoint", "metrics", "history", "profile", "ply", "compact", "pack", "tensorboard", "renders",
-         "table", "video", "download", "capture", "frames", "cache", "lock")
+         "table", "chart", "camera_path", "video", "download", "capture", "frames", "cache", "lock")
 
 
 def failpoint(site: str, path: str | Path) -> None:

@@ -27,6 +27,7 @@ import torch
 
 from ..cameras import Camera
 from ..data.colmap import qvec_to_rotmat
+from ..io.files import make_folder, write_atomic
 from .core import _matrix_to_quat
 
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes (x right, y down, z forward) <-> OpenGL's
@@ -159,8 +160,8 @@ def camera_path_dict(cameras: list[Camera], times: list[float], fps: float = 30.
 def write_camera_path(path: str | Path, cameras: list[Camera], times: list[float], fps: float = 30.0,
                       keyframes: Optional[list[tuple[Camera, float]]] = None) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(camera_path_dict(cameras, times, fps, keyframes), indent=1))
+    make_folder(path.parent)
+    write_atomic(path, json.dumps(camera_path_dict(cameras, times, fps, keyframes), indent=1), "camera_path")
     return path
 
 
