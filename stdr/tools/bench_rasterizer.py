@@ -38,6 +38,7 @@ from stdr.device import synchronize
 from stdr.render import DEFAULT_TILE, rasterize, render, resolve_backend
 from stdr.render.projection import project_gaussians
 from stdr.extension import load_extension
+from stdr.io.files import make_folder, write_atomic
 
 
 def make_scene(n: int, res: int, coverage: float, seed: int = 0, device: str = "cpu"):
@@ -199,14 +200,14 @@ def main(argv=None):
             print(f"speed-up {r['backend']} vs reference, N={k[0]} {k[1]}^2: "
                   f"{r['speedup_fwd_bwd_vs_reference']:.1f}x (fwd+bwd)")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
+        make_folder(args.json.parent)
         meta = dict(machine=platform.processor() or platform.machine(), torch=torch.__version__,
                     threads=torch.get_num_threads(), argv=sys.argv[1:])
-        args.json.write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
+        write_atomic(args.json, json.dumps(dict(meta=meta, rows=rows), indent=1), "table")
         print(f"wrote {args.json}")
     if args.markdown:
-        args.markdown.parent.mkdir(parents=True, exist_ok=True)
-        args.markdown.write_text(markdown_table(rows, args.peak_gflops))
+        make_folder(args.markdown.parent)
+        write_atomic(args.markdown, markdown_table(rows, args.peak_gflops), "table")
         print(f"wrote {args.markdown}")
 
 
