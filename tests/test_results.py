@@ -45,7 +45,7 @@ def test_headline_waits_for_a_complete_seed_and_averages_only_complete_seeds(tmp
     assert means["deform"]["psnr"] == pytest.approx(25.0) and means["deform+STDR"]["psnr"] == pytest.approx(26.0)
     assert means["scgs"]["num_gaussians"] == pytest.approx(2000)
     assert means["deform"]["n_seeds"] == 1 and means["deform"]["psnr_std"] is None
-    assert prov["seeds"] == "seed 0" and "9 of the 96 planned" in prov["runs"] and prov["runs"].startswith("8 ")
+    assert prov["seeds"] == "seed 0" and f"9 of the {r.HEADLINE_PLANNED} planned" in prov["runs"] and prov["runs"].startswith("8 ")
     assert prov["code"] == "abcdef0 (8 runs)" and prov["machine"] == "test machine (8 runs)"
     for b in bases:  # seed 1 complete: two seeds, with a spread over their scene means
         for stdr in (False, True):
