@@ -568,6 +568,7 @@ def build() -> tuple[str, str]:
     line = demo_line(records)
     demo_block = [_markers("demo")[0], line + ".", _markers("demo")[1]]
     block = [_markers("results")[0],
+             trained_table_status() + " "
              f"D-NeRF, the four scenes the tests use (400² copies at 200 px), budget=cpu, test split, {seeds}, fp32 "
              "(deform trains in bf16 by default on a CPU with bf16 matrix instructions since a731445: "
              "`baseline.precision=fp32` reproduces these runs); "
@@ -585,6 +586,24 @@ def build() -> tuple[str, str]:
         block += [f"![PSNR against render FPS, the table's runs]({prov['chart']})"]
     block += [_markers("results")[1]]
     return page, {"results": "\n".join(block), "demo": "\n".join(demo_block)}
+
+
+def trained_table_status() -> str:
+    """The README's first line on the trained budget: how far the cap study and the 64-run table
+    are, from their records (studies/trained_table.py), with where to read and continue them."""
+    from studies import trained_table as tt
+    by = tt._records(tt.STUDY)
+    pairs = len(tt.cap_pairs(by))
+    runs = sum(1 for (m, s, seed) in [(m, s, seed) for b in tt.BASELINES for m in (b, f"{b}_stdr")
+                                       for s in tt.SCENES for seed in (0, 1)]
+               if (m, s, seed) in by and tt._val(by[(m, s, seed)]) is not None)
+    return ("**The trained budget** (`budget=cpu_long`, 10,000 steps), in progress: the Gaussian cap is settled "
+            f"on val first ({pairs} of its 16 pairs in, "
+            "[cap.md](research/measurements/trained_table/cap.md)), then STDR on the four baselines: "
+            f"{runs} of 64 runs in (plain runs at the cap of 20,000, which count if the cap is kept; "
+            "[table.md](research/measurements/trained_table/table.md) names the rest; "
+            "the queue's commands are in [its README](research/measurements/trained_table/README.md)). "
+            "Until it is complete, the table below, at 5 % of that training, is the headline:")
 
 
 def _without_stamp(text: str) -> str:
