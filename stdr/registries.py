@@ -31,6 +31,12 @@ T = TypeVar("T")
 CAPABILITY_NAMES = ("conditioning", "opacity_deltas", "mixes_rows")
 
 
+def entry_point_name(ep, group: str) -> str:
+    """How an error names entry point `ep` of `group`: its name, value, group and distribution."""
+    return f"entry point {ep.name!r} = {ep.value!r} (group {group!r}" + (
+        f", distribution {ep.dist.name} {ep.dist.version})" if getattr(ep, "dist", None) else ")")
+
+
 class Registry(Mapping, Generic[T]):
     """Components of one kind by name (see the module docstring).
 
@@ -99,8 +105,7 @@ class Registry(Mapping, Generic[T]):
         for mod in self.builtin:
             importlib.import_module(mod)
         for ep in entry_points(group=self.group):
-            where = f"entry point {ep.name!r} = {ep.value!r} (group {self.group!r}" + (
-                f", distribution {ep.dist.name} {ep.dist.version})" if getattr(ep, "dist", None) else ")")
+            where = entry_point_name(ep, self.group)
             had = set(self._items)
             try:
                 obj = ep.load()

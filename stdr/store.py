@@ -26,6 +26,7 @@ from .densify.strategy import STRATEGIES, get_strategy
 from .errors import ConfigError
 from .io.files import read_yaml
 from .plugins import PLUGINS, enabled_plugins, plugin_node, registered_plugins
+from .registries import entry_point_name
 from .schedule import Schedule, build_schedule
 
 #: the top-level entry of a run's config.yaml that records resumes with changed keys (stdr.train.resume)
@@ -312,8 +313,7 @@ def config_packages() -> tuple[tuple[str, str], ...]:
     seen = {str(p.relative_to(CONFIG_DIR)): "stdr" for p in CONFIG_DIR.rglob("*.yaml")}
     found = []
     for ep in entry_points(group=CONFIG_GROUP):
-        where = f"entry point {ep.name!r} = {ep.value!r} (group {CONFIG_GROUP!r}" + (
-            f", distribution {ep.dist.name} {ep.dist.version})" if getattr(ep, "dist", None) else ")")
+        where = entry_point_name(ep, CONFIG_GROUP)
         try:
             folder = Path(importlib.import_module(ep.module).__file__).parent
         except (ImportError, TypeError) as e:

@@ -594,9 +594,7 @@ def trained_table_status() -> str:
     from studies import trained_table as tt
     by = tt._records(tt.STUDY)
     pairs = len(tt.cap_pairs(by))
-    runs = sum(1 for (m, s, seed) in [(m, s, seed) for b in tt.BASELINES for m in (b, f"{b}_stdr")
-                                       for s in tt.SCENES for seed in (0, 1)]
-               if (m, s, seed) in by and tt._val(by[(m, s, seed)]) is not None)
+    runs = len(tt.table_runs(by)[0])
     return ("**The trained budget** (`budget=cpu_long`, 10,000 steps), in progress: the Gaussian cap is settled "
             f"on val first ({pairs} of its 16 pairs in, "
             "[cap.md](research/measurements/trained_table/cap.md)), then STDR on the four baselines: "
