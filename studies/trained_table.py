@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 from studies.common import commit
-from studies.long_budget import _reaches, load_records, point_at
+from studies.long_budget import load_records
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "research" / "measurements" / "trained_table"
@@ -36,7 +36,8 @@ def _records(study: Path) -> dict:
 
 
 def _point(rec: dict, step: int) -> dict | None:
-    return point_at(rec, step) if _reaches(rec, step) else None
+    """The record's curve point at `step`, None where the run has not reached it."""
+    return next((q for q in rec["points"] if q["step"] == step), None)
 
 
 def _val(rec: dict) -> float | None:
