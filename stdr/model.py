@@ -25,7 +25,7 @@ from torch import Tensor
 
 from .errors import BadInput, ConfigError
 from .cameras import Camera
-from .baselines import build_deformation
+from .baselines import build_deformation, get_baseline
 from .baselines.base import choose_precision
 from .device import available_bytes, resolve_device
 from .knn import KNN_CHUNK
@@ -316,15 +316,15 @@ def build_model(cfg, train_times: Optional[np.ndarray], background: Tensor, devi
         params = init_params(points.to(device), colors.to(device), sh_degree=cfg.model.sh_degree,
                              init_opacity=cfg.model.init_opacity)
     schedule = resolve_schedule(cfg)
+    b = cfg.baseline
+    if str(b.precision) == "auto":  # a run resolves it first (stdr.train.run); here before the plug-ins (their nets follow it)
+        b.precision = choose_precision("auto", get_baseline(b.name).module, device, name=b.name)[0]
     plugins = build_plugins(cfg, schedule, train_times, device)
     if points is not None:
         for p in plugins:
             p.init_gaussians(params)
-    b = cfg.baseline
     deform = build_deformation(b, sum(p.cond_dim for p in plugins), train_times, seed=cfg.seed,
                                schedule=schedule).to(device)
-    if deform.precision == "auto":  # a run resolves it first (stdr.train.run) and records the choice
-        deform.precision = choose_precision("auto", type(deform), device, name=b.name)[0]
     model = DynamicGaussians(cfg, schedule, params, deform, plugins, train_times, background, device)
     if points is not None:  # per-Gaussian state of the baseline (kept aligned by densification)
         tt = None if train_times is None else train_times

@@ -1,6 +1,8 @@
 """Small tensor helpers shared across modules."""
 from __future__ import annotations
 
+import sys
+
 import torch
 from torch import Tensor, nn
 
@@ -91,14 +93,91 @@ class BatchNorm1d(nn.BatchNorm1d):
         mean = x.mean(0)
         d = x - mean
         var = d.square().mean(0)
-        if self.track_running_stats and self.running_mean is not None:
-            with torch.no_grad():
-                self.num_batches_tracked.add_(1)
-                m = 1.0 / float(self.num_batches_tracked) if self.momentum is None else self.momentum
-                self.running_mean.mul_(1.0 - m).add_(mean.detach(), alpha=m)
-                self.running_var.mul_(1.0 - m).add_(var.detach(), alpha=m * n / (n - 1))
+        self.track(mean, var, n)
         y = d * torch.rsqrt(var + self.eps)
         return y * self.weight + self.bias if self.affine else y
+
+    @torch.no_grad()
+    def track(self, mean: Tensor, var: Tensor, n: int) -> None:
+        """Update the running statistics from a training batch of n rows: its column means [C]
+        and biased variances [C] (torch's update: momentum, or the cumulative average)."""
+        if self.track_running_stats and self.running_mean is not None:
+            self.num_batches_tracked.add_(1)
+            m = 1.0 / float(self.num_batches_tracked) if self.momentum is None else self.momentum
+            self.running_mean.mul_(1.0 - m).add_(mean.detach(), alpha=m)
+            self.running_var.mul_(1.0 - m).add_(var.detach(), alpha=m * n / (n - 1))
+
+
+#: which int16 lane of an int64 holds its top 16 bits (random_ draws 63 random bits: that lane has 15)
+_TOP_LANE = 3 if sys.byteorder == "little" else 0
+
+
+def dropout_keep(n: int, p: float, device: torch.device | str) -> tuple[Tensor, float]:
+    """(keep [n] bool, kept fraction q): each entry kept with probability q = 1 - round(32768 p) /
+    32768 (p to 1/32768), from one 64-bit draw of the default generator for every four entries
+    (its four 16-bit lanes; the top one holds 15 random bits and is cut at half the value), where
+    torch's dropout draws one per entry (on the CPU its draws are serial: a quarter of that work).
+    Divide the kept entries by q for an unbiased dropout. The same bits on any thread count."""
+    if not 0.0 <= p < 1.0:
+        raise ValueError(f"dropout probability {p} must lie in [0, 1)")
+    cut = round(p * 32768)
+    lanes = torch.empty((n + 3) // 4, dtype=torch.int64, device=device).random_().view(torch.int16).view(-1, 4)
+    # a full lane read as int16 is uniform on [-32768, 32768): keep where it is >= 2 cut - 32768; the top
+    # lane is uniform on [0, 32768): keep where it is >= cut
+    thr = torch.full((4,), 2 * cut - 32768, dtype=torch.int16, device=device)
+    thr[_TOP_LANE] = cut
+    return (lanes >= thr).view(-1)[:n], 1.0 - cut / 32768.0
+
+
+class _NormReluDropout(torch.autograd.Function):
+    """relu(batch_norm(x) * w + b) * gate in one function (see norm_relu_dropout)."""
+
+    @staticmethod
+    def forward(ctx, x, weight, bias, keep_scale, eps):
+        mean = x.mean(0)
+        d = x - mean
+        var = d.square().mean(0)
+        rstd = torch.rsqrt(var + eps)
+        xh = d.mul_(rstd)  # d is not needed again
+        y = torch.addcmul(bias, xh, weight)
+        gate = (y > 0).to(x.dtype)
+        if keep_scale is not None:
+            gate.mul_(keep_scale)
+        ctx.save_for_backward(xh, rstd, weight, gate)
+        ctx.mark_non_differentiable(mean, var)
+        return y.mul_(gate), mean, var
+
+    @staticmethod
+    def backward(ctx, g, _gm, _gv):
+        xh, rstd, weight, gate = ctx.saved_tensors
+        gy = g * gate
+        gw = (gy * xh).sum(0)
+        gb = gy.sum(0)
+        gxh = gy.mul_(weight)
+        # d/dx of (x - mean) * rstd: rstd * (gxh - mean(gxh) - xh * mean(gxh * xh))
+        c = (gxh * xh).mean(0)
+        gx = gxh.sub_(gxh.mean(0)).sub_(xh * c).mul_(rstd)
+        return gx, gw, gb, None, None
+
+
+def norm_relu_dropout(x: Tensor, bn: BatchNorm1d, p: float) -> Tensor:
+    """relu(bn(x)) with dropout p, x [N, C] float32 -> [N, C]: a BatchNorm1d of C channels, ReLU
+    and Dropout(p) as one function with a hand-written backward (a third of the passes over
+    [N, C] of their composition), the dropout's draws from `dropout_keep`. In training mode the
+    batch statistics normalize (biased variance) and the running ones are updated as torch's
+    BatchNorm1d does; in eval mode: torch's batch norm on the running statistics, ReLU, no
+    dropout. Column means throughout: the same bits on any CPU thread count."""
+    if not bn.training:
+        return torch.relu(bn(x))
+    if x.dim() != 2 or x.shape[0] < 2 or not bn.affine:
+        raise ValueError(f"norm_relu_dropout needs an affine batch norm and [N >= 2, C] rows, got {tuple(x.shape)}")
+    keep_scale = None
+    if p > 0:
+        keep, q = dropout_keep(x.numel(), p, x.device)
+        keep_scale = keep.view_as(x).to(x.dtype).mul_(1.0 / q)
+    out, mean, var = _NormReluDropout.apply(x, bn.weight, bn.bias, keep_scale, bn.eps)
+    bn.track(mean, var, x.shape[0])
+    return out
 
 
 def take_rows(x: Tensor, idx: Tensor) -> Tensor:

@@ -658,3 +658,117 @@ def test_mask_bits_8_stores_the_frozen_mask_in_8_bits_and_resumes_exactly(tmp_pa
         want = a.state.model.render(fr.camera, fr.time).image
         got = loaded.eval().render(fr.camera, fr.time).image
     assert torch.equal(want, got)
+
+
+# ----------------------------------------------------------------------------- the field in bf16
+def _norm_relu_dropout_composed(x, bn, gate):
+    """What norm_relu_dropout computes, as the plain composition autograd differentiates."""
+    mean = x.mean(0)
+    d = x - mean
+    y = d * torch.rsqrt(d.square().mean(0) + bn.eps) * bn.weight + bn.bias
+    return torch.relu(y) * gate
+
+
+def test_norm_relu_dropout_has_the_gradient_of_its_composition(monkeypatch):
+    """Its hand-written backward against autograd through batch norm, ReLU and dropout, in float64
+    with the same kept entries; and gradcheck with dropout off."""
+    from stdr import ops
+    g = torch.Generator().manual_seed(0)
+    x = (torch.randn(300, 8, generator=g, dtype=torch.float64) * 2 + 0.5).requires_grad_(True)
+    bn = ops.BatchNorm1d(8).double()
+    with torch.no_grad():
+        bn.weight.uniform_(0.5, 1.5, generator=g)
+        bn.bias.uniform_(-0.5, 0.5, generator=g)
+    keep = torch.rand(300 * 8, generator=g) > 0.25
+    monkeypatch.setattr(ops, "dropout_keep", lambda n, p, device: (keep, 0.75))
+    out = ops.norm_relu_dropout(x, bn, 0.25)
+    ref = _norm_relu_dropout_composed(x, bn, keep.view(300, 8).double() / 0.75)
+    assert torch.allclose(out, ref, rtol=1e-12, atol=1e-12)
+    gy = torch.randn(300, 8, generator=g, dtype=torch.float64)
+    got = torch.autograd.grad(out, (x, bn.weight, bn.bias), gy)
+    want = torch.autograd.grad(ref, (x, bn.weight, bn.bias), gy)
+    for a, b, name in zip(got, want, ("x", "weight", "bias")):
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-12), name
+    bn0 = ops.BatchNorm1d(8).double()
+    assert torch.autograd.gradcheck(lambda xx, w, b: ops._NormReluDropout.apply(xx, w, b, None, bn0.eps)[0],
+                                    (x[:20].detach().requires_grad_(True), bn.weight, bn.bias))
+
+
+def test_norm_relu_dropout_updates_running_statistics_as_batch_norm_does_and_evaluates_as_torch():
+    from stdr.ops import BatchNorm1d, norm_relu_dropout
+    x = torch.randn(500, 16, generator=torch.Generator().manual_seed(1)) * 3 + 2
+    a, b = BatchNorm1d(16), BatchNorm1d(16)
+    norm_relu_dropout(x, a, 0.1)
+    b(x)
+    for k in ("running_mean", "running_var", "num_batches_tracked"):
+        assert torch.equal(getattr(a, k), getattr(b, k)), k
+    a.eval()
+    assert torch.equal(norm_relu_dropout(x, a, 0.1), torch.relu(a(x)))  # eval: no dropout, running stats
+
+
+def test_dropout_keep_keeps_the_asked_fraction_in_every_lane_and_follows_the_seed():
+    from stdr.ops import dropout_keep
+    torch.manual_seed(3)
+    keep, q = dropout_keep(4 * 250_000 + 3, 0.1, "cpu")
+    assert keep.shape == (1_000_003,) and keep.dtype == torch.bool
+    assert q == 1 - round(0.1 * 32768) / 32768
+    # each of the four 16-bit lanes of a draw (the top one has 15 random bits) keeps q of its entries:
+    # 250,000 draws each, binomial sd 0.0006
+    per_lane = keep[:1_000_000].view(-1, 4).float().mean(0)
+    assert (per_lane - q).abs().max() < 0.003, per_lane
+    torch.manual_seed(3)
+    assert torch.equal(dropout_keep(1_000_003, 0.1, "cpu")[0], keep)
+    assert dropout_keep(10, 0.0, "cpu")[0].all()
+    with pytest.raises(ValueError, match="dropout probability"):
+        dropout_keep(10, 1.0, "cpu")
+
+
+def test_the_bf16_field_computes_the_fp32_fields_function():
+    """Same weights, eval mode: the bf16 field's outputs (fp32) within bfloat16 rounding of the fp32
+    field's; in training it draws its own dropout and still gives outputs in range."""
+    torch.manual_seed(0)
+    f32 = SeparatedField(in_dim=40, width=64, temporal_dim=16, dropout=0.1)
+    f16 = SeparatedField(in_dim=40, width=64, temporal_dim=16, dropout=0.1, precision="bf16")
+    f16.load_state_dict(f32.state_dict())
+    x = torch.softmax(torch.randn(2000, 40) * 3, -1)
+    f32.train(), f16.train()
+    f32(x), f16(x)  # one training batch each: the running statistics move alike
+    f32.eval(), f16.eval()
+    (z32, d32), (z16, d16) = f32(x), f16(x)
+    assert z16.dtype == torch.float32 and d16.dtype == torch.float32
+    assert (z16 - z32).abs().max() < 0.05 and (d16 - d32).abs().max() < 0.02
+    assert not torch.equal(z16, z32)  # it does take bf16 products
+    f16.train()
+    z, d = f16(x)
+    assert z.abs().max() < 1 and (d > 0).all() and (d < 1).all()
+    with pytest.raises(ValueError, match="stdr.field_precision='fp16'"):
+        SeparatedField(in_dim=4, precision="fp16")
+
+
+@pytest.mark.parametrize("network, requested, want", [("bf16", "auto", "bf16"), ("fp32", "auto", "fp32"),
+                                                      ("bf16", "fp32", "fp32"), ("fp32", "bf16", "bf16")])
+def test_field_precision_auto_follows_the_deformation_networks(tmp_path, network, requested, want):
+    from stdr.train.trainer import Trainer
+    t = Trainer(_stdr_cfg(tmp_path, ["optim.iterations=30", f"baseline.precision={network}",
+                                     f"stdr.field_precision={requested}"]), tmp_path / "a")
+    s = t.state.model.plugin("stdr")
+    assert s.field_precision == want and s.field.precision == want
+    assert s.state_dict()["field_precision"] == want
+    assert s.stats(t.state.model.params)["field_precision"] == want
+
+
+def test_a_checkpoint_from_before_the_field_precision_key_resumes_in_fp32(tmp_path):
+    """A run trained before stdr.field_precision existed trained its field in fp32: with auto, its
+    state resumes in fp32 whatever the deformation network's precision; an explicit value wins."""
+    from stdr.train.trainer import Trainer
+    t = Trainer(_stdr_cfg(tmp_path, ["optim.iterations=30", "baseline.precision=bf16"]), tmp_path / "a")
+    s = t.state.model.plugin("stdr")
+    old = {k: v for k, v in s.state_dict().items() if k != "field_precision"}
+    s.load_state_dict(old, t.state.model.params)
+    assert s.field_precision == "fp32" and s.field.precision == "fp32"
+    t = Trainer(_stdr_cfg(tmp_path, ["optim.iterations=30", "stdr.field_precision=bf16"]), tmp_path / "b")
+    s = t.state.model.plugin("stdr")
+    s.load_state_dict(old, t.state.model.params)
+    assert s.field_precision == "bf16"
+    with pytest.raises(ValueError, match="stdr.field_precision='half'"):
+        Trainer(_stdr_cfg(tmp_path, ["optim.iterations=30", "stdr.field_precision=half"]), tmp_path / "c")

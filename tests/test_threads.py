@@ -117,6 +117,27 @@ def test_batch_norm_gives_the_same_bits_on_any_thread_count_and_matches_torch(re
     assert torch.equal(bn(x), torch.nn.BatchNorm1d(64).eval()(x))  # evaluation: torch's own form
 
 
+def test_norm_relu_dropout_gives_the_same_bits_on_any_thread_count(restore_threads):
+    """The bf16 field's batch norm, ReLU and dropout in one function: its statistics, its dropout
+    draws and its backward."""
+    from stdr.ops import norm_relu_dropout
+    g = torch.Generator().manual_seed(0)
+    x, gy = torch.randn(20000, 64, generator=g) * 3 + 1, torch.randn(20000, 64, generator=g)
+
+    def run():
+        torch.manual_seed(0)
+        bn = BatchNorm1d(64)
+        with torch.no_grad():
+            bn.weight.uniform_(0.5, 1.5)
+            bn.bias.uniform_(-1, 1)
+        xx = x.clone().requires_grad_(True)
+        y = norm_relu_dropout(xx, bn, 0.1)
+        y.backward(gy)
+        return y.detach(), xx.grad, bn.weight.grad, bn.bias.grad, bn.running_mean, bn.running_var
+
+    _assert_same(_each_thread_count(run), "norm_relu_dropout")
+
+
 def test_mkl_products_sum_alike_on_any_thread_count(restore_threads):
     """A weight gradient sums over every Gaussian (K = 20000): without oneMKL's strict CNR mode
     its sums split by thread count."""
@@ -149,6 +170,11 @@ def test_a_short_stdr_run_trains_to_the_same_bits_on_one_and_two_threads(tmp_pat
         t = Trainer(tiny_config(tmp_path, sched), tmp_path / f"t{n}", splits=("train",))
         t.train()
         params[n] = {k: v.detach().clone() for k, v in t.state.model.params.items()}
+        # the networks too: the deformation's and STDR's separated field (bf16 with the network)
+        params[n].update({f"net.{k}": v.detach().clone() for k, v in t.state.model.deform.state_dict().items()})
+        s = t.state.model.plugin("stdr")
+        assert s.field_precision == precision
+        params[n].update({f"field.{k}": v.detach().clone() for k, v in s.field.state_dict().items()})
     assert params[1].keys() == params[2].keys()
     for k in params[1]:
         assert torch.equal(params[1][k], params[2][k]), k

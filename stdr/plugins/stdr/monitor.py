@@ -44,7 +44,8 @@ def stats_of(plugin, params) -> dict[str, Any]:
     out: dict[str, Any] = {"K": plugin.K, "warmup_end": plugin.warmup_end, "freeze_at": plugin.freeze_at,
                            "opacity_init": plugin.opacity_init, "mask_init": plugin.mask_init,
                            "freeze_moved": plugin.freeze_moved, "cleaned_entries": plugin.cleaned_entries,
-                           "knn_seconds": plugin.neighbours.seconds, "knn_refreshes": plugin.neighbours.refreshes}
+                           "knn_seconds": plugin.neighbours.seconds, "knn_refreshes": plugin.neighbours.refreshes,
+                           "field_precision": plugin.field_precision if plugin.field is not None else None}
     if plugin.has_mask(params):
         m = params[MASK_KEY].detach()
         n = m.shape[0]

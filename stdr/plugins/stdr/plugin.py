@@ -16,6 +16,7 @@ it aligned; p = softmax_t(m) is a cache recomputed whenever the mask tensor is r
 """
 from __future__ import annotations
 
+import sys
 from typing import Any, Optional
 
 import torch
@@ -25,11 +26,26 @@ from ...ops import sigmoid
 from ...encoding import positional_encoding, positional_encoding_dim
 from .. import Plugin
 from .compact_form import CompactMask
-from .field import SeparatedField
+from ...device import cpu_bf16_flags
+from .field import FIELD_PRECISIONS, SeparatedField
 from .mask import BETWEEN, COND_KEY, MASK_KEY, activated, knot_times, logits_of, mask_at, quantize
 from .monitor import log_to, stats_of
 from .regularizers import NeighbourCache, regularizer_terms
 from .phases import Phase, add_stages, logit, phase_at, resolve_init
+
+
+def field_precision(requested: str, network_precision: str, device) -> str:
+    """stdr.field_precision resolved: auto follows the deformation network's (`network_precision`,
+    baseline.precision as resolved for the run); an explicit bf16 on a CPU without bf16 matrix
+    instructions runs, and says in one line that it is slower there."""
+    if requested not in ("auto", *FIELD_PRECISIONS):
+        raise ValueError(f"stdr.field_precision={requested!r}: use one of {('auto', *FIELD_PRECISIONS)}")
+    if requested == "auto":
+        return network_precision if network_precision in FIELD_PRECISIONS else "fp32"
+    if requested == "bf16" and torch.device(device).type == "cpu" and not cpu_bf16_flags():
+        print("[stdr] stdr.field_precision=bf16 on a CPU without AVX512-BF16 or AMX: bfloat16 products are "
+              "emulated here and run slower than fp32", file=sys.stderr)
+    return requested
 
 
 def _same_key(a: tuple, b: tuple) -> bool:
@@ -49,7 +65,8 @@ class STDR(CompactMask, Plugin):
         """Its phases from the schedule, its time knots from the training times."""
         knots = cls.knots_for(pcfg, train_times) if train_times is not None else None
         return cls(pcfg, schedule, knots, xyz_freqs=cfg.baseline.xyz_freqs, seed=cfg.seed,
-                   init_opacity=cfg.model.init_opacity, device=device)
+                   init_opacity=cfg.model.init_opacity, device=device,
+                   network_precision=str(getattr(cfg.baseline, "precision", "fp32")))
 
     @classmethod
     def stages(cls, pcfg, cfg, schedule) -> dict:
@@ -57,15 +74,17 @@ class STDR(CompactMask, Plugin):
         return add_stages(pcfg, schedule)
 
     def __init__(self, cfg, schedule, knots: Optional[Tensor], xyz_freqs: int, seed: int,
-                 init_opacity: float = 0.1, device: torch.device | str = "cpu"):
+                 init_opacity: float = 0.1, device: torch.device | str = "cpu", network_precision: str = "fp32"):
         """schedule: the run's stdr.schedule.Schedule (STDR's phases, already kept out of the
-        baseline's switch windows)."""
+        baseline's switch windows); network_precision: the deformation network's arithmetic
+        (baseline.precision, resolved), which stdr.field_precision=auto follows."""
         if int(cfg.mask_bits) not in (8, 32):
             raise ValueError(f"stdr.mask_bits={cfg.mask_bits}: use 32 (float logits) or 8 (uint8 after the freeze)")
         self.mask_between = getattr(cfg, "mask_between", "linear")  # read once: opacity_factor runs every step
         if self.mask_between not in BETWEEN:
             raise ValueError(f"stdr.mask_between={self.mask_between!r}: use one of {BETWEEN}")
         self.cfg = cfg
+        self.field_precision = field_precision(getattr(cfg, "field_precision", "auto"), network_precision, device)
         self.device = torch.device(device)  # of the separated field; the knots stay on the CPU (host-side lookups)
         self.iterations = int(schedule.iterations)
         phases = schedule.plugins[self.name]  # STDR.stages
@@ -97,7 +116,7 @@ class STDR(CompactMask, Plugin):
         if self.cfg.separated_field:
             pe = 0 if self.xyz_freqs < 0 else positional_encoding_dim(3, self.xyz_freqs)
             self.field = SeparatedField(self.K + pe, self.cfg.field_width, self.cfg.temporal_dim,
-                                        self.cfg.dropout).to(self.device)
+                                        self.cfg.dropout, self.field_precision).to(self.device)
 
     @property
     def K(self) -> int:
@@ -300,6 +319,7 @@ class STDR(CompactMask, Plugin):
     def state_dict(self) -> dict[str, Any]:
         mask = None if self._params is None else self._params.get(MASK_KEY)
         return {"knots": self.knots, "field": None if self.field is None else self.field.state_dict(),
+                "field_precision": self.field_precision,
                 **self.neighbours.state_dict(mask), "cleaned": self._cleaned, "cleaned_entries": self.cleaned_entries}
 
     def load_state_dict(self, s: dict[str, Any], params) -> None:
@@ -307,6 +327,11 @@ class STDR(CompactMask, Plugin):
             if self.knots is not None:
                 raise ValueError(f"checkpoint has {s['knots'].numel()} STDR time knots, this run {self.K}")
             self._set_knots(s["knots"])
+        if getattr(self.cfg, "field_precision", "auto") == "auto":
+            # the arithmetic the state was trained with (fp32 before the key was recorded)
+            self.field_precision = s.get("field_precision", "fp32")
+            if self.field is not None:
+                self.field.precision = self.field_precision
         if self.field is not None and s["field"] is not None:
             self.field.load_state_dict(s["field"])
         elif self.field is not None and COND_KEY not in params:

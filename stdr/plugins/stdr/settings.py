@@ -54,6 +54,10 @@ class StdrConfig:
     temporal_dim: int = 16
     dropout: float = 0.1
     field_pe_xyz: bool = False    # also feed PE(x) (baseline.xyz_freqs) to the field
+    # the field's arithmetic: auto = the deformation network's (baseline.precision as the run resolved
+    # it); fp32; bf16 = products in bfloat16 and its fast batch norm and dropout (field.py). A run
+    # resumed from a checkpoint keeps the arithmetic it trained with
+    field_precision: str = "auto"
     # the field's own lr schedule: null follows the deformation network's (baseline.lr_*); a value
     # starts at the freeze (where the field starts training) and decays log-linearly to
     # field_lr_final (null: constant) at the end of the run
