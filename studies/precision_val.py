@@ -5,6 +5,9 @@
     # the table from the records (generated, stamped): per method, each scene/seed pair's val PSNR in
     # fp32 and bf16, the mean delta and the rule's verdict
     python -m studies.precision_val table [--records DIR]
+    # two other variants, one side's records in other folders (STDR's field: network bf16, field fp32
+    # in runs/ against field bf16 in runs_field/)
+    python -m studies.precision_val table --records runs_field --with runs --variants bf16 bf16field
 
 The rule (written before the runs, the study's README): the mean val delta PSNR (bf16 - fp32) is at
 least -0.1 dB over a method's pairs; a verdict needs every planned pair (PLANS: at budget=cpu 4 scenes x
@@ -22,6 +25,7 @@ import yaml
 import shutil
 import statistics
 from pathlib import Path
+from typing import Optional
 
 from stdr.eval.table import markdown_table
 from studies.common import M, commit, records_in, records_to_write
@@ -55,18 +59,22 @@ def collect(work: Path, records: Path = RECORDS) -> list[str]:
     return added
 
 
-def load(records: Path = RECORDS) -> dict[tuple, dict]:
+def load(records: Path = RECORDS, also: tuple[Path, ...] = ()) -> dict[tuple, dict]:
     """{(experiment, scene, seed, precision): the val entry of its metrics.json, with `budget` from its
     config.yaml} (the run id is <experiment>__<scene>__s<seed>__<precision>, as stdr-tool queue plan
-    names variants)."""
+    names variants); `also`: more records folders, merged (a run in two of them is refused)."""
     if records == RECORDS:
         records = records_in(STUDY, "runs")
     out = {}
-    for m in sorted(Path(records).glob("*/metrics.json")):
-        exp, scene, seed, prec = m.parent.name.split("__")
-        entry = json.loads(m.read_text())["val"]
-        entry["budget"] = yaml.safe_load((m.parent / "config.yaml").read_text())["budget"]
-        out[(exp, scene, int(seed[1:]), prec)] = entry
+    for folder in (records, *also):
+        for m in sorted(Path(folder).glob("*/metrics.json")):
+            exp, scene, seed, prec = m.parent.name.split("__")
+            entry = json.loads(m.read_text())["val"]
+            entry["budget"] = yaml.safe_load((m.parent / "config.yaml").read_text())["budget"]
+            key = (exp, scene, int(seed[1:]), prec)
+            if key in out:
+                raise SystemExit(f"precision_val: run {m.parent.name} is in two records folders ({folder} and another)")
+            out[key] = entry
     return out
 
 
@@ -78,20 +86,23 @@ def budget_of(recs: dict[tuple, dict]) -> str:
     return budgets[0]
 
 
-def summary(recs: dict[tuple, dict]) -> dict[str, dict]:
-    """Per experiment: its pairs' deltas, mean, the count of planned pairs and the verdict
-    (`pass`, `fail`, or `incomplete` until every planned pair is in)."""
+def summary(recs: dict[tuple, dict], variants: tuple[str, str] = ("fp32", "bf16"),
+            methods: Optional[set] = None) -> dict[str, dict]:
+    """Per experiment (of `methods`, default: every one with a run of either variant): its pairs'
+    deltas (B - A for `variants` = (A, B)), mean, the count of planned pairs and the verdict (`pass`,
+    `fail`, or `incomplete` until every planned pair is in)."""
     scenes, seeds = PLANS[budget_of(recs)]
+    va, vb = variants
     out = {}
-    for exp in sorted({k[0] for k in recs}):
+    for exp in sorted(methods if methods is not None else {k[0] for k in recs if k[3] in variants}):
         pairs = []
         for scene in scenes:
             for seed in seeds:
-                a, b = recs.get((exp, scene, seed, "fp32")), recs.get((exp, scene, seed, "bf16"))
+                a, b = recs.get((exp, scene, seed, va)), recs.get((exp, scene, seed, vb))
                 if a and b:
                     util = min(x.get("train_cpu_utilization") or 0.0 for x in (a, b))
-                    pairs.append({"scene": scene, "seed": seed, "fp32": a["psnr"], "bf16": b["psnr"],
-                                  "delta": b["psnr"] - a["psnr"], "s_fp32": a["train_seconds"], "s_bf16": b["train_seconds"],
+                    pairs.append({"scene": scene, "seed": seed, "a": a["psnr"], "b": b["psnr"],
+                                  "delta": b["psnr"] - a["psnr"], "s_a": a["train_seconds"], "s_b": b["train_seconds"],
                                   "timed": util >= MIN_UTILIZATION})
         mean = statistics.mean(p["delta"] for p in pairs) if pairs else None
         planned = len(scenes) * len(seeds)
@@ -100,33 +111,36 @@ def summary(recs: dict[tuple, dict]) -> dict[str, dict]:
     return out
 
 
-def table(records: Path = RECORDS) -> str:
-    recs = load(records)
+def table(records: Path = RECORDS, also: tuple[Path, ...] = (), variants: tuple[str, str] = ("fp32", "bf16")) -> str:
+    recs = load(records, also)
+    va, vb = variants
+    # the methods of the records folder itself: the --with folders supply the other side of its pairs
+    methods = {k[0] for k in load(records) if k[3] in variants}
     machines = sorted({e["conventions"]["machine"] for e in recs.values()})
     codes = sorted({e["code"]["commit"][:7] for e in recs.values()})
     budget = budget_of(recs)
     scenes, seeds = PLANS[budget]
-    lines = [f"# bf16 against fp32 on val (budget={budget})", "",
+    lines = [f"# {vb} against {va} on val (budget={budget})", "",
              f"Generated by `python -m studies.precision_val table` at {commit()} from {len(recs)} run records "
              f"(code {', '.join(codes) or '-'}; {'; '.join(machines) or '-'}). D-NeRF 400² copies at 200 px, val split, "
-             "two runs at a time on 2 cores, one thread each. Rule: mean Δ PSNR (bf16 − fp32) ≥ "
+             f"two runs at a time on 2 cores, one thread each. Rule: mean Δ PSNR ({vb} − {va}) ≥ "
              f"{THRESHOLD} dB over the {len(scenes) * len(seeds)} scene/seed pairs of a method. Training seconds: "
              f"rough (each run shared the machine with one other); a pair with a run that had less than "
              f"{MIN_UTILIZATION:.0%} of its thread (train_cpu_utilization: paused or crowded out) is not timed.", ""]
-    head = ["method", "scene", "seed", "fp32 PSNR", "bf16 PSNR", "Δ PSNR", "train s fp32", "train s bf16", "bf16 / fp32"]
+    head = ["method", "scene", "seed", f"{va} PSNR", f"{vb} PSNR", "Δ PSNR", f"train s {va}", f"train s {vb}", f"{vb} / {va}"]
     body = []
-    summ = summary(recs)
+    summ = summary(recs, variants, methods)
     for exp, s in summ.items():
         for p in s["pairs"]:
-            body.append([exp, p["scene"], str(p["seed"]), f"{p['fp32']:.2f}", f"{p['bf16']:.2f}", f"{p['delta']:+.2f}",
-                         f"{p['s_fp32']:.0f}", f"{p['s_bf16']:.0f}",
-                         f"{p['s_bf16'] / p['s_fp32']:.2f}" if p["timed"] else "– (not timed)"])
+            body.append([exp, p["scene"], str(p["seed"]), f"{p['a']:.2f}", f"{p['b']:.2f}", f"{p['delta']:+.2f}",
+                         f"{p['s_a']:.0f}", f"{p['s_b']:.0f}",
+                         f"{p['s_b'] / p['s_a']:.2f}" if p["timed"] else "– (not timed)"])
     lines += [markdown_table(head, body), ""]
-    head = ["method", "pairs", "mean Δ PSNR", "min Δ", "pairs below 0", "train s bf16 / fp32 (geometric mean)", "verdict"]
+    head = ["method", "pairs", "mean Δ PSNR", "min Δ", "pairs below 0", f"train s {vb} / {va} (geometric mean)", "verdict"]
     body = []
     for exp, s in summ.items():
         ps = s["pairs"]
-        timed = [p["s_bf16"] / p["s_fp32"] for p in ps if p["timed"]]
+        timed = [p["s_b"] / p["s_a"] for p in ps if p["timed"]]
         ratio = statistics.geometric_mean(timed) if timed else None
         body.append([exp, f"{len(ps)} of {s['planned']}", "-" if s["mean_delta"] is None else f"{s['mean_delta']:+.3f}",
                      f"{min(p['delta'] for p in ps):+.2f}" if ps else "-", str(sum(p["delta"] < 0 for p in ps)),
@@ -140,13 +154,18 @@ def main(argv=None) -> None:
     sub = ap.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("collect")
     c.add_argument("work", type=Path)
-    c.add_argument("--records", type=Path, default=RECORDS)
     t = sub.add_parser("table")
-    t.add_argument("--records", type=Path, default=RECORDS)
+    for p in (c, t):  # collect writes the table too
+        p.add_argument("--records", type=Path, default=RECORDS)
+        p.add_argument("--with", dest="also", type=Path, nargs="*", default=[],
+                       help="more records folders (a name without a slash: a folder of the study)")
+        p.add_argument("--variants", nargs=2, default=["fp32", "bf16"], metavar=("A", "B"),
+                       help="the two run-id suffixes compared, B - A (default fp32 bf16)")
     args = ap.parse_args(argv)
     if args.cmd == "collect":
         print(f"[precision_val] added {collect(args.work, args.records)}")
-    text = table(args.records)
+    also = tuple(records_in(STUDY, str(p)) if "/" not in str(p) else p for p in args.also)
+    text = table(args.records, also, tuple(args.variants))
     # the budget=cpu records' table is table.md; another records folder's (runs_cpu_long) is table_<folder>.md
     name = "table.md" if args.records == RECORDS else f"table_{args.records.name}.md"
     (STUDY if args.records == RECORDS else args.records.parent).joinpath(name).write_text(text)

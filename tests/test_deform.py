@@ -241,3 +241,24 @@ def test_the_val_check_plans_by_the_records_budget_and_refuses_a_mix(tmp_path):
     _record(tmp_path, "dnerf_deform__bouncingballs__s0__fp32", 30.0, budget="cpu")
     with pytest.raises(SystemExit, match=r"budgets \['cpu', 'cpu_long'\]"):
         pv.table(tmp_path)
+
+
+def test_the_val_check_compares_two_named_variants_across_records_folders(tmp_path):
+    """STDR's field in bf16: the field-fp32 side is the `bf16` runs of one folder, the field-bf16
+    side (`bf16field`) another folder's; a run in both folders is refused."""
+    from studies import precision_val as pv
+    old, new = tmp_path / "runs", tmp_path / "runs_field"
+    for sc in ("jumpingjacks", "standup"):
+        _record(old, f"dnerf_deform_stdr__{sc}__s0__fp32", 29.0, budget="cpu_long")
+        _record(old, f"dnerf_deform_stdr__{sc}__s0__bf16", 30.0, budget="cpu_long")
+        _record(old, f"dnerf_deform__{sc}__s0__bf16", 30.0, budget="cpu_long")
+        _record(new, f"dnerf_deform_stdr__{sc}__s0__bf16field", 29.8, budget="cpu_long")
+    s = pv.summary(pv.load(new, (old,)), ("bf16", "bf16field"))
+    assert s["dnerf_deform_stdr"]["verdict"] == "fail" and abs(s["dnerf_deform_stdr"]["mean_delta"] + 0.2) < 1e-9
+    text = pv.table(new, (old,), ("bf16", "bf16field"))
+    assert "| dnerf_deform |" not in text  # the table's methods are its own folder's; --with adds their pairs' other side
+    assert text.startswith("# bf16field against bf16 on val (budget=cpu_long)")
+    assert "| dnerf_deform_stdr | 2 of 2 | -0.200 |" in text
+    _record(old, "dnerf_deform_stdr__standup__s0__bf16field", 29.8, budget="cpu_long")
+    with pytest.raises(SystemExit, match="in two records folders"):
+        pv.load(new, (old,))
