@@ -745,10 +745,15 @@ def test_the_bf16_field_computes_the_fp32_fields_function():
         SeparatedField(in_dim=4, precision="fp16")
 
 
-@pytest.mark.parametrize("network, requested, want", [("bf16", "auto", "bf16"), ("fp32", "auto", "fp32"),
-                                                      ("bf16", "fp32", "fp32"), ("fp32", "bf16", "bf16")])
-def test_field_precision_auto_follows_the_deformation_networks(tmp_path, network, requested, want):
+@pytest.mark.parametrize("network, requested, verified, want", [
+    ("bf16", "auto", True, "bf16"), ("fp32", "auto", True, "fp32"), ("bf16", "auto", False, "fp32"),
+    ("bf16", "fp32", True, "fp32"), ("fp32", "bf16", False, "bf16")])
+def test_field_precision_auto_follows_the_deformation_networks(tmp_path, monkeypatch, network, requested, verified, want):
+    """auto: the network's precision once the field's bf16 is verified (FIELD_BF16_DEFAULT), fp32
+    before; an explicit value wins."""
+    from stdr.plugins.stdr import plugin
     from stdr.train.trainer import Trainer
+    monkeypatch.setattr(plugin, "FIELD_BF16_DEFAULT", verified)
     t = Trainer(_stdr_cfg(tmp_path, ["optim.iterations=30", f"baseline.precision={network}",
                                      f"stdr.field_precision={requested}"]), tmp_path / "a")
     s = t.state.model.plugin("stdr")
@@ -761,9 +766,11 @@ def test_a_checkpoint_from_before_the_field_precision_key_resumes_in_fp32(tmp_pa
     """A run trained before stdr.field_precision existed trained its field in fp32: with auto, its
     state resumes in fp32 whatever the deformation network's precision; an explicit value wins."""
     from stdr.train.trainer import Trainer
-    t = Trainer(_stdr_cfg(tmp_path, ["optim.iterations=30", "baseline.precision=bf16"]), tmp_path / "a")
+    t = Trainer(_stdr_cfg(tmp_path, ["optim.iterations=30", "baseline.precision=bf16", "stdr.field_precision=bf16"]),
+                tmp_path / "a")
     s = t.state.model.plugin("stdr")
     old = {k: v for k, v in s.state_dict().items() if k != "field_precision"}
+    s.cfg.field_precision = "auto"  # the resumed run's config: auto
     s.load_state_dict(old, t.state.model.params)
     assert s.field_precision == "fp32" and s.field.precision == "fp32"
     t = Trainer(_stdr_cfg(tmp_path, ["optim.iterations=30", "stdr.field_precision=bf16"]), tmp_path / "b")

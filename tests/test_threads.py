@@ -163,7 +163,8 @@ def test_a_short_stdr_run_trains_to_the_same_bits_on_one_and_two_threads(tmp_pat
     if precision == "bf16" and not cpu_bf16_flags():
         pytest.skip("this CPU has no AVX512-BF16 or AMX: bf16 is emulated here and never the default")
     sched = [s for s in ic.SCHEDULE if not s.startswith("optim.iterations=")] + ic.STDR_PHASES + \
-        ["optim.iterations=60", "train.stop_at=40", "experiment=embedded_deform_stdr", f"baseline.precision={precision}"]
+        ["optim.iterations=60", "train.stop_at=40", "experiment=embedded_deform_stdr", f"baseline.precision={precision}",
+         f"stdr.field_precision={precision}"]
     params = {}
     for n in (1, 2):
         torch.set_num_threads(n)

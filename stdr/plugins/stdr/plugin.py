@@ -34,14 +34,20 @@ from .regularizers import NeighbourCache, regularizer_terms
 from .phases import Phase, add_stages, logit, phase_at, resolve_init
 
 
+#: whether stdr.field_precision=auto follows the deformation network into bf16: set once the field's
+#: bf16 training is faster and passed the val rule (research/measurements/precision_val, "STDR's
+#: separated field in bf16"); until then auto is fp32
+FIELD_BF16_DEFAULT = False
+
+
 def field_precision(requested: str, network_precision: str, device) -> str:
     """stdr.field_precision resolved: auto follows the deformation network's (`network_precision`,
-    baseline.precision as resolved for the run); an explicit bf16 on a CPU without bf16 matrix
-    instructions runs, and says in one line that it is slower there."""
+    baseline.precision as resolved for the run) where FIELD_BF16_DEFAULT, else fp32; an explicit
+    bf16 on a CPU without bf16 matrix instructions runs, and says in one line that it is slower there."""
     if requested not in ("auto", *FIELD_PRECISIONS):
         raise ValueError(f"stdr.field_precision={requested!r}: use one of {('auto', *FIELD_PRECISIONS)}")
     if requested == "auto":
-        return network_precision if network_precision in FIELD_PRECISIONS else "fp32"
+        return network_precision if FIELD_BF16_DEFAULT and network_precision in FIELD_PRECISIONS else "fp32"
     if requested == "bf16" and torch.device(device).type == "cpu" and not cpu_bf16_flags():
         print("[stdr] stdr.field_precision=bf16 on a CPU without AVX512-BF16 or AMX: bfloat16 products are "
               "emulated here and run slower than fp32", file=sys.stderr)
