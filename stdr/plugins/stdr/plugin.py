@@ -34,10 +34,11 @@ from .regularizers import NeighbourCache, regularizer_terms
 from .phases import Phase, add_stages, logit, phase_at, resolve_init
 
 
-#: whether stdr.field_precision=auto follows the deformation network into bf16: set once the field's
-#: bf16 training is faster and passed the val rule (research/measurements/precision_val, "STDR's
-#: separated field in bf16"); until then auto is fp32
-FIELD_BF16_DEFAULT = False
+#: whether stdr.field_precision=auto follows the deformation network into bf16: the field's bf16
+#: step is faster (deform+STDR 1.27-1.28x at 11k-20k Gaussians) and passed the val rule: mean val
+#: delta PSNR -0.038 dB over 8 budget=cpu pairs and +0.016 over 2 cpu_long pairs
+#: (research/measurements/precision_val, "STDR's separated field in bf16"; docs/performance.md)
+FIELD_BF16_DEFAULT = True
 
 
 def field_precision(requested: str, network_precision: str, device) -> str:

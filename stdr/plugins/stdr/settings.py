@@ -55,9 +55,9 @@ class StdrConfig:
     dropout: float = 0.1
     field_pe_xyz: bool = False    # also feed PE(x) (baseline.xyz_freqs) to the field
     # the field's arithmetic: fp32; bf16 = products in bfloat16 and its fast batch norm and dropout
-    # (field.py); auto = fp32, or the deformation network's (baseline.precision as the run resolved
-    # it) once the field's bf16 is verified (plugin.FIELD_BF16_DEFAULT). A resumed run keeps the
-    # arithmetic it trained with
+    # (field.py); auto = the deformation network's (baseline.precision as the run resolved it: bf16
+    # for deform on a CPU with bf16 matrix instructions), its bf16 being verified
+    # (plugin.FIELD_BF16_DEFAULT). A resumed run keeps the arithmetic it trained with
     field_precision: str = "auto"
     # the field's own lr schedule: null follows the deformation network's (baseline.lr_*); a value
     # starts at the freeze (where the field starts training) and decays log-linearly to
