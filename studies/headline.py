@@ -27,6 +27,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from stdr.eval.evaluate import code_version
 from stdr.tools.runqueue import Queue, Run, execute
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,18 +49,35 @@ def plan_seed(root: Path, seed: int, records: Path) -> Queue:
 
 
 def command(code: Path) -> list[str]:
-    """What each run executes: the frozen checkout's stdr-train under the idle check."""
+    """What each run executes: the frozen checkout's stdr-train under the idle check. Its stdr is
+    the checkout's: on PYTHONPATH, and `python -P` keeps the caller's working directory (another
+    checkout, whose stdr would be imported first) off the module path."""
     return [sys.executable, str(ROOT / "scripts" / "idle_run.py"), "--out", "{run_dir}/load.json", "--",
-            str(code / "scripts" / "run.sh"), "python", "-m", "stdr.cli.train"]
+            str(code / "scripts" / "run.sh"), "env", f"PYTHONPATH={code}", "python", "-P", "-m", "stdr.cli.train"]
 
 
-def book(q: Queue, work: Path, records: Path) -> tuple[list[str], list[str]]:
-    """Copy each finished run that had the machine to itself into the records. Returns (shared,
-    failed): runs to do again (their folder removed, so the next sweep trains them from the start)
-    and runs that failed."""
+def checkout_commit(code: Path) -> str | None:
+    """The commit the --code checkout has checked out (None outside a git checkout: not checked)."""
+    return code_version(root=code)["commit"]
+
+
+def trained_by(run_dir: Path) -> str:
+    """The commit a finished run's metrics.json says trained it ('' when it names none)."""
+    m = json.loads((run_dir / "metrics.json").read_text())
+    return (next(iter(m.values())) if "code" not in m else m).get("code", {}).get("commit", "")
+
+
+def book(q: Queue, work: Path, records: Path, commit: str | None = None) -> tuple[list[str], list[str]]:
+    """Copy each finished run that had the machine to itself, and was trained by `commit` (the
+    --code checkout's; None: any), into the records. Returns (shared, failed): runs to do again
+    (their folder removed, so the next sweep trains them from the start) and runs that failed,
+    among them a run whose metrics.json names another commit."""
     shared, failed = [], []
     for r in q.runs:
         d = work / r.id
+        if r.state == "done" and commit is not None and trained_by(d) != commit:
+            r.state, r.error = "failed", (f"trained by code {trained_by(d)[:7] or '(none named)'}, not the --code "
+                                          f"checkout's {commit[:7]}: not recorded")
         if r.state == "failed":
             failed.append(r.id)
             print(f"[headline] FAILED {r.id}: {r.error}", file=sys.stderr, flush=True)
@@ -106,7 +124,7 @@ def main(argv=None) -> int:
             if not q.runs:
                 break
             execute(q, args.work, 1, None, command=command(code))
-            shared, bad = book(q, args.work, args.records)
+            shared, bad = book(q, args.work, args.records, checkout_commit(code))
             failed += bad
             if not shared:
                 break

@@ -167,7 +167,7 @@ def test_a_plan_by_experiment_puts_the_first_experiments_on_every_scene_first(tm
 
 
 FAKE_RUN = """
-import json, sys, time
+import json, os, sys, time
 from pathlib import Path
 run = Path(next(a for a in sys.argv if a.startswith("hydra.run.dir=")).split("=", 1)[1])
 run.mkdir(parents=True, exist_ok=True)
@@ -176,7 +176,7 @@ seen = stamps / (run.relative_to(run.parents[2]).as_posix().replace("/", "__"))
 first = not seen.exists()
 seen.write_text(seen.read_text() + "x" if seen.exists() else "x")
 (run / "config.yaml").write_text("{}")
-(run / "metrics.json").write_text(json.dumps({"test": {"psnr": 20.0}}))
+(run / "metrics.json").write_text(json.dumps({"test": {"psnr": 20.0, "code": {"commit": os.environ["FAKE_COMMIT"]}}}))
 # the first try of a run whose scene is 'b' shared the machine
 (run / "load.json").write_text(json.dumps({"idle": not (first and run.parent.name == "b")}))
 """
@@ -245,6 +245,7 @@ def test_the_headline_study_records_idle_runs_and_runs_a_shared_one_again(tmp_pa
     monkeypatch.setattr(h, "SCENES", ("a", "b"))
     monkeypatch.setattr(h, "EXPERIMENTS", ("dnerf_deform", "dnerf_deform_stdr"))
     monkeypatch.setattr(h, "command", lambda code: [sys.executable, str(tmp_path / "fake_run.py"), str(stamps)])
+    monkeypatch.setenv("FAKE_COMMIT", h.checkout_commit(h.ROOT) or "")  # trained by the --code checkout (this one)
     records = tmp_path / "records"
     assert h.main([str(root), "--work", str(tmp_path / "work"), "--records", str(records), "--seeds", "7",
                    "--no-results"]) == 0
@@ -254,6 +255,49 @@ def test_the_headline_study_records_idle_runs_and_runs_a_shared_one_again(tmp_pa
     assert tries == {f"{e}__{s}__s7": 1 if s == "a" else 2 for s in ("a", "b") for e in ("dnerf_deform", "dnerf_deform_stdr")}
     assert all(json.loads((p.parent / "load.json").read_text())["idle"] for p in records.rglob("metrics.json"))
     assert h.plan_seed(root, 7, records).runs == []  # resumable: nothing left to plan
+
+
+def test_the_headline_study_records_no_run_trained_by_other_code_than_its_checkout(tmp_path, monkeypatch, capsys):
+    """A run whose metrics.json names another commit than the --code checkout's (its stdr imported
+    from elsewhere) is not recorded: it fails, named, and the call says so in its exit status."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    import studies.headline as h
+    if h.checkout_commit(h.ROOT) is None:
+        pytest.skip("this copy of the project is not a git checkout: no commit to check against")
+    (tmp_path / "fake_run.py").write_text(FAKE_RUN)
+    (tmp_path / "stamps").mkdir()
+    root = tmp_path / "dnerf"
+    (root / "a").mkdir(parents=True)
+    (root / "a" / "transforms_train.json").write_text("{}")
+    monkeypatch.setattr(h, "SCENES", ("a",))
+    monkeypatch.setattr(h, "EXPERIMENTS", ("dnerf_deform",))
+    monkeypatch.setattr(h, "command", lambda code: [sys.executable, str(tmp_path / "fake_run.py"), str(tmp_path / "stamps")])
+    monkeypatch.setenv("FAKE_COMMIT", "0" * 40)
+    records = tmp_path / "records"
+    assert h.main([str(root), "--work", str(tmp_path / "work"), "--records", str(records), "--seeds", "7",
+                   "--no-results"]) == 1
+    assert not list(records.rglob("metrics.json"))
+    assert "trained by code 0000000, not the --code checkout's" in capsys.readouterr().err
+
+
+def test_the_headline_study_runs_the_code_checkouts_stdr_whatever_the_working_directory(tmp_path):
+    """The command imports stdr from --code even when started from another checkout's folder
+    (`python -m` would put that folder first on the module path)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    import studies.headline as h
+    code = tmp_path / "frozen"
+    (code / "stdr" / "cli").mkdir(parents=True)
+    (code / "scripts").mkdir()
+    (code / "scripts" / "run.sh").write_text('#!/usr/bin/env bash\nexec "$@"\n')
+    (code / "scripts" / "run.sh").chmod(0o755)
+    for f in ("stdr/__init__.py", "stdr/cli/__init__.py"):
+        (code / f).write_text("")
+    (code / "stdr" / "cli" / "train.py").write_text("import stdr, sys; print('FROM', stdr.__file__)")
+    cmd = [a.replace(sys.executable, sys.executable) for a in h.command(code)]
+    cmd = cmd[cmd.index("--") + 1:]  # the training command, without the idle check around it
+    cmd[cmd.index("python")] = sys.executable
+    out = subprocess.run(cmd, cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, check=True).stdout
+    assert f"FROM {code / 'stdr' / '__init__.py'}" in out
 
 
 def test_run_one_trains_legs_in_one_folder_and_raises_on_failure(tmp_path):
