@@ -89,6 +89,16 @@ def test_sigmoid_gives_the_same_bits_on_any_thread_count_and_matches_torch(resto
     assert torch.allclose(sigmoid(x64), torch.sigmoid(x64), rtol=1e-15, atol=1e-16)
 
 
+def _seeded_batch_norm(cls):
+    """A 64-channel batch norm of class `cls` with seeded, non-trivial weight and bias."""
+    torch.manual_seed(0)
+    bn = cls(64)
+    with torch.no_grad():
+        bn.weight.uniform_(0.5, 1.5)
+        bn.bias.uniform_(-1, 1)
+    return bn
+
+
 def test_batch_norm_gives_the_same_bits_on_any_thread_count_and_matches_torch(restore_threads):
     """STDR's separated field normalizes each step's Gaussians with it: a drop-in nn.BatchNorm1d
     (same state dict), whose training statistics do not split by thread."""
@@ -96,11 +106,7 @@ def test_batch_norm_gives_the_same_bits_on_any_thread_count_and_matches_torch(re
     x, gy = torch.randn(4725, 64, generator=g) * 3 + 1, torch.randn(4725, 64, generator=g)
 
     def run(cls):
-        torch.manual_seed(0)
-        bn = cls(64)
-        with torch.no_grad():
-            bn.weight.uniform_(0.5, 1.5)
-            bn.bias.uniform_(-1, 1)
+        bn = _seeded_batch_norm(cls)
         xx = x.clone().requires_grad_(True)
         y = bn(xx)
         y.backward(gy)
@@ -125,11 +131,7 @@ def test_norm_relu_dropout_gives_the_same_bits_on_any_thread_count(restore_threa
     x, gy = torch.randn(20000, 64, generator=g) * 3 + 1, torch.randn(20000, 64, generator=g)
 
     def run():
-        torch.manual_seed(0)
-        bn = BatchNorm1d(64)
-        with torch.no_grad():
-            bn.weight.uniform_(0.5, 1.5)
-            bn.bias.uniform_(-1, 1)
+        bn = _seeded_batch_norm(BatchNorm1d)
         xx = x.clone().requires_grad_(True)
         y = norm_relu_dropout(xx, bn, 0.1)
         y.backward(gy)
