@@ -55,6 +55,12 @@ def cpu_bf16_flags(cpuinfo: str | Path = "/proc/cpuinfo") -> tuple[str, ...]:
     return tuple(f for f in BF16_CPU_FLAGS if f in flags)
 
 
+def emulated_bf16_note(key: str) -> str:
+    """The one line for an explicit `key=bf16` on a CPU without bf16 matrix instructions."""
+    return (f"{key}=bf16 on a CPU without AVX512-BF16 or AMX: bfloat16 products are emulated here and run "
+            "slower than fp32")
+
+
 def synchronize(device: torch.device) -> None:
     """Wait for queued kernels on `device` (for timings); a no-op on the CPU."""
     if device.type == "cuda":

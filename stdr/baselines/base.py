@@ -330,8 +330,8 @@ def choose_precision(requested: str, module: type, device: torch.device, cpu_fla
         return "fp32", ""
     if requested == "bf16":
         if device.type == "cpu" and not flags:
-            return "bf16", ("baseline.precision=bf16 on a CPU without AVX512-BF16 or AMX: bfloat16 products are emulated "
-                            "here and run slower than fp32 (baseline.precision=auto picks fp32 on this CPU)")
+            return "bf16", (devices.emulated_bf16_note("baseline.precision")
+                            + " (baseline.precision=auto picks fp32 on this CPU)")
         return "bf16", ""
     if device.type != "cpu":
         return "fp32", (f"baseline.precision=auto: fp32 (bf16 is not yet verified on {device.type}; "

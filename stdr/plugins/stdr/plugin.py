@@ -26,7 +26,7 @@ from ...ops import sigmoid
 from ...encoding import positional_encoding, positional_encoding_dim
 from .. import Plugin
 from .compact_form import CompactMask
-from ...device import cpu_bf16_flags
+from ...device import cpu_bf16_flags, emulated_bf16_note
 from .field import FIELD_PRECISIONS, SeparatedField
 from .mask import BETWEEN, COND_KEY, MASK_KEY, activated, knot_times, logits_of, mask_at, quantize
 from .monitor import log_to, stats_of
@@ -50,8 +50,7 @@ def field_precision(requested: str, network_precision: str, device) -> str:
     if requested == "auto":
         return network_precision if FIELD_BF16_DEFAULT and network_precision in FIELD_PRECISIONS else "fp32"
     if requested == "bf16" and torch.device(device).type == "cpu" and not cpu_bf16_flags():
-        print("[stdr] stdr.field_precision=bf16 on a CPU without AVX512-BF16 or AMX: bfloat16 products are "
-              "emulated here and run slower than fp32", file=sys.stderr)
+        print(f"[stdr] {emulated_bf16_note('stdr.field_precision')}", file=sys.stderr)
     return requested
 
 
