@@ -23,7 +23,9 @@ from torch import Tensor, nn
 
 from .ops import sigmoid
 from .render.sh import num_sh_bases, rgb_to_sh
-from .knn import knn
+from .device import available_bytes
+from .errors import ConfigError
+from .knn import KNN_CHUNK, knn
 
 GAUSSIAN_KEYS = ("means", "scales", "quats", "opacities", "sh0", "shN")
 
@@ -95,3 +97,42 @@ def scene_extent(camera_centers: np.ndarray) -> float:
     """3DGS 'cameras_extent': 1.1 x the largest distance of a camera centre from their mean."""
     c = np.asarray(camera_centers, dtype=np.float64)
     return float(1.1 * np.linalg.norm(c - c.mean(0), axis=1).max())
+
+
+def check_init_fits(model_cfg, device: torch.device) -> None:
+    """model.init_num random Gaussians must fit in `device`'s free memory: their parameters
+    (means, scales, quaternion, opacity and the colour coefficients in float32) and the peak of
+    the nearest-neighbour search that sets their initial scales are a lower bound of what training
+    needs. Refused by name (ConfigError) instead of an allocator's traceback."""
+    if model_cfg.init != "random":
+        return
+    n = int(model_cfg.init_num)
+    floats = 3 + 3 + 4 + 1 + 3 * (int(model_cfg.sh_degree) + 1) ** 2
+    # the initial scales' nearest-neighbour search (stdr.knn: distances of KNN_CHUNK points to all n)
+    params, search = n * floats * 4, min(KNN_CHUNK, n) * n * 4
+    need, free = params + search, available_bytes(device)
+    if free is not None and need > free:
+        raise ConfigError(f"model.init_num={n}: {n:,} Gaussians need at least {need / 2 ** 30:,.1f} GiB ("
+                          f"{params / 2 ** 30:,.1f} for their parameters, {search / 2 ** 30:,.1f} for the nearest-"
+                          f"neighbour search of their initial scales), more than the {free / 2 ** 30:,.1f} GiB free on "
+                          f"{device}; the budgets start from 10,000 to 100,000 (docs/budgets.md)")
+
+
+def initial_points(model_cfg, scene_points: Optional[np.ndarray], scene_colors: Optional[np.ndarray],
+                   seed: int, where: str = "the scene") -> tuple[Tensor, Tensor]:
+    """(points [N, 3], colours [N, 3]) the Gaussians start from, by model.init: a random cube or
+    the scene's points (SfM / the loader's). Random draws come from a CPU generator seeded with
+    `seed`, so every device starts from the same Gaussians."""
+    gen = torch.Generator().manual_seed(seed)
+    if model_cfg.init == "random":
+        pts = random_cube_points(model_cfg.init_num, model_cfg.init_extent, gen)
+    elif model_cfg.init == "points":
+        if scene_points is None:
+            raise ValueError(f"model.init=points but {where} provides no points; use model.init=random")
+        pts = torch.from_numpy(scene_points).float()
+    else:
+        raise ValueError(f"model.init={model_cfg.init!r}: use 'random' or 'points'")
+    colors = torch.rand(pts.shape[0], 3, generator=gen)
+    if model_cfg.init == "points" and scene_colors is not None:
+        colors = torch.from_numpy(scene_colors).float()
+    return pts, colors

@@ -23,20 +23,21 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor
 
-from .errors import BadInput, ConfigError
+from .errors import BadInput
 from .cameras import Camera
 from .baselines import build_deformation, get_baseline
-from .baselines.base import choose_precision
-from .device import available_bytes, resolve_device
-from .knn import KNN_CHUNK
-from .plugins import Plugin, enabled_plugins, plugin_node, registered_plugins
+from .baselines.base import canonical_opacity, choose_precision, deform_gaussians
+from .device import resolve_device
+from .context import StepContext
+from .plugins import Conditioner, Densifying, Plugin, enabled_plugins, plugin_node, registered_plugins
+from .plugins.interface import roles
 from .ops import RowView, rows_of, sigmoid
 from .render import RenderOutput, render, resolve_backend
 from .render.reference import ALPHA_MIN
 from .schedule import Schedule
 from .store import load_config, resolve_schedule
 from .compression.codecs import nbytes
-from .gaussians import Gaussians, activate, init_params, num_gaussians, random_cube_points
+from .gaussians import Gaussians, activate, init_params, num_gaussians
 from .io.checkpoint import load_checkpoint, save_checkpoint
 from .compression.file import compact_source_note, decode_model, is_compact
 from .data.dnerf import parse_background
@@ -56,45 +57,6 @@ def build_plugins(cfg, schedule: Schedule, train_times: Optional[np.ndarray], de
     each built by its `from_config`."""
     return [s.plugin.from_config(plugin_node(cfg, s.name), cfg, schedule, train_times, device)
             for s in enabled_plugins(cfg)]
-
-
-def check_init_fits(model_cfg, device: torch.device) -> None:
-    """model.init_num random Gaussians must fit in `device`'s free memory: their parameters
-    (means, scales, quaternion, opacity and the colour coefficients in float32) and the peak of
-    the nearest-neighbour search that sets their initial scales are a lower bound of what training
-    needs. Refused by name (ConfigError) instead of an allocator's traceback."""
-    if model_cfg.init != "random":
-        return
-    n = int(model_cfg.init_num)
-    floats = 3 + 3 + 4 + 1 + 3 * (int(model_cfg.sh_degree) + 1) ** 2
-    # the initial scales' nearest-neighbour search (stdr.knn: distances of KNN_CHUNK points to all n)
-    params, search = n * floats * 4, min(KNN_CHUNK, n) * n * 4
-    need, free = params + search, available_bytes(device)
-    if free is not None and need > free:
-        raise ConfigError(f"model.init_num={n}: {n:,} Gaussians need at least {need / 2 ** 30:,.1f} GiB ("
-                          f"{params / 2 ** 30:,.1f} for their parameters, {search / 2 ** 30:,.1f} for the nearest-"
-                          f"neighbour search of their initial scales), more than the {free / 2 ** 30:,.1f} GiB free on "
-                          f"{device}; the budgets start from 10,000 to 100,000 (docs/budgets.md)")
-
-
-def initial_points(model_cfg, scene_points: Optional[np.ndarray], scene_colors: Optional[np.ndarray],
-                   seed: int, where: str = "the scene") -> tuple[Tensor, Tensor]:
-    """(points [N, 3], colours [N, 3]) the Gaussians start from, by model.init: a random cube or
-    the scene's points (SfM / the loader's). Random draws come from a CPU generator seeded with
-    `seed`, so every device starts from the same Gaussians."""
-    gen = torch.Generator().manual_seed(seed)
-    if model_cfg.init == "random":
-        pts = random_cube_points(model_cfg.init_num, model_cfg.init_extent, gen)
-    elif model_cfg.init == "points":
-        if scene_points is None:
-            raise ValueError(f"model.init=points but {where} provides no points; use model.init=random")
-        pts = torch.from_numpy(scene_points).float()
-    else:
-        raise ValueError(f"model.init={model_cfg.init!r}: use 'random' or 'points'")
-    colors = torch.rand(pts.shape[0], 3, generator=gen)
-    if model_cfg.init == "points" and scene_colors is not None:
-        colors = torch.from_numpy(scene_colors).float()
-    return pts, colors
 
 
 class DynamicGaussians:
@@ -126,7 +88,12 @@ class DynamicGaussians:
 
     @property
     def cond_dim(self) -> int:
-        return sum(p.cond_dim for p in self.plugins)
+        return sum(p.cond_dim for p in roles(self.plugins, Conditioner))
+
+    def context(self, step: int, **fields) -> StepContext:
+        """The hooks' context (stdr.context.StepContext) at `step`: the parameter dict, the warm-up's
+        end and `fields` (t, camera, cond, deformed, rows, render)."""
+        return StepContext(step, self.params, self.warmup, **fields)
 
     @property
     def warmup(self) -> int:
@@ -148,8 +115,9 @@ class DynamicGaussians:
         if step < self.warmup:
             return None, None
         conds, scale = [], None
-        for p in self.plugins:
-            c, s = p.conditioning(self.params, step)
+        ctx = self.context(step)
+        for p in roles(self.plugins, Conditioner):
+            c, s = p.conditioning(ctx)
             if c is not None:
                 conds.append(c)
             if s is not None:
@@ -166,7 +134,7 @@ class DynamicGaussians:
     def can_cull(self, step: int) -> bool:
         """Whether a Gaussian's opacity at time t is known before the deformation runs (the
         module has no opacity deltas, or the static warm-up leaves the Gaussians as they are)."""
-        return step < self.warmup or self.deform.canonical_opacity
+        return step < self.warmup or canonical_opacity(self.deform)
 
     def deformed_rows(self, t: float, step: Optional[int] = None,
                       cond_scale: Optional[tuple[Optional[Tensor], Optional[Tensor]]] = None,
@@ -181,7 +149,8 @@ class DynamicGaussians:
         conditioning, SP-GS's superpoints) are still computed from every row
         (`Deformation.forward_rows`)."""
         step = self.step if step is None else step
-        factors = [f for p in self.plugins if (f := p.opacity_factor(self.params, t, step)) is not None]
+        ctx = self.context(step, t=t)
+        factors = [f for p in roles(self.plugins, Conditioner) if (f := p.opacity_factor(ctx)) is not None]
         rows = None
         if cull and self.can_cull(step):
             eff = sigmoid(self.params["opacities"])  # the value `apply` gives, times the factors
@@ -193,7 +162,7 @@ class DynamicGaussians:
             g = activate(self.params if rows is None else RowView(self.params, rows))
         else:
             cond, scale = self.conditioning(step) if cond_scale is None else cond_scale
-            g = self.deform.deform_rows(self.params, t, cond, scale, rows)
+            g = deform_gaussians(self.deform, self.params, t, cond, scale, rows)
         for f in factors:
             g = g._replace(opacities=g.opacities * rows_of(f, rows))
         return g, rows
@@ -240,13 +209,15 @@ class DynamicGaussians:
         """`opacity_fn` for the strategy: sigmoid(opacity) times the plug-ins' prune factors (None
         without plug-ins: the strategy then uses sigmoid(opacity)). The factors are computed only
         when the strategy prunes, never on the steps in between."""
-        if not self.plugins:
+        densifying = roles(self.plugins, Densifying)
+        if not densifying:
             return None
 
         def fn(params):
             o = sigmoid(params["opacities"].detach())
-            for p in self.plugins:
-                f = p.prune_factor(params, step)
+            ctx = StepContext(step, params, self.warmup)
+            for p in densifying:
+                f = p.prune_factor(ctx)
                 if f is not None:
                     o = o * f
             return o
@@ -254,9 +225,11 @@ class DynamicGaussians:
 
     def reset_opacity_fn(self, step: int):
         """`reset_fn` for the strategy: the first plug-in that handles the reset, else the strategy."""
-        if not self.plugins:
+        densifying = roles(self.plugins, Densifying)
+        if not densifying:
             return None
-        return lambda params, value: any(p.reset_opacity(params, value, step) for p in self.plugins)
+        return lambda params, value: any(p.reset_opacity(StepContext(step, params, self.warmup), value)
+                                         for p in densifying)
 
     # ----------------------------------------------------------------- state
     def to(self, device: torch.device | str) -> "DynamicGaussians":
@@ -318,19 +291,16 @@ def build_model(cfg, train_times: Optional[np.ndarray], background: Tensor, devi
     schedule = resolve_schedule(cfg)
     b = cfg.baseline
     if str(b.precision) == "auto":  # a run resolves it first (stdr.train.run); here before the plug-ins (their nets follow it)
-        b.precision = choose_precision("auto", get_baseline(b.name).module, device, name=b.name)[0]
+        b.precision = choose_precision("auto", get_baseline(b.name).bf16_default, device, name=b.name)[0]
     plugins = build_plugins(cfg, schedule, train_times, device)
     if points is not None:
         for p in plugins:
             p.init_gaussians(params)
-    deform = build_deformation(b, sum(p.cond_dim for p in plugins), train_times, seed=cfg.seed,
+    deform = build_deformation(b, sum(p.cond_dim for p in roles(plugins, Conditioner)), train_times, seed=cfg.seed,
                                schedule=schedule).to(device)
     model = DynamicGaussians(cfg, schedule, params, deform, plugins, train_times, background, device)
     if points is not None:  # per-Gaussian state of the baseline (kept aligned by densification)
-        tt = None if train_times is None else train_times
-        deform.setup(params, tt)
-        for k, v in deform.gaussian_params(points.shape[0]).items():
-            params[k] = torch.nn.Parameter(v.to(device))
+        deform.init_gaussians(params)
     return model
 
 

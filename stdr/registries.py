@@ -26,8 +26,8 @@ from typing import Callable, Generic, Iterator, Optional, TypeVar
 
 T = TypeVar("T")
 
-#: what a baseline can declare and a plug-in can require (stdr.baselines.registry.CAPABILITIES reads
-#: each from a baseline's module; a plug-in's `requires` names them)
+#: what a baseline can declare (its module's `capabilities`, checked by register_baseline) and a
+#: plug-in can require (its `requires` names them)
 CAPABILITY_NAMES = ("conditioning", "opacity_deltas", "mixes_rows")
 
 

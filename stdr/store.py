@@ -57,8 +57,8 @@ def typed_schema(raw: dict, where: str = "config"):
     raw["baseline"] = b
     root = root_schema()
     for p in registered_plugins():  # keys a plug-in's earlier versions wrote
-        if isinstance(raw.get(p.name), dict) and p.plugin.removed_keys:
-            raw[p.name] = {k: v for k, v in raw[p.name].items() if k not in p.plugin.removed_keys}
+        if isinstance(raw.get(p.name), dict) and p.removed_keys:
+            raw[p.name] = {k: v for k, v in raw[p.name].items() if k not in p.removed_keys}
     unknown = sorted(set(raw) - set(root.__dataclass_fields__))
     for k in [k for k in unknown if isinstance(raw.get(k), dict) and raw[k].get("enabled") is False]:
         del raw[k]  # a plug-in that was off in this run, not installed now: nothing of the run depends on it

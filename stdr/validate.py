@@ -285,7 +285,7 @@ def check_plugins_apply(cfg) -> None:
     for spec in enabled_plugins(cfg):
         why = plugin_applies(spec, name, plugin_node(cfg, spec.name))
         if why:
-            fix = (f"declare `takes_conditioning = True` on {module.__name__} once its forward takes `cond`"
+            fix = (f"add 'conditioning' to {module.__name__}.capabilities once its forward takes `cond`"
                    if any("'conditioning'" in w for w in why) else "train it with another baseline")
             raise ConfigError(f"{spec.name}=on with baseline={name} ({module.__name__}): {'; '.join(why)}; "
                               f"set {spec.name}=off, or {fix} (docs/baselines.md, \"Capabilities\")")

@@ -14,6 +14,8 @@ from stdr.baselines.spgs import ASSOC_KEY, SuperpointDeformation
 from stdr.baselines import BASELINES
 from stdr.gaussians import init_params
 from stdr.densify.strategy import duplicate, split
+from stdr.baselines.base import deform_gaussians
+from stdr.context import StepContext
 
 torch.manual_seed(0)
 
@@ -116,23 +118,22 @@ def _scgs(**kw):
 
 def test_scgs_starts_near_identity_and_switches_to_skinning():
     params = gaussians()
-    for k, v in _scgs().gaussian_params(400).items():
-        params[k] = torch.nn.Parameter(v)
     m = _scgs()
-    m.before_step(params, 1)
+    m.init_gaussians(params)
+    m.before_step(StepContext(1, params))
     assert int(m.stage) == 1
     d = m(params, 0.3)
     assert d.means.abs().max() < 1e-3  # published small-init heads
-    g = m.deform(params, 0.3)  # node stage: isotropic, unrotated
+    g = deform_gaussians(m, params, 0.3)  # node stage: isotropic, unrotated
     assert torch.allclose(g.scales[:, 0], g.scales[:, 1]) and torch.all(g.quats[:, 0] == 1)
-    m.before_step(params, 5)  # resample nodes by FPS over trajectories
+    m.before_step(StepContext(5, params))  # resample nodes by FPS over trajectories
     assert int(m.stage) == 2
     nodes = m.nodes[:, :3]
     # nodes sit on Gaussians, radii are positive, weights start at 0.5
     gap = (nodes.detach()[:, None] - params["means"].detach()[None]).norm(dim=-1).min(1).values
     assert gap.max() == 0
     assert torch.all(m.node_log_radius.exp() > 0) and torch.all(m.node_weight == 0)
-    g = m.deform(params, 0.7)
+    g = deform_gaussians(m, params, 0.7)
     assert (g.means - params["means"]).abs().max() < 1e-3
     torch.testing.assert_close(g.scales, params["scales"].exp(), atol=1e-6, rtol=0)
 
@@ -140,14 +141,13 @@ def test_scgs_starts_near_identity_and_switches_to_skinning():
 def test_scgs_hyper_coordinates_and_radii_get_gradients():
     params = gaussians()
     m = _scgs(head_init_std=0.1)
-    for k, v in m.gaussian_params(400).items():
-        params[k] = torch.nn.Parameter(v)
-    m.before_step(params, 5)
-    g = m.deform(params, 0.4)
+    m.init_gaussians(params)
+    m.before_step(StepContext(5, params))
+    g = deform_gaussians(m, params, 0.4)
     g.means.square().sum().backward()
     assert params[FEATURE_KEY].grad.abs().sum() > 0
     assert m.node_log_radius.grad.abs().sum() > 0 and m.node_weight.grad.abs().sum() > 0
-    assert m.regularizers(params, 0.4, 6)["scgs_arap"] > 0  # random heads: the nodes do not move rigidly
+    assert m.regularizers(StepContext(6, params, t=0.4))["scgs_arap"] > 0  # random heads: the nodes do not move rigidly
 
 
 # ----------------------------------------------------------------------------- SP-GS
@@ -160,8 +160,8 @@ def _spgs(**kw):
 def test_spgs_superpoints_assignment_and_identity_start():
     params = gaussians()
     m = _spgs()
-    params[ASSOC_KEY] = torch.nn.Parameter(m.gaussian_params(400)[ASSOC_KEY])
-    m.before_step(params, 0)  # FPS init
+    m.init_gaussians(params)
+    m.before_step(StepContext(0, params))  # FPS init
     assert bool(m.ready)
     idx, G, hard = m.assignment(params)
     torch.testing.assert_close(G.sum(-1), torch.ones(400))
@@ -169,7 +169,7 @@ def test_spgs_superpoints_assignment_and_identity_start():
     # logits start one-hot(nearest) * 0.9 + 0.1: the hard superpoint is the nearest
     nearest = torch.cdist(params["means"].detach(), m.centers).argmin(1)
     assert torch.equal(hard, nearest)
-    g = m.deform(params, 0.5)
+    g = deform_gaussians(m, params, 0.5)
     assert (g.means - params["means"]).abs().max() < 1e-3
     # each step the centres become the G-weighted means of their members' canonical means
     from stdr.ops import scatter_mean
@@ -177,7 +177,7 @@ def test_spgs_superpoints_assignment_and_identity_start():
         params["means"].add_(0.05 * torch.randn(400, 3))
     idx, G, _ = m.assignment(params)
     expected, w = scatter_mean(params["means"].detach()[:, None].expand(-1, 5, -1), idx, G.detach(), 20)
-    m.before_step(params, 1)
+    m.before_step(StepContext(1, params))
     keep = w > 1e-8
     assert keep.sum() > 10
     torch.testing.assert_close(m.centers[keep], expected[keep])
@@ -187,16 +187,16 @@ def test_spgs_rigid_transform_per_superpoint():
     """With nonzero heads, each Gaussian moves by its hard superpoint's exp(w) x + d exactly."""
     params = gaussians()
     m = _spgs(head_init_std=0.3)
-    params[ASSOC_KEY] = torch.nn.Parameter(m.gaussian_params(400)[ASSOC_KEY])
-    m.before_step(params, 0)
-    g = m.deform(params, 0.25)
+    m.init_gaussians(params)
+    m.before_step(StepContext(0, params))
+    g = deform_gaussians(m, params, 0.25)
     d, w = m.superpoint_motion(0.25)
     _, _, hard = m.assignment(params)
     R = so3_exp(w)[hard]
     torch.testing.assert_close(g.means, (R @ params["means"][..., None])[..., 0] + d[hard], atol=1e-5, rtol=0)
     q = params["quats"] / params["quats"].norm(dim=-1, keepdim=True)
     torch.testing.assert_close(quat_to_rotmat(g.quats), R @ quat_to_rotmat(q), atol=1e-5, rtol=0)
-    regs = m.regularizers(params, 0.25, 1)
+    regs = m.regularizers(StepContext(1, params, t=0.25))
     assert set(regs) == {"spgs_re_xyz", "spgs_re_rot", "spgs_re_off"}
     sum(regs.values()).backward()
     assert params[ASSOC_KEY].grad.abs().sum() > 0  # the logits learn through the reconstruction terms
@@ -273,14 +273,14 @@ def test_hexplane_regularizers_match_their_definitions():
 def test_4dgs_starts_at_identity_and_applies_before_activation():
     params = gaussians()
     m = HexPlaneDeformation(base_res=8, channels=4, time_res=5, head_init_std=1e-5)
-    m.setup(params, None)
+    m.init_gaussians(params)
     assert torch.all(m.grid.aabb[0] <= params["means"].min(0).values)
-    g = m.deform(params, 0.3)
+    g = deform_gaussians(m, params, 0.3)
     torch.testing.assert_close(g.means, params["means"], atol=1e-3, rtol=0)
     m2 = HexPlaneDeformation(base_res=8, channels=4, time_res=5, head_init_std=0.5)
-    m2.setup(params, None)
+    m2.init_gaussians(params)
     d = m2(params, 0.3)
-    g2 = m2.apply(params, d)
+    g2 = m2.apply_rule(params, d)
     torch.testing.assert_close(g2.scales, torch.exp(params["scales"] + d.scales))  # pre-activation
     groups = {gr["name"]: gr for gr in m2.param_groups()}
     assert groups["hexplane"]["lr_mult"] == 10.0
@@ -310,15 +310,13 @@ def test_stdr_conditioning_starts_without_effect(name):
         m = _spgs(cond_dim=5, head_init_std=0.3)
     else:
         m = HexPlaneDeformation(base_res=8, channels=4, time_res=5, cond_dim=5, head_init_std=0.3)
-    for k, v in m.gaussian_params(400).items():
-        params[k] = torch.nn.Parameter(v)
-    m.setup(params, None)
-    m.before_step(params, 5)
-    a = m.deform(params, 0.4, torch.zeros(400, 5))
-    b = m.deform(params, 0.4, torch.randn(400, 5))
+    m.init_gaussians(params)
+    m.before_step(StepContext(5, params))
+    a = deform_gaussians(m, params, 0.4, torch.zeros(400, 5))
+    b = deform_gaussians(m, params, 0.4, torch.randn(400, 5))
     torch.testing.assert_close(a.means, b.means)
     with pytest.raises(ValueError, match="cond"):
-        m.deform(params, 0.4, None)
+        deform_gaussians(m, params, 0.4, None)
 
 
 # ----------------------------------------------------------------------------- end to end
@@ -381,14 +379,13 @@ def test_scgs_resampling_and_arap_use_the_given_conditioning():
     the conditioned node motion (not the zero-cond one that is never rendered)."""
     params = gaussians()
     m = _scgs(cond_dim=4, head_init_std=0.1)
-    for k, v in m.gaussian_params(400).items():
-        params[k] = torch.nn.Parameter(v)
+    m.init_gaussians(params)
     with torch.no_grad():  # make the cond inputs matter (they start at zero weight)
         for lin in m.net.modules():
             if isinstance(lin, torch.nn.Linear):
                 lin.weight.normal_(0, 0.5, generator=torch.Generator().manual_seed(3))
     cond = torch.randn(400, 4, generator=torch.Generator().manual_seed(4))
-    m.before_step(params, 1, cond)
+    m.before_step(StepContext(1, params, cond=cond))
     m.resample_nodes(params, None)
     zero_nodes = m.nodes.detach().clone()
     m.resample_nodes(params, cond)
@@ -403,9 +400,9 @@ def test_scgs_resampling_and_arap_use_the_given_conditioning():
     farthest_point_sampling(torch.zeros(400, 3), m.m, g)  # the draw of the first (zero-cond) resampling
     idx = farthest_point_sampling(traj, m.m, g)
     torch.testing.assert_close(m.nodes.detach()[:, :3], x[idx])
-    m.before_step(params, 5, cond)  # skinning
-    a_cond = m.regularizers(params, 0.4, 6, cond)["scgs_arap"]
-    a_zero = m.regularizers(params, 0.4, 6, None)["scgs_arap"]
+    m.before_step(StepContext(5, params, cond=cond))  # skinning
+    a_cond = m.regularizers(StepContext(6, params, t=0.4, cond=cond))["scgs_arap"]
+    a_zero = m.regularizers(StepContext(6, params, t=0.4, cond=None))["scgs_arap"]
     assert a_cond.item() != pytest.approx(a_zero.item(), rel=1e-3)
     # by hand with the node conditioning the render uses
     idx, w = m.skinning(params)

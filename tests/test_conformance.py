@@ -38,7 +38,7 @@ class SlideConfig(BaselineConfig):
 class Slide(Deformation):
     """Every Gaussian slides along x with a learned speed times t, plus a head on the conditioning."""
 
-    takes_conditioning = True
+    capabilities = frozenset({"conditioning"})
     zero_cond = True
 
     def __init__(self, speed: float = 0.0, cond_dim: int = 0):

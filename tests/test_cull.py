@@ -80,7 +80,7 @@ def test_culled_render_equals_the_full_one(tmp_path, name, steps):
             assert ((na[k] - nb[k]).abs().max() / scale) <= 1e-4, k
         # the rows kept are exactly those whose opacity at t reaches 1/255
         eff = torch.sigmoid(model.params["opacities"]) * model.plugin("stdr").opacity_factor(
-            model.params, frame.time, model.step)
+            model.context(model.step, t=frame.time))
         assert torch.equal(rows, torch.nonzero(eff >= 1 / 255).squeeze(1))
 
 
@@ -95,7 +95,7 @@ def test_after_the_freeze_the_default_culls_by_the_gaussians_own_opacity_only(tm
     with torch.no_grad():
         model.params["opacities"][::3] = -12.0  # a third of the rows under 1/255 by their own opacity
     frame = tr.scene.frames("test")[1]
-    assert model.plugin("stdr").opacity_factor(model.params, frame.time, model.step) is None
+    assert model.plugin("stdr").opacity_factor(model.context(model.step, t=frame.time)) is None
     img_a, _, _, _ = _render_and_grads(model, frame, cull=False)
     img_b, _, _, rows = _render_and_grads(model, frame, cull=True)
     own = torch.nonzero(torch.sigmoid(model.params["opacities"].detach()) >= 1 / 255).squeeze(1)

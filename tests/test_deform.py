@@ -6,11 +6,12 @@ import yaml
 
 from stdr.baselines import DeformMLP, Deltas, apply_post_activation, apply_pre_activation
 from stdr.encoding import positional_encoding
-from stdr.baselines.base import Deformation, choose_precision
+from stdr.baselines.base import choose_precision
 from stdr.device import cpu_bf16_flags
 from stdr.gaussians import init_params
 from stdr.testing import tiny_config
 from stdr.train.run import run_training, settle_precision
+from stdr.baselines.base import network_deltas
 
 
 def test_positional_encoding_layout():
@@ -98,9 +99,9 @@ def test_bf16_precision_is_an_option_with_fp32_deltas():
     torch.manual_seed(0)
     net = DeformMLP(depth=3, width=64, skips=(1,), head_init_std=None)
     params = init_params(torch.rand(200, 3), torch.rand(200, 3), sh_degree=0)
-    full = net.deltas(params, 0.4)
+    full = network_deltas(net, params, 0.4)
     net.precision = "bf16"
-    half = net.deltas(params, 0.4)
+    half = network_deltas(net, params, 0.4)
     for k in ("means", "quats", "scales"):
         x, y = getattr(half, k), getattr(full, k)
         assert x.dtype == torch.float32
@@ -115,13 +116,6 @@ def test_bf16_precision_is_an_option_with_fp32_deltas():
 # (docs/performance.md, "bf16 by default").
 CPU = torch.device("cpu")
 
-
-class Verified(Deformation):
-    bf16_default = True
-
-
-class Unverified(Deformation):
-    bf16_default = False
 
 
 def _cpuinfo(tmp_path, flags: str):
@@ -138,17 +132,17 @@ def test_the_cpu_flags_are_read_from_cpuinfo(tmp_path):
     assert cpu_bf16_flags(tmp_path / "absent") == ()  # not Linux: no flags, so auto stays fp32
 
 
-@pytest.mark.parametrize("requested, module, device, flags, chosen, says", [
-    ("fp32", Verified, CPU, ("avx512_bf16",), "fp32", ""),
-    ("bf16", Unverified, CPU, ("amx_bf16",), "bf16", ""),
-    ("bf16", Verified, CPU, (), "bf16", "slower than fp32"),
-    ("auto", Verified, CPU, ("avx512_bf16",), "bf16", "AVX512_BF16"),
-    ("auto", Verified, CPU, (), "fp32", "no AVX512-BF16 or AMX"),
-    ("auto", Unverified, CPU, ("avx512_bf16",), "fp32", "mine is not among"),
-    ("auto", Verified, torch.device("cuda"), (), "fp32", "not yet verified on cuda"),
+@pytest.mark.parametrize("requested, verified, device, flags, chosen, says", [
+    ("fp32", True, CPU, ("avx512_bf16",), "fp32", ""),
+    ("bf16", False, CPU, ("amx_bf16",), "bf16", ""),
+    ("bf16", True, CPU, (), "bf16", "slower than fp32"),
+    ("auto", True, CPU, ("avx512_bf16",), "bf16", "AVX512_BF16"),
+    ("auto", True, CPU, (), "fp32", "no AVX512-BF16 or AMX"),
+    ("auto", False, CPU, ("avx512_bf16",), "fp32", "mine is not among"),
+    ("auto", True, torch.device("cuda"), (), "fp32", "not yet verified on cuda"),
 ])
-def test_auto_picks_bf16_only_on_a_bf16_cpu_for_a_verified_baseline(requested, module, device, flags, chosen, says):
-    p, why = choose_precision(requested, module, device, cpu_flags=flags, name="mine")
+def test_auto_picks_bf16_only_on_a_bf16_cpu_for_a_verified_baseline(requested, verified, device, flags, chosen, says):
+    p, why = choose_precision(requested, verified, device, cpu_flags=flags, name="mine")
     assert p == chosen
     assert (says in why) if says else why == ""
     assert "\n" not in why
@@ -156,14 +150,14 @@ def test_auto_picks_bf16_only_on_a_bf16_cpu_for_a_verified_baseline(requested, m
 
 def test_a_bad_precision_names_the_key():
     with pytest.raises(ValueError, match="baseline.precision='fp16'"):
-        choose_precision("fp16", Verified, CPU, cpu_flags=())
+        choose_precision("fp16", True, CPU, cpu_flags=())
 
 
 @pytest.mark.slow
 def test_a_run_records_its_choice_and_a_resume_keeps_the_recorded_one(tmp_path, monkeypatch):
     # a CPU with bf16 and a verified deform: auto trains in bf16 and says so in config.yaml and metrics.json
-    from stdr.baselines.deform import DeformMLP
-    monkeypatch.setattr(DeformMLP, "bf16_default", True)
+    from stdr.baselines import get_baseline
+    assert get_baseline("deform").bf16_default
     monkeypatch.setattr("stdr.device.cpu_bf16_flags", lambda *a: ("avx512_bf16",))
     sched = ["optim.iterations=30", "baseline.warmup=10", "train.checkpoint_every=0", "train.eval_at_warmup_end=false"]
     run = tmp_path / "run"
@@ -186,12 +180,12 @@ def test_a_run_records_its_choice_and_a_resume_keeps_the_recorded_one(tmp_path, 
 
 
 def test_every_built_in_baseline_declares_its_bf16_default():
-    """bf16_default is set only where docs/performance.md records the checks it passed."""
+    """bf16_default (register_baseline) is set only where docs/performance.md records the checks it passed."""
     from stdr.baselines.registry import BASELINES
     from pathlib import Path
     doc = (Path(__file__).resolve().parents[1] / "docs" / "performance.md").read_text()
     for name in ("deform", "scgs", "spgs", "4dgs"):
-        if BASELINES.get(name).module.bf16_default:
+        if BASELINES.get(name).bf16_default:
             assert f"`{name}`: bf16 by default" in doc, name
 
 

@@ -36,7 +36,7 @@ class WobbleConfig(BaselineConfig):
 class Wobble(Deformation):
     """Every Gaussian moves by a learned vector times sin(t)."""
 
-    takes_conditioning = True  # it takes STDR's conditioning (cond_dim), and leaves it unused
+    capabilities = frozenset({"conditioning"})  # it takes STDR's conditioning (cond_dim), and leaves it unused
 
     def __init__(self, amplitude=0.01, cond_dim=0):
         super().__init__()
@@ -55,7 +55,7 @@ def register():
     register_baseline("wobble", Wobble, WobbleConfig)
 
 
-from stdr.plugins import Plugin, register_plugin
+from stdr.plugins import Plugin, Reporting, register_plugin
 
 
 @dataclass
@@ -64,7 +64,7 @@ class GlowConfig:
     weight: float = 0.5
 
 
-class Glow(Plugin):
+class Glow(Reporting, Plugin):
     """A loss term pulling every Gaussian's opacity logit up, weighted by `glow.weight`."""
 
     name = "glow"
@@ -76,8 +76,8 @@ class Glow(Plugin):
     def from_config(cls, pcfg, cfg, schedule, train_times, device):
         return cls(pcfg.weight)
 
-    def regularizers(self, params, step):
-        return {"pull": -self.weight * params["opacities"].mean()}
+    def regularizers(self, ctx):
+        return {"pull": -self.weight * ctx.params["opacities"].mean()}
 
     def stats(self, params):
         return {"weight": self.weight}

@@ -9,14 +9,14 @@ from stdr.testing import tiny_config as _tiny
 from dataclasses import dataclass
 
 from stdr.model import load_model
-from stdr.plugins import PLUGINS, Plugin, register_plugin, unregister_plugin
+from stdr.plugins import PLUGINS, Conditioner, Densifying, Plugin, Reporting, register_plugin, unregister_plugin
 
 SCHED = ["optim.iterations=40", "baseline.warmup=10", "densify.refine_start=5", "densify.refine_every=5",
          "densify.reset_every=0", "train.checkpoint_every=0", "train.eval_at_warmup_end=false",
          "train.log_every=5"]
 
 
-class Tagger(Plugin):
+class Tagger(Conditioner, Densifying, Reporting, Plugin):
     """A toy plug-in: one per-Gaussian tag (lr 0.01), a conditioning of width 2 from a small net
     on its own lr schedule, an opacity factor of sigmoid(tag), and a loss pulling tags to 1."""
 
@@ -44,30 +44,28 @@ class Tagger(Plugin):
     def init_gaussians(self, params):
         params["tag"] = torch.nn.Parameter(torch.zeros(params["means"].shape[0], 1))
 
-    def gaussian_lr(self, key):
-        return self.lr if key == "tag" else None
-
     def param_groups(self):
-        return [{"params": list(self.net.parameters()), "name": "tagger_net", "lr_init": 1e-2, "lr_final": 1e-4,
+        return [{"key": "tag", "lr": self.lr},
+                {"params": list(self.net.parameters()), "name": "tagger_net", "lr_init": 1e-2, "lr_final": 1e-4,
                  "lr_max_steps": self.iterations - self.warmup, "lr_delay": self.warmup}]
 
     def modules(self):
         return [self.net]
 
-    def configure_step(self, params, step):
-        self._count("configure_step")
+    def before_step(self, ctx):
+        self._count("before_step")
 
-    def conditioning(self, params, step):
+    def conditioning(self, ctx):
         self._count("conditioning")
-        return self.net(params["tag"]), None
+        return self.net(ctx.params["tag"]), None
 
-    def opacity_factor(self, params, t, step):
-        return torch.sigmoid(params["tag"][:, 0])
+    def opacity_factor(self, ctx):
+        return torch.sigmoid(ctx.params["tag"][:, 0])
 
-    def regularizers(self, params, step):
-        return {"pull": ((params["tag"] - 1.0) ** 2).mean()}
+    def regularizers(self, ctx):
+        return {"pull": ((ctx.params["tag"] - 1.0) ** 2).mean()}
 
-    def prune_factor(self, params, step):
+    def prune_factor(self, ctx):
         self._count("prune_factor")
         return None
 
@@ -115,7 +113,7 @@ def test_a_plugin_trains_through_the_hooks_alone(tmp_path, tagger):
     assert t.state.optimizers["tag"].param_groups[0]["lr"] == 0.01
     assert float(t.state.model.params["tag"].detach().mean()) > 0.0  # pulled towards 1
     assert "tagger_pull" in logs["losses"]
-    assert p.calls["configure_step"] == 40 and p.calls["conditioning"] >= 30 and p.calls["prune_factor"] > 0
+    assert p.calls["before_step"] == 40 and p.calls["conditioning"] >= 30 and p.calls["prune_factor"] > 0
     # its network group follows its own schedule from its delay, not the deformation's
     lrs = {g["name"]: g["lr"] for g in t.state.net_opt.param_groups}
     assert lrs["tagger_net"] == pytest.approx(1e-4 * (1e-2 / 1e-4) ** (1 / 30), rel=1e-6)  # step 39 of 10..40

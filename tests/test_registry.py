@@ -56,7 +56,7 @@ class DriftConfig(BaselineConfig):
 
 
 class Drift(Deformation):
-    takes_conditioning = True  # its cond_head reads STDR's conditioning
+    capabilities = frozenset({"conditioning"})  # its cond_head reads STDR's conditioning
 
     def __init__(self, speed: float = 0.0, cond_dim: int = 0):
         super().__init__()
@@ -156,15 +156,25 @@ def test_registration_is_checked():
         register_baseline("deform", Drift, DriftConfig.__mro__[1])
     with pytest.raises(ValueError, match="not a registered baseline.*register_baseline"):
         get_baseline("nope")
-    # capabilities are declared with booleans, and conditioning needs a config_kwargs that passes it on
-    with pytest.raises(TypeError, match=r"Vague.takes_conditioning must be True or False, got 'yes'"):
-        register_baseline("drift", type("Vague", (Drift,), {"takes_conditioning": "yes"}), DriftConfig)
+    # capabilities are a set of known names, each backed by the hook it needs; conditioning needs a
+    # config_kwargs that passes it on
+    with pytest.raises(TypeError, match=r"Vague.capabilities must be a set of names from .*got 'conditioning'"):
+        register_baseline("drift", type("Vague", (Drift,), {"capabilities": "conditioning"}), DriftConfig)
+    with pytest.raises(TypeError, match=r"Typo.capabilities must be a set of names from .*'conditionning'"):
+        register_baseline("drift", type("Typo", (Drift,), {"capabilities": frozenset({"conditionning"})}), DriftConfig)
+    with pytest.raises(TypeError, match=r"Mixer declares 'mixes_rows' but does not override forward_rows"):
+        register_baseline("drift", type("Mixer", (Drift,), {"capabilities": frozenset({"mixes_rows"})}), DriftConfig)
+    with pytest.raises(TypeError, match=r"Blender overrides forward_rows but does not declare 'mixes_rows'"):
+        register_baseline("drift", type("Blender", (Drift,), {"forward_rows": lambda self, p, t, c, r: None}),
+                          DriftConfig)
+    with pytest.raises(TypeError, match=r"bf16_default must be True or False, got 1"):
+        register_baseline("drift", Drift, DriftConfig, bf16_default=1)
 
     class Deaf(Drift):
         @classmethod
         def config_kwargs(cls, b, train_times=None, seed=0, schedule=None):
             return {"speed": b.drift.speed}
-    with pytest.raises(TypeError, match="Deaf.takes_conditioning is True but its config_kwargs takes no cond_dim"):
+    with pytest.raises(TypeError, match="Deaf declares 'conditioning' but its config_kwargs takes no cond_dim"):
         register_baseline("drift", Deaf, DriftConfig)
     assert "drift" not in BASELINES
 
@@ -181,15 +191,15 @@ def test_a_baseline_that_declares_no_conditioning_gets_no_stdr_experiment():
     assert "mixes_rows" in capabilities(BASELINES["scgs"].module) and "mixes_rows" not in capabilities(Drift)
 
     class Plain(Drift):
-        takes_conditioning = False
+        capabilities = frozenset()
     register_baseline("drift", Plain, DriftConfig, in_grids=True)  # in the grids, to see what they hold of it
     try:
         assert capabilities(Plain) == frozenset()
         assert {e for e in experiment_names() if "drift" in e} == {f"{d}_drift" for d in data_options()}
         assert "dnerf_drift," in experiments_on("dnerf") + "," and "dnerf_drift_stdr" not in experiments_on("dnerf")
         with pytest.raises(ConfigError, match=r"^stdr=on with baseline=drift \(Plain\): stdr needs a baseline with "
-                                              r"the capability 'conditioning'; set stdr=off, or declare "
-                                              r"`takes_conditioning = True` on Plain once its forward takes `cond`"):
+                                              r"the capability 'conditioning'; set stdr=off, or add "
+                                              r"'conditioning' to Plain.capabilities once its forward takes `cond`"):
             check_run_config(make_cfg(["baseline=drift", "stdr=on", "data.path=/x"]))
         check_run_config(make_cfg(["experiment=embedded_drift", "stdr=on", "stdr.separated_field=false"]))
     finally:

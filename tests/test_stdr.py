@@ -18,6 +18,8 @@ from stdr.densify.strategy import DensifyStrategy
 from stdr.store import resolve_schedule
 
 from stdr.testing import TINY_SCENE, make_cfg
+from stdr.baselines.base import deform_gaussians
+from stdr.context import StepContext
 
 
 # ----------------------------------------------------------------------------- the mask maths
@@ -195,9 +197,9 @@ def test_cond_inputs_start_at_zero_weight_so_switching_the_field_on_changes_noth
 def test_delta_scale_zero_means_no_deformation():
     p = init_params(torch.rand(30, 3), sh_degree=1)
     net = DeformMLP(depth=2, width=16, skips=[], head_init_std=None)
-    g = net.deform(p, 0.5, delta_scale=torch.zeros(30, 1))
+    g = deform_gaussians(net, p, 0.5, delta_scale=torch.zeros(30, 1))
     assert torch.equal(g.means, p["means"])
-    moved = net.deform(p, 0.5, delta_scale=torch.ones(30, 1))
+    moved = deform_gaussians(net, p, 0.5, delta_scale=torch.ones(30, 1))
     assert not torch.equal(moved.means, p["means"])
 
 
@@ -397,14 +399,14 @@ def test_freeze_cleanup_switches_off_faint_entries_only():
     with torch.no_grad():  # masked opacity 0.5 * sigmoid(m): faint (<0.02) where m is -5 (0.0033)
         p[MASK_KEY].copy_(torch.tensor([[-5.0, 0.0, 0.0, 0.0, 0.0]] * 2 + [[0.0, -5.0, -2.0, 3.0, 0.0]] * 2))
     before = p[MASK_KEY].detach().clone()
-    s.configure_step(p, s.freeze_at - 1)  # not yet
+    s.before_step(StepContext(s.freeze_at - 1, p))  # not yet
     assert torch.equal(p[MASK_KEY].detach(), before)
-    s.configure_step(p, s.freeze_at)
+    s.before_step(StepContext(s.freeze_at, p))
     m = p[MASK_KEY].detach()
     off = before == -5.0
     assert torch.all(m[off] == -30.0) and torch.equal(m[~off], before[~off])
     assert s.cleaned_entries == int(off.sum()) and not p[MASK_KEY].requires_grad
-    s.configure_step(p, s.freeze_at + 1)  # once
+    s.before_step(StepContext(s.freeze_at + 1, p))  # once
     assert s.cleaned_entries == int(off.sum())
     # the statistic that motivates it: entries with masked opacity in [1/255, 0.05]
     from stdr.plugins.stdr.mask import faint_fraction
@@ -418,11 +420,11 @@ def test_opacity_reset_during_the_warmup_caps_the_masked_opacity_not_the_frozen_
     with torch.no_grad():
         p[MASK_KEY][:3] = 4.0  # masked opacity ~0.97
     o = p["opacities"].detach().clone()
-    assert s.reset_opacity(p, 0.01, step=s.warmup_end - 1)
+    assert s.reset_opacity(StepContext(s.warmup_end - 1, p), 0.01)
     assert torch.equal(p["opacities"].detach(), o)
     eff = torch.sigmoid(p["opacities"])[:, None] * torch.sigmoid(p[MASK_KEY])
     assert eff.max() <= 0.01 + 1e-6
-    assert not s.reset_opacity(p, 0.01, step=s.warmup_end)  # afterwards: the usual reset
+    assert not s.reset_opacity(StepContext(s.warmup_end, p), 0.01)  # afterwards: the usual reset
 
 
 def test_freeze_opacity_false_trains_opacity_in_the_warmup_as_an_empty_warmup_does():
@@ -433,12 +435,12 @@ def test_freeze_opacity_false_trains_opacity_in_the_warmup_as_an_empty_warmup_do
     assert (held.warmup_end, held.freeze_at) == (free.warmup_end, free.freeze_at) == (10, 20)
     p = init_params(torch.rand(6, 3), sh_degree=1, init_opacity=0.1)
     held.init_gaussians(p)
-    held.configure_step(p, 0)
+    held.before_step(StepContext(0, p))
     assert not p["opacities"].requires_grad and p[MASK_KEY].requires_grad
-    free.configure_step(p, 0)
+    free.before_step(StepContext(0, p))
     assert p["opacities"].requires_grad and p[MASK_KEY].requires_grad
-    assert free.phase(0) == Phase.WARMUP and set(free.regularizers(p, 0)) == {"temporal", "spatial"}
-    assert not free.reset_opacity(p, 0.01, step=0)  # opacity trains: the strategy's own reset
+    assert free.phase(0) == Phase.WARMUP and set(free.regularizers(StepContext(0, p))) == {"temporal", "spatial"}
+    assert not free.reset_opacity(StepContext(0, p), 0.01)  # opacity trains: the strategy's own reset
     cfg = make_cfg(["experiment=dnerf_deform_stdr", "data.path=/x"])
     assert "(opacity trains)" in resolve_schedule(cfg).describe()
     cfg.stdr.freeze_opacity = True
@@ -481,9 +483,9 @@ def test_training_loop_hands_the_rendered_conditioning_to_the_deformation_hooks(
     orig_fwd, orig_before, orig_reg = t.state.model.deform.forward, t.state.model.deform.before_step, t.state.model.deform.regularizers
     monkeypatch.setattr(t.state.model.deform, "forward", lambda p, tt, c=None: (seen.__setitem__("fwd", c), orig_fwd(p, tt, c))[1])
     monkeypatch.setattr(t.state.model.deform, "before_step",
-                        lambda p, s, c=None: (seen.__setitem__("before", c), orig_before(p, s, c))[1])
+                        lambda ctx: (seen.__setitem__("before", ctx.cond), orig_before(ctx))[1])
     monkeypatch.setattr(t.state.model.deform, "regularizers",
-                        lambda p, tt, s, c=None: (seen.__setitem__("reg", c), orig_reg(p, tt, s, c))[1])
+                        lambda ctx: (seen.__setitem__("reg", ctx.cond), orig_reg(ctx))[1])
     while t.step <= t.state.model.plugin("stdr").freeze_at:
         t.train_step()
     assert seen["fwd"] is seen["before"] is seen["reg"]
@@ -578,29 +580,29 @@ def test_conditioning_is_computed_once_outside_training_and_follows_every_change
 
     def fresh():
         st._cond_cache = None
-        return st.conditioning(params, step)[0]
+        return st.conditioning_at(params, step)[0]
     with torch.no_grad():
-        a = st.conditioning(params, step)[0]
-        assert st.conditioning(params, step)[0] is a  # reused
+        a = st.conditioning_at(params, step)[0]
+        assert st.conditioning_at(params, step)[0] is a  # reused
         assert torch.equal(a, fresh())
         for change in (lambda: params["stdr_mask"][:, 0].add_(2.0),  # the mask
                        lambda: params["means"].add_(0.1),        # the xyz encoding's input (xyz_freqs=2)
                        lambda: st.field.shared[0].weight.mul_(1.5)):
-            before = st.conditioning(params, step)[0]
+            before = st.conditioning_at(params, step)[0]
             change()
-            after = st.conditioning(params, step)[0]
+            after = st.conditioning_at(params, step)[0]
             assert after is not before and not torch.equal(after, before)
             assert torch.equal(after, fresh())
         # without the xyz encoding the means are no input: moving them keeps the result
         st_plain = _plugin()
         st_plain.init_gaussians(params)
         st_plain.field.eval()
-        c = st_plain.conditioning(params, step)[0]
+        c = st_plain.conditioning_at(params, step)[0]
         params["means"].add_(0.1)
-        assert st_plain.conditioning(params, step)[0] is c
+        assert st_plain.conditioning_at(params, step)[0] is c
     # in training (the field trains after the freeze) nothing is reused
     st.field.train()
-    x, y = st.conditioning(params, step)[0], st.conditioning(params, step)[0]
+    x, y = st.conditioning_at(params, step)[0], st.conditioning_at(params, step)[0]
     assert x is not y and x.requires_grad
 
 

@@ -8,7 +8,7 @@ The baselines differ in that rule, so it is explicit, never unified silently:
   normalize(q) + dq (the rasterizer normalizes again).
 - 4DGaussians (`4dgs`): added *before* activation - log s + ds, q + dq, then activations.
 - SC-GS blends control-node transforms and SP-GS applies a rigid SO(3) + translation per
-  superpoint; those modules override `apply` with their own rule.
+  superpoint into translations and rotations, then the post-activation rule.
 """
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ from ..errors import ConfigError
 from .. import device as devices  # module attribute: cpu_bf16_flags is looked up at call time
 from ..ops import RowView, rows_of, sigmoid
 from ..gaussians import Gaussians
+from ..context import StepContext
 
 
 #: the static warm-up's share of the run when no budget file sets baseline.warmup: Deformable
@@ -91,7 +92,7 @@ class BaselineConfig:
     lr_from_warmup: bool = False    # the network's lr schedule starts at the warm-up's end (4DGS restarts it)
     # the network's arithmetic: "fp32"; "bf16" (autocast: matrix products in bfloat16 with fp32
     # accumulation, deltas returned in fp32); or "auto": bf16 on a CPU with AVX512-BF16 or AMX for a
-    # baseline whose bf16 training passed its speed and val checks (Deformation.bf16_default),
+    # baseline whose bf16 training passed its speed and val checks (register_baseline(..., bf16_default=True)),
     # fp32 elsewhere (CUDA included, until bf16 is verified on a GPU). A run records the precision
     # it chose in config.yaml and metrics.json; docs/performance.md has the rule and measurements
     precision: str = "auto"
@@ -151,41 +152,46 @@ def apply_pre_activation(params, d: Deltas) -> Gaussians:
 
 
 class Deformation(nn.Module):
-    """Base class. Subclasses implement `forward` and set `apply_rule` (or override `apply`).
+    """Base class. A minimal baseline implements `config_kwargs` and `forward` (and its
+    constructor); everything else is optional, with defaults.
 
-    Hooks the one training loop calls (all optional; the defaults do nothing):
-    - `gaussian_params(n)`: per-Gaussian tensors the method adds to the parameter dict (SC-GS's
-      hyper-coordinates, SP-GS's association logits), so densification keeps them aligned;
-      `gaussian_lr(key)` gives their learning rates.
-    - `setup(params, train_times)`: once the Gaussians exist (4DGS's bounds from the points).
-    - `before_step(params, step, cond)`: every training step (SP-GS refreshes superpoint
-      centres, SC-GS switches from its node stage to skinning).
-    - `regularizers(params, t, step, cond)`: named loss terms, already weighted, added after the
-      static warm-up.
-    Both get the step's conditioning `cond` [N, cond_dim] (or None), the same tensor the render
-    uses, so a hook that evaluates the network (SC-GS's node resampling and ARAP) evaluates the
-    deformation that is rendered.
-    - `param_groups()`: network parameter groups with an lr multiplier each (4DGS's grid).
+    Declared (class attributes, checked at registration):
+    - `capabilities`: what the module can do, by the names a plug-in's `requires` uses
+      (stdr.registries.CAPABILITY_NAMES): "conditioning" (its forward takes a plug-in's
+      per-Gaussian `cond`: config_kwargs passes cond_dim to it and it sets self.cond_dim),
+      "opacity_deltas" (its deltas change opacity: temporal culling is then off for it),
+      "mixes_rows" (a Gaussian's deltas depend on other Gaussians: it overrides `forward_rows`).
+    - `apply_rule`: how deltas are applied (apply_post_activation or apply_pre_activation).
+
+    Hooks the one training loop calls (all optional; the defaults do nothing), each training
+    hook with the step's one context (stdr.context.StepContext: step, phase, time, camera, params,
+    the conditioning `cond` the render uses, the deformed Gaussians and the render):
+    - `init_gaussians(params)`: once the Gaussians exist, per-Gaussian tensors the module adds to
+      the parameter dict (SC-GS's hyper-coordinates, SP-GS's association logits: densification
+      keeps them aligned) and what it derives from them (4DGS's bounds).
+    - `param_groups()`: network parameter groups with an lr multiplier each (4DGS's grid), and
+      the learning rate of each per-Gaussian tensor it added ({"key": ..., "lr": ...}).
+    - `before_step(ctx)`: every training step (SP-GS refreshes superpoint centres, SC-GS
+      switches from its node stage to skinning).
+    - `regularizers(ctx)`: named loss terms, already weighted, added after the static warm-up.
     - `stages(b)` (a classmethod, from the baseline config alone): the module's own events
       [(step, config key, what happens)] and switch windows [(name, first, last)] in which it
       changes its structure (SC-GS: node resampling and the detached steps after it); they go
       into the run's one schedule (stdr.schedule), which keeps STDR's freeze out of a window.
+    - `forward_rows(params, t, cond, rows)`: the deltas of some rows alone (temporal culling).
+    - `compile_network()`: baseline.compile=true.
+
+    A built module has `cond_dim` (the conditioning width it was built for, 0 = none) and
+    `precision` ("fp32" or "bf16": the arithmetic of its deltas, set by `from_config`).
     """
 
-    #: width of the per-Gaussian conditioning input this module was built for (0 = none)
-    cond_dim: int = 0
-    #: capability (stdr.baselines.registry.CAPABILITIES, "conditioning"): the module takes a
-    #: plug-in's per-Gaussian conditioning (STDR's separated field): config_kwargs passes cond_dim
-    #: to it, it sets self.cond_dim and its forward uses `cond`. A plug-in that needs it (stdr) is
-    #: derived, put in grids and allowed only for a baseline that declares it
-    takes_conditioning: bool = False
-    #: "fp32" or "bf16" (baseline.precision): the arithmetic of `deltas` ("auto" until the model
-    #: is built on its device: `choose_precision`; unresolved it computes in fp32)
-    precision: str = "fp32"
-    #: whether baseline.precision=auto trains this module in bf16 on a CPU with bf16 matrix
-    #: instructions: set only where bf16 training is faster and passed the val rule, plain and with
-    #: each built-in plug-in (docs/performance.md, "bf16 by default")
-    bf16_default: bool = False
+    capabilities: frozenset = frozenset()
+    apply_rule = staticmethod(apply_post_activation)
+
+    def __init__(self):
+        super().__init__()
+        self.cond_dim = 0  # a module built for a conditioning sets its width after this
+        self.precision = "fp32"
 
     @classmethod
     def config_kwargs(cls, b: Any, cond_dim: int = 0, train_times: Optional[np.ndarray] = None, seed: int = 0,
@@ -213,7 +219,7 @@ class Deformation(nn.Module):
                 f"baseline {name} ({cls.__name__}) was built for per-Gaussian conditioning of width {module.cond_dim}, "
                 f"but the plug-ins on feed {cond_dim} (STDR's separated field): its config_kwargs must pass cond_dim "
                 "to the module, which sets self.cond_dim and takes `cond` in forward (the capability "
-                f"{cls.__name__}.takes_conditioning declares); or train it without those plug-ins (stdr=off)")
+                f"'conditioning' in {cls.__name__}.capabilities declares); or train it without those plug-ins (stdr=off)")
         module.precision = check_precision(getattr(b, "precision", "fp32"))
         if getattr(b, "compile", False):
             module.compile_network()
@@ -225,87 +231,75 @@ class Deformation(nn.Module):
         raise ValueError(f"baseline.compile=true: the {getattr(self, 'name', type(self).__name__)} deformation "
                          f"({type(self).__name__}) has no torch.compile form; set baseline.compile=false")
 
-    def gaussian_params(self, n: int) -> dict[str, Tensor]:
-        return {}
+    def init_gaussians(self, params) -> None:
+        """Once the Gaussians exist (`params` holds them): add the per-Gaussian tensors this module
+        owns that are not in it yet, and set up what the module derives from the Gaussians."""
 
-    def gaussian_lr(self, key: str) -> Optional[float]:
-        return None
+    def param_groups(self) -> list[dict]:
+        """Network groups {"params", "name", "lr_mult"} (on the baseline's schedule times lr_mult),
+        and one {"key", "lr"} per per-Gaussian tensor the module adds (a constant rate, not
+        scaled by optim.spatial_lr_scale)."""
+        return [{"params": list(self.parameters()), "name": "deform", "lr_mult": 1.0}]
 
-    def setup(self, params, train_times: Optional[Tensor]) -> None:
+    def before_step(self, ctx: StepContext) -> None:
         pass
 
-    def before_step(self, params, step: int, cond: Optional[Tensor] = None) -> None:
-        pass
-
-    def regularizers(self, params, t: float, step: int, cond: Optional[Tensor] = None) -> dict[str, Tensor]:
+    def regularizers(self, ctx: StepContext) -> dict[str, Tensor]:
         return {}
 
     @classmethod
     def stages(cls, b) -> tuple[list[tuple[int, str, str]], list[tuple[str, int, int]]]:
         return [], []
 
-    def param_groups(self) -> list[dict]:
-        return [{"params": list(self.parameters()), "name": "deform", "lr_mult": 1.0}]
-
     def forward(self, params, t: float, cond: Optional[Tensor] = None) -> Deltas:  # pragma: no cover
         raise NotImplementedError
-
-    def apply(self, params, deltas: Deltas) -> Gaussians:
-        return type(self).apply_rule(params, deltas)
-
-    apply_rule = staticmethod(apply_post_activation)
-
-    #: whether `apply` leaves the activated opacity at sigmoid(params["opacities"]) (no opacity
-    #: deltas): then a Gaussian's opacity at time t is known before the network runs, and
-    #: temporal culling (render.cull) may skip rows that cannot reach 1/255. A module with
-    #: opacity deltas sets it False, and culling is off for it.
-    canonical_opacity: bool = True
 
     def forward_rows(self, params, t: float, cond: Optional[Tensor], rows: Tensor) -> Deltas:
         """Deltas [M] of the Gaussians `rows` [M] alone (temporal culling). The default runs
         `forward` on those rows, right for modules whose deltas are per Gaussian (deform, 4dgs);
         modules with a part shared by all Gaussians (SC-GS's node conditioning, SP-GS's
         superpoints) compute that part from every row, so the kept rows' deltas are those of
-        the full call."""
+        the full call, and declare "mixes_rows"."""
         return self.forward(RowView(params, rows), t, rows_of(cond, rows))
 
-    def deltas(self, params, t: float, cond: Optional[Tensor] = None, rows: Optional[Tensor] = None) -> Deltas:
-        """Deltas [N] (or [M] of `rows`) in fp32, computed in `precision`: every render path
-        (`deform`, `deform_rows`, the model's static rows) calls the network through this."""
-        def run() -> Deltas:
-            return self.forward(params, t, cond) if rows is None else self.forward_rows(params, t, cond, rows)
-        if self.precision != "bf16":
-            return run()
-        with torch.autocast(device_type=params["means"].device.type, dtype=torch.bfloat16):
-            d = run()
-        return Deltas(**{k: None if v is None else v.float() for k, v in vars(d).items()})
 
-    def deform_rows(self, params, t: float, cond: Optional[Tensor] = None,
-                    delta_scale: Optional[Tensor] = None, rows: Optional[Tensor] = None) -> Gaussians:
-        """`deform` for the Gaussians `rows` [M] only (all when None): Gaussians [M], equal to
-        rows of the full call (up to float rounding of batched kernels); gradients reach only
-        those rows."""
-        if rows is None:
-            return self.deform(params, t, cond, delta_scale)
-        n = params["means"].shape[0]
-        if cond is not None and cond.shape != (n, self.cond_dim):
-            raise ValueError(f"conditioning must be [N, {self.cond_dim}], got {tuple(cond.shape)}")
-        d = self.deltas(params, t, cond, rows)
-        return self.apply(RowView(params, rows), _scaled(d, rows_of(delta_scale, rows), rows.shape[0]))
+def canonical_opacity(module: Deformation) -> bool:
+    """Whether the module leaves the activated opacity at sigmoid(params["opacities"]) (no
+    "opacity_deltas"): then a Gaussian's opacity at time t is known before the network runs, and
+    temporal culling (render.cull) may skip rows that cannot reach 1/255."""
+    return "opacity_deltas" not in module.capabilities
 
-    def deform(self, params, t: float, cond: Optional[Tensor] = None,
-               delta_scale: Optional[Tensor] = None) -> Gaussians:
-        """Deformed, activated Gaussians at time t.
 
-        cond [N, cond_dim]: per-Gaussian conditioning (STDR's separated field).
-        delta_scale [N, 1]: every delta is multiplied by it before it is applied (STDR's dynamic
-        probability, when stdr.scale_deltas_by_dynamic is on).
-        """
-        n = params["means"].shape[0]
-        if cond is not None and cond.shape != (n, self.cond_dim):
-            raise ValueError(f"conditioning must be [N, {self.cond_dim}], got {tuple(cond.shape)}")
-        d = self.deltas(params, t, cond)
-        return self.apply(params, _scaled(d, delta_scale, n))
+def network_deltas(module: Deformation, params, t: float, cond: Optional[Tensor] = None,
+                   rows: Optional[Tensor] = None) -> Deltas:
+    """Deltas [N] (or [M] of `rows`) in fp32, computed in the module's `precision`: every render
+    path (`deform_gaussians`, the model's static rows) calls the network through this."""
+    def run() -> Deltas:
+        return module.forward(params, t, cond) if rows is None else module.forward_rows(params, t, cond, rows)
+    if module.precision != "bf16":
+        return run()
+    with torch.autocast(device_type=params["means"].device.type, dtype=torch.bfloat16):
+        d = run()
+    return Deltas(**{k: None if v is None else v.float() for k, v in vars(d).items()})
+
+
+def deform_gaussians(module: Deformation, params, t: float, cond: Optional[Tensor] = None,
+                     delta_scale: Optional[Tensor] = None, rows: Optional[Tensor] = None) -> Gaussians:
+    """Deformed, activated Gaussians at time t: all of them, or the rows `rows` [M] alone
+    (Gaussians [M], equal to those rows of the full call up to float rounding of batched
+    kernels; gradients reach only those rows).
+
+    cond [N, cond_dim]: per-Gaussian conditioning (STDR's separated field).
+    delta_scale [N, 1]: every delta is multiplied by it before it is applied (STDR's dynamic
+    probability, when stdr.scale_deltas_by_dynamic is on).
+    """
+    n = params["means"].shape[0]
+    if cond is not None and cond.shape != (n, module.cond_dim):
+        raise ValueError(f"conditioning must be [N, {module.cond_dim}], got {tuple(cond.shape)}")
+    d = network_deltas(module, params, t, cond, rows)
+    if rows is None:
+        return module.apply_rule(params, _scaled(d, delta_scale, n))
+    return module.apply_rule(RowView(params, rows), _scaled(d, rows_of(delta_scale, rows), rows.shape[0]))
 
 
 PRECISIONS = ("fp32", "bf16")
@@ -317,14 +311,14 @@ def check_precision(p: str) -> str:
     return p
 
 
-def choose_precision(requested: str, module: type, device: torch.device, cpu_flags=None,
-                     name: Optional[str] = None) -> tuple[str, str]:
-    """(precision, why) of a run: `requested` is baseline.precision, `module` the baseline's
-    Deformation class, `device` the run's. `auto` is bf16 on a CPU with bf16 matrix instructions
-    (stdr.device.cpu_bf16_flags, or `cpu_flags`) for a module with `bf16_default`, fp32 otherwise;
-    `why` is one line that says which and why (empty for an explicit fp32)."""
+def choose_precision(requested: str, bf16_default: bool, device: torch.device, cpu_flags=None,
+                     name: str = "this baseline") -> tuple[str, str]:
+    """(precision, why) of a run: `requested` is baseline.precision, `bf16_default` the
+    baseline's registration (BaselineSpec.bf16_default: its bf16 training was verified), `device`
+    the run's. `auto` is bf16 on a CPU with bf16 matrix instructions (stdr.device.cpu_bf16_flags,
+    or `cpu_flags`) for a baseline with `bf16_default`, fp32 otherwise; `why` is one line that says
+    which and why (empty for an explicit fp32)."""
     check_precision(requested)
-    name = name or module.__name__
     flags = devices.cpu_bf16_flags() if cpu_flags is None and device.type == "cpu" else tuple(cpu_flags or ())
     if requested == "fp32":
         return "fp32", ""
@@ -338,7 +332,7 @@ def choose_precision(requested: str, module: type, device: torch.device, cpu_fla
                         "baseline.precision=bf16 to try it)")
     if not flags:
         return "fp32", "baseline.precision=auto: fp32 (this CPU has no AVX512-BF16 or AMX)"
-    if not module.bf16_default:
+    if not bf16_default:
         return "fp32", (f"baseline.precision=auto: fp32 ({name} is not among the baselines whose bf16 training is "
                         "faster and passed the val check; docs/performance.md, 'bf16 by default')")
     return "bf16", f"baseline.precision=auto: bf16 (this CPU has {', '.join(flags).upper()}; {name} verified in bf16)"

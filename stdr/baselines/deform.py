@@ -35,12 +35,7 @@ class DeformMLP(Deformation):
     identity, which short schedules need.
     """
 
-    takes_conditioning = True  # STDR's separated field feeds its network
-    # bf16 on a CPU with bf16 matrix instructions passed its checks: its step 1.66x faster, mean val
-    # delta PSNR +0.050 / +0.073 dB (plain / +STDR) at budget=cpu over 8 pairs and -0.069 / +0.271 at
-    # cpu_long over 2 (research/measurements/precision_val; docs/performance.md, "bf16 by default")
-    bf16_default = True
-
+    capabilities = frozenset({"conditioning"})  # STDR's separated field feeds its network
     apply_rule = staticmethod(apply_post_activation)
 
     @classmethod
@@ -137,4 +132,7 @@ class DeformMLP(Deformation):
         return h
 
 
-register_baseline("deform", DeformMLP, DeformConfig, in_grids=True)
+# bf16 on a CPU with bf16 matrix instructions passed its checks: its step 1.66x faster, mean val
+# delta PSNR +0.050 / +0.073 dB (plain / +STDR) at budget=cpu over 8 pairs and -0.069 / +0.271 at
+# cpu_long over 2 (research/measurements/precision_val; docs/performance.md, "bf16 by default")
+register_baseline("deform", DeformMLP, DeformConfig, in_grids=True, bf16_default=True)

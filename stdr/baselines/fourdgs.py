@@ -23,6 +23,7 @@ from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
 from .. import extension
+from ..context import StepContext
 from .base import BaselineConfig, Deformation, Deltas, apply_pre_activation
 from .registry import register_baseline
 
@@ -296,7 +297,7 @@ class HexPlaneDeformation(Deformation):
     ReLU-Linear-ReLU-Linear) giving dxyz, dlog-scale, dquat. STDR's conditioning enters the
     decoder input (zero-initialized columns)."""
 
-    takes_conditioning = True  # STDR's separated field feeds its network
+    capabilities = frozenset({"conditioning"})  # STDR's separated field feeds its network
 
     apply_rule = staticmethod(apply_pre_activation)
 
@@ -334,7 +335,8 @@ class HexPlaneDeformation(Deformation):
                 nn.init.normal_(h[-1].weight, std=head_init_std)
                 nn.init.zeros_(h[-1].bias)
 
-    def setup(self, params, train_times: Optional[Tensor]) -> None:
+    def init_gaussians(self, params) -> None:
+        """The grid's bounds from the Gaussians' means."""
         if params is not None and "means" in params and params["means"].shape[0] > 0:
             self.grid.set_bounds(params["means"].detach())
 
@@ -354,7 +356,7 @@ class HexPlaneDeformation(Deformation):
         h = self.feature_out(h)
         return Deltas(means=self.head_xyz(h), scales=self.head_scale(h), quats=self.head_rot(h))
 
-    def regularizers(self, params, t: float, step: int, cond: Optional[Tensor] = None) -> dict[str, Tensor]:
+    def regularizers(self, ctx: StepContext) -> dict[str, Tensor]:
         return {f"hexplane_{k}": self.weights[k] * v for k, v in self.grid.regularizers().items()
                 if self.weights.get(k, 0.0) > 0}
 

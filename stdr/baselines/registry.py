@@ -8,6 +8,7 @@ Adding a baseline is one module and one config (docs/baselines.md, "Adding a bas
         ...
 
     class MyDeformation(Deformation):
+        capabilities = frozenset({"conditioning"})  # optional: what it can do
         @classmethod
         def config_kwargs(cls, b, cond_dim=0, train_times=None, seed=0, schedule=None): ...
         def forward(self, params, t, cond=None): ...
@@ -37,6 +38,14 @@ class BaselineSpec:
     module: type       # a Deformation subclass
     config: type       # a BaselineConfig subclass whose `name` default is `name`
     in_grids: bool = False  # whether the default grids (${stdr_experiments:<data>}) include it
+    #: whether baseline.precision=auto trains it in bf16 on a CPU with bf16 matrix instructions: set
+    #: only where its bf16 training is faster and passed the val rule, plain and with each built-in
+    #: plug-in (docs/performance.md, "bf16 by default")
+    bf16_default: bool = False
+
+    @property
+    def capabilities(self) -> frozenset[str]:
+        return capabilities(self.module)
 
 
 #: every baseline by name (stdr.registries.Registry; the entry-point group `stdr.baselines`)
@@ -45,50 +54,59 @@ BASELINES: Registry[BaselineSpec] = Registry(
     owner=lambda spec: spec.module)
 
 
-#: what a baseline can do, by the names a plug-in's `requires` uses, each read from the module class:
-#: "conditioning" - it takes a plug-in's per-Gaussian conditioning (Deformation.takes_conditioning);
-#: "opacity_deltas" - its deltas change opacity (Deformation.canonical_opacity is False);
+#: what a baseline can do (Deformation.capabilities), by the names a plug-in's `requires` uses:
+#: "conditioning" - it takes a plug-in's per-Gaussian conditioning;
+#: "opacity_deltas" - its deltas change opacity;
 #: "mixes_rows" - a Gaussian's deltas depend on other Gaussians (it overrides forward_rows)
-CAPABILITIES = {
-    "conditioning": lambda m: m.takes_conditioning,
-    "opacity_deltas": lambda m: not m.canonical_opacity,
-    "mixes_rows": lambda m: m.forward_rows is not Deformation.forward_rows,
-}
-assert tuple(CAPABILITIES) == CAPABILITY_NAMES  # the names plug-ins require (stdr.registries)
-#: the class attributes that declare capabilities (booleans, checked at registration)
-DECLARED = ("takes_conditioning", "canonical_opacity")
+CAPABILITIES = CAPABILITY_NAMES
 
 
 def capabilities(module: type) -> frozenset[str]:
-    """The capabilities (CAPABILITIES) a Deformation subclass declares."""
-    return frozenset(c for c, has in CAPABILITIES.items() if has(module))
+    """The capabilities a Deformation subclass declares."""
+    return frozenset(module.capabilities)
 
 
-def register_baseline(name: str, module: type, config: type, in_grids: bool = False) -> BaselineSpec:
+def check_capabilities(name: str, module: type) -> None:
+    """A module's `capabilities`: a set of known names, each backed by what it needs (a
+    TypeError naming the class and the hook to fix)."""
+    caps = module.capabilities
+    if isinstance(caps, str) or not isinstance(caps, (frozenset, set, tuple, list)) \
+            or any(c not in CAPABILITY_NAMES for c in caps):
+        raise TypeError(f"register_baseline({name!r}): {module.__name__}.capabilities must be a set of names from "
+                        f"{CAPABILITY_NAMES}, got {caps!r} (docs/baselines.md, \"Capabilities\")")
+    if "conditioning" in caps and "cond_dim" not in inspect.signature(module.config_kwargs).parameters:
+        raise TypeError(f"register_baseline({name!r}): {module.__name__} declares 'conditioning' but its "
+                        "config_kwargs takes no cond_dim to pass on: implement config_kwargs(b, cond_dim, ...)")
+    overrides = module.forward_rows is not Deformation.forward_rows
+    if overrides != ("mixes_rows" in caps):
+        raise TypeError(f"register_baseline({name!r}): {module.__name__} " + (
+            "overrides forward_rows but does not declare 'mixes_rows' in its capabilities: add it (a Gaussian's "
+            "deltas depend on other rows)" if overrides else
+            "declares 'mixes_rows' but does not override forward_rows: implement forward_rows(params, t, cond, rows)"))
+
+
+def register_baseline(name: str, module: type, config: type, in_grids: bool = False,
+                      bf16_default: bool = False) -> BaselineSpec:
     """Add a baseline. `config` must subclass BaselineConfig and default `name` to `name`;
-    `module` must subclass Deformation and implement `config_kwargs`; its capabilities
-    (CAPABILITIES) are declared by class attributes (DECLARED) that must be booleans.
-    `in_grids`: whether the default grids (`${stdr_experiments:<data>}`: the dnerf_grid and
-    stability sweeps) include it; the built-ins do, and a baseline from another package does not
-    unless it says so, so installing one changes no grid a study has run."""
-    if not isinstance(in_grids, bool):
-        raise TypeError(f"register_baseline({name!r}): in_grids must be True or False, got {in_grids!r}")
+    `module` must subclass Deformation and implement `config_kwargs`; its `capabilities`
+    (CAPABILITY_NAMES) are checked here. `in_grids`: whether the default grids
+    (`${stdr_experiments:<data>}`: the dnerf_grid and stability sweeps) include it; the built-ins
+    do, and a baseline from another package does not unless it says so, so installing one changes
+    no grid a study has run. `bf16_default`: baseline.precision=auto trains it in bf16 on a CPU
+    with bf16 matrix instructions (only where that was verified: docs/performance.md)."""
+    for key, v in (("in_grids", in_grids), ("bf16_default", bf16_default)):
+        if not isinstance(v, bool):
+            raise TypeError(f"register_baseline({name!r}): {key} must be True or False, got {v!r}")
     if not (isinstance(module, type) and issubclass(module, Deformation)):
         raise TypeError(f"register_baseline({name!r}): module must be a Deformation subclass, got {module!r}")
-    for attr in DECLARED:
-        if not isinstance(getattr(module, attr), bool):
-            raise TypeError(f"register_baseline({name!r}): {module.__name__}.{attr} must be True or False, got "
-                            f"{getattr(module, attr)!r} (docs/baselines.md, \"Capabilities\")")
-    if module.takes_conditioning and "cond_dim" not in inspect.signature(module.config_kwargs).parameters:
-        raise TypeError(f"register_baseline({name!r}): {module.__name__}.takes_conditioning is True but its "
-                        "config_kwargs takes no cond_dim to pass on: implement config_kwargs(b, cond_dim, ...)")
+    check_capabilities(name, module)
     if not (dataclasses.is_dataclass(config) and issubclass(config, BaselineConfig)):
         raise TypeError(f"register_baseline({name!r}): config must be a dataclass subclassing BaselineConfig, "
                         f"got {config!r}")
     if config().name != name:
         raise ValueError(f"register_baseline({name!r}): {config.__name__}.name defaults to {config().name!r}; "
                          f"set `name: str = {name!r}`")
-    return BASELINES.add(name, BaselineSpec(name, module, config, in_grids))
+    return BASELINES.add(name, BaselineSpec(name, module, config, in_grids, bf16_default))
 
 
 def unregister_baseline(name: str) -> None:

@@ -32,6 +32,7 @@ from .deform import DeformMLP
 from .registry import register_baseline
 from ..geometry import farthest_point_sampling, quat_to_rotmat
 from ..gaussians import Gaussians
+from ..context import StepContext
 
 FEATURE_KEY = "scgs_feature"
 
@@ -109,7 +110,8 @@ def log_interp_schedule(step: int, steps: Sequence[int], values: Sequence[float]
 
 
 class ControlNodeDeformation(Deformation):
-    takes_conditioning = True  # STDR's separated field feeds its network
+    # STDR's separated field feeds its network; the node conditioning blends every Gaussian's
+    capabilities = frozenset({"conditioning", "mixes_rows"})
 
     def __init__(self, num_nodes: int = 512, hyper_dim: int = 8, knn_k: int = 3, start_step: int = 2000,
                  node_stage_end: int = 10000, main_warmup: int = 3000, trajectory_samples: int = 16,
@@ -167,11 +169,14 @@ class ControlNodeDeformation(Deformation):
         """baseline.compile=true: the MLP trunk through torch.compile (DeformMLP.compile_network)."""
         self.net.compile_network()
 
-    def gaussian_params(self, n: int) -> dict[str, Tensor]:
-        return {FEATURE_KEY: torch.full((n, self.hyper_dim), -1e-2)}
+    def init_gaussians(self, params) -> None:
+        """The hyper-coordinates [N, hyper_dim] (lr baseline.scgs.feature_lr), where absent."""
+        if FEATURE_KEY not in params:
+            n = params["means"].shape[0]
+            params[FEATURE_KEY] = nn.Parameter(torch.full((n, self.hyper_dim), -1e-2).to(params["means"].device))
 
-    def gaussian_lr(self, key: str) -> Optional[float]:
-        return self.feature_lr if key == FEATURE_KEY else None
+    def param_groups(self) -> list[dict]:
+        return [*super().param_groups(), {"key": FEATURE_KEY, "lr": self.feature_lr}]
 
     # -------------------------------------------------------------- node MLP
     def node_deltas(self, xyz: Tensor, t: float, cond: Optional[Tensor] = None) -> tuple[Tensor, Tensor, Tensor]:
@@ -206,7 +211,8 @@ class ControlNodeDeformation(Deformation):
         self.node_log_radius.copy_(torch.log(d2.mean(1).sqrt().clamp_min(1e-6)))
         self.node_weight.zero_()
 
-    def before_step(self, params, step: int, cond: Optional[Tensor] = None) -> None:
+    def before_step(self, ctx: StepContext) -> None:
+        params, step, cond = ctx.params, ctx.step, ctx.cond
         if step < self.start_step:
             set_flag(self, "stage", 0)
         elif step < self.node_stage_end:
@@ -269,7 +275,7 @@ class ControlNodeDeformation(Deformation):
         wsc = (w[..., None] * take_rows(ds, idx)).sum(1)
         return Deltas(means=x_t - x, quats=wq, scales=wsc)
 
-    def apply(self, params, d: Deltas):
+    def apply_rule(self, params, d: Deltas):
         """Node stage: isotropic, unrotated Gaussians moved by dxyz. Skinning: dxyz added to the
         means, the blended dq added to the *raw* quaternion, ds after activation (SC-GS)."""
         sh = torch.cat([params["sh0"], params["shN"]], 1)
@@ -283,9 +289,10 @@ class ControlNodeDeformation(Deformation):
         s = torch.exp(params["scales"]) + (0 if d.scales is None else d.scales)
         return Gaussians(means=params["means"] + d.means, quats=q, scales=s, opacities=op, sh=sh)
 
-    def regularizers(self, params, t: float, step: int, cond: Optional[Tensor] = None) -> dict[str, Tensor]:
+    def regularizers(self, ctx: StepContext) -> dict[str, Tensor]:
         """ARAP between the nodes at two nearby times, under the node conditioning the render uses
-        (zeros when cond is None)."""
+        (zeros when ctx.cond is None)."""
+        params, step, cond = ctx.params, ctx.step, ctx.cond
         if flag_value(self, "stage") != 2 or getattr(self, "_detach", False):
             return {}
         lam = log_interp_schedule(step - self.node_stage_end, self.arap_steps, self.arap_weights)

@@ -21,6 +21,7 @@ from torch import Tensor, nn
 
 from ..ops import rows_of, scatter_mean, take_rows
 from ..knn import knn
+from ..context import StepContext
 from .base import (BaselineConfig, Deformation, Deltas, apply_post_activation, flag_value, mlp_kwargs, set_flag,
                    stage_start)
 from .deform import DeformMLP
@@ -55,7 +56,8 @@ class SpgsBaselineConfig(BaselineConfig):
 
 
 class SuperpointDeformation(Deformation):
-    takes_conditioning = True  # STDR's separated field feeds its network
+    # STDR's separated field feeds its network; the superpoints' conditioning blends every Gaussian's
+    capabilities = frozenset({"conditioning", "mixes_rows"})
 
     apply_rule = staticmethod(apply_post_activation)
 
@@ -92,11 +94,14 @@ class SuperpointDeformation(Deformation):
         """baseline.compile=true: the MLP trunk through torch.compile (DeformMLP.compile_network)."""
         self.net.compile_network()
 
-    def gaussian_params(self, n: int) -> dict[str, Tensor]:
-        return {ASSOC_KEY: torch.zeros(n, self.m)}
+    def init_gaussians(self, params) -> None:
+        """The association logits [N, num_superpoints] (lr baseline.spgs.assoc_lr), where absent."""
+        if ASSOC_KEY not in params:
+            n = params["means"].shape[0]
+            params[ASSOC_KEY] = nn.Parameter(torch.zeros(n, self.m).to(params["means"].device))
 
-    def gaussian_lr(self, key: str) -> Optional[float]:
-        return self.assoc_lr if key == ASSOC_KEY else None
+    def param_groups(self) -> list[dict]:
+        return [*super().param_groups(), {"key": ASSOC_KEY, "lr": self.assoc_lr}]
 
     @classmethod
     def stages(cls, b):
@@ -136,7 +141,8 @@ class SuperpointDeformation(Deformation):
         hard = idx.gather(1, G.detach().argmax(-1, keepdim=True))[:, 0]
         return idx, G, hard
 
-    def before_step(self, params, step: int, cond: Optional[Tensor] = None) -> None:
+    def before_step(self, ctx: StepContext) -> None:
+        params, step = ctx.params, ctx.step
         if step < self.start_step:
             return
         if not flag_value(self, "ready"):
@@ -183,13 +189,13 @@ class SuperpointDeformation(Deformation):
         # expressed as post-activation deltas so that every baseline shares the apply rule
         return Deltas(means=x_t - x, quats=q_t - qn)
 
-    def regularizers(self, params, t: float, step: int, cond: Optional[Tensor] = None) -> dict[str, Tensor]:
+    def regularizers(self, ctx: StepContext) -> dict[str, Tensor]:
         """Property reconstruction (SP-GS): a Gaussian's position, and its superpoint's rotation
         and translation, should equal their soft-assignment blends over its K superpoints."""
         if not self._last:
             return {}
         idx, G, hard, d, w = (self._last[k] for k in ("idx", "G", "hard", "d", "w"))
-        x = params["means"].detach()
+        x = ctx.params["means"].detach()
         blend = lambda v: (G[..., None] * take_rows(v, idx)).sum(1)  # noqa: E731
         terms = {"xyz": (x - blend(self.centers)).square().sum(-1).mean(),
                  "rot": (take_rows(w, hard) - blend(w)).square().sum(-1).mean(),

@@ -23,6 +23,7 @@ import torch
 
 from ..device import MEMORY_CONVENTION, synchronize
 from ..model import model_bytes
+from ..plugins import Reporting
 from ..metrics import psnr, ssim
 from ..render import use_compiled_projection
 from .lpips import LPIPS, fetch_weights
@@ -368,8 +369,8 @@ def write_metrics(run_dir: Path, split: str, res: dict[str, Any], model, eval_cf
                 "data": data_meta,  # how the scene was read (split, scale, intrinsics, ...)
                 "code": code_version()})  # the checkout that wrote this entry
     res["model_mb"] = model_bytes(model) / 2 ** 20
-    for p in model.plugins:
-        res[p.name] = p.stats(model.params)
+    for p in model.plugins:  # (every plug-in's name is in it: {} for one without the Reporting role)
+        res[p.name] = p.stats(model.params) if isinstance(p, Reporting) else {}
     path = run_dir / "metrics.json"
     try:
         metrics = read_json(path, "metrics") if path.is_file() else {}

@@ -3,8 +3,10 @@
 A plug-in may add per-Gaussian parameters (kept aligned by densification because they live in
 the model's parameter dict), networks with their own parameter groups and learning-rate
 schedules, a conditioning input for the deformation network, a factor on opacity, loss terms,
-and its own say in the densification's opacity reset and pruning. The model and the training
-loop call the hooks below on every plug-in in order; every default does nothing, so a plug-in
+and its own say in the densification's opacity reset and pruning. The interface is
+`stdr.plugins.interface`: `Plugin` and the optional roles `Conditioner`, `Densifying` and
+`Reporting`; the model and the training loop call the hooks on every plug-in in order, each with
+the step's one context (stdr.context.StepContext); every default does nothing, so a plug-in
 implements only what it changes.
 
 A plug-in is registered like a baseline (`register_plugin`, below): its config dataclass
@@ -28,108 +30,8 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
-import numpy as np
-import torch
-from torch import Tensor, nn
 from ..registries import CAPABILITY_NAMES, Registry
-
-
-class Plugin:
-    """Base class; `name` labels the plug-in's state in checkpoints, metrics.json and logs."""
-
-    name: str = "plugin"
-    #: keys that earlier versions wrote under the plug-in's config node; a saved config that
-    #: carries them still loads (they are dropped)
-    removed_keys: tuple[str, ...] = ()
-
-    # ---------------------------------------------------------------- registration
-    @classmethod
-    def from_config(cls, pcfg, cfg, schedule, train_times: Optional[np.ndarray], device: torch.device) -> "Plugin":
-        """The plug-in of a run: `pcfg` is its config node (cfg.<name>, enabled), `cfg` the whole
-        config, `schedule` the run's (its values in schedule.plugins[name]), `train_times` the
-        training times (None when a bare model is built), `device` where its tensors live."""
-        raise NotImplementedError(f"{cls.__name__}.from_config")
-
-    @classmethod
-    def stages(cls, pcfg, cfg, schedule) -> dict[str, Any]:
-        """The plug-in's phase boundaries in the run's schedule: add Events (schedule.events) and
-        notes, call schedule.never_trains(msg) for a phase at or after the end, and return the
-        resolved values (kept in schedule.plugins[name], shown in the derived `schedule` node)."""
-        return {}
-
-    # ---------------------------------------------------------------- construction
-    @property
-    def cond_dim(self) -> int:
-        """Width of the per-Gaussian conditioning this plug-in feeds the deformation network."""
-        return 0
-
-    def init_gaussians(self, params) -> None:
-        """Once the Gaussians exist: add per-Gaussian tensors to `params`, set initial values."""
-
-    def gaussian_lr(self, key: str) -> Optional[float]:
-        """Learning rate of a per-Gaussian parameter this plug-in added (None: not one of its)."""
-        return None
-
-    def param_groups(self) -> list[dict]:
-        """Network parameter groups: {"params", "name"} and optionally a schedule of their own,
-        "lr_init", "lr_final", "lr_max_steps", "lr_delay" (log-linear from lr_init at step
-        lr_delay to lr_final lr_max_steps later). Without one, a group follows the deformation
-        network's schedule."""
-        return []
-
-    def modules(self) -> list[nn.Module]:
-        """Networks that switch between train and eval mode and move with the model."""
-        return []
-
-    # ---------------------------------------------------------------- per step
-    def configure_step(self, params, step: int) -> None:
-        """Before the step's forward pass: which parameters train in this phase (requires_grad)."""
-
-    def frozen_keys(self, params) -> set[str]:
-        """The keys of the per-Gaussian parameter dict this plug-in holds fixed for good: no
-        gradient, no optimizer, the values kept as stored (e.g. STDR's mask once stored in 8 bits).
-        The trainer drops their optimizers. A key frozen for a phase only is configure_step's
-        (requires_grad) instead. Default: none."""
-        return set()
-
-    def conditioning(self, params, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
-        """(cond [N, cond_dim] or None, delta scale [N, 1] or None) at `step`."""
-        return None, None
-
-    def opacity_factor(self, params, t: float, step: int) -> Optional[Tensor]:
-        """[N] factor on the activated opacity at time t, or None."""
-        return None
-
-    def regularizers(self, params, step: int) -> dict[str, Tensor]:
-        """Named loss terms, already weighted."""
-        return {}
-
-    def reset_opacity(self, params, value: float, step: int) -> bool:
-        """Handle the densification's opacity reset; False leaves it to the strategy."""
-        return False
-
-    def prune_factor(self, params, step: int) -> Optional[Tensor]:
-        """[N] factor on sigmoid(opacity) for the densification's opacity pruning, or None."""
-        return None
-
-    # ---------------------------------------------------------------- state and monitoring
-    def to(self, device: torch.device | str) -> "Plugin":
-        for m in self.modules():
-            m.to(device)
-        return self
-
-    def state_dict(self) -> dict[str, Any]:
-        return {}
-
-    def load_state_dict(self, state: dict[str, Any], params) -> None:
-        pass
-
-    def log(self, tb, params, step: int, images: bool, x: Optional[int] = None) -> None:
-        """TensorBoard entries for iteration `step` (x: the axis value)."""
-
-    def stats(self, params) -> dict[str, Any]:
-        """Numbers for metrics.json, under the plug-in's name."""
-        return {}
+from .interface import Conditioner, Densifying, Plugin, Reporting  # noqa: F401  (the interface, stdr.plugins.interface)
 
 
 # ==================================================================== the registry
@@ -150,6 +52,9 @@ class PluginSpec:
     baselines: Optional[tuple[str, ...]] = None
     #: whether it joins the default grids (`${stdr_experiments:<data>}`, the dnerf_grid sweeps)
     in_grids: bool = False
+    #: keys that earlier versions wrote under its config node: a saved config that carries them
+    #: still loads (they are dropped)
+    removed_keys: tuple[str, ...] = ()
 
     def missing(self, baseline: str, capabilities: frozenset, node: Any = None) -> list[str]:
         """Why it cannot run with `baseline` (whose capabilities are given): the capabilities it
@@ -179,7 +84,7 @@ PLUGINS: Registry[PluginSpec] = Registry(
 def register_plugin(name: str, plugin: type, config: type, label: Optional[str] = None,
                     row_tags: Optional[Callable[[dict], list[str]]] = None,
                     requires: tuple | Callable[[Any], tuple] = (), baselines: Optional[tuple[str, ...]] = None,
-                    in_grids: bool = False) -> PluginSpec:
+                    in_grids: bool = False, removed_keys: tuple[str, ...] = ()) -> PluginSpec:
     """Add a plug-in: `plugin` a Plugin subclass with `name = name` that implements
     `from_config`; `config` a dataclass whose `enabled` defaults to False (its other fields are
     the plug-in's typed keys, `<name>.<key>`); `label` (default '+<name>') follows the baseline's
@@ -191,7 +96,9 @@ def register_plugin(name: str, plugin: type, config: type, label: Optional[str] 
     `baselines` the names it is limited to (None: any with those capabilities). Experiments
     `<data>_<baseline>_<name>` are derived only where it applies, and a run that turns it on where
     it does not is refused before it starts. `in_grids`: whether the default grids include it
-    (default: no; a sweep names it with `${stdr_experiments:<data>,<name>}`)."""
+    (default: no; a sweep names it with `${stdr_experiments:<data>,<name>}`). `removed_keys`: keys
+    of its config node that earlier versions wrote and this one no longer has (a saved config with
+    them still loads)."""
     PLUGINS.discover()  # the built-in and installed ones first, so a clash is seen either way
     if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
         raise ValueError(f"register_plugin({name!r}): the name must be lower-case letters, digits and '_' "
@@ -218,7 +125,8 @@ def register_plugin(name: str, plugin: type, config: type, label: Optional[str] 
         raise TypeError(f"register_plugin({name!r}): in_grids must be True or False, got {in_grids!r}")
     return PLUGINS.add(name, PluginSpec(name, plugin, config, label if label is not None else f"+{name}",
                                         **({"row_tags": row_tags} if row_tags is not None else {}), requires=need,
-                                        baselines=None if baselines is None else tuple(baselines), in_grids=in_grids))
+                                        baselines=None if baselines is None else tuple(baselines), in_grids=in_grids,
+                                        removed_keys=tuple(removed_keys)))
 
 
 def check_requirements(name: str, need) -> None:

@@ -10,7 +10,7 @@ opacity reset, STDR's three phases, SC-GS's stages), on the CPU:
 
 * `identity`: the plug-ins' conditioning starts at identity: just after the warm-up, the
   deformation with the conditioning the plug-ins give equals the one with that conditioning
-  zeroed (a baseline that declares `takes_conditioning` starts its cond columns at zero weight);
+  zeroed (a baseline that declares the capability 'conditioning' starts its cond columns at zero weight);
 * `device`: the run trains with torch's default device set to "meta" and ends bit-identical to
   the same run without it: no tensor is created on a hard-coded device;
 * `resume`: stopped at step 30 and resumed, the run ends bit-identical to an uninterrupted one;
@@ -36,6 +36,7 @@ from pathlib import Path
 import torch
 
 from ..baselines import BASELINES
+from ..baselines.base import deform_gaussians
 from ..baselines.registry import capabilities
 from ..compact.pack import write_compact
 from ..eval.evaluate import evaluate_model
@@ -122,9 +123,9 @@ class Kit:
                  f"the conditioning is {tuple(cond.shape)}, the module was built for [N, {model.deform.cond_dim}]")
         frame = tr.scene.frames("train")[len(tr.scene.frames("train")) // 2]
         with torch.no_grad():
-            model.deform.before_step(model.params, step, cond)  # what the loop does first (SP-GS: its superpoints)
-            a = model.deform.deform_rows(model.params, frame.time, cond, scale)
-            b = model.deform.deform_rows(model.params, frame.time, torch.zeros_like(cond), scale)
+            model.deform.before_step(model.context(step, t=frame.time, camera=frame.camera, cond=cond))  # what the loop does first (SP-GS: its superpoints)
+            a = deform_gaussians(model.deform, model.params, frame.time, cond, scale)
+            b = deform_gaussians(model.deform, model.params, frame.time, torch.zeros_like(cond), scale)
         for field in a._fields:
             diff = (getattr(a, field) - getattr(b, field)).abs().max().item()
             _require(diff <= 1e-6, f"{field} moves by {diff:.3g} with the conditioning at step {step}: start the "

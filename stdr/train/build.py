@@ -18,7 +18,8 @@ from ..densify.strategy import build_strategy
 from ..device import resolve_device
 from ..gaussians import scene_extent
 from ..metrics import fused_loss, image_loss, image_loss_compiled
-from ..model import build_model, check_init_fits, initial_points
+from ..gaussians import check_init_fits, initial_points
+from ..model import build_model
 from ..render.compiled import camera_values
 from ..validate import check_guard_config
 from .guard import Guard, monitor_split, resolve_compiled_check, resolve_sync_free

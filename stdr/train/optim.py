@@ -119,14 +119,24 @@ def gaussian_lr(cfg, model, key: str, step: int) -> float:
              "sh0": o.sh0_lr, "shN": o.shN_lr}
     if key in fixed:
         return fixed[key]
-    for owner in [model.deform, *model.plugins]:
-        lr = owner.gaussian_lr(key)
-        if lr is not None:
-            return lr
+    lrs = gaussian_lrs(model)
+    if key in lrs:
+        return lrs[key]
     owners = ", ".join(type(o).__name__ for o in [model.deform, *model.plugins])
-    raise ConfigError(f"per-Gaussian parameter {key!r} has no learning rate: the module that adds it in "
-                      f"gaussian_params (or init_gaussians) must return its rate from gaussian_lr({key!r}) "
-                      f"(asked: {owners}; docs/baselines.md, 'Adding a baseline')")
+    raise ConfigError(f"per-Gaussian parameter {key!r} has no learning rate: the module whose init_gaussians adds "
+                      f"it must give its rate in param_groups, as {{'key': {key!r}, 'lr': ...}} (asked: {owners}; "
+                      "docs/baselines.md, 'Adding a baseline')")
+
+
+def gaussian_lrs(model) -> dict[str, float]:
+    """The rates the deformation module and the plug-ins give their per-Gaussian tensors (the
+    {"key", "lr"} entries of their param_groups)."""
+    out: dict[str, float] = {}
+    for owner in [model.deform, *model.plugins]:
+        for g in owner.param_groups():
+            if "key" in g:
+                out.setdefault(g["key"], float(g["lr"]))
+    return out
 
 
 def make_optimizers(cfg, model, fused: bool) -> dict[str, torch.optim.Optimizer]:
@@ -141,9 +151,9 @@ def make_optimizers(cfg, model, fused: bool) -> dict[str, torch.optim.Optimizer]
 def net_groups(model) -> list[dict]:
     """Network parameter groups: the deformation's (each with an lr multiplier on the baseline's
     schedule), then each plug-in's (the baseline's schedule, or their own)."""
-    groups = [dict(g) for g in model.deform.param_groups()]
+    groups = [dict(g) for g in model.deform.param_groups() if "key" not in g]
     for p in model.plugins:
-        groups += [dict(g) for g in p.param_groups()]
+        groups += [dict(g) for g in p.param_groups() if "key" not in g]
     return groups
 
 

@@ -14,7 +14,7 @@ from ..io.checkpoint import CKPT, load_checkpoint
 from ..io.files import leftover_temporaries, write_atomic
 from ..io.files import run_lock, set_aside_results
 from ..device import resolve_device
-from ..model import check_init_fits
+from ..gaussians import check_init_fits
 from ..data.load import pin_run_data, scene_folder
 from ..eval.table import collect, markdown, table_row
 from ..validate import check_run_config
@@ -52,7 +52,7 @@ def settle_precision(cfg: DictConfig, record: dict | None) -> str:
     recorded = ((record or {}).get("baseline") or {}).get("precision")
     if requested == "auto" and recorded in PRECISIONS:
         requested = recorded
-    chosen, why = choose_precision(requested, get_baseline(cfg.baseline.name).module, resolve_device(cfg.device),
+    chosen, why = choose_precision(requested, get_baseline(cfg.baseline.name).bf16_default, resolve_device(cfg.device),
                                    name=cfg.baseline.name)
     cfg.baseline.precision = chosen
     return why

@@ -12,6 +12,8 @@ from typing import Any, Optional
 import torch
 from torch import Tensor
 
+from ..plugins import Reporting
+from ..plugins.interface import roles
 from ..io.ply import save_ply
 from ..densify.prune import prune_event
 from .optim import adam_step, make_optimizers, update_lrs
@@ -65,16 +67,16 @@ class Trainer(Evaluations):
 
     def replace_gaussians(self, tensors: dict[str, Tensor]) -> None:
         """Continue from other Gaussians (e.g. a cost probe's N copies): the model's parameter dict
-        becomes `tensors`; per-Gaussian tensors of the baseline and the plug-ins that are missing
-        are created as for new Gaussians; the optimizers and the densification statistics restart."""
+        becomes `tensors`; the baseline's init_gaussians creates its per-Gaussian tensors that are
+        missing and sets up what it derives from the Gaussians (4DGS's bounds), the plug-ins'
+        init_gaussians run as for new Gaussians; the optimizers and the densification statistics
+        restart."""
         params = self.state.model.params
         params.clear()
         for k, v in tensors.items():
             params[k] = torch.nn.Parameter(v.detach().to(self.device).clone())
         n = params["means"].shape[0]
-        for k, v in self.state.model.deform.gaussian_params(n).items():
-            if k not in params:
-                params[k] = torch.nn.Parameter(v.to(self.device))
+        self.state.model.deform.init_gaussians(params)
         for p in self.state.model.plugins:
             p.init_gaussians(params)
         self.state.optimizers = make_optimizers(self.cfg, self.state.model, self.fused_adam)
@@ -107,19 +109,22 @@ class Trainer(Evaluations):
         update_lrs(self.cfg, self.state, self.net_groups, it)
         frame = self.scene.frames("train")[self.state.sampler.next()]
         model.train(True)
+        ctx = model.context(it, t=frame.time, camera=frame.camera)  # the hooks' one context, filled as the step goes
         for p in model.plugins:
-            p.configure_step(params, it)
+            p.before_step(ctx)
         frozen = model.frozen_keys()
         for k in [k for k in self.state.optimizers if k not in params or k in frozen]:
             del self.state.optimizers[k]  # a plug-in holds it fixed from now on (e.g. an 8-bit mask): no more updates
         with prof("deform"):
             # one conditioning per step: the render, SC-GS's node resampling and its ARAP see the same
             cs = model.conditioning(it)
-        model.deform.before_step(params, it, cs[0])
+        ctx.cond = cs[0]
+        model.deform.before_step(ctx)
         with prof("deform"):
             g, rows = model.deformed_rows(frame.time, it, cs, cull=self.cull_train)
         with prof("render_fwd"):
             out = model.render_gaussians(g, frame.camera, it)
+        ctx.deformed, ctx.rows, ctx.render = g, rows, out
         pj = out.projection  # benchmarks split the backward here (no-ops in training); the
         # projection's opacities may be the deformed ones themselves, so only means2d and conics
         # (made by the projection alone) mark the end of the rasterizer's backward
@@ -130,12 +135,12 @@ class Trainer(Evaluations):
         terms: dict[str, Tensor] = {}
         for p in model.plugins:
             with prof(f"{p.name}_reg"):
-                for k, v in p.regularizers(params, it).items():
+                for k, v in p.regularizers(ctx).items():
                     terms[f"{p.name}_{k}"] = v
                     loss = loss + v
         if it >= model.warmup:  # the baseline's own terms (ARAP, HexPlane smoothness, ...)
             with prof("deform_reg"):
-                for k, v in model.deform.regularizers(params, frame.time, it, cs[0]).items():
+                for k, v in model.deform.regularizers(ctx).items():
                     terms[k] = v
                     loss = loss + v
         prof.backward(loss)
@@ -286,8 +291,9 @@ class Trainer(Evaluations):
         if due:
             self.log.step_scalars(it, logs, dt, self.state, self.device)
             with writing(self.log.dir, "tensorboard"):
-                for p in self.state.model.plugins:
-                    p.log(tb, self.state.model.params, it - 1, images=img_due, x=it)
+                model = self.state.model
+                for p in roles(model.plugins, Reporting):
+                    p.log(tb, model.context(it - 1), images=img_due, x=it)
         if img_due:
             self.log.render_and_truth(it, logs["out"].image.detach(), logs["frame"].image)
         if bar is not None:

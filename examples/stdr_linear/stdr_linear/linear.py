@@ -20,7 +20,7 @@ class LinearConfig(BaselineConfig):
 
 
 class Linear(Deformation):
-    takes_conditioning = True  # STDR's separated field feeds `cond`; it starts with no effect
+    capabilities = frozenset({"conditioning"})  # STDR's separated field feeds `cond`; it starts with no effect
 
     def __init__(self, lr_velocity: float = 1.0e-4, cond_dim: int = 0):
         super().__init__()
@@ -33,11 +33,12 @@ class Linear(Deformation):
     def config_kwargs(cls, b, cond_dim=0, train_times=None, seed=0, schedule=None):
         return {"lr_velocity": b.linear.lr_velocity, "cond_dim": cond_dim}
 
-    def gaussian_params(self, n):  # kept aligned by densification, saved in checkpoints
-        return {"velocity": torch.zeros(n, 3)}
+    def init_gaussians(self, params):  # a per-Gaussian tensor: kept aligned by densification, saved in checkpoints
+        if "velocity" not in params:
+            params["velocity"] = nn.Parameter(torch.zeros_like(params["means"]))
 
-    def gaussian_lr(self, key):
-        return self.lr_velocity if key == "velocity" else None
+    def param_groups(self):  # the network's group, and the velocities' rate
+        return [*super().param_groups(), {"key": "velocity", "lr": self.lr_velocity}]
 
     def forward(self, params, t, cond=None):
         v = params["velocity"]

@@ -2,7 +2,7 @@
 still. It applies to `linear` only, and stays out of stdr's default grids."""
 from dataclasses import dataclass
 
-from stdr.plugins import Plugin, register_plugin
+from stdr.plugins import Plugin, Reporting, register_plugin
 
 
 @dataclass
@@ -11,7 +11,7 @@ class VelocityL1Config:
     weight: float = 0.01
 
 
-class VelocityL1(Plugin):
+class VelocityL1(Reporting, Plugin):
     name = "velocity_l1"
 
     def __init__(self, weight: float):
@@ -21,10 +21,10 @@ class VelocityL1(Plugin):
     def from_config(cls, pcfg, cfg, schedule, train_times, device):
         return cls(pcfg.weight)
 
-    def regularizers(self, params, step):  # named terms, already weighted, added to the loss
-        return {"l1": self.weight * params["velocity"].abs().mean()}
+    def regularizers(self, ctx):  # named terms, already weighted, added to the loss
+        return {"l1": self.weight * ctx.params["velocity"].abs().mean()}
 
-    def stats(self, params):  # into metrics.json under "velocity_l1"
+    def stats(self, params):  # the Reporting role: into metrics.json under "velocity_l1"
         return {"mean_speed": float(params["velocity"].norm(dim=-1).mean())}
 
 

@@ -10,7 +10,8 @@ from .plugin import STDR
 
 # the separated field's output feeds the baseline's network: a baseline that takes conditioning
 register_plugin("stdr", STDR, StdrConfig, label="+STDR", row_tags=row_tags,
-                requires=lambda node: ("conditioning",) if node.separated_field else (), in_grids=True)
+                requires=lambda node: ("conditioning",) if node.separated_field else (), in_grids=True,
+                removed_keys=("static_skip",))  # a render-time key that no longer exists (docs/stdr.md)
 
 __all__ = ["MASK_KEY", "STDR", "StdrConfig", "Phase", "SeparatedField", "interp_weights", "knot_times", "mask_at",
            "phase_at", "resolve_phases", "sample_neighbours", "spatial_kl", "temporal_entropy",

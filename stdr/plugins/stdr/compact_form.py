@@ -64,7 +64,7 @@ class CompactMask:
         self.field.eval()
         try:
             with torch.no_grad():
-                cond, _ = self.conditioning(params, step)
+                cond, _ = self.conditioning_at(params, step)
         finally:
             self.field.train(was)
         return cond.detach().float()

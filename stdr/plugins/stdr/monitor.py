@@ -73,7 +73,7 @@ def stats_of(plugin, params) -> dict[str, Any]:
         was = plugin.field.training
         plugin.field.eval()
         with torch.no_grad():
-            plugin.conditioning(params, plugin.freeze_at)  # sets last_dynamic (eval mode)
+            plugin.conditioning_at(params, plugin.freeze_at)  # sets last_dynamic (eval mode)
         plugin.field.train(was)
         d = plugin.last_dynamic
         if d is not None and d.numel():

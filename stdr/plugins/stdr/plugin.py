@@ -1,12 +1,14 @@
-"""STDR as a plug-in (stdr.plugins.Plugin): mask, phases, regularizers, separated field.
+"""STDR as a plug-in (stdr.plugins.interface: Plugin with the roles Conditioner, Densifying and
+Reporting, and the compact file's form): mask, phases, regularizers, separated field.
 
-The model and the loop ask it, whatever the baseline:
+The model and the loop ask it, whatever the baseline (each hook with the step's context, ctx):
   - `init_gaussians(params)`: the mask logits [N, K] join the parameter dict (lr stdr.mask_lr);
-  - `configure_step(params, step)`: which of opacity / mask train in this phase;
-  - `conditioning(params, step)`: the per-Gaussian input of the deformation network (and the
-    dynamic probability, when it scales the deltas);
-  - `opacity_factor(params, t, step)`: the activated mask at time t, multiplied into opacity;
-  - `regularizers(params, step)`: the weighted L_temp and L_spatial;
+  - `before_step(ctx)`: which of opacity / mask train in this phase (`frozen_keys`: the 8-bit
+    mask is fixed for good);
+  - `conditioning(ctx)`: the per-Gaussian input of the deformation network (and the dynamic
+    probability, when it scales the deltas);
+  - `opacity_factor(ctx)`: the activated mask at time ctx.t, multiplied into opacity;
+  - `regularizers(ctx)`: the weighted L_temp and L_spatial;
   - `reset_opacity` / `prune_factor`: the densification's reset and pruning see the mask;
   - `param_groups()`: the separated field, on the deformation's schedule or its own.
 Phases (steps count from 0): warm-up [0, warmup_end) - opacity frozen, mask trains;
@@ -24,7 +26,8 @@ from torch import Tensor
 
 from ...ops import sigmoid
 from ...encoding import positional_encoding, positional_encoding_dim
-from .. import Plugin
+from ...context import StepContext
+from ..interface import Conditioner, Densifying, Plugin, Reporting
 from .compact_form import CompactMask
 from ...device import cpu_bf16_flags, emulated_bf16_note
 from .field import FIELD_PRECISIONS, SeparatedField
@@ -59,11 +62,10 @@ def _same_key(a: tuple, b: tuple) -> bool:
     return len(a) == len(b) and all(x is y and vx == vy for (x, vx), (y, vy) in zip(a, b))
 
 
-class STDR(CompactMask, Plugin):
+class STDR(CompactMask, Conditioner, Densifying, Reporting, Plugin):
     """State and rules of the plug-in. `cfg` is the `stdr` config node (StdrConfig)."""
 
     name = "stdr"
-    removed_keys = ("static_skip",)  # a render-time key that no longer exists (docs/stdr.md)
 
     # ----------------------------------------------------------------- registration
     @classmethod
@@ -144,22 +146,20 @@ class STDR(CompactMask, Plugin):
                 with torch.no_grad():
                     params["opacities"].fill_(logit(self.opacity_init))
 
-    def gaussian_lr(self, key: str) -> Optional[float]:
-        return float(self.cfg.mask_lr) if key == MASK_KEY else None
-
     def param_groups(self) -> list[dict]:
-        """The separated field: on the deformation network's schedule (stdr.field_lr_init=null),
-        or log-linear from stdr.field_lr_init at the freeze (where it starts training) to
-        stdr.field_lr_final at the end of the run."""
+        """The mask's rate (stdr.mask_lr), and the separated field: on the deformation network's
+        schedule (stdr.field_lr_init=null), or log-linear from stdr.field_lr_init at the freeze
+        (where it starts training) to stdr.field_lr_final at the end of the run."""
+        mask = [{"key": MASK_KEY, "lr": float(self.cfg.mask_lr)}]
         if self.field is None:
-            return []
+            return mask
         g: dict[str, Any] = {"params": list(self.field.parameters()), "name": "stdr_field"}
         if self.cfg.field_lr_init is not None:
             final = self.cfg.field_lr_final
             g.update(lr_init=float(self.cfg.field_lr_init),
                      lr_final=float(self.cfg.field_lr_init if final is None else final),
                      lr_max_steps=max(self.iterations - self.freeze_at, 1), lr_delay=self.freeze_at)
-        return [g]
+        return [*mask, g]
 
     def modules(self) -> list[torch.nn.Module]:
         return [] if self.field is None else [self.field]
@@ -173,9 +173,10 @@ class STDR(CompactMask, Plugin):
         self._cond_cache = None
         return self
 
-    def prune_factor(self, params, step: int) -> Optional[Tensor]:
+    def prune_factor(self, ctx: StepContext) -> Optional[Tensor]:
         """With stdr.prune_by_mask: the largest activated mask over time [N], so pruning looks at
         the largest opacity a Gaussian reaches."""
+        params, step = ctx.params, ctx.step
         if not self.cfg.prune_by_mask or not self.has_mask(params) or not self.mask_modulates(step):
             return None
         return activated(params[MASK_KEY].detach()).amax(1)
@@ -191,8 +192,9 @@ class STDR(CompactMask, Plugin):
         """Whether opacity is held at `step`: in the warm-up, with stdr.freeze_opacity (the paper)."""
         return self.cfg.freeze_opacity and self.phase(step) == Phase.WARMUP
 
-    def configure_step(self, params, step: int) -> None:
+    def before_step(self, ctx: StepContext) -> None:
         """Opacity trains unless frozen in the warm-up; the mask trains until the freeze."""
+        params, step = ctx.params, ctx.step
         ph = self.phase(step)
         if self.has_mask(params):
             if ph == Phase.FROZEN and not self._cleaned:
@@ -238,11 +240,12 @@ class STDR(CompactMask, Plugin):
         self._cond_cache = None
 
     @torch.no_grad()
-    def reset_opacity(self, params, value: float, step: int) -> bool:
+    def reset_opacity(self, ctx: StepContext, value: float) -> bool:
         """The densification's opacity reset during the warm-up, where opacity is frozen: cap the
         masked opacity sigmoid(o) * sigmoid(m) at `value` through the mask instead (clamping the
         frozen opacity would hold every Gaussian under `value` until the warm-up ends). Returns
         False while opacity trains: the strategy then resets the opacities as usual."""
+        params, step = ctx.params, ctx.step
         if not self.has_mask(params) or not self.opacity_frozen(step):
             return False
         m = params[MASK_KEY]
@@ -255,8 +258,9 @@ class STDR(CompactMask, Plugin):
     def mask_modulates(self, step: int) -> bool:
         return self.cfg.mask and (self.phase(step) != Phase.FROZEN or self.cfg.mask_after_freeze)
 
-    def opacity_factor(self, params, t: float, step: int) -> Optional[Tensor]:
-        """Activated mask [N] at time t, or None when the mask does not modulate opacity now."""
+    def opacity_factor(self, ctx: StepContext) -> Optional[Tensor]:
+        """Activated mask [N] at time ctx.t, or None when the mask does not modulate opacity now."""
+        params, t, step = ctx.params, ctx.t, ctx.step
         if not self.has_mask(params) or not self.mask_modulates(step):
             return None
         return mask_at(params[MASK_KEY], t, self.knot_values, self.mask_between)
@@ -272,7 +276,11 @@ class STDR(CompactMask, Plugin):
             self._p_for = (m, m._version)  # recomputed when the tensor is replaced or changed in place
         return self._p
 
-    def conditioning(self, params, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
+    def conditioning(self, ctx: StepContext) -> tuple[Optional[Tensor], Optional[Tensor]]:
+        """The hook: `conditioning_at(ctx.params, ctx.step)`."""
+        return self.conditioning_at(ctx.params, ctx.step)
+
+    def conditioning_at(self, params, step: int) -> tuple[Optional[Tensor], Optional[Tensor]]:
         """(cond [N, cond_dim] or None, delta scale [N, 1] or None) for the deformation network.
 
         Before the freeze the field is off and cond is zeros (the network's cond inputs start at
@@ -314,8 +322,9 @@ class STDR(CompactMask, Plugin):
         ts += list(self.field.parameters()) + list(self.field.buffers())
         return tuple((t, t._version) for t in ts)
 
-    def regularizers(self, params, step: int) -> dict[str, Tensor]:
+    def regularizers(self, ctx: StepContext) -> dict[str, Tensor]:
         """Weighted L_temp and L_spatial while the phase is warm-up or regularized."""
+        params, step = ctx.params, ctx.step
         if not self.has_mask(params) or self.phase(step) == Phase.FROZEN:
             return {}
         m = params[MASK_KEY]
@@ -351,10 +360,10 @@ class STDR(CompactMask, Plugin):
         self._cond_cache = None
 
     # ----------------------------------------------------------------- monitoring
-    def log(self, tb, params, step: int, images: bool, x: Optional[int] = None) -> None:
+    def log(self, tb, ctx: StepContext, images: bool, x: Optional[int] = None) -> None:
         """TensorBoard: the phase, mask statistics and, with images, histograms and the mask over
         time (stdr.plugins.stdr.monitor.log_to)."""
-        log_to(tb, self, params, step, images, x)
+        log_to(tb, self, ctx.params, ctx.step, images, x)
 
     def stats(self, params) -> dict[str, Any]:
         """Numbers for metrics.json (stdr.plugins.stdr.monitor.stats_of)."""
