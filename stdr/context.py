@@ -12,6 +12,7 @@ point is None (before the render there is no `render`; outside a training step n
 """
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Optional
 
@@ -56,3 +57,30 @@ class StepContext:
     def phase(self) -> str:
         """STATIC before the warm-up's end, DEFORMING from it on."""
         return STATIC if self.step < self.warmup_end else DEFORMING
+
+
+def check_hooks(register: str, cls: type, base: type, hooks: dict[str, int], renamed: dict[str, str]) -> None:
+    """At registration (`register`: e.g. "register_plugin('mine')"): each hook of `hooks` (name ->
+    how many arguments it takes after self, the context first) that `cls` (a subclass of the
+    interface `base`) defines takes that many, and `cls` defines none of the names of `renamed`
+    (an earlier interface's name -> what replaced it). A TypeError names the class, the hook and
+    the fix; a hook with the earlier positional arguments would otherwise never be called, or fail
+    mid-run."""
+    for old, new in renamed.items():
+        if any(old in vars(k) for k in cls.__mro__ if issubclass(k, base) and k is not base):
+            raise TypeError(f"{register}: {cls.__name__}.{old} is not part of the interface any more: {new}")
+    for name, n in hooks.items():
+        fn = inspect.getattr_static(cls, name, None)
+        if fn is None or isinstance(fn, (classmethod, staticmethod, property)) or not callable(fn):
+            continue
+        params = list(inspect.signature(fn).parameters.values())[1:]  # after self
+        if any(p.kind in (p.VAR_POSITIONAL,) for p in params):
+            continue
+        required = [p for p in params if p.default is p.empty and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+        positional = [p for p in params if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+        if len(required) > n or len(positional) < n:
+            args = ", ".join(p.name for p in params)
+            raise TypeError(f"{register}: {cls.__name__}.{name}({args}) must take the step's context"
+                            f"{' and ' + str(n - 1) + ' more' if n > 1 else ''}: "
+                            f"def {name}(self, ctx{', ...' if n > 1 else ''}) (ctx: stdr.context.StepContext, "
+                            "with step, phase, t, camera, params, cond, deformed and render)")

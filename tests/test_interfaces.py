@@ -129,3 +129,47 @@ def test_a_capability_declared_wrongly_fails_at_registration_naming_the_class_an
         capabilities = frozenset({"mixes_rows"})
     with pytest.raises(TypeError, match="Mixer declares 'mixes_rows' but does not override forward_rows"):
         register_baseline("mindrift", Mixer, DriftConfig)
+
+
+# ------------------------------------------------------------------ loud at registration
+@pytest.mark.parametrize("body, says", [
+    ({"configure_step": lambda self, params, step: None}, r"Old.configure_step is not part of the interface any "
+                                                          r"more: before_step\(ctx\) replaced"),
+    ({"gaussian_lr": lambda self, key: None}, r"Old.gaussian_lr is not part of .*param_groups"),
+    ({"regularizers": lambda self, params, step: {}}, r"Old.regularizers\(params, step\) must take the step's "
+                                                      r"context: def regularizers\(self, ctx\)"),
+    ({"conditioning": lambda self, ctx: (None, None)}, r"Old defines conditioning of the Conditioner role but does "
+                                                       r"not take the role.*class Old\(Conditioner, Plugin\)"),
+    ({"stats": lambda self, params: {}}, r"Old defines stats of the Reporting role"),
+])
+def test_a_plugin_written_for_another_interface_is_refused_at_registration(body, says):
+    old = type("Old", (Plugin,), {"name": "old", "from_config": classmethod(lambda cls, *a: cls()), **body})
+    with pytest.raises(TypeError, match=r"^register_plugin\('old'\): " + says):
+        register_plugin("old", old, SeeConfig)
+
+
+def test_a_plugin_that_takes_its_roles_registers():
+    class Ok(Conditioner, Densifying, Reporting, Plugin):
+        name = "ok"
+        from_config = classmethod(lambda cls, *a: cls())
+
+        def conditioning(self, ctx):
+            return None, None
+
+        def reset_opacity(self, ctx, value):
+            return False
+    register_plugin("ok", Ok, SeeConfig)
+    unregister_plugin("ok")
+
+
+@pytest.mark.parametrize("body, says", [
+    ({"gaussian_params": lambda self, n: {}}, r"Old.gaussian_params is not part of the interface any more: "
+                                              r"init_gaussians\(params\) adds"),
+    ({"takes_conditioning": True}, r"Old.takes_conditioning is not .*capabilities = frozenset"),
+    ({"before_step": lambda self, params, step, cond=None: None}, r"Old.before_step\(params, step, cond\) must take "
+                                                                  r"the step's context"),
+])
+def test_a_baseline_written_for_another_interface_is_refused_at_registration(body, says):
+    old = type("Old", (MinDrift,), body)
+    with pytest.raises(TypeError, match=r"^register_baseline\('olddrift'\): " + says):
+        register_baseline("olddrift", old, DriftConfig)

@@ -29,6 +29,7 @@ from typing import Any, Optional
 import numpy as np
 
 from ..registries import CAPABILITY_NAMES, Registry
+from ..context import check_hooks
 from .base import BaselineConfig, Deformation
 
 
@@ -59,6 +60,21 @@ BASELINES: Registry[BaselineSpec] = Registry(
 #: "opacity_deltas" - its deltas change opacity;
 #: "mixes_rows" - a Gaussian's deltas depend on other Gaussians (it overrides forward_rows)
 CAPABILITIES = CAPABILITY_NAMES
+
+
+#: names of the earlier Deformation interface, and what replaced each
+RENAMED = {
+    "setup": "init_gaussians(params) sets up what the module derives from the Gaussians",
+    "gaussian_params": "init_gaussians(params) adds the module's per-Gaussian tensors to the parameter dict",
+    "gaussian_lr": "give a per-Gaussian tensor's rate as an entry {'key': ..., 'lr': ...} of param_groups()",
+    "takes_conditioning": "declare capabilities = frozenset({'conditioning'})",
+    "canonical_opacity": "declare 'opacity_deltas' in capabilities when the deltas change opacity",
+    "bf16_default": "pass bf16_default=True to register_baseline",
+    "apply": "name the delta rule apply_rule",
+    "deform": "the model renders through stdr.baselines.base.deform_gaussians(module, ...)",
+    "deform_rows": "the model renders through stdr.baselines.base.deform_gaussians(module, ..., rows=rows)",
+    "deltas": "stdr.baselines.base.network_deltas(module, ...) runs the network in its precision",
+}
 
 
 def capabilities(module: type) -> frozenset[str]:
@@ -100,6 +116,7 @@ def register_baseline(name: str, module: type, config: type, in_grids: bool = Fa
     if not (isinstance(module, type) and issubclass(module, Deformation)):
         raise TypeError(f"register_baseline({name!r}): module must be a Deformation subclass, got {module!r}")
     check_capabilities(name, module)
+    check_hooks(f"register_baseline({name!r})", module, Deformation, {"before_step": 1, "regularizers": 1}, RENAMED)
     if not (dataclasses.is_dataclass(config) and issubclass(config, BaselineConfig)):
         raise TypeError(f"register_baseline({name!r}): config must be a dataclass subclassing BaselineConfig, "
                         f"got {config!r}")

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
 from ..registries import CAPABILITY_NAMES, Registry
-from .interface import Conditioner, Densifying, Plugin, Reporting  # noqa: F401  (the interface, stdr.plugins.interface)
+from .interface import Conditioner, Densifying, Plugin, Reporting, check_plugin_class  # noqa: F401  (the interface)
 
 
 # ==================================================================== the registry
@@ -107,6 +107,7 @@ def register_plugin(name: str, plugin: type, config: type, label: Optional[str] 
         raise ValueError(f"register_plugin({name!r}): {name!r} is a config section of its own; choose another name")
     if not (isinstance(plugin, type) and issubclass(plugin, Plugin)):
         raise TypeError(f"register_plugin({name!r}): plugin must be a Plugin subclass, got {plugin!r}")
+    check_plugin_class(f"register_plugin({name!r})", plugin)
     if plugin.from_config.__func__ is Plugin.from_config.__func__:
         raise TypeError(f"register_plugin({name!r}): {plugin.__name__} must implement the classmethod from_config")
     if plugin.name != name:

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from ..context import StepContext
+from ..context import StepContext, check_hooks
 
 
 class Plugin:
@@ -139,6 +139,30 @@ class Reporting:
     def stats(self, params) -> dict[str, Any]:
         """Numbers for metrics.json, under the plug-in's name."""
         return {}
+
+
+#: the hooks that take the step's context first (name -> arguments after self)
+CONTEXT_HOOKS = {"before_step": 1, "regularizers": 1, "conditioning": 1, "opacity_factor": 1, "prune_factor": 1,
+                 "reset_opacity": 2}
+#: names of the earlier interface, and what replaced each
+RENAMED = {"configure_step": "before_step(ctx) replaced configure_step(params, step)",
+           "gaussian_lr": "give a per-Gaussian tensor's rate as an entry {'key': ..., 'lr': ...} of param_groups()",
+           "removed_keys": "pass removed_keys=(...) to register_plugin"}
+ROLES = (Conditioner, Densifying, Reporting)
+
+
+def check_plugin_class(register: str, cls: type) -> None:
+    """At registration: the hooks take the step's context, no name of the earlier interface is
+    defined, and a hook of a role (Conditioner, Densifying, Reporting) comes with the role (it
+    would never be called otherwise); a TypeError names the class and the fix."""
+    check_hooks(register, cls, Plugin, CONTEXT_HOOKS, RENAMED)
+    for role in ROLES:
+        own = [k for k in vars(role) if not k.startswith("_")]
+        defined = [k for k in own if any(k in vars(c) for c in cls.__mro__ if c not in (role, object))]
+        if defined and not issubclass(cls, role):
+            raise TypeError(f"{register}: {cls.__name__} defines {', '.join(defined)} of the {role.__name__} role "
+                            f"but does not take the role, so they would never be called: "
+                            f"class {cls.__name__}({role.__name__}, Plugin) (stdr.plugins.{role.__name__})")
 
 
 def roles(plugins, role: type) -> list:
