@@ -44,22 +44,11 @@ class BaselineSpec:
     #: plug-in (docs/performance.md, "bf16 by default")
     bf16_default: bool = False
 
-    @property
-    def capabilities(self) -> frozenset[str]:
-        return capabilities(self.module)
-
 
 #: every baseline by name (stdr.registries.Registry; the entry-point group `stdr.baselines`)
 BASELINES: Registry[BaselineSpec] = Registry(
     "baseline", "baseline.name", "stdr.baselines", "stdr.baselines.registry.register_baseline",
     owner=lambda spec: spec.module)
-
-
-#: what a baseline can do (Deformation.capabilities), by the names a plug-in's `requires` uses:
-#: "conditioning" - it takes a plug-in's per-Gaussian conditioning;
-#: "opacity_deltas" - its deltas change opacity;
-#: "mixes_rows" - a Gaussian's deltas depend on other Gaussians (it overrides forward_rows)
-CAPABILITIES = CAPABILITY_NAMES
 
 
 #: names of the earlier Deformation interface, and what replaced each

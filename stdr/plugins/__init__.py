@@ -45,7 +45,7 @@ class PluginSpec:
     #: switches that differ from their defaults (e.g. ['w/o spatial_reg']), so ablation rows never
     #: merge: a function of the plug-in's config node as a plain dict
     row_tags: Callable[[dict], list[str]] = field(default=lambda pcfg: [], compare=False)
-    #: the baseline capabilities it needs (stdr.baselines.registry.CAPABILITIES), a function of its
+    #: the baseline capabilities it needs (stdr.registries.CAPABILITY_NAMES), a function of its
     #: config node (its registered dataclass's defaults for the derived experiments and grids)
     requires: Callable[[Any], tuple] = field(default=lambda pcfg: (), compare=False)
     #: the baselines it applies to, by name (None: every baseline with the capabilities it requires)
@@ -92,7 +92,7 @@ def register_plugin(name: str, plugin: type, config: type, label: Optional[str] 
     it for a run's plug-in node (a plain dict).
 
     Where it applies: `requires` the baseline capabilities it needs
-    (stdr.baselines.registry.CAPABILITIES; a tuple, or a function of its config node giving one),
+    (stdr.registries.CAPABILITY_NAMES; a tuple, or a function of its config node giving one),
     `baselines` the names it is limited to (None: any with those capabilities). Experiments
     `<data>_<baseline>_<name>` are derived only where it applies, and a run that turns it on where
     it does not is refused before it starts. `in_grids`: whether the default grids include it
