@@ -764,6 +764,20 @@ def test_field_precision_auto_follows_the_deformation_networks(tmp_path, monkeyp
     assert s.stats(t.state.model.params)["field_precision"] == want
 
 
+@pytest.mark.parametrize("baseline, network, device, flags, want", [
+    ("scgs", "fp32", "cpu", ("avx512_bf16",), "bf16"),   # verified beside its fp32 network
+    ("scgs", "fp32", "cpu", (), "fp32"),                 # no bf16 instructions: emulated, slower
+    ("scgs", "fp32", "cuda", ("avx512_bf16",), "fp32"),  # not verified on a GPU
+    ("spgs", "fp32", "cpu", ("avx512_bf16",), "fp32"),   # not (yet) verified beside it
+    ("deform", "fp32", "cpu", ("avx512_bf16",), "fp32"),  # deform's field was checked beside its bf16 network only
+    ("deform", "bf16", "cpu", ("avx512_bf16",), "bf16")])
+def test_field_precision_auto_beside_an_fp32_network_is_bf16_only_where_verified(baseline, network, device, flags, want):
+    from stdr.plugins.stdr.plugin import FIELD_BF16_BESIDE_FP32, field_precision
+    assert field_precision("auto", network, device, baseline, cpu_flags=flags) == want
+    assert field_precision("fp32", network, device, baseline, cpu_flags=flags) == "fp32"  # an explicit value wins
+    assert FIELD_BF16_BESIDE_FP32 <= {"scgs", "spgs", "4dgs"}
+
+
 def test_a_checkpoint_from_before_the_field_precision_key_resumes_in_fp32(tmp_path):
     """A run trained before stdr.field_precision existed trained its field in fp32: with auto, its
     state resumes in fp32 whatever the deformation network's precision; an explicit value wins."""

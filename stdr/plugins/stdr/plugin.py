@@ -42,16 +42,29 @@ from .phases import Phase, add_stages, logit, phase_at, resolve_init
 #: delta PSNR -0.038 dB over 8 budget=cpu pairs and +0.016 over 2 cpu_long pairs
 #: (research/measurements/precision_val, "STDR's separated field in bf16"; docs/performance.md)
 FIELD_BF16_DEFAULT = True
+#: the baselines beside whose fp32 network stdr.field_precision=auto still trains the field in bf16
+#: on a CPU with bf16 matrix instructions: the +STDR step is faster and the val rule passed with the
+#: network in fp32 (research/measurements/precision_val, "STDR's field in bf16 beside SC-GS, SP-GS
+#: and 4DGS"; docs/performance.md)
+FIELD_BF16_BESIDE_FP32 = frozenset({"scgs"})
 
 
-def field_precision(requested: str, network_precision: str, device) -> str:
+def field_precision(requested: str, network_precision: str, device, baseline: str = "", cpu_flags=None) -> str:
     """stdr.field_precision resolved: auto follows the deformation network's (`network_precision`,
-    baseline.precision as resolved for the run) where FIELD_BF16_DEFAULT, else fp32; an explicit
-    bf16 on a CPU without bf16 matrix instructions runs, and says in one line that it is slower there."""
+    baseline.precision as resolved for the run) where FIELD_BF16_DEFAULT, and is bf16 beside the fp32
+    network of a baseline of FIELD_BF16_BESIDE_FP32 on a CPU with bf16 matrix instructions
+    (stdr.device.cpu_bf16_flags, or `cpu_flags`); fp32 otherwise. An explicit bf16 on a CPU without
+    bf16 matrix instructions runs, and says in one line that it is slower there."""
     if requested not in ("auto", *FIELD_PRECISIONS):
         raise ValueError(f"stdr.field_precision={requested!r}: use one of {('auto', *FIELD_PRECISIONS)}")
     if requested == "auto":
-        return network_precision if FIELD_BF16_DEFAULT and network_precision in FIELD_PRECISIONS else "fp32"
+        if not FIELD_BF16_DEFAULT:
+            return "fp32"
+        if network_precision == "bf16":
+            return "bf16"
+        cpu = torch.device(device).type == "cpu"
+        flags = (cpu_bf16_flags() if cpu_flags is None else tuple(cpu_flags)) if cpu else ()
+        return "bf16" if baseline in FIELD_BF16_BESIDE_FP32 and flags else "fp32"
     if requested == "bf16" and torch.device(device).type == "cpu" and not cpu_bf16_flags():
         print(f"[stdr] {emulated_bf16_note('stdr.field_precision')}", file=sys.stderr)
     return requested
@@ -74,7 +87,7 @@ class STDR(CompactMask, Conditioner, Densifying, Reporting, Plugin):
         knots = cls.knots_for(pcfg, train_times) if train_times is not None else None
         return cls(pcfg, schedule, knots, xyz_freqs=cfg.baseline.xyz_freqs, seed=cfg.seed,
                    init_opacity=cfg.model.init_opacity, device=device,
-                   network_precision=str(getattr(cfg.baseline, "precision", "fp32")))
+                   network_precision=str(getattr(cfg.baseline, "precision", "fp32")), baseline=str(cfg.baseline.name))
 
     @classmethod
     def stages(cls, pcfg, cfg, schedule) -> dict:
@@ -82,17 +95,20 @@ class STDR(CompactMask, Conditioner, Densifying, Reporting, Plugin):
         return add_stages(pcfg, schedule)
 
     def __init__(self, cfg, schedule, knots: Optional[Tensor], xyz_freqs: int, seed: int,
-                 init_opacity: float = 0.1, device: torch.device | str = "cpu", network_precision: str = "fp32"):
+                 init_opacity: float = 0.1, device: torch.device | str = "cpu", network_precision: str = "fp32",
+                 baseline: str = ""):
         """schedule: the run's stdr.schedule.Schedule (STDR's phases, already kept out of the
         baseline's switch windows); network_precision: the deformation network's arithmetic
-        (baseline.precision, resolved), which stdr.field_precision=auto follows."""
+        (baseline.precision, resolved), which stdr.field_precision=auto follows, and `baseline` its
+        name (field_precision)."""
         if int(cfg.mask_bits) not in (8, 32):
             raise ValueError(f"stdr.mask_bits={cfg.mask_bits}: use 32 (float logits) or 8 (uint8 after the freeze)")
         self.mask_between = getattr(cfg, "mask_between", "linear")  # read once: opacity_factor runs every step
         if self.mask_between not in BETWEEN:
             raise ValueError(f"stdr.mask_between={self.mask_between!r}: use one of {BETWEEN}")
         self.cfg = cfg
-        self.field_precision = field_precision(getattr(cfg, "field_precision", "auto"), network_precision, device)
+        self.field_precision = field_precision(getattr(cfg, "field_precision", "auto"), network_precision, device,
+                                               baseline)
         self.device = torch.device(device)  # of the separated field; the knots stay on the CPU (host-side lookups)
         self.iterations = int(schedule.iterations)
         phases = schedule.plugins[self.name]  # STDR.stages
