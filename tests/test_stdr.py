@@ -768,7 +768,8 @@ def test_field_precision_auto_follows_the_deformation_networks(tmp_path, monkeyp
     ("scgs", "fp32", "cpu", ("avx512_bf16",), "bf16"),   # verified beside its fp32 network
     ("scgs", "fp32", "cpu", (), "fp32"),                 # no bf16 instructions: emulated, slower
     ("scgs", "fp32", "cuda", ("avx512_bf16",), "fp32"),  # not verified on a GPU
-    ("spgs", "fp32", "cpu", ("avx512_bf16",), "fp32"),   # not (yet) verified beside it
+    ("spgs", "fp32", "cpu", ("avx512_bf16",), "bf16"),
+    ("4dgs", "fp32", "cpu", ("avx512_bf16",), "fp32"),   # not (yet) verified beside it
     ("deform", "fp32", "cpu", ("avx512_bf16",), "fp32"),  # deform's field was checked beside its bf16 network only
     ("deform", "bf16", "cpu", ("avx512_bf16",), "bf16")])
 def test_field_precision_auto_beside_an_fp32_network_is_bf16_only_where_verified(baseline, network, device, flags, want):
