@@ -173,7 +173,7 @@ class ControlNodeDeformation(Deformation):
         """The hyper-coordinates [N, hyper_dim] (lr baseline.scgs.feature_lr), where absent."""
         if FEATURE_KEY not in params:
             n = params["means"].shape[0]
-            params[FEATURE_KEY] = nn.Parameter(torch.full((n, self.hyper_dim), -1e-2).to(params["means"].device))
+            params[FEATURE_KEY] = nn.Parameter(torch.full((n, self.hyper_dim), -1e-2, device=params["means"].device))
 
     def param_groups(self) -> list[dict]:
         return [*super().param_groups(), {"key": FEATURE_KEY, "lr": self.feature_lr}]

@@ -98,7 +98,7 @@ class SuperpointDeformation(Deformation):
         """The association logits [N, num_superpoints] (lr baseline.spgs.assoc_lr), where absent."""
         if ASSOC_KEY not in params:
             n = params["means"].shape[0]
-            params[ASSOC_KEY] = nn.Parameter(torch.zeros(n, self.m).to(params["means"].device))
+            params[ASSOC_KEY] = nn.Parameter(torch.zeros(n, self.m, device=params["means"].device))
 
     def param_groups(self) -> list[dict]:
         return [*super().param_groups(), {"key": ASSOC_KEY, "lr": self.assoc_lr}]

@@ -108,7 +108,7 @@ def uses_fused_adam(cfg, device: torch.device) -> bool:
     return bool(cfg.optim.get("fused_adam", True)) and device.type in ("cpu", "cuda")
 
 
-def gaussian_lr(cfg, model, key: str, step: int) -> float:
+def gaussian_lr(cfg, model, key: str, step: int, lrs: dict[str, float] | None = None) -> float:
     """The learning rate of per-Gaussian parameter `key` at `step`: 3DGS's schedule for the six
     Gaussian tensors, the owner's (the deformation module or a plug-in) for one it added."""
     o = cfg.optim
@@ -119,7 +119,7 @@ def gaussian_lr(cfg, model, key: str, step: int) -> float:
              "sh0": o.sh0_lr, "shN": o.shN_lr}
     if key in fixed:
         return fixed[key]
-    lrs = gaussian_lrs(model)
+    lrs = gaussian_lrs(model) if lrs is None else lrs
     if key in lrs:
         return lrs[key]
     owners = ", ".join(type(o).__name__ for o in [model.deform, *model.plugins])
@@ -172,8 +172,9 @@ def update_lrs(cfg, state, groups: list[dict], step: int) -> None:
     """Every optimizer's learning rate at `step`, times the guard's scale (1 until a recovery
     lowers it, train.guard.lr_factor); `groups`: net_groups of the run's model."""
     scale = state.guard.lr_scale
+    lrs = gaussian_lrs(state.model)  # the owners' constant rates, read once a step
     for k, opt in state.optimizers.items():
         for g in opt.param_groups:
-            g["lr"] = gaussian_lr(cfg, state.model, k, step) * scale
+            g["lr"] = gaussian_lr(cfg, state.model, k, step, lrs) * scale
     for spec, g in zip(groups, state.net_opt.param_groups):
         g["lr"] = net_lr(cfg, spec, step) * scale
