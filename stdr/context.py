@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING, Any, Optional
 
 from torch import Tensor
 
+from .errors import RegistrationError
+
 if TYPE_CHECKING:  # (annotations only: the classes live in lower layers)
     from .cameras import Camera
     from .gaussians import Gaussians
@@ -68,7 +70,7 @@ def check_hooks(register: str, cls: type, base: type, hooks: dict[str, int], ren
     mid-run."""
     for old, new in renamed.items():
         if any(old in vars(k) for k in cls.__mro__ if issubclass(k, base) and k is not base):
-            raise TypeError(f"{register}: {cls.__name__}.{old} is not part of the interface any more: {new}")
+            raise RegistrationError(f"{register}: {cls.__name__}.{old} is not part of the interface any more: {new}")
     for name, n in hooks.items():
         fn = inspect.getattr_static(cls, name, None)
         if fn is None or isinstance(fn, (classmethod, staticmethod, property)) or not callable(fn):
@@ -80,7 +82,7 @@ def check_hooks(register: str, cls: type, base: type, hooks: dict[str, int], ren
         positional = [p for p in params if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
         if len(required) > n or len(positional) < n:
             args = ", ".join(p.name for p in params)
-            raise TypeError(f"{register}: {cls.__name__}.{name}({args}) must take the step's context"
+            raise RegistrationError(f"{register}: {cls.__name__}.{name}({args}) must take the step's context"
                             f"{' and ' + str(n - 1) + ' more' if n > 1 else ''}: "
                             f"def {name}(self, ctx{', ...' if n > 1 else ''}) (ctx: stdr.context.StepContext, "
                             "with step, phase, t, camera, params, cond, deformed and render)")

@@ -31,6 +31,13 @@ class MissingInput(UserError, FileNotFoundError):
     """A file or folder the user named that is not there, or not of the kind needed."""
 
 
+class RegistrationError(UserError, TypeError, ValueError):
+    """A baseline, plug-in or strategy declared so that it cannot work (a hook without the step's
+    context, a capability without what backs it, a name taken twice): raised at registration, in
+    the package that declares it, and reported in one line that names the class, the hook or
+    argument, and the fix."""
+
+
 class MissingKey(UserError, KeyError):
     """A file the user handed over that lacks an entry it needs."""
 

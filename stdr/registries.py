@@ -24,6 +24,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Callable, Generic, Iterator, Optional, TypeVar
 
+from .errors import RegistrationError, UserError
+
 T = TypeVar("T")
 
 #: what a baseline can declare (its module's `capabilities`, checked by register_baseline) and a
@@ -79,7 +81,7 @@ class Registry(Mapping, Generic[T]):
         under a taken name is a ValueError naming both."""
         if name in self._items and self.owner(self._items[name]) is not self.owner(item):
             held = self.owner(self._items[name])
-            raise ValueError(f"{self.kind} {name!r} is already registered (by {getattr(held, '__name__', held)})")
+            raise RegistrationError(f"{self.kind} {name!r} is already registered (by {getattr(held, '__name__', held)})")
         self._items[name] = item
         for fn in self._listeners:
             fn(name, True)
@@ -95,7 +97,8 @@ class Registry(Mapping, Generic[T]):
     def discover(self) -> list[str]:
         """Import the built-in modules and load the entry-point group, once per process. Returns
         the names added. An entry point that fails, or registers nothing, is an error naming it
-        and its distribution."""
+        and its distribution: a RegistrationError (reported in one line) where its package declared
+        something wrongly, a RuntimeError with the traceback for anything else (an import, a bug)."""
         if self._discovered:
             return []
         self._discovered = True
@@ -111,11 +114,13 @@ class Registry(Mapping, Generic[T]):
                 obj = ep.load()
                 if callable(obj) and not isinstance(obj, type):
                     obj()
+            except UserError as e:  # a declaration its package can fix: one line, naming the entry point
+                raise RegistrationError(f"{where}: {e}") from e
             except Exception as e:
                 raise RuntimeError(f"{where} failed: {type(e).__name__}: {e}") from e
             if not (set(self._items) - had) and ep.name not in self._items:
-                raise RuntimeError(f"{where} registered nothing; it must name a function (or module) that calls "
-                                   f"{self.how}")
+                raise RegistrationError(f"{where} registered nothing; it must name a function (or module) that calls "
+                                        f"{self.how}")
         return sorted(set(self._items) - before)
 
     def get(self, name: str) -> T:

@@ -103,10 +103,10 @@ def register_eager():
 
 
 def _distribution(root: Path, entry: str, plugin_entry: str = "stdr_wobble:register_glow",
-                  configs: dict[str, str] | None = None) -> None:
+                  configs: dict[str, str] | None = None, toy: str = TOY) -> None:
     """configs: {path under the package's configs/ folder: YAML}, shipped through `stdr.configs`."""
     (root / "stdr_wobble").mkdir(parents=True)
-    (root / "stdr_wobble" / "__init__.py").write_text(TOY)
+    (root / "stdr_wobble" / "__init__.py").write_text(toy)
     info = root / "stdr_wobble-0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: stdr-wobble\nVersion: 0.1\n")
@@ -173,6 +173,31 @@ def test_a_broken_plugin_entry_point_is_an_error_that_names_it(tmp_path):
     assert p.returncode != 0
     assert ("entry point 'glow' = 'stdr_wobble:register' (group 'stdr.plugins', distribution stdr-wobble 0.1) "
             "registered nothing; it must name a function (or module) that calls stdr.plugins.register_plugin") in p.stderr
+
+
+def test_a_wrongly_declared_plugin_of_another_distribution_is_one_line_in_every_command(tmp_path):
+    """A plug-in whose loss still takes the earlier (params, step): each command that loads the
+    registries stops before it starts, with exit code 2 and one line naming the entry point, the
+    hook and the fix; no traceback."""
+    old = 'def regularizers(self, ctx):\n        return {"pull": -self.weight * ctx.params["opacities"].mean()}'
+    assert old in TOY
+    _distribution(tmp_path / "site", "stdr_wobble:register",
+                  toy=TOY.replace(old, 'def regularizers(self, params, step):\n        return {"pull": params["opacities"].mean()}'))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), str(ROOT)])}
+    commands = {"stdr-train": ["-m", "stdr.cli.train", "experiment=embedded_deform", f"hydra.run.dir={tmp_path / 'run'}"],
+                "stdr-eval": ["-m", "stdr.cli.eval", str(tmp_path / "run")],
+                "stdr-tool": ["-m", "stdr.cli.tool", "check-plugin", "glow"],
+                "stdr-export": ["-c", "import sys; from stdr.cli.view import export_main; export_main(sys.argv[1:])",
+                                str(tmp_path / "run"), "--times", "0"]}
+    for prog, args in commands.items():
+        p = _run(args, env)
+        assert p.returncode == 2, (prog, p.stderr[-3000:])
+        lines = p.stderr.strip().splitlines()
+        assert lines == [f"{prog}: error: entry point 'glow' = 'stdr_wobble:register_glow' (group 'stdr.plugins', "
+                         "distribution stdr-wobble 0.1): register_plugin('glow'): Glow.regularizers(params, step) must "
+                         "take the step's context: def regularizers(self, ctx) (ctx: stdr.context.StepContext, with "
+                         "step, phase, t, camera, params, cond, deformed and render)"], (prog, p.stderr[-3000:])
+    assert not (tmp_path / "run").exists()  # stopped before the run folder was made
 
 
 def test_a_strategy_from_another_distribution_is_an_option_of_stdr_train(tmp_path):

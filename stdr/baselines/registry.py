@@ -30,6 +30,7 @@ import numpy as np
 
 from ..registries import CAPABILITY_NAMES, Registry
 from ..context import check_hooks
+from ..errors import RegistrationError
 from .base import BaselineConfig, Deformation
 
 
@@ -77,14 +78,14 @@ def check_capabilities(name: str, module: type) -> None:
     caps = module.capabilities
     if isinstance(caps, str) or not isinstance(caps, (frozenset, set, tuple, list)) \
             or any(c not in CAPABILITY_NAMES for c in caps):
-        raise TypeError(f"register_baseline({name!r}): {module.__name__}.capabilities must be a set of names from "
+        raise RegistrationError(f"register_baseline({name!r}): {module.__name__}.capabilities must be a set of names from "
                         f"{CAPABILITY_NAMES}, got {caps!r} (docs/baselines.md, \"Capabilities\")")
     if "conditioning" in caps and "cond_dim" not in inspect.signature(module.config_kwargs).parameters:
-        raise TypeError(f"register_baseline({name!r}): {module.__name__} declares 'conditioning' but its "
+        raise RegistrationError(f"register_baseline({name!r}): {module.__name__} declares 'conditioning' but its "
                         "config_kwargs takes no cond_dim to pass on: implement config_kwargs(b, cond_dim, ...)")
     overrides = module.forward_rows is not Deformation.forward_rows
     if overrides != ("mixes_rows" in caps):
-        raise TypeError(f"register_baseline({name!r}): {module.__name__} " + (
+        raise RegistrationError(f"register_baseline({name!r}): {module.__name__} " + (
             "overrides forward_rows but does not declare 'mixes_rows' in its capabilities: add it (a Gaussian's "
             "deltas depend on other rows)" if overrides else
             "declares 'mixes_rows' but does not override forward_rows: implement forward_rows(params, t, cond, rows)"))
@@ -101,16 +102,16 @@ def register_baseline(name: str, module: type, config: type, in_grids: bool = Fa
     with bf16 matrix instructions (only where that was verified: docs/performance.md)."""
     for key, v in (("in_grids", in_grids), ("bf16_default", bf16_default)):
         if not isinstance(v, bool):
-            raise TypeError(f"register_baseline({name!r}): {key} must be True or False, got {v!r}")
+            raise RegistrationError(f"register_baseline({name!r}): {key} must be True or False, got {v!r}")
     if not (isinstance(module, type) and issubclass(module, Deformation)):
-        raise TypeError(f"register_baseline({name!r}): module must be a Deformation subclass, got {module!r}")
+        raise RegistrationError(f"register_baseline({name!r}): module must be a Deformation subclass, got {module!r}")
     check_capabilities(name, module)
     check_hooks(f"register_baseline({name!r})", module, Deformation, {"before_step": 1, "regularizers": 1}, RENAMED)
     if not (dataclasses.is_dataclass(config) and issubclass(config, BaselineConfig)):
-        raise TypeError(f"register_baseline({name!r}): config must be a dataclass subclassing BaselineConfig, "
+        raise RegistrationError(f"register_baseline({name!r}): config must be a dataclass subclassing BaselineConfig, "
                         f"got {config!r}")
     if config().name != name:
-        raise ValueError(f"register_baseline({name!r}): {config.__name__}.name defaults to {config().name!r}; "
+        raise RegistrationError(f"register_baseline({name!r}): {config.__name__}.name defaults to {config().name!r}; "
                          f"set `name: str = {name!r}`")
     return BASELINES.add(name, BaselineSpec(name, module, config, in_grids, bf16_default))
 

@@ -33,8 +33,6 @@ from ..model import has_model_entry, model_from_checkpoint, model_bytes
 from ..io.checkpoint import load_checkpoint, CKPT
 from ..plugins import registered_plugins
 
-register()
-
 
 def evaluate_dirs(runs: list[str], split: str | None, eval_cfg, render_cfg, reevaluate: bool,
                   out_dir: Path, base: str, device: str | None = None, remeasure: str | None = None,
@@ -267,6 +265,8 @@ def main() -> None:
         quoted = ",".join("'" + r.replace("'", "\\'") + "'" for r in runs)
         args.append(f"runs=[{quoted}]")
     sys.argv = args
+    with reported("stdr-eval"):  # a wrongly declared baseline or plug-in of an installed package: one line
+        register()
     check_overrides("stdr-eval", args[1:], "eval")  # a bad override: one line, exit code 2
     run_hydra_app("stdr-eval", _main)
 

@@ -27,8 +27,6 @@ from ..train.run import run_training
 from .common import check_overrides, reproducible_blas, run_hydra_app, use_fast_allocator_hint
 from .sweep import LAST_SWEEP
 
-register()
-
 
 POLL_S = 10.0  # seconds between looks at a sweep folder's pause files
 
@@ -220,6 +218,8 @@ def main() -> None:
     if "--cfg" in sys.argv or "-c" in sys.argv:
         if "--resolve" not in sys.argv:
             sys.argv.append("--resolve")
+    with reported("stdr-train"):  # a wrongly declared baseline or plug-in of an installed package: one line
+        register()
     check_overrides("stdr-train", sys.argv[1:])  # a bad override: one line, exit code 2
     if "-m" in sys.argv[1:] or "--multirun" in sys.argv[1:]:
         _say_sweep_size(sys.argv[1:])

@@ -10,16 +10,6 @@ import time
 from pathlib import Path
 
 from ..errors import UserError, reported
-from ..io.files import run_lock
-from ..view.core import VIEWS, open_run, unfinished_note
-from ..view.server import Viewer, check_port
-from ..view.browser import screenshot
-from ..view.video import KINDS, path_frames, render_videos, write_video
-from ..view.camera_path import read_camera_path
-from ..compression.file import model_source
-from ..io.checkpoint import source_line
-from ..model import load_model
-from ..io.export import check_times, export_times
 
 
 def _positive(kind):
@@ -35,8 +25,14 @@ def _positive(kind):
     return parse
 
 
+# The commands import the model's modules in their bodies, under `reported`: importing them
+# registers the baselines and plug-ins of the installed packages, and one declared wrongly is then
+# a one-line error of the command, not a traceback.
 @reported("stdr-view")  # bad input: one line, exit code 2
 def view_main(argv=None) -> None:
+    from ..view.browser import screenshot  # in the body: the note above view_main
+    from ..view.core import VIEWS, open_run, unfinished_note  # in the body: the note above view_main
+    from ..view.server import Viewer, check_port  # in the body: the note above view_main
     ap = argparse.ArgumentParser(prog="stdr-view", description="A web viewer of a trained stdr run (viser).")
     ap.add_argument("run", type=Path, help="a run directory (config.yaml + checkpoints/last.pt)")
     ap.add_argument("--port", type=int, default=8080)
@@ -97,6 +93,11 @@ def view_main(argv=None) -> None:
 
 @reported("stdr-render")  # bad input: one line, exit code 2
 def render_main(argv=None) -> None:
+    from ..compression.file import model_source  # in the body: the note above view_main
+    from ..io.checkpoint import source_line  # in the body: the note above view_main
+    from ..view.camera_path import read_camera_path  # in the body: the note above view_main
+    from ..view.core import VIEWS, open_run, unfinished_note  # in the body: the note above view_main
+    from ..view.video import KINDS, path_frames, render_videos, write_video  # in the body: the note above view_main
     ap = argparse.ArgumentParser(prog="stdr-render", description="Videos of a trained stdr run.")
     ap.add_argument("run", type=Path, help="a run directory (config.yaml + checkpoints/last.pt)")
     ap.add_argument("--out", type=Path, default=None, help="folder for the videos (default: RUN/videos)")
@@ -143,6 +144,12 @@ def render_main(argv=None) -> None:
 @reported("stdr-export")  # bad input: one line, exit code 2
 def export_main(argv=None) -> None:
     """stdr-export RUN --times 0 0.5 1 --out DIR: the model at each time as a 3DGS PLY."""
+    from ..compression.file import model_source  # in the body: the note above view_main
+    from ..io.checkpoint import source_line  # in the body: the note above view_main
+    from ..io.export import check_times, export_times  # in the body: the note above view_main
+    from ..io.files import run_lock  # in the body: the note above view_main
+    from ..model import load_model  # in the body: the note above view_main
+    from ..view.core import unfinished_note  # in the body: the note above view_main
     ap = argparse.ArgumentParser(prog="stdr-export", description="A trained run at given times as standard 3DGS "
                                  "PLY files (deformed, opacity with the plug-ins' factors), for splat viewers.")
     ap.add_argument("run", type=Path, help="a run directory (checkpoints/last.pt), a checkpoint file or a compact "

@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from ..gaussians import inverse_sigmoid
 from ..ops import sigmoid
 from ..render.projection import quat_to_rotmat
+from ..errors import RegistrationError
 from ..registries import Registry
 from ..render.reference import ALPHA_MIN
 
@@ -326,10 +327,10 @@ def register_strategy(name: str, cls: type) -> type:
     defaults to `name` (its fields are the `densify.*` keys of `densify=<name>`)."""
     import dataclasses
     if not (isinstance(cls, type) and issubclass(cls, DensifyStrategy) and dataclasses.is_dataclass(cls)):
-        raise TypeError(f"register_strategy({name!r}): the strategy must be a dataclass subclassing "
+        raise RegistrationError(f"register_strategy({name!r}): the strategy must be a dataclass subclassing "
                         f"stdr.densify.strategy.DensifyStrategy, got {cls!r}")
     if cls().name != name:
-        raise ValueError(f"register_strategy({name!r}): {cls.__name__}.name defaults to {cls().name!r}; "
+        raise RegistrationError(f"register_strategy({name!r}): {cls.__name__}.name defaults to {cls().name!r}; "
                          f"set `name: str = {name!r}`")
     return STRATEGIES.add(name, cls)
 

@@ -30,6 +30,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
+from ..errors import RegistrationError
 from ..registries import CAPABILITY_NAMES, Registry
 from .interface import Conditioner, Densifying, Plugin, Reporting, check_plugin_class  # noqa: F401  (the interface)
 
@@ -101,29 +102,29 @@ def register_plugin(name: str, plugin: type, config: type, label: Optional[str] 
     them still loads)."""
     PLUGINS.discover()  # the built-in and installed ones first, so a clash is seen either way
     if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
-        raise ValueError(f"register_plugin({name!r}): the name must be lower-case letters, digits and '_' "
+        raise RegistrationError(f"register_plugin({name!r}): the name must be lower-case letters, digits and '_' "
                          "(it is a config key and an experiment suffix)")
     if name in RESERVED_KEYS:
-        raise ValueError(f"register_plugin({name!r}): {name!r} is a config section of its own; choose another name")
+        raise RegistrationError(f"register_plugin({name!r}): {name!r} is a config section of its own; choose another name")
     if not (isinstance(plugin, type) and issubclass(plugin, Plugin)):
-        raise TypeError(f"register_plugin({name!r}): plugin must be a Plugin subclass, got {plugin!r}")
+        raise RegistrationError(f"register_plugin({name!r}): plugin must be a Plugin subclass, got {plugin!r}")
     check_plugin_class(f"register_plugin({name!r})", plugin)
     if plugin.from_config.__func__ is Plugin.from_config.__func__:
-        raise TypeError(f"register_plugin({name!r}): {plugin.__name__} must implement the classmethod from_config")
+        raise RegistrationError(f"register_plugin({name!r}): {plugin.__name__} must implement the classmethod from_config")
     if plugin.name != name:
-        raise ValueError(f"register_plugin({name!r}): {plugin.__name__}.name is {plugin.name!r}; set `name = {name!r}`")
+        raise RegistrationError(f"register_plugin({name!r}): {plugin.__name__}.name is {plugin.name!r}; set `name = {name!r}`")
     if not dataclasses.is_dataclass(config) or "enabled" not in {f.name for f in dataclasses.fields(config)} \
             or config().enabled is not False:
-        raise TypeError(f"register_plugin({name!r}): config must be a dataclass with `enabled: bool = False`, "
+        raise RegistrationError(f"register_plugin({name!r}): config must be a dataclass with `enabled: bool = False`, "
                         f"got {config!r}")
     if row_tags is not None and not callable(row_tags):
-        raise TypeError(f"register_plugin({name!r}): row_tags must be a function of the plug-in's config node, got {row_tags!r}")
+        raise RegistrationError(f"register_plugin({name!r}): row_tags must be a function of the plug-in's config node, got {row_tags!r}")
     need = requires if callable(requires) else (lambda pcfg, r=tuple(requires): r)
     check_requirements(name, need(config()))
     if baselines is not None and (isinstance(baselines, str) or not all(isinstance(b, str) for b in baselines)):
-        raise TypeError(f"register_plugin({name!r}): baselines must be a tuple of baseline names or None, got {baselines!r}")
+        raise RegistrationError(f"register_plugin({name!r}): baselines must be a tuple of baseline names or None, got {baselines!r}")
     if not isinstance(in_grids, bool):
-        raise TypeError(f"register_plugin({name!r}): in_grids must be True or False, got {in_grids!r}")
+        raise RegistrationError(f"register_plugin({name!r}): in_grids must be True or False, got {in_grids!r}")
     return PLUGINS.add(name, PluginSpec(name, plugin, config, label if label is not None else f"+{name}",
                                         **({"row_tags": row_tags} if row_tags is not None else {}), requires=need,
                                         baselines=None if baselines is None else tuple(baselines), in_grids=in_grids,
@@ -133,7 +134,7 @@ def register_plugin(name: str, plugin: type, config: type, label: Optional[str] 
 def check_requirements(name: str, need) -> None:
     """A plug-in's `requires` (evaluated): a tuple of known capability names."""
     if isinstance(need, str) or not isinstance(need, (tuple, list)) or any(c not in CAPABILITY_NAMES for c in need):
-        raise ValueError(f"register_plugin({name!r}): requires must give a tuple of capabilities from "
+        raise RegistrationError(f"register_plugin({name!r}): requires must give a tuple of capabilities from "
                          f"{CAPABILITY_NAMES}, got {need!r}")
 
 

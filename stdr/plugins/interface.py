@@ -25,6 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from ..context import StepContext, check_hooks
+from ..errors import RegistrationError
 
 
 class Plugin:
@@ -160,7 +161,7 @@ def check_plugin_class(register: str, cls: type) -> None:
         own = [k for k in vars(role) if not k.startswith("_")]
         defined = [k for k in own if any(k in vars(c) for c in cls.__mro__ if c not in (role, object))]
         if defined and not issubclass(cls, role):
-            raise TypeError(f"{register}: {cls.__name__} defines {', '.join(defined)} of the {role.__name__} role "
+            raise RegistrationError(f"{register}: {cls.__name__} defines {', '.join(defined)} of the {role.__name__} role "
                             f"but does not take the role, so they would never be called: "
                             f"class {cls.__name__}({role.__name__}, Plugin) (stdr.plugins.{role.__name__})")
 
