@@ -4,8 +4,9 @@ form goes through.
 One extension module per device kind, `cpu` (C++, vectorized, multi-threaded) and `cuda`, built
 just in time on first use with `torch.utils.cpp_extension` into a cache keyed by the sources,
 flags, torch version and CPU, or ahead of time with `stdr-build`. The CUDA one is built only where
-torch has CUDA. Each holds four kernel families (csrc/cpu/ops_cpu.cpp lists them), each bound in
-Python beside its torch twin, which the tests pin it to:
+torch has CUDA. The CPU one holds five kernel families and the CUDA one the first four
+(csrc/cpu/ops_cpu.cpp lists them), each bound in Python beside its torch twin, which the tests pin
+it to:
 
 | family | bindings | torch twin |
 |---|---|---|
@@ -13,6 +14,7 @@ Python beside its torch twin, which the tests pin it to:
 | HexPlane sampling | stdr/baselines/fourdgs.py `hexplane_compiled` | `HexPlaneField.features_torch` |
 | training loss | stdr/metrics.py `image_loss_compiled` | `image_loss` |
 | guard's check | stdr/train/guard.py `nonfinite_flags_compiled`, `guard_update_compiled` | `nonfinite_flags`, `Guard.flag_step` |
+| nearest points (CPU only) | stdr/knn.py `knn_direct` | `knn_direct_torch` (the same bits; CUDA runs it) |
 
 Whether a `null` switch picks a compiled form on a device is one table, stdr.verified.VERIFIED,
 read by `use_compiled`.

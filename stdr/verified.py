@@ -30,6 +30,9 @@ VERIFIED: dict[str, tuple[str, ...]] = {
     "train.guard.sync_free": ("cpu",),
     # 4dgs's HexPlane sampling (stdr.baselines.fourdgs.HexPlaneField.compiled_kind)
     "baseline.hexplane.compiled": ("cpu",),
+    # the search behind baseline.<name>.knn=direct (stdr.knn.knn_direct): the kernel and its twin
+    # give the same bits, so it is a speed choice only. CUDA has no kernel: it runs the twin
+    "baseline.knn_compiled": ("cpu",),
 }
 
 #: what a CUDA entry rests on: the measurement folder (in research/measurements) with its records

@@ -101,6 +101,10 @@ class BaselineConfig:
     # seconds of compilation a process (docs/performance.md); not measured on a GPU yet. 4dgs has no
     # compiled form of its network (its HexPlane sampling is a kernel: baseline.hexplane.compiled)
     compile: bool = False
+    # the direct nearest-neighbour search (`baseline.scgs.knn=direct`, `baseline.spgs.knn=direct`)
+    # as a compiled kernel (stdr.knn.knn_direct): null = where it has been checked
+    # (stdr.verified.VERIFIED: the CPU), false = its torch twin; both give the same bits
+    knn_compiled: Optional[bool] = None
 
 
 def mlp_kwargs(b: Any, cond_dim: int) -> dict:

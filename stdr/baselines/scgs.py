@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from ..ops import RowView, rows_of, scatter_mean, sigmoid, take_rows
-from ..knn import knn
+from ..knn import searcher
 from ..syncs import host_only
 from .base import BaselineConfig, Deformation, Deltas, flag_value, mlp_kwargs, set_flag, stage_start
 from .deform import DeformMLP
@@ -44,6 +44,9 @@ class ScgsConfig:
     num_nodes: int = 512
     hyper_dim: int = 8
     knn_k: int = 3
+    # the searches of every step (Gaussians to their nodes, nodes to nodes): "cdist" (torch.cdist +
+    # topk) or "direct" (exact coordinate differences, the compiled kernel on the CPU: stdr.knn)
+    knn: str = "cdist"
     node_stage_end: int = 10000     # nodes resampled by FPS over trajectories, skinning starts
     main_warmup: int = 3000         # node deltas detached for this many steps after the switch
     trajectory_samples: int = 16
@@ -119,8 +122,10 @@ class ControlNodeDeformation(Deformation):
                  t_freqs: int = 6, time_net: bool = True, time_out: int = 30, cond_dim: int = 0,
                  head_init_std: Optional[float] = 1e-5, feature_lr: float = 2.5e-3, arap_k: int = 10,
                  arap_dt: float = 0.05, arap_steps: Sequence[int] = (0, 5000, 10000, 20000, 20001),
-                 arap_weights: Sequence[float] = (1e-4, 1e-4, 1e-5, 1e-5, 0.0), seed: int = 0):
+                 arap_weights: Sequence[float] = (1e-4, 1e-4, 1e-5, 1e-5, 0.0), seed: int = 0,
+                 knn: str = "cdist", knn_compiled: Optional[bool] = None):
         super().__init__()
+        self.search = searcher("baseline.scgs.knn", knn, knn_compiled)  # the per-step nearest-neighbour search
         if node_stage_end < start_step:
             raise ValueError(f"baseline.scgs.node_stage_end ({node_stage_end}) must be >= the warm-up ({start_step})")
         self.m, self.hyper_dim, self.k = num_nodes, hyper_dim, knn_k
@@ -150,7 +155,7 @@ class ControlNodeDeformation(Deformation):
                     node_stage_end=c.node_stage_end, main_warmup=c.main_warmup,
                     trajectory_samples=c.trajectory_samples, local_frame=c.local_frame, feature_lr=c.feature_lr,
                     arap_k=c.arap_k, arap_dt=c.arap_dt, arap_steps=list(c.arap_steps),
-                    arap_weights=list(c.arap_weights), seed=seed)
+                    arap_weights=list(c.arap_weights), seed=seed, knn=c.knn, knn_compiled=b.knn_compiled)
 
     @classmethod
     def stages(cls, b):
@@ -205,7 +210,7 @@ class ControlNodeDeformation(Deformation):
             traj.append(x + dx)
         idx = farthest_point_sampling(torch.cat(traj, -1), self.m, self.gen)
         p = x[idx]
-        d2, _ = knn(p, p, min(3, self.m - 1), exclude_self=True)
+        d2, _ = self.search(p, p, min(3, self.m - 1), exclude_self=True)
         self.nodes.zero_()
         self.nodes[:, :3] = p
         self.node_log_radius.copy_(torch.log(d2.mean(1).sqrt().clamp_min(1e-6)))
@@ -229,7 +234,7 @@ class ControlNodeDeformation(Deformation):
         x = torch.cat([params["means"].detach(), params[FEATURE_KEY]], -1)
         nodes = torch.cat([self.nodes[:, :3].detach(), self.nodes[:, 3:]], -1)
         with torch.no_grad():
-            _, idx = knn(x.detach(), nodes.detach(), min(self.k, self.m))
+            _, idx = self.search(x.detach(), nodes.detach(), min(self.k, self.m))
         d2 = (x[:, None, :] - take_rows(nodes, idx)).square().sum(-1)
         return idx, d2
 
@@ -304,7 +309,7 @@ class ControlNodeDeformation(Deformation):
             t1 = float(torch.rand((), generator=g, device="cpu")) * (1.0 - self.arap_dt)
         t2 = t1 + self.arap_dt
         p = self.nodes[:, :3].detach()
-        _, nbr = knn(p, p, min(self.arap_k, self.m - 1), exclude_self=True)
+        _, nbr = self.search(p, p, min(self.arap_k, self.m - 1), exclude_self=True)
         cond_n = self._cond_or_zeros(None if cond is None or not self.cond_dim
                                      else self.node_conditioning(cond, *self.skinning(params)), self.m, p)
         p1 = p + self.node_deltas(p, t1, cond_n)[0]

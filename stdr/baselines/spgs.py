@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from ..ops import rows_of, scatter_mean, take_rows
-from ..knn import knn
+from ..knn import searcher
 from ..context import StepContext
 from .base import (BaselineConfig, Deformation, Deltas, apply_post_activation, flag_value, mlp_kwargs, set_flag,
                    stage_start)
@@ -37,6 +37,8 @@ class SpgsConfig:
 
     num_superpoints: int = 300
     knn_k: int = 5
+    # the searches of every step (Gaussians to superpoints): "cdist" or "direct" (stdr.knn; as scgs)
+    knn: str = "cdist"
     assoc_lr: float = 1e-3          # constant, as published (its schedule never applies)
     lambda_xyz: float = 1e-3        # property-reconstruction weights
     lambda_rot: float = 100.0
@@ -66,13 +68,16 @@ class SuperpointDeformation(Deformation):
         c = b.spgs
         return dict(mlp_kwargs(b, cond_dim), num_superpoints=c.num_superpoints, knn_k=c.knn_k,
                     start_step=stage_start(b, schedule), assoc_lr=c.assoc_lr,
-                    weights={"xyz": c.lambda_xyz, "rot": c.lambda_rot, "off": c.lambda_off}, seed=seed)
+                    weights={"xyz": c.lambda_xyz, "rot": c.lambda_rot, "off": c.lambda_off}, seed=seed,
+                    knn=c.knn, knn_compiled=b.knn_compiled)
 
     def __init__(self, num_superpoints: int = 300, knn_k: int = 5, start_step: int = 3000, depth: int = 8,
                  width: int = 256, skips=(4,), xyz_freqs: int = 10, t_freqs: int = 6, cond_dim: int = 0,
                  head_init_std: Optional[float] = None, assoc_lr: float = 1e-3,
-                 weights: Optional[dict] = None, seed: int = 0):
+                 weights: Optional[dict] = None, seed: int = 0, knn: str = "cdist",
+                 knn_compiled: Optional[bool] = None):
         super().__init__()
+        self.search = searcher("baseline.spgs.knn", knn, knn_compiled)  # the per-step nearest-neighbour search
         self.m, self.k, self.start_step = num_superpoints, knn_k, start_step
         self.cond_dim, self.assoc_lr = cond_dim, assoc_lr
         self.weights = dict(weights or {"xyz": 1e-3, "rot": 100.0, "off": 100.0})
@@ -115,11 +120,11 @@ class SuperpointDeformation(Deformation):
                              "lower baseline.spgs.num_superpoints")
         idx = farthest_point_sampling(x, self.m, torch.Generator().manual_seed(self.seed))
         self.centers.copy_(x[idx])
-        _, nearest = knn(x, self.centers, 1)
+        _, closest = self.search(x, self.centers, 1)
         with torch.no_grad():
             a = params[ASSOC_KEY]
             a.fill_(0.1)
-            a.scatter_(1, nearest, 1.0)
+            a.scatter_(1, closest, 1.0)
         set_flag(self, "ready", True)
 
     def compact_columns(self, params) -> dict[str, Tensor]:
@@ -129,14 +134,14 @@ class SuperpointDeformation(Deformation):
         if not flag_value(self, "ready"):
             return {}
         with torch.no_grad():
-            _, idx = knn(params["means"].detach(), self.centers, min(self.k, self.m))
+            _, idx = self.search(params["means"].detach(), self.centers, min(self.k, self.m))
         return {ASSOC_KEY: idx}
 
     def assignment(self, params) -> tuple[Tensor, Tensor, Tensor]:
         """(knn indices [N, K], soft weights [N, K], hard superpoint [N]) for the current centres."""
         x = params["means"].detach()
         with torch.no_grad():
-            _, idx = knn(x, self.centers, min(self.k, self.m))
+            _, idx = self.search(x, self.centers, min(self.k, self.m))
         G = torch.softmax(params[ASSOC_KEY].gather(1, idx), -1)
         hard = idx.gather(1, G.detach().argmax(-1, keepdim=True))[:, 0]
         return idx, G, hard

@@ -1,4 +1,4 @@
-// The CPU extension: one module, four kernel families, each in its own header beside the math it
+// The CPU extension: one module, five kernel families, each in its own header beside the math it
 // shares with the CUDA backend, each with a torch twin that the tests pin it to:
 //
 //   rasterizer (raster_cpu.h)   forward, backward, score, bin_pairs_split, forward_bounded, project_forward/backward
@@ -6,6 +6,7 @@
 //   HexPlane (hexplane_cpu.h)   hexplane_forward/backward          twin: stdr/baselines/fourdgs.py
 //   training loss (loss_cpu.h)  image_loss_forward/backward        twin: stdr/metrics.py image_loss
 //   guard (guard_cpu.h)         nonfinite_flags, guard_update      twin: stdr/train/guard.py
+//   nearest points (knn_cpu.h)  knn_direct                         twin: stdr/knn.py knn_direct
 //
 // Built and loaded by stdr/extension.py; the Python bindings of each family sit beside its twin.
 // One translation unit, so that every kernel is compiled as one unit as it always was.
@@ -13,6 +14,7 @@
 
 #include "guard_cpu.h"
 #include "hexplane_cpu.h"
+#include "knn_cpu.h"
 #include "loss_cpu.h"
 #include "raster_cpu.h"
 
@@ -34,4 +36,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // guard
   m.def("nonfinite_flags", &nonfinite_flags, "one bool per tensor: has a NaN or an infinity (CPU)");
   m.def("guard_update", &guard_update, "the sync-free guard's per-step update, in place (CPU)");
+  // nearest points
+  m.def("knn_direct", &knn_direct, "the k nearest points of each query, ties to the lower index (CPU)");
 }
