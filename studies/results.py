@@ -571,7 +571,7 @@ def build() -> tuple[str, str]:
              trained_table_status() + " "
              f"D-NeRF, the four scenes the tests use (400² copies at 200 px), budget=cpu, test split, {seeds}, fp32 "
              "(deform trains in bf16 by default on a CPU with bf16 matrix instructions since a731445, and "
-             "STDR's separated field beside deform, SC-GS and SP-GS since 2026-12-07 (CHANGELOG): "
+             "STDR's separated field beside every baseline since 2026-12-07/08 (CHANGELOG): "
              "`baseline.precision=fp32 stdr.field_precision=fp32` reproduces these runs); "
              f"runs: {prov['runs']}; code {prov['code'].split(' ')[0]}. "
              "From [docs/results.md](docs/results.md) (generated):", ""]

@@ -769,14 +769,15 @@ def test_field_precision_auto_follows_the_deformation_networks(tmp_path, monkeyp
     ("scgs", "fp32", "cpu", (), "fp32"),                 # no bf16 instructions: emulated, slower
     ("scgs", "fp32", "cuda", ("avx512_bf16",), "fp32"),  # not verified on a GPU
     ("spgs", "fp32", "cpu", ("avx512_bf16",), "bf16"),
-    ("4dgs", "fp32", "cpu", ("avx512_bf16",), "fp32"),   # not (yet) verified beside it
+    ("4dgs", "fp32", "cpu", ("avx512_bf16",), "bf16"),
+    ("4dgs", "fp32", "cpu", (), "fp32"),  # a CPU without bf16 matrix instructions
     ("deform", "fp32", "cpu", ("avx512_bf16",), "fp32"),  # deform's field was checked beside its bf16 network only
     ("deform", "bf16", "cpu", ("avx512_bf16",), "bf16")])
 def test_field_precision_auto_beside_an_fp32_network_is_bf16_only_where_verified(baseline, network, device, flags, want):
     from stdr.plugins.stdr.plugin import FIELD_BF16_BESIDE_FP32, field_precision
     assert field_precision("auto", network, device, baseline, cpu_flags=flags) == want
     assert field_precision("fp32", network, device, baseline, cpu_flags=flags) == "fp32"  # an explicit value wins
-    assert FIELD_BF16_BESIDE_FP32 <= {"scgs", "spgs", "4dgs"}
+    assert FIELD_BF16_BESIDE_FP32 == {"scgs", "spgs", "4dgs"}  # deform's network is bf16 itself there
 
 
 def test_a_checkpoint_from_before_the_field_precision_key_resumes_in_fp32(tmp_path):

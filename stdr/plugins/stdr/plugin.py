@@ -46,7 +46,7 @@ FIELD_BF16_DEFAULT = True
 #: on a CPU with bf16 matrix instructions: the +STDR step is faster and the val rule passed with the
 #: network in fp32 (research/measurements/precision_val, "STDR's field in bf16 beside SC-GS, SP-GS
 #: and 4DGS"; docs/performance.md)
-FIELD_BF16_BESIDE_FP32 = frozenset({"scgs", "spgs"})
+FIELD_BF16_BESIDE_FP32 = frozenset({"scgs", "spgs", "4dgs"})
 
 
 def field_precision(requested: str, network_precision: str, device, baseline: str = "", cpu_flags=None) -> str:

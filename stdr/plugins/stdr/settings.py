@@ -56,8 +56,9 @@ class StdrConfig:
     field_pe_xyz: bool = False    # also feed PE(x) (baseline.xyz_freqs) to the field
     # the field's arithmetic: fp32; bf16 = products in bfloat16 and its fast batch norm and dropout
     # (field.py); auto = the deformation network's (baseline.precision as the run resolved it: bf16
-    # for deform on a CPU with bf16 matrix instructions), its bf16 being verified
-    # (plugin.FIELD_BF16_DEFAULT). A resumed run keeps the arithmetic it trained with
+    # for deform on a CPU with bf16 matrix instructions), and bf16 beside the fp32 networks of the
+    # baselines where that was verified (plugin.FIELD_BF16_BESIDE_FP32) on such a CPU. A resumed
+    # run keeps the arithmetic it trained with
     field_precision: str = "auto"
     # the field's own lr schedule: null follows the deformation network's (baseline.lr_*); a value
     # starts at the freeze (where the field starts training) and decays log-linearly to
