@@ -179,3 +179,39 @@ def test_training_with_the_direct_search_is_the_same_with_the_kernel_or_the_twin
     assert out["kernel"].keys() == out["twin"].keys()
     for k in out["kernel"]:
         assert torch.equal(out["kernel"][k], out["twin"][k]), k
+
+
+@pytest.mark.slow
+def test_scgs_with_stdr_searches_once_a_step_and_trains_the_same_bits(tmp_path, monkeypatch):
+    """SC-GS+STDR's ARAP term reads the node conditioning of the render's skinning: it reuses the
+    render's nearest-node search of the same step instead of searching again (a pure speed-up:
+    the same bits as searching twice), and searches afresh after any update."""
+    from stdr.baselines.scgs import ControlNodeDeformation
+    from stdr.testing import tiny_config
+    from stdr.tools.identity_check import SCHEDULE, STDR_PHASES
+    from stdr.train.trainer import Trainer
+    out, searches = {}, {}
+    for mode in ("reuse", "search twice"):
+        if mode == "search twice":
+            plain = ControlNodeDeformation.neighbours
+            monkeypatch.setattr(ControlNodeDeformation, "neighbours", lambda self, params, reuse=False: plain(self, params))
+        tr = Trainer(tiny_config(tmp_path / mode, ["experiment=embedded_scgs_stdr", *SCHEDULE, *STDR_PHASES]),
+                     tmp_path / mode / "run")
+        deform, calls = tr.state.model.deform, []
+        search = deform.search
+
+        def counted(query, points, k, exclude_self=False, search=search, calls=calls):
+            calls.append((tr.step, exclude_self))
+            return search(query, points, k, exclude_self)
+        deform.search = counted
+        tr.train()
+        # the steps with the ARAP term (after the node switch and its detached window): the
+        # Gaussians' search (exclude_self False) once a step with reuse, twice without
+        arap = range(int(tr.cfg.baseline.scgs.node_stage_end) + int(tr.cfg.baseline.scgs.main_warmup) + 1,
+                     int(tr.cfg.optim.iterations))
+        searches[mode] = {s: sum(1 for st, ex in calls if st == s and not ex) for s in arap}
+        out[mode] = {k: v.detach().clone() for k, v in tr.state.model.params.items()}
+        out[mode].update({f"net.{k}": v.detach().clone() for k, v in deform.state_dict().items()})
+    assert set(searches["reuse"].values()) == {1} and set(searches["search twice"].values()) == {2}, searches
+    for k in out["reuse"]:
+        assert torch.equal(out["reuse"][k], out["search twice"][k]), k

@@ -226,21 +226,35 @@ class ControlNodeDeformation(Deformation):
             self.resample_nodes(params, cond)
             set_flag(self, "stage", 2)
         self._detach = flag_value(self, "stage") == 2 and step < self.node_stage_end + self.main_warmup
+        self._last_search = None  # a step's searches start afresh
 
     # -------------------------------------------------------------- skinning
-    def neighbours(self, params) -> tuple[Tensor, Tensor]:
+    def neighbours(self, params, reuse: bool = False) -> tuple[Tensor, Tensor]:
         """(node indices [N, K], squared distances [N, K] with gradients to the hyper-coordinates
-        and node radii) of each Gaussian in [xyz, hyper] space, node xyz detached."""
+        and node radii) of each Gaussian in [xyz, hyper] space, node xyz detached.
+
+        The last search is kept with the tensors it read and their versions. With `reuse`, a
+        search on the same, unchanged tensors takes its indices from there: the ARAP term's node
+        conditioning, after the render of the same step, so +STDR searches once a step. Any
+        in-place update (the optimizer) or new tensor (densification) searches again, and the
+        distances are always recomputed (they carry the gradients)."""
+        sources = (params["means"], params[FEATURE_KEY], self.nodes)
+        key = [(t, t._version) for t in sources]
         x = torch.cat([params["means"].detach(), params[FEATURE_KEY]], -1)
         nodes = torch.cat([self.nodes[:, :3].detach(), self.nodes[:, 3:]], -1)
-        with torch.no_grad():
-            _, idx = self.search(x.detach(), nodes.detach(), min(self.k, self.m))
+        last = getattr(self, "_last_search", None)
+        if reuse and last is not None and all(a is b and va == vb for (a, va), (b, vb) in zip(key, last[0])):
+            idx = last[1]
+        else:
+            with torch.no_grad():
+                _, idx = self.search(x.detach(), nodes.detach(), min(self.k, self.m))
+            self._last_search = (key, idx)
         d2 = (x[:, None, :] - take_rows(nodes, idx)).square().sum(-1)
         return idx, d2
 
-    def skinning(self, params) -> tuple[Tensor, Tensor]:
-        """(node indices [N, K], skinning weights [N, K]) of every Gaussian."""
-        idx, d2 = self.neighbours(params)
+    def skinning(self, params, reuse: bool = False) -> tuple[Tensor, Tensor]:
+        """(node indices [N, K], skinning weights [N, K]) of every Gaussian (`reuse`: neighbours)."""
+        idx, d2 = self.neighbours(params, reuse)
         return idx, skinning_weights(d2, take_rows(self.node_log_radius.exp(), idx), take_rows(self.node_weight, idx))
 
     def node_conditioning(self, cond: Optional[Tensor], idx: Tensor, w: Tensor) -> Optional[Tensor]:
@@ -310,8 +324,8 @@ class ControlNodeDeformation(Deformation):
         t2 = t1 + self.arap_dt
         p = self.nodes[:, :3].detach()
         _, nbr = self.search(p, p, min(self.arap_k, self.m - 1), exclude_self=True)
-        cond_n = self._cond_or_zeros(None if cond is None or not self.cond_dim
-                                     else self.node_conditioning(cond, *self.skinning(params)), self.m, p)
+        cond_n = self._cond_or_zeros(None if cond is None or not self.cond_dim  # the render's search, reused
+                                     else self.node_conditioning(cond, *self.skinning(params, reuse=True)), self.m, p)
         p1 = p + self.node_deltas(p, t1, cond_n)[0]
         p2 = p + self.node_deltas(p, t2, cond_n)[0]
         return {"scgs_arap": lam * arap_energy(p1, p2, nbr)}
