@@ -1,6 +1,7 @@
 // The nearest-neighbour family of the CPU extension (ops_cpu.cpp binds it; torch twin
-// stdr.knn.knn_direct): knn_direct, the k nearest of a set of 3D points for each query, as the
-// per-step searches of SC-GS (Gaussians to control nodes) and SP-GS (to superpoints) need.
+// stdr.knn.knn_direct_torch): knn_direct, the k nearest of a set of points (of any dimension) for
+// each query, as the per-step searches of SC-GS (Gaussians to control nodes, 11-D) and SP-GS (to
+// superpoints, 3-D) need.
 #pragma once
 
 #include <torch/extension.h>
