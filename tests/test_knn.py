@@ -194,13 +194,14 @@ def test_scgs_with_stdr_searches_once_a_step_and_trains_the_same_bits(tmp_path, 
     for mode in ("reuse", "search twice"):
         if mode == "search twice":
             plain = ControlNodeDeformation.neighbours
-            monkeypatch.setattr(ControlNodeDeformation, "neighbours", lambda self, params, reuse=False: plain(self, params))
+            monkeypatch.setattr(ControlNodeDeformation, "neighbours",
+                                lambda self, params, reuse=False, plain=plain: plain(self, params))
         tr = Trainer(tiny_config(tmp_path / mode, ["experiment=embedded_scgs_stdr", *SCHEDULE, *STDR_PHASES]),
                      tmp_path / mode / "run")
         deform, calls = tr.state.model.deform, []
         search = deform.search
 
-        def counted(query, points, k, exclude_self=False, search=search, calls=calls):
+        def counted(query, points, k, exclude_self=False, search=search, calls=calls, tr=tr):
             calls.append((tr.step, exclude_self))
             return search(query, points, k, exclude_self)
         deform.search = counted
