@@ -1,4 +1,4 @@
-"""Exact k-nearest neighbours of 3D points, in two forms.
+"""Exact k-nearest neighbours of points (any dimension), in two forms.
 
 * `knn`: torch.cdist's distances and torch.topk (no pytorch3d / simple-knn): used where a search
   runs once (initial scales, STDR's mask neighbourhoods) and, with `baseline.<name>.knn=cdist`, in
@@ -28,11 +28,10 @@ KNN_MAX_K = 16
 KNN_FORMS = ("cdist", "direct")
 
 
-def _check(query: Tensor, points: Tensor, k: int, exclude_self: bool) -> int:
+def _check(query: Tensor, points: Tensor, k: int, exclude_self: bool) -> None:
     kk = k + 1 if exclude_self else k
     if points.shape[0] < kk:
         raise ValueError(f"knn: need at least {kk} points, got {points.shape[0]}")
-    return kk
 
 
 def knn(query: Tensor, points: Tensor, k: int, exclude_self: bool = False,
@@ -110,7 +109,8 @@ def nearest(form: str, query: Tensor, points: Tensor, k: int, exclude_self: bool
         return knn_direct(query, points, k, exclude_self, compiled)
     if form == "cdist":
         return knn(query, points, k, exclude_self)
-    raise ConfigError(f"knn={form!r}: use one of {', '.join(KNN_FORMS)}")
+    check_knn_form("knn", form)  # raises: no other form
+    raise AssertionError(form)
 
 
 def searcher(key: str, form: str, compiled: Optional[bool] = None) -> Callable[..., tuple[Tensor, Tensor]]:
